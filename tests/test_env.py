@@ -1,0 +1,163 @@
+"""WheelLoader-v0: Gymnasium API, determinism, the vector env, robustness, bad input."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+
+import wl_env  # noqa: F401  (registers the ids)
+from agents.operator import OperatorPolicy, run_episode
+from wl_env.env import WheelLoaderEnv
+
+BRAKINGS = ["service", "tc"]
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_gymnasium_check_env(braking):
+    gym_check_env(gym.make("WheelLoader-v0", braking=braking).unwrapped, skip_render_check=True)
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_sb3_check_env(braking):
+    from stable_baselines3.common.env_checker import check_env
+
+    check_env(WheelLoaderEnv(braking=braking), warn=True)
+
+
+def test_registered_with_version_and_spec():
+    spec = gym.spec("WheelLoader-v0")
+    assert spec.version == 0 and spec.vector_entry_point is not None
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_deterministic_under_a_seed(braking):
+    def rollout(seed):
+        env = gym.make("WheelLoader-v0", braking=braking, init_noise=0.5)
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        out = [obs]
+        for _ in range(80):
+            obs, r, te, tr, _ = env.step(rng.uniform(-1, 1, 4).astype(np.float32))
+            out.append(np.append(obs, r))
+            if te or tr:
+                obs, _ = env.reset()
+        return np.concatenate(out)
+
+    np.testing.assert_array_equal(rollout(7), rollout(7))
+    assert not np.array_equal(rollout(7), rollout(8))
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_vector_env_equals_single_envs(braking):
+    n = 6
+    venv = gym.make_vec("WheelLoader-v0", num_envs=n, vectorization_mode="vector_entry_point", braking=braking, init_noise=0.3)
+    envs = [gym.make("WheelLoader-v0", braking=braking, init_noise=0.3) for _ in range(n)]
+    ov, _ = venv.reset(seed=11)
+    singles = [e.reset(seed=11 + i)[0] for i, e in enumerate(envs)]
+    np.testing.assert_array_equal(ov, np.stack(singles))
+    pilot = OperatorPolicy(braking)
+    rng = np.random.default_rng(2)
+    done = np.zeros(n, dtype=bool)
+    ends = 0
+    for k in range(250):
+        a = pilot.act(ov) + rng.normal(0, 0.2, (n, 4)).astype(np.float32)
+        a = np.clip(a, -1, 1)
+        ov, rv, tv, trv, iv = venv.step(a)
+        for i, e in enumerate(envs):
+            if done[i]:
+                o, _ = e.reset()
+                r, t, tr = 0.0, False, False
+            else:
+                o, r, t, tr, _ = e.step(a[i])
+            np.testing.assert_array_equal(o, ov[i])
+            assert r == rv[i] and t == tv[i] and tr == trv[i]
+        done = tv | trv
+        ends += int(done.sum())
+    assert ends >= n  # every loader finished at least one episode and was auto-reset
+
+
+def test_many_random_steps_stay_finite():
+    venv = gym.make_vec("WheelLoader-v0", num_envs=200, vectorization_mode="vector_entry_point", braking="tc", init_noise=1.0)
+    venv.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(500):  # 10^5 env steps of uniformly random actions, both ends of every range
+        a = rng.uniform(-1.2, 1.2, (200, 4)).astype(np.float32)
+        obs, rew, te, tr, info = venv.step(a)
+        assert np.isfinite(obs).all() and np.isfinite(rew).all()
+        assert venv.observation_space.contains(obs)
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_operator_completes_the_cycle(braking):
+    env = gym.make("WheelLoader-v0", braking=braking)
+    r = run_episode(env, OperatorPolicy(braking), seed=0)
+    assert r["completed"] and not r["stalled"]
+    assert abs(r["final_H"] - 5.0) < 0.05
+
+
+def test_info_reports_limits_each_step():
+    env = gym.make("WheelLoader-v0")
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([1, 1, -1, -1], dtype=np.float32))
+    for key in ("t", "fuel_g", "phase", "gear", "tc_mode", "phi", "saturations", "violations", "controls"):
+        assert key in info
+    assert set(info["saturations"]) == {"torque_limit", "governor", "relief_pressure", "pump_flow"}
+    assert info["gear"] == -60.0 and info["phase"] == 1 and info["fuel_g"] > 0
+
+
+def test_stall_ends_the_episode_as_failure():
+    env = gym.make("WheelLoader-v0", braking="tc")
+    env.reset(seed=0)
+    # no fuel while lifting hard: the engine speed falls below omega_min
+    for _ in range(200):
+        _, r, te, tr, info = env.step(np.array([-1, 1, -1, -1], dtype=np.float32))
+        if te or tr:
+            break
+    assert te and info["stalled"] and not info["is_success"]
+
+
+def test_reward_weights_trace_fuel_and_time():
+    a = np.array([1, 0.2, -1, -1], dtype=np.float32)
+    rewards = {}
+    for w in (0.0, 1.0):
+        env = gym.make("WheelLoader-v0", w_fuel=w, w_time=1 - w, reward={"shaping": 0.0})
+        env.reset(seed=0)
+        rewards[w] = env.step(a)[1]
+    assert rewards[0.0] == pytest.approx(-0.1 / 12.0)  # time only: dt / time_ref
+    assert rewards[1.0] < 0 and rewards[1.0] != rewards[0.0]
+
+
+@pytest.mark.parametrize(
+    "action, match",
+    [
+        ([np.nan, 0, 0, 0], "finite"),
+        ([0, 0, 0], "shape"),
+        ([[0, 0, 0, 0]], "shape"),
+    ],
+)
+def test_bad_actions_raise(action, match):
+    env = gym.make("WheelLoader-v0").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=match):
+        env.step(np.array(action, dtype=np.float32))
+
+
+def test_bad_configuration_raises():
+    with pytest.raises(ValueError, match="braking"):
+        gym.make("WheelLoader-v0", braking="engine")
+    with pytest.raises(ValueError, match="M_load"):
+        gym.make("WheelLoader-v0", params={"M_load": -5})
+    with pytest.raises(ValueError, match="unknown LoaderParams"):
+        gym.make("WheelLoader-v0", params={"payload": 5})
+    with pytest.raises(ValueError, match="dt"):
+        gym.make("WheelLoader-v0", dt=0.0)
+    with pytest.raises(ValueError, match="w_fuel"):
+        gym.make("WheelLoader-v0", w_fuel=float("nan"))
+    with pytest.raises(ValueError, match="num_envs"):
+        gym.make_vec("WheelLoader-v0", num_envs=0, vectorization_mode="vector_entry_point")
+    venv = gym.make_vec("WheelLoader-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        venv.step(np.full((2, 4), math.nan, dtype=np.float32))

@@ -1,0 +1,248 @@
+"""``WheelLoader-v0``: a wheel loader driving the short loading cycle."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from wl_env import cycle
+from wl_env.episode import OBS_HIGH, OBS_LOW, CycleStepper, RewardConfig
+from wl_env.params import LoaderParams, resolve
+from wl_env.physics import torque_converter
+
+
+def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None, w_time: float | None) -> RewardConfig:
+    """A RewardConfig from a config, a dict of fields or None, with the weight shortcuts applied."""
+    if reward is None:
+        reward = RewardConfig()
+    elif isinstance(reward, dict):
+        known = set(RewardConfig.__dataclass_fields__)
+        unknown = set(reward) - known
+        if unknown:
+            raise ValueError(f"unknown reward field(s) {sorted(unknown)}; known: {sorted(known)}")
+        reward = RewardConfig(**reward)
+    elif not isinstance(reward, RewardConfig):
+        raise ValueError(f"reward must be a RewardConfig, a dict or None, got {type(reward).__name__}")
+    changes = {k: v for k, v in (("w_fuel", w_fuel), ("w_time", w_time)) if v is not None}
+    if changes:
+        import dataclasses
+
+        reward = dataclasses.replace(reward, **changes)
+    return reward
+
+
+class WheelLoaderEnv(gym.Env):
+    """A wheel loader in the short loading cycle: reverse 6.6 m from the pile while lifting the load,
+    brake, stop, drive 6.6 m forward to the truck, brake and stop with the bucket raised to 5 m.
+
+    The plant is the model of Nezhadali & Eriksson (diesel engine, torque converter, gearbox, hydraulic
+    lift; 4 states), integrated with RK4 (``dt`` control interval, ``substeps`` per interval). The cycle
+    has four phases with fixed gears (Table II); ``braking="service"`` stops the reversing machine with
+    the service brakes in neutral, ``braking="tc"`` with the torque converter (forward gear while still
+    reversing, TC mode I).
+
+    ## Action Space
+
+    ``Box(-1, 1, (4,), float32)``, mapped affinely onto the physical ranges:
+
+    | Num | Action                         | -1          | +1                  |
+    |-----|--------------------------------|-------------|---------------------|
+    | 0   | fuel injection U_mf            | 0 mg/cycle  | U_mf_max (260 mg)   |
+    | 1   | bucket vertical acceleration   | -2.5 m/s^2  | +2.5 m/s^2          |
+    | 2   | service brake torque U_b       | 0 N m       | U_b_max (57 800 N m)|
+    | 3   | shift request                  | hold        | > 0: end phase 1 or 3 |
+
+    The brake acts only in the phases that use it (phase 2 with service braking, phase 4). Phase 2 ends
+    by itself at the reversing point (V = 0). Values outside [-1, 1] are clipped; NaN raises.
+    The machine saturates what it cannot do (torque limit, governor at omega_max, relief pressure, pump
+    flow, no lowering of the bucket); ``info["saturations"]`` says which were active.
+
+    ## Observation Space
+
+    ``Box((12,), float32)``, normalized:
+
+    | Num | Observation                          | Min  | Max |
+    |-----|--------------------------------------|------|-----|
+    | 0   | engine speed omega / omega_max       | 0    | 1.5 |
+    | 1   | vehicle speed V / V_max (fwd > 0)    | -1.5 | 1.5 |
+    | 2   | bucket height H / H_T                | 0    | 1.5 |
+    | 3   | bucket speed V_b (m/s)               | 0    | 2   |
+    | 4   | position s / 6.6 m (start = 0)       | -2.5 | 1.5 |
+    | 5   | distance to the leg's end / 6.6 m    | -1.5 | 2.5 |
+    | 6   | elapsed time / max_time              | 0    | 1.5 |
+    | 7   | fuel used (kg)                       | 0    | 5   |
+    | 8-11| phase one-hot (1, 2, 3, 4)           | 0    | 1   |
+
+    ## Rewards
+
+    Each step: ``-(w_fuel * fuel_g / fuel_ref_g + w_time * dt / time_ref)``, minus ``violation`` times
+    the time-integrated relative excess over the driver's limits (deceleration 0.18 g, speed V_max),
+    plus a potential-based progress term (``shaping``). Once: minus ``target_distance`` per metre of
+    error at the reversing point (s = -6.6 m) and at the end (s = 0), minus ``target_height`` per metre of
+    bucket-height error at the end, minus ``failure`` for a stall or leaving the site. See
+    :class:`wl_env.episode.RewardConfig`; ``w_fuel``/``w_time`` trace the fuel-time trade-off.
+
+    ## Starting State
+
+    omega = 1500 rpm, V = 0, H = 0.7 m, V_b = 0, s = 0, phase 1 (Table II); ``init_noise`` > 0 adds a
+    seeded uniform perturbation of omega (+-init_noise * 100 rpm) and H (+-init_noise * 0.1 m).
+
+    ## Episode End
+
+    | Outcome    | Condition                                                                 |
+    |------------|---------------------------------------------------------------------------|
+    | terminated | cycle completed: phase 4, V = 0 and the bucket still (``info["is_success"]`` if the reversing point, the end position (5 cm) and the height (2 cm) are met) |
+    | terminated | failure: engine stall (omega < omega_min) or off the site (s < -13.2 m or s > 6.6 m) |
+    | truncated  | elapsed time >= ``max_time`` (default 40 s)                                |
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+
+    def __init__(
+        self,
+        braking: str = "service",
+        params: LoaderParams | dict | None = None,
+        dt: float = 0.1,
+        substeps: int = 1,
+        max_time: float = 40.0,
+        reward: RewardConfig | dict | None = None,
+        w_fuel: float | None = None,
+        w_time: float | None = None,
+        init_noise: float = 0.0,
+        render_mode: str | None = None,
+    ) -> None:
+        self.params = resolve(params)
+        self.braking = cycle.check_braking(braking)
+        if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+            raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.init_noise = float(init_noise)
+        self.core = CycleStepper(self.params, braking, dt, substeps, max_time, make_reward_config(reward, w_fuel, w_time))
+        self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+        self._gears = self.core.sim._tables_py[0]
+        self._renderer = None
+        self._y: tuple = ()
+        self._phase = 1
+        self._t = 0.0
+        self._rev_err = math.nan
+        self._violation = 0.0
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        if options:
+            raise ValueError(f"WheelLoaderEnv.reset takes no options, got {sorted(options)}")
+        p = self.params
+        omega, H = p.omega_0, p.H_0
+        if self.init_noise > 0.0:
+            du = self.np_random.uniform(-1.0, 1.0, size=2)
+            omega += float(du[0]) * self.init_noise * 100.0 * math.pi / 30.0
+            H += float(du[1]) * self.init_noise * 0.1
+        self._y = (float(omega), 0.0, float(H), 0.0, 0.0, 0.0)
+        self._phase, self._t, self._rev_err, self._violation = 1, 0.0, math.nan, 0.0
+        if self.render_mode == "human":
+            self.render()
+        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0}
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if not self._y:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (4,):
+            raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be finite numbers in [-1, 1], got {a.tolist()}")
+        a0, a1, a2, a3 = (min(max(v, -1.0), 1.0) for v in a.tolist())
+        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a0, a1, a2, a3))
+        self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
+        self._rev_err, self._violation = r["rev_err"], r["violation"]
+        if self.render_mode == "human":
+            self.render()
+        return self._obs(), float(r["reward"]), bool(r["terminated"]), bool(r["truncated"]), self._info(r)
+
+    def _obs(self) -> np.ndarray:
+        obs = np.array(self.core.observation(self._y, self._phase, self._t), dtype=np.float32)
+        return np.clip(obs, OBS_LOW, OBS_HIGH)
+
+    def _info(self, r: dict) -> dict[str, Any]:
+        p = self.params
+        omega, V = self._y[0], self._y[1]
+        gear = self._gears[self._phase]
+        phi = torque_converter.speed_ratio(V, omega, gear, p)
+        u_mf, u_ab, u_b = r["u"]
+        cmd_mf = min(max(r["u_cmd"][0], 0.0), p.U_mf_max)
+        cmd_ab = min(max(r["u_cmd"][1], p.U_ab_bounds[0]), p.U_ab_bounds[1])
+        return {
+            "t": self._t,
+            "fuel_g": self._y[5] * 1000.0,
+            "phase": self._phase,
+            "gear": gear,
+            "tc_mode": torque_converter.operating_mode(phi) if gear != 0 else 0,
+            "phi": phi,
+            "state": self._y[:4],
+            "s": self._y[4],
+            "controls": (u_mf, u_ab, u_b),
+            "saturations": {
+                "torque_limit": cmd_mf > r["u_mf_torque"] + 1e-9,
+                "governor": u_mf < min(cmd_mf, r["u_mf_torque"]) - 1e-9,
+                "relief_pressure": cmd_ab > r["u_ab_pressure"] + 1e-9,
+                "pump_flow": u_ab < min(cmd_ab, r["u_ab_pressure"]) - 1e-9,
+            },
+            "violations": {"excess": r["excess"], "max_excess": self._violation},
+            "reversing_error": None if math.isnan(self._rev_err) else self._rev_err,  # m, None until reached
+            "is_success": bool(r["success"]),
+            "completed": bool(r["completed"]),
+            "stalled": bool(r["stalled"]),
+            "off_site": bool(r["off_site"]),
+        }
+
+    # ------------------------------------------------------------------ extras
+    @property
+    def state(self) -> np.ndarray:
+        """The model state [omega (rad/s), V (m/s), H (m), V_b (m/s)]."""
+        return np.array(self._y[:4])
+
+    @property
+    def phase(self) -> int:
+        return self._phase
+
+    @property
+    def position(self) -> float:
+        """Travelled position s (m, forward > 0)."""
+        return self._y[4]
+
+    @property
+    def fuel_g(self) -> float:
+        return self._y[5] * 1000.0
+
+    @property
+    def time(self) -> float:
+        return self._t
+
+    def render(self) -> np.ndarray | None:
+        from wl_env.rendering import render_frame
+
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'")
+            return None
+        frame = render_frame(self)
+        if self.render_mode == "human":
+            from wl_env.rendering import show
+
+            self._renderer = show(frame, self._renderer)
+            return None
+        return frame
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._renderer[0])
+            self._renderer = None

@@ -1,0 +1,146 @@
+"""Native vectorized ``WheelLoader-v0``: N loaders stepped together as numpy arrays.
+
+Built by ``gymnasium.make_vec("WheelLoader-v0", num_envs=N, vectorization_mode="vector_entry_point")``.
+It runs the same :class:`~wl_env.episode.CycleStepper` as the single environment on arrays of shape
+(N,), so loader i follows exactly the trajectory of a single ``WheelLoaderEnv`` seeded with ``seed + i``.
+Finished loaders are reset on the next call to ``step`` (Gymnasium's next-step autoreset).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from wl_env import cycle
+from wl_env.env import make_reward_config
+from wl_env.episode import OBS_HIGH, OBS_LOW, CycleStepper, RewardConfig
+from wl_env.params import LoaderParams, resolve
+
+
+class WheelLoaderVectorEnv(VectorEnv):
+    """N wheel loaders in the short loading cycle (same arguments as ``WheelLoaderEnv``)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        braking: str = "service",
+        params: LoaderParams | dict | None = None,
+        dt: float = 0.1,
+        substeps: int = 1,
+        max_time: float = 40.0,
+        reward: RewardConfig | dict | None = None,
+        w_fuel: float | None = None,
+        w_time: float | None = None,
+        init_noise: float = 0.0,
+        render_mode: str | None = None,
+    ) -> None:
+        if not (isinstance(num_envs, int) and num_envs >= 1):
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if render_mode is not None:
+            raise ValueError("the vector WheelLoader-v0 does not render; use the single environment")
+        if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+            raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+        self.num_envs = num_envs
+        self.params = resolve(params)
+        self.braking = cycle.check_braking(braking)
+        self.init_noise = float(init_noise)
+        self.core = CycleStepper(self.params, braking, dt, substeps, max_time, make_reward_config(reward, w_fuel, w_time))
+        self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.single_observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.render_mode = None
+        self._rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(num_envs)]
+        n = num_envs
+        self._y = tuple(np.zeros(n) for _ in range(6))
+        self._phase = np.ones(n, dtype=np.int64)
+        self._t = np.zeros(n)
+        self._rev_err = np.full(n, np.nan)
+        self._violation = np.zeros(n)
+        self._needs_reset = np.zeros(n, dtype=bool)
+        self._started = False
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
+        if options:
+            raise ValueError(f"WheelLoaderVectorEnv.reset takes no options, got {sorted(options)}")
+        if seed is not None:
+            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed list must have num_envs={self.num_envs} entries, got {len(seeds)}")
+            self._rngs = [np.random.default_rng(s) for s in seeds]  # as gymnasium's np_random(seed)
+        self._reset_where(np.ones(self.num_envs, dtype=bool))
+        self._started = True
+        return self._obs(), {}
+
+    def _reset_where(self, mask: np.ndarray) -> None:
+        p = self.params
+        idx = np.flatnonzero(mask)
+        omega = np.full(idx.size, p.omega_0)
+        H = np.full(idx.size, p.H_0)
+        if self.init_noise > 0.0:
+            for j, i in enumerate(idx):
+                du = self._rngs[i].uniform(-1.0, 1.0, size=2)
+                omega[j] += float(du[0]) * self.init_noise * 100.0 * math.pi / 30.0
+                H[j] += float(du[1]) * self.init_noise * 0.1
+        y = tuple(a.copy() for a in self._y)
+        for a in y:
+            a[idx] = 0.0
+        y[0][idx] = omega
+        y[2][idx] = H
+        self._y = y
+        self._phase[idx] = 1
+        self._t[idx] = 0.0
+        self._rev_err[idx] = np.nan
+        self._violation[idx] = 0.0
+        self._needs_reset[idx] = False
+
+    def step(self, actions: Any):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, 4):
+            raise ValueError(f"actions must have shape ({self.num_envs}, 4), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1)).tolist()
+            raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
+        a = np.clip(a, -1.0, 1.0)
+        resetting = self._needs_reset.copy()
+        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
+        self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
+        self._rev_err, self._violation = r["rev_err"], r["violation"]
+        reward = np.asarray(r["reward"], dtype=np.float64)
+        terminated = np.asarray(r["terminated"], dtype=bool)
+        truncated = np.asarray(r["truncated"], dtype=bool)
+        success = np.asarray(r["success"], dtype=bool)
+        if resetting.any():  # next-step autoreset: these envs start anew and ignore their action
+            self._reset_where(resetting)
+            reward[resetting] = 0.0
+            terminated[resetting] = False
+            truncated[resetting] = False
+            success[resetting] = False
+        self._needs_reset = terminated | truncated
+        infos = {
+            "t": self._t.copy(),
+            "fuel_g": self._y[5] * 1000.0,
+            "phase": self._phase.copy(),
+            "is_success": success,
+            "reversing_error": self._rev_err.copy(),
+        }
+        return self._obs(), reward, terminated, truncated, infos
+
+    def _obs(self) -> np.ndarray:
+        cols = self.core.observation(self._y, self._phase, self._t)
+        obs = np.stack([np.broadcast_to(c, (self.num_envs,)) for c in cols], axis=1).astype(np.float32)
+        return np.clip(obs, OBS_LOW, OBS_HIGH)
+
+    @property
+    def states(self) -> np.ndarray:
+        """Model states, shape (N, 4): [omega, V, H, V_b]."""
+        return np.stack(self._y[:4], axis=1)
