@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Callable
 
 SUBCOMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
@@ -27,6 +28,54 @@ def _params_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _ocp_cmd(args: argparse.Namespace) -> int:
+    from mpc.ocp import OCPSettings, solve_ocp
+
+    objective = {"time": "time", "fuel": "fuel", "weighted": "weighted"}[args.objective]
+    if args.time is not None:
+        if args.objective != "fuel":
+            raise ValueError("--time fixes the cycle time of the minimum-fuel problem: use it with --objective fuel")
+        objective = "fuel_at_time"
+    if args.objective == "weighted" and args.w_fuel is None:
+        raise ValueError("--objective weighted needs --w-fuel W (0..1, the fuel weight W1; W2 = 1 - W1)")
+    params = _params_from(args)
+    settings = OCPSettings(solver=args.solver) if args.solver else None
+    _progress(f"solving the {args.braking} {objective} OCP ...")
+    r = solve_ocp(args.braking, objective, T=args.time, w_fuel=args.w_fuel, params=params, settings=settings)
+    r.save(args.out)
+    v = r.verification
+    print(f"{args.braking} {objective}: T = {r.T:.3f} s, fuel = {r.fuel_g:.2f} g, phases "
+          f"{', '.join(f'{d:.2f}' for d in r.phase_durations)} s, {r.iterations} iterations, {r.wall_time:.2f} s; "
+          f"re-simulated: end position {100 * v['final_position_error_m']:+.1f} cm, height "
+          f"{100 * v['final_height_error_m']:+.1f} cm, max violation {100 * v['max_violation']:.2f} % -> {args.out}")
+    return 0
+
+
+def _pareto_cmd(args: argparse.Namespace) -> int:
+    from mpc.pareto import pareto_front
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    brakings = ["service", "tc"] if args.braking == "both" else [args.braking]
+    for b in brakings:
+        front = pareto_front(b, n_points=args.points, params=_params_from(args), cache=args.cache,
+                             use_cache=not args.no_cache, progress=_progress)
+        path = front.save(out / f"pareto_{b}.json")
+        print(f"{b}: {len(front.T)} points, T {front.T_min:.3f}..{front.T_fuel_opt:.3f} s, fuel "
+              f"{front.fuel_g[0]:.2f}..{front.fuel_min_g:.2f} g -> {path}")
+    return 0
+
+
+def _params_from(args: argparse.Namespace):
+    from wl_env.params import LoaderParams
+
+    return LoaderParams.from_dict(json.loads(args.params)) if getattr(args, "params", None) else None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="wl",
@@ -40,6 +89,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print as JSON")
     p.add_argument("--set", metavar="JSON", help='overrides, e.g. \'{"M_load": 12000}\' (validated)')
     p.set_defaults(func=_params_cmd)
+
+    p = sub.add_parser("ocp", help="solve the cycle's optimal control problem (the benchmark)")
+    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    p.add_argument("--objective", choices=["time", "fuel", "weighted"], default="time")
+    p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel")
+    p.add_argument("--w-fuel", type=float, metavar="W", help="fuel weight W1 in [0, 1] for --objective weighted")
+    p.add_argument("--solver", choices=["ipopt", "fatrop"], help="NLP solver (default ipopt)")
+    p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
+    p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the result")
+    p.set_defaults(func=_ocp_cmd)
+
+    p = sub.add_parser("pareto", help="the fuel-time Pareto front (cached)")
+    p.add_argument("--braking", choices=["service", "tc", "both"], default="both")
+    p.add_argument("--points", type=int, default=8, help="cycle times on the front (default 8)")
+    p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
+    p.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
+    p.add_argument("--no-cache", action="store_true", help="solve again even if cached")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for pareto_<braking>.json")
+    p.set_defaults(func=_pareto_cmd)
     return parser
 
 
@@ -56,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, RuntimeError, json.JSONDecodeError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError, OSError, json.JSONDecodeError) as exc:
         print(f"wl: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -592,7 +592,15 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
         if best is None or value < best[2] - 1e-9:
             best = (z, info, value)
     if best is None:
-        raise OCPError(f"no start converged for the {braking} {objective} problem: " + "; ".join(errors))
+        statuses = sorted({e.rsplit("status ", 1)[-1] for e in errors})
+        hint = ""
+        if objective == "fuel_at_time" and any("Infeasible" in s for s in statuses):
+            hint = (f"; no cycle of T = {T:.3f} s exists within the constraints (below the minimum cycle time?"
+                    f" see `wl ocp --objective time --braking {braking}`)")
+        elif any("Infeasible" in s for s in statuses):
+            hint = "; the targets cannot be met within the constraints (e.g. H_T out of the boom's reach)"
+        raise OCPError(f"{ocp.settings.solver} found no optimum for the {braking} {objective} problem from "
+                       f"{len(errors)} start(s), solver status: {', '.join(statuses)}{hint}")
     z, info, _ = best
     sol = ocp.unpack(z)
     fuel_g, T_sol = ocp.objective_parts(z)

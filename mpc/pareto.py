@@ -1,0 +1,206 @@
+"""The fuel-time Pareto front of the cycle: minimum fuel at fixed cycle times, cached on disk.
+
+The sweep runs from the minimum-time cycle to the fuel-optimal one. Every point is warm-started from
+its neighbour (continuation) on one mesh fine enough for the longest cycle, re-simulated, and written
+to the cache as soon as it is solved, so an interrupted sweep resumes where it stopped. The cache key
+is the braking alternative, the parameter fingerprint and the mesh.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from mpc.ocp import (
+    OCPError,
+    OCPResult,
+    OCPSettings,
+    refined_mesh,
+    solve_ocp,
+    verification_passed,
+    write_json_atomic,
+)
+from mpc.verify import verify_result
+from wl_env import cycle
+from wl_env.params import LoaderParams, resolve
+
+CACHE_ENV = "WL_CACHE_DIR"
+
+
+def cache_dir(path: str | os.PathLike | None = None) -> Path:
+    """Where solved optima are kept: ``path``, else $WL_CACHE_DIR, else ~/.cache/wheel-loader-gym."""
+    if path is not None:
+        return Path(path)
+    env = os.environ.get(CACHE_ENV)
+    return Path(env) if env else Path.home() / ".cache" / "wheel-loader-gym"
+
+
+@dataclass
+class ParetoFront:
+    """Minimum fuel against cycle time for one braking alternative (points sorted by T)."""
+
+    braking: str
+    T: list[float]
+    fuel_g: list[float]
+    params_fingerprint: str
+    T_min: float
+    T_fuel_opt: float
+    fuel_min_g: float
+    mesh: list[int]
+    wall_time: float = 0.0
+    points: list[dict[str, Any]] = field(default_factory=list)  # per point: T, fuel, verification summary
+
+    def fuel_at(self, T: float) -> float:
+        """Optimal fuel (g) at cycle time T, interpolated linearly on the front (T_min <= T <= T_fuel_opt)."""
+        if not math.isfinite(T):
+            raise ValueError(f"cycle time must be finite, got {T!r}")
+        if T < self.T_min - 1e-6:
+            raise ValueError(
+                f"cycle time {T:.3f} s is impossible: the minimum cycle time with {self.braking} braking is "
+                f"{self.T_min:.3f} s"
+            )
+        if T >= self.T_fuel_opt:
+            raise ValueError(
+                f"cycle time {T:.3f} s lies beyond the fuel-optimal cycle ({self.T_fuel_opt:.3f} s); "
+                f"use optimal_fuel_at(), which solves such points on demand"
+            )
+        return float(pchip(np.asarray(self.T), np.asarray(self.fuel_g), T))
+
+    def save(self, path: str | os.PathLike) -> Path:
+        return write_json_atomic(path, self.__dict__)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ParetoFront":
+        data = json.loads(Path(path).read_text())
+        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+
+
+def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
+    """Monotone piecewise-cubic interpolation (Fritsch-Carlson): follows the convex front between points
+    without overshoot, where a straight chord would overstate the optimal fuel."""
+    h = np.diff(x)
+    delta = np.diff(y) / h
+    m = np.zeros_like(y)
+    m[0], m[-1] = delta[0], delta[-1]
+    for k in range(1, len(x) - 1):
+        if delta[k - 1] * delta[k] > 0:
+            w1, w2 = 2 * h[k] + h[k - 1], h[k] + 2 * h[k - 1]
+            m[k] = (w1 + w2) / (w1 / delta[k - 1] + w2 / delta[k])
+    k = int(np.clip(np.searchsorted(x, xq) - 1, 0, len(x) - 2))
+    t = (xq - x[k]) / h[k]
+    h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+    return float(h00 * y[k] + h10 * h[k] * m[k] + h01 * y[k + 1] + h11 * h[k] * m[k + 1])
+
+
+def _key(braking: str, p: LoaderParams, n_points: int) -> str:
+    return f"{braking}_{p.fingerprint()}_n{n_points}"
+
+
+def pareto_front(
+    braking: str = "service",
+    n_points: int = 8,
+    params: LoaderParams | dict | None = None,
+    cache: str | os.PathLike | None = None,
+    use_cache: bool = True,
+    progress: Callable[[str], None] | None = None,
+    max_interval: float = 0.15,
+) -> ParetoFront:
+    """The Pareto front with ``n_points`` cycle times from the minimum time to the fuel optimum.
+
+    Solved points are cached (one JSON per point plus the front); a cached front is returned at once.
+    """
+    cycle.check_braking(braking)
+    if not (isinstance(n_points, int) and 3 <= n_points <= 100):
+        raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
+    p = resolve(params)
+    say = progress or (lambda msg: None)
+    folder = cache_dir(cache) / "pareto" / _key(braking, p, n_points)
+    front_file = folder / "front.json"
+    if use_cache and front_file.exists():
+        return ParetoFront.load(front_file)
+    folder.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+
+    def cached_solve(name: str, **kwargs: Any) -> OCPResult:
+        path = folder / f"{name}.json"
+        if use_cache and path.exists():
+            return OCPResult.load(path)
+        result = solve_ocp(braking, params=p, **kwargs)
+        result.save(path)
+        return result
+
+    say(f"[{braking}] minimum time")
+    r_time = cached_solve("min_time", objective="time")
+    say(f"[{braking}] minimum time {r_time.T:.3f} s, {r_time.fuel_g:.2f} g; minimum fuel")
+    r_fuel = cached_solve("min_fuel", objective="fuel")
+    say(f"[{braking}] minimum fuel {r_fuel.fuel_g:.2f} g at {r_fuel.T:.3f} s")
+    # One mesh for the sweep: fine enough for the longest (fuel-optimal) cycle.
+    mesh = refined_mesh(r_fuel.phase_durations, tuple(r_fuel.mesh), max_interval)
+    settings = OCPSettings(intervals=mesh)
+    # Points cluster towards the minimum time, where the front bends most.
+    times = r_time.T + (r_fuel.T - r_time.T) * np.linspace(0.0, 1.0, n_points) ** 2
+    points: list[OCPResult] = [r_time]
+    previous = r_time
+    for i, T in enumerate(times[1:-1], start=1):
+        say(f"[{braking}] point {i + 1}/{n_points}: minimum fuel at T = {T:.3f} s")
+        try:
+            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings, warm_start=previous)
+        except OCPError:
+            # continuation lost the way: start afresh from templates at this T
+            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings)
+        points.append(r)
+        previous = r
+    points.append(r_fuel)
+    fuel = [r.fuel_g for r in points]
+    # Continuation from the other end: a point that the neighbour on the long side solves better wins.
+    for i in range(len(points) - 2, 0, -1):
+        try:
+            alt = solve_ocp(braking, objective="fuel_at_time", T=float(times[i]), params=p, settings=settings,
+                            warm_start=points[i + 1], verify=False)
+        except OCPError:
+            continue
+        if alt.fuel_g < fuel[i] - 1e-6:
+            alt.verification = verify_result(alt, p)
+            alt.verification["passed"] = verification_passed(alt.verification)
+        if alt.fuel_g < fuel[i] - 1e-6 and alt.verification["passed"]:
+            say(f"[{braking}] T = {times[i]:.3f} s improved from the long side: {fuel[i]:.3f} -> {alt.fuel_g:.3f} g")
+            alt.save(folder / f"T_{times[i]:.4f}.json")
+            points[i], fuel[i] = alt, alt.fuel_g
+    front = ParetoFront(
+        braking=braking, T=[float(r.T) for r in points], fuel_g=fuel, params_fingerprint=p.fingerprint(),
+        T_min=float(r_time.T), T_fuel_opt=float(r_fuel.T), fuel_min_g=float(r_fuel.fuel_g), mesh=list(mesh),
+        wall_time=time.perf_counter() - t0,
+        points=[{"T": r.T, "fuel_g": r.fuel_g, "mesh": r.mesh, "verified": r.verification.get("passed"),
+                 "final_position_error_m": r.verification.get("final_position_error_m"),
+                 "final_height_error_m": r.verification.get("final_height_error_m"),
+                 "max_violation": r.verification.get("max_violation")} for r in points],
+    )
+    front.save(front_file)
+    return front
+
+
+def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | dict | None = None,
+                    cache: str | os.PathLike | None = None, front: ParetoFront | None = None) -> float:
+    """Minimum fuel (g) at cycle time T: interpolated on the front, solved on demand past the fuel optimum.
+
+    Raises ``ValueError`` for a cycle time below the minimum.
+    """
+    front = front or pareto_front(braking, params=params, cache=cache)
+    if T < front.T_fuel_opt:
+        return front.fuel_at(T)
+    # Slower than the fuel-optimal cycle: fuel at that T is its own optimum (cached like the front).
+    p = resolve(params)
+    path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}" / f"T_{T:.3f}.json"
+    if path.exists():
+        return OCPResult.load(path).fuel_g
+    r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,
+                  settings=replace(OCPSettings(), intervals=tuple(front.mesh)))
+    r.save(path)
+    return r.fuel_g

@@ -1,0 +1,136 @@
+"""The optimal control benchmark: converges, reproduces in simulation, refines, fails clearly."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mpc.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
+from mpc.pareto import ParetoFront, pchip
+from mpc.scoring import score_run
+from wl_env.params import DEFAULT_PARAMS
+
+BRAKINGS = ["service", "tc"]
+
+
+@pytest.fixture(scope="module")
+def optima():
+    return {(b, obj): solve_ocp(b, obj) for b in BRAKINGS for obj in ("time", "fuel")}
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+@pytest.mark.parametrize("objective", ["time", "fuel"])
+def test_optimum_reproduces_in_simulation(optima, braking, objective):
+    r = optima[(braking, objective)]
+    v = r.verification
+    assert r.success and v["passed"]
+    assert abs(v["reversing_error_m"]) <= 0.05
+    assert abs(v["final_position_error_m"]) <= 0.05
+    assert abs(v["final_height_error_m"]) <= 0.02
+    assert v["max_violation"] <= 0.01
+    assert abs(v["fuel_rel_error"]) <= 0.01  # the simulated fuel is the optimizer's fuel
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_boundary_conditions_and_constraints_in_the_solution(optima, braking):
+    r = optima[(braking, "time")]
+    x = np.asarray(r.states)
+    s = np.asarray(r.position)
+    phase = np.asarray(r.phase)
+    p = DEFAULT_PARAMS
+    assert x[0] == pytest.approx([p.omega_0, 0.0, p.H_0, 0.0])
+    assert x[-1][1] == pytest.approx(0.0, abs=1e-6) and x[-1][2] == pytest.approx(p.H_T, abs=1e-6)
+    assert s[-1] == pytest.approx(0.0, abs=1e-6) and s.min() == pytest.approx(-p.distance, abs=1e-6)
+    assert all(d >= 0.1 - 1e-9 for d in r.phase_durations) and sum(r.phase_durations) == pytest.approx(r.T)
+    assert list(np.unique(phase)) == [1, 2, 3, 4] and (np.diff(phase) >= 0).all()
+    assert len(r.controls) == len(r.t) - 1
+    # IPOPT relaxes bounds by 1e-8 relative (bound_relax_factor)
+    assert (x[:, 0] >= p.omega_min - 1e-5).all() and (x[:, 0] <= p.omega_max + 1e-5).all()
+    assert (x[:, 3] >= -1e-7).all()  # the bucket is never lowered
+    reversing = phase[:-1] <= 2
+    assert (x[:-1][reversing, 1] <= 1e-7).all() and (x[:-1][~reversing, 1] >= -1e-7).all()
+
+
+def test_minimum_time_is_faster_and_minimum_fuel_is_leaner(optima):
+    for b in BRAKINGS:
+        t_opt, f_opt = optima[(b, "time")], optima[(b, "fuel")]
+        assert t_opt.T < f_opt.T and f_opt.fuel_g < t_opt.fuel_g
+        assert 6.0 < t_opt.T < 12.0  # the short loading cycle takes seconds, not minutes
+
+
+def test_tc_braking_costs_more_fuel_at_equal_cycle_time():
+    service = solve_ocp("service", "fuel_at_time", T=10.0)
+    tc = solve_ocp("tc", "fuel_at_time", T=10.0)
+    assert service.T == pytest.approx(10.0) and tc.T == pytest.approx(10.0)
+    assert tc.fuel_g > service.fuel_g
+
+
+def test_tc_braking_is_slower_in_the_minimum_time_cycle(optima):
+    assert optima[("tc", "time")].T > optima[("service", "time")].T
+
+
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_mesh_refinement_moves_the_objective_less_than_half_a_percent(optima, braking):
+    base = optima[(braking, "time")]
+    fine = solve_ocp(braking, "time", settings=OCPSettings(intervals=tuple(2 * n for n in base.mesh)),
+                     warm_start=base, verify=False)
+    assert fine.T == pytest.approx(base.T, rel=0.005)
+
+
+def test_smoothing_homotopy_moves_the_objective_little(optima):
+    for r in optima.values():
+        first, last = r.smoothing[0]["objective"], r.smoothing[-1]["objective"]
+        assert r.smoothing[-1]["k"] == 0.0
+        assert abs(first - last) / last < 0.01
+
+
+def test_impossible_cycle_time_raises_with_solver_status():
+    with pytest.raises(OCPError, match="Infeasible"):
+        solve_ocp("service", "fuel_at_time", T=4.0, verify=False)
+
+
+def test_height_out_of_reach_is_rejected():
+    with pytest.raises(ValueError, match="H_T"):
+        solve_ocp("service", "time", params={"H_T": 5.3})
+
+
+def test_bad_requests_raise():
+    with pytest.raises(ValueError, match="objective"):
+        solve_ocp("service", "speed")
+    with pytest.raises(ValueError, match="braking"):
+        solve_ocp("engine", "time")
+    with pytest.raises(ValueError, match="w_fuel"):
+        solve_ocp("service", "weighted", w_fuel=1.5)
+
+
+def test_weighted_objective_lies_between_the_extremes(optima):
+    r = solve_ocp("service", "weighted", w_fuel=0.5, warm_start=optima[("service", "time")])
+    assert optima[("service", "time")].T <= r.T <= optima[("service", "fuel")].T + 1e-6
+
+
+def test_result_json_round_trip(optima, tmp_path):
+    r = optima[("service", "time")]
+    path = r.save(tmp_path / "r.json")
+    data = json.loads(path.read_text())
+    for key in ("braking", "objective", "T", "fuel_g", "phase_durations", "t", "states", "controls", "phase"):
+        assert key in data
+    back = OCPResult.load(path)
+    assert back.T == r.T and back.states == r.states and back.phase == r.phase
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(ValueError, match="missing fields"):
+        OCPResult.load(tmp_path / "bad.json")
+
+
+def test_front_interpolation_and_scoring():
+    T = [8.0, 9.0, 11.0, 15.0, 21.0]
+    fuel = [95.0, 70.0, 55.0, 49.0, 47.5]
+    front = ParetoFront("service", T, fuel, "x", 8.0, 21.0, 47.5, [20, 12, 20, 12])
+    assert front.fuel_at(9.0) == pytest.approx(70.0)
+    mid = front.fuel_at(10.0)
+    assert 55.0 < mid < 70.0 and mid < pchip(np.array(T), np.array(fuel), 10.0) + 1e-12
+    with pytest.raises(ValueError, match="impossible"):
+        front.fuel_at(7.0)
+    s = score_run(10.0, mid * 1.1, "service", front=front)
+    assert s.time_gap == pytest.approx(10.0 / 8.0 - 1) and s.fuel_gap == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="fuel_g"):
+        score_run(10.0, float("nan"), "service", front=front)
