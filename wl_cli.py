@@ -70,6 +70,34 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _mpc_cmd(args: argparse.Namespace) -> int:
+    from mpc.mpc import MPCConfig, run_closed_loop
+    from mpc.ocp import write_json_atomic
+
+    if args.target_time is not None:
+        config = MPCConfig(mode="target_time", target_time=args.target_time)
+    elif args.w_fuel is not None:
+        config = MPCConfig(mode="weighted", w_fuel=args.w_fuel)
+    else:
+        config = MPCConfig(mode="time")
+    plant = None
+    if args.payload_scale != 1.0 or args.rolling_scale != 1.0:
+        from wl_env.params import resolve
+
+        plant = resolve(_params_from(args)).variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
+    _progress(f"MPC ({config.mode}) driving the {args.braking} cycle ...")
+    r = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant, score=not args.no_score)
+    write_json_atomic(args.out, r)
+    st = r["solve_time"]
+    line = (f"{args.braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
+            f"solve time median {1e3 * st['median_s']:.1f} ms, p95 {1e3 * st['p95_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
+            f"{st['fallbacks']} fallbacks")
+    if "score" in r:
+        line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
+    print(line + f" -> {args.out}")
+    return 0 if r["completed"] else 1
+
+
 def _params_from(args: argparse.Namespace):
     from wl_env.params import LoaderParams
 
@@ -108,6 +136,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-cache", action="store_true", help="solve again even if cached")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for pareto_<braking>.json")
     p.set_defaults(func=_pareto_cmd)
+
+    p = sub.add_parser("mpc", help="drive the cycle with the receding-horizon MPC and score it")
+    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--min-time", action="store_true", help="minimum cycle time (default)")
+    g.add_argument("--target-time", type=float, metavar="T", help="minimum fuel, finishing by T seconds")
+    g.add_argument("--w-fuel", type=float, metavar="W", help="weighted fuel/time objective, fuel weight W")
+    p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")
+    p.add_argument("--payload-scale", type=float, default=1.0, help="plant payload / model payload (mismatch study)")
+    p.add_argument("--rolling-scale", type=float, default=1.0, help="plant rolling resistance / model's")
+    p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
+    p.add_argument("--out", required=True, metavar="FILE.json")
+    p.set_defaults(func=_mpc_cmd)
     return parser
 
 

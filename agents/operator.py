@@ -81,26 +81,5 @@ class OperatorPolicy:
         return self.act(obs)
 
 
-def run_episode(env, policy, seed: int | None = None) -> dict:
-    """Roll one episode; returns time, fuel, success and the trajectory (t, states, controls, phase)."""
-    obs, info = env.reset(seed=seed)
-    if hasattr(policy, "reset"):
-        policy.reset()
-    ts, states, controls, phases = [0.0], [list(env.unwrapped.state)], [], [1]
-    total, info = 0.0, {}
-    while True:
-        obs, r, term, trunc, info = env.step(policy.act(obs))
-        total += r
-        ts.append(info["t"])
-        states.append(list(info["state"]))
-        controls.append(list(info["controls"]))
-        phases.append(info["phase"])
-        if term or trunc:
-            break
-    return {
-        "T": info["t"], "fuel_g": info["fuel_g"], "success": info["is_success"], "completed": info["completed"],
-        "return": total, "reversing_error": info["reversing_error"], "final_s": info["s"],
-        "final_H": info["state"][2], "max_excess": info["violations"]["max_excess"],
-        "t": ts, "states": states, "controls": controls, "phase": phases, "truncated": bool(trunc),
-        "stalled": info["stalled"], "terminated": bool(term)
-    }
+# run_episode lives with the environment; kept importable from here.
+from wl_env.rollout import run_episode  # noqa: E402,F401

@@ -36,6 +36,7 @@ X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])  # omega, V, H, V_b, s
 U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
+TARGET_WEIGHT = 1.0e4  # MPC: objective units per unit of relative target miss (15 per cm at 6.6 m)
 
 
 class OCPError(RuntimeError):
@@ -54,14 +55,20 @@ class OCPSettings:
     solver: str = "ipopt"
     linear_solver: str = "mumps"
     print_level: int = 0
+    tighten: float = 0.0  # fraction by which the deceleration limit is tightened (MPC robustness margin)
+    omega_margin: float = 0.0  # rad/s kept above omega_min (MPC: a plan on the stall limit stalls the plant)
+    exec_interval: float = 0.1  # s, MPC only: the first control holds this long (the env's control step)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
         if len(self.intervals) != 4 or any(int(n) < 2 for n in self.intervals):
             raise ValueError(f"intervals must be 4 integers >= 2 (one per phase), got {self.intervals}")
         if not 1 <= self.degree <= 9:
             raise ValueError(f"degree must lie in [1, 9], got {self.degree}")
         if not self.smoothing or self.smoothing[-1] != 0.0 or any(k < 0 for k in self.smoothing):
             raise ValueError(f"smoothing must be a non-empty sequence of k >= 0 ending with 0, got {self.smoothing}")
+        if not 0.0 <= self.tighten < 0.5:
+            raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten}")
         if self.solver not in ("ipopt", "fatrop"):
             raise ValueError(f"solver must be 'ipopt' or 'fatrop', got {self.solver!r}")
 
@@ -143,14 +150,25 @@ def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
 
 # ----------------------------------------------------------------------------------------------------
 class CycleOCP:
-    """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused)."""
+    """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused).
+
+    The offline benchmark starts at Table II's initial state in phase 1. The MPC builds the same NLP
+    with ``first_phase`` > 1 for the phases still ahead and ``parametric_start=True``: the start state
+    [omega, V, H, V_b, s] is then an NLP parameter (the measurement), the current phase may last
+    0 s, and a soft deadline (sum of durations <= remaining time + slack, slack penalized) replaces the
+    exact cycle time.
+    """
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 settings: OCPSettings | None = None) -> None:
+                 settings: OCPSettings | None = None, first_phase: int = 1, parametric_start: bool = False) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
         self.settings = settings or OCPSettings()
-        self.specs = cycle.phase_specs(self.braking, self.params)
+        if first_phase not in (1, 2, 3, 4):
+            raise ValueError(f"first_phase must be 1..4, got {first_phase!r}")
+        self.first_phase = first_phase
+        self.parametric_start = parametric_start
+        self.specs = cycle.phase_specs(self.braking, self.params)[first_phase - 1:]
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -173,6 +191,8 @@ class CycleOCP:
 
         self._C, self._B = C, B
         self._interval_fns = [self._interval_function(spec) for spec in self.specs]
+        self._free_start_fns = [self._interval_function(spec, start_constraints=False) for spec in self.specs]
+        self.phases = [spec.phase for spec in self.specs]
         xs = ca.DM(X_SCALE)
         us = ca.DM(U_SCALE)
         w, w_lb, w_ub = [], [], []
@@ -195,8 +215,9 @@ class CycleOCP:
             g_lb.append(np.broadcast_to(lb, (n,)))
             g_ub.append(np.broadcast_to(ub, (n,)))
 
-        # NLP parameters: [fuel weight per g, time weight per s, smoothing k]
-        par = ca.SX.sym("par", 3)
+        # NLP parameters: [fuel weight per g, time weight per s, smoothing k, deadline slack weight per s,
+        # start state (5, scaled; used with parametric_start)]
+        par = ca.SX.sym("par", 10)  # ..., [9]: disturbance acceleration on V (m/s^2, MPC estimate)
         H_stop = lift.max_bucket_height(p)
         x0 = cycle.initial_state(p)
         path_lb, path_ub = self._path_bounds()
@@ -204,45 +225,66 @@ class CycleOCP:
         smooth = 0
         durations = []
         u_prev = None
-        X_start, off = add_var("X0", 5, np.append(x0, 0.0) / X_SCALE, np.append(x0, 0.0) / X_SCALE)
-        self._index["X"].append(off)
+        # Position and height targets: exact offline; for the MPC, elastic (L1 penalty TARGET_WEIGHT on
+        # the miss), so a measured state the targets cannot be met from still gets the closest plan.
+        soft_terms = []
+
+        def soft_target(name: str) -> ca.SX:
+            ub = math.inf if self.parametric_start else 0.0
+            e, _ = add_var(f"miss_{name}", 2, np.zeros(2), np.array([ub, ub]))
+            soft_terms.append(e[0] + e[1])
+            return e[0] - e[1]
+
+        if self.parametric_start:
+            X_start = par[4:9]
+            self._index["X"].append(None)
+        else:
+            X_start, off = add_var("X0", 5, np.append(x0, 0.0) / X_SCALE, np.append(x0, 0.0) / X_SCALE)
+            self._index["X"].append(off)
         x_k = X_start * xs
         for k, spec in enumerate(self.specs):
-            n_int = st.intervals[k]
-            dur, off = add_var(f"T{k + 1}", 1, np.array([cycle.MIN_PHASE_DURATION]), np.array([30.0]))
+            n_int = st.intervals[spec.phase - 1]
+            min_dur = 0.0 if (self.parametric_start and k == 0) else cycle.MIN_PHASE_DURATION
+            dur, off = add_var(f"T{spec.phase}", 1, np.array([min_dur]), np.array([30.0]))
             self._index["dur"].append(off)
             durations.append(dur)
             h = dur / n_int
             v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
-            x_lb = np.array([p.omega_min, v_lo, p.H_0, 0.0, -2 * p.distance]) / X_SCALE
+            x_lb = np.array([p.omega_min + st.omega_margin, v_lo, p.H_0, 0.0, -2 * p.distance]) / X_SCALE
             x_ub = np.array([p.omega_max, v_hi, H_stop, 5.0, p.distance]) / X_SCALE
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0]) / U_SCALE
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0]) / U_SCALE
-            fn = self._interval_fns[k]
-            for j in range(n_int):
-                U, off = add_var(f"U{k + 1}_{j}", 3, u_lb, u_ub)
+            # (interval length, collocation function) of the phase. With a parametric start the horizon
+            # opens with an execution interval of exactly one control step (the plant holds the first
+            # control that long), in the current phase, from the measured state; "dur" is the rest.
+            mesh = [(h, self._interval_fns[k])] * n_int
+            if self.parametric_start and k == 0:
+                mesh = [(st.exec_interval, self._free_start_fns[k])] + mesh
+                durations.append(st.exec_interval)
+            for j, (h, fn) in enumerate(mesh):
+                U, off = add_var(f"U{spec.phase}_{j}", 3, u_lb, u_ub)
                 self._index["U"].append(off)
                 u = U * us
                 if u_prev is not None:  # eq. (33): integral of the squared rates of U_mf and U_ab
                     du = (U[:2] - u_prev[:2])
                     smooth += ca.sumsqr(du) / h
                 u_prev = U
-                XC, off = add_var(f"XC{k + 1}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
+                XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
                 self._index["XC"].append(off)
-                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h)
+                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9])
                 add_con(defects, 0.0, 0.0)
                 add_con(path, path_lb, path_ub)
                 fuel_total += fuel
                 x_k = XC[5 * (d - 1):] * xs
             # boundary conditions at the end of the phase
-            if k == 1:  # the reversing point
+            if spec.phase == 2:  # the reversing point
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con((x_k[4] + p.distance) / p.distance, 0.0, 0.0)
-            if k == 3:  # end: standing at the truck, bucket up and still, U_ab = 0, engine steady
+                add_con((x_k[4] + p.distance) / p.distance - soft_target("reversing point"), 0.0, 0.0)
+            if spec.phase == 4:  # end: standing at the truck, bucket up and still, U_ab = 0, engine steady
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con(x_k[4] / p.distance, 0.0, 0.0)
-                add_con((x_k[2] - p.H_T) / p.H_T, 0.0, 0.0)
+                add_con(x_k[4] / p.distance - soft_target("end position"), 0.0, 0.0)
+                add_con((x_k[2] - p.H_T) / p.H_T - soft_target("end height"), 0.0, 0.0)
                 add_con(x_k[3], 0.0, 0.0)
                 add_con(U[1], 0.0, 0.0)
                 d_om = derivatives(x_k[0], x_k[1], x_k[2], x_k[3], u[0], u[1], u[2], spec.gear, spec.direction, p)[0]
@@ -250,8 +292,11 @@ class CycleOCP:
         T = sum(durations)
         self._g_T_index = sum(int(x.numel()) for x in g)
         add_con(T, 0.0, math.inf)  # bounds set per solve for a fixed cycle time
+        slack, self._slack_index = add_var("slack", 1, np.array([0.0]), np.array([0.0 if not self.parametric_start else math.inf]))
+        self._g_deadline_index = self._g_T_index + 1
+        add_con(T - slack, -math.inf, math.inf)  # MPC deadline: remaining time, bounds set per solve
         fuel_g = fuel_total * 1000.0
-        J = par[0] * fuel_g + par[1] * T + par[2] * smooth
+        J = par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms)
 
         z = ca.vertcat(*w)
         self.n_var = int(z.numel())
@@ -261,7 +306,7 @@ class CycleOCP:
         self._nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
         self._solver = self._make_solver()
 
-    def _interval_function(self, spec: cycle.PhaseSpec) -> ca.Function:
+    def _interval_function(self, spec: cycle.PhaseSpec, start_constraints: bool = True) -> ca.Function:
         """Collocation of one mesh interval of a phase: (x_start, X_colloc, u, h) -> (defects, fuel kg, path).
 
         Built once per phase as an SX function, so the NLP inlines it instead of re-tracing the model.
@@ -271,21 +316,28 @@ class CycleOCP:
         xc = ca.SX.sym("xc", 5 * d)
         u = ca.SX.sym("u", 3)
         h = ca.SX.sym("h")
+        dist = ca.SX.sym("dist")  # additive acceleration of V: 0 offline, the MPC's mismatch estimate
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
         for c in range(d + 1):
             x = pts[c]
             d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
+            d_v = d_v + dist
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
-            path.append(self._path_expressions(x, u, d_v, spec.direction))
+            rows = self._path_expressions(x, u, d_v, spec.direction)
             if c == 0:
+                # A measured start state is what it is: keep the rows the control can always meet there
+                # (torque limit, pressure) and zero those it cannot change at that instant (lift speed,
+                # deceleration); the layout stays, zero rows meet their bounds.
+                path.append(rows if start_constraints else rows * ca.DM([1, 1, 1, 0, 0, 1, 0]))
                 continue
+            path.append(rows)
             xp = sum(self._C[r, c] * pts[r] for r in range(d + 1))
             defects.append((h * ca.vertcat(d_om, d_v, d_h, d_vb, x[1]) - xp) / ca.DM(X_SCALE))
             fuel += self._B[c] * m_dot * h
-        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h], [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
+        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, dist], [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
     def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
         """Eq. (31) path constraints, scaled; bounds in :meth:`_path_bounds`."""
@@ -300,7 +352,7 @@ class CycleOCP:
 
     def _path_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         d = self.settings.degree
-        lb = np.array([-math.inf] * 3 + [-math.inf] * 2 + [-math.inf, -1.0])
+        lb = np.array([-math.inf] * 3 + [-math.inf] * 2 + [-math.inf, -(1.0 - self.settings.tighten)])
         ub = np.array([0.0] * 3 + [0.0] * 2 + [1.0, math.inf])
         return np.tile(lb, d + 1), np.tile(ub, d + 1)
 
@@ -328,34 +380,46 @@ class CycleOCP:
         """A scaled decision vector from any trajectory with phases (a simulation or a previous optimum).
 
         Each phase of the trajectory is mapped onto the phase's mesh by phase-normalized time, so a
-        guess with different phase durations still lands sample for sample.
+        guess with different phase durations still lands sample for sample. Phases of this NLP that
+        the trajectory lacks (it may start later) take the trajectory's first sample, lasting 0.1 s.
         """
         t, states, position, controls, phase = map(np.asarray, (t, states, position, controls, phase))
         z = np.zeros(self.n_var)
         full = np.column_stack([states, position])
         ctrl_phase = phase[:-1] if len(phase) == len(t) else phase
         d = self.settings.degree
-        ui = 0
-        xci = 0
-        z[self._index["X"][0]:self._index["X"][0] + 5] = full[0] / X_SCALE
-        for k in range(4):
-            mask = phase == k + 1
-            if mask.sum() < 2:
-                raise ValueError(f"initial-guess trajectory has no samples in phase {k + 1}")
-            idx = np.flatnonzero(mask)
-            # include the sample at the boundary (end of phase k = start of phase k+1)
-            lo, hi = idx[0] - (1 if idx[0] > 0 else 0), min(idx[-1] + 1, len(t) - 1)
-            t0, t1 = t[lo], t[hi]
-            dur = max(t1 - t0, cycle.MIN_PHASE_DURATION)
+        ui = xci = 0
+        if self._index["X"][0] is not None:
+            z[self._index["X"][0]:self._index["X"][0] + 5] = full[0] / X_SCALE
+        for k, ph in enumerate(self.phases):
+            idx = np.flatnonzero(phase == ph)
+            cmask = np.flatnonzero(ctrl_phase == ph)
+            if idx.size == 0 or cmask.size == 0:
+                seg_t, seg_x = np.array([0.0, 1.0]), np.repeat(full[:1], 2, axis=0)
+                dur = cycle.MIN_PHASE_DURATION
+                ctrl = np.repeat(controls[:1], 1, axis=0)
+                cmask = np.array([0])
+            else:
+                # include the sample at the boundary (end of this phase = start of the next)
+                lo, hi = idx[0] - (1 if idx[0] > 0 else 0), min(idx[-1] + 1, len(t) - 1)
+                dur = max(t[hi] - t[lo], cycle.MIN_PHASE_DURATION)
+                seg_t = (t[lo:hi + 1] - t[lo]) / dur
+                seg_x = full[lo:hi + 1]
+                ctrl = controls
+            if self.parametric_start and k == 0:  # the execution interval: the trajectory's first step
+                ex = self.settings.exec_interval
+                z[self._index["U"][ui]:self._index["U"][ui] + 3] = controls[0] / U_SCALE
+                ui += 1
+                for c in range(d):
+                    xv = np.array([np.interp(t[0] + self.tau[c + 1] * ex, t, full[:, m]) for m in range(5)])
+                    z[self._index["XC"][xci] + 5 * c:self._index["XC"][xci] + 5 * c + 5] = xv / X_SCALE
+                xci += 1
+                dur = max(dur - ex, 0.0)
             z[self._index["dur"][k]] = dur
-            n_int = self.settings.intervals[k]
-            seg_t = (t[lo:hi + 1] - t0) / dur
-            seg_x = full[lo:hi + 1]
-            cmask = np.flatnonzero(ctrl_phase == k + 1)
+            n_int = self.settings.intervals[ph - 1]
             for j in range(n_int):
-                tc = (j + 0.5) / n_int
-                ci = cmask[min(int(tc * len(cmask)), len(cmask) - 1)]
-                z[self._index["U"][ui]:self._index["U"][ui] + 3] = controls[ci] / U_SCALE
+                ci = cmask[min(int((j + 0.5) / n_int * len(cmask)), len(cmask) - 1)]
+                z[self._index["U"][ui]:self._index["U"][ui] + 3] = ctrl[ci] / U_SCALE
                 ui += 1
                 for c in range(d):
                     tp = (j + self.tau[c + 1]) / n_int
@@ -395,7 +459,8 @@ class CycleOCP:
         for k in ks:
             # the smoothing penalty is scaled like the objective so k means the same for every objective
             scale = max(weights)
-            args = dict(x0=z, p=[weights[0], weights[1], k * scale], lbx=self._lbw, ubx=self._ubw, lbg=lbg, ubg=ubg)
+            args = dict(x0=z, p=[weights[0], weights[1], k * scale, 0.0, 0, 0, 0, 0, 0, 0], lbx=self._lbw, ubx=self._ubw,
+                        lbg=lbg, ubg=ubg)
             if lam_x is not None:
                 args.update(lam_x0=lam_x, lam_g0=lam_g)
             sol = self._solver(**args)
@@ -415,28 +480,37 @@ class CycleOCP:
                    "smoothing": history}
 
     # ------------------------------------------------------------------ unpack
-    def unpack(self, z: np.ndarray) -> dict[str, Any]:
-        """Mesh-point trajectory from a scaled decision vector: t, states, position, controls, phase."""
+    def unpack(self, z: np.ndarray, x_start: np.ndarray | None = None) -> dict[str, Any]:
+        """Mesh-point trajectory from a scaled decision vector: t, states, position, controls, phase.
+
+        ``x_start`` ([omega, V, H, V_b, s]) is needed with a parametric start. ``phase[i]`` is the
+        phase of the interval that starts at sample i; the last sample closes phase 4.
+        """
         d = self.settings.degree
         durs = [float(z[i]) for i in self._index["dur"]]
-        ts, xs, us = [0.0], [z[self._index["X"][0]:self._index["X"][0] + 5] * X_SCALE], []
+        if self._index["X"][0] is not None:
+            x_start = z[self._index["X"][0]:self._index["X"][0] + 5] * X_SCALE
+        elif x_start is None:
+            raise ValueError("unpack needs x_start for an NLP with a parametric start")
+        ts, xs, us, phase = [0.0], [np.asarray(x_start, dtype=float)], [], []
         t0, ui, xci = 0.0, 0, 0
-        for k in range(4):
-            n_int = self.settings.intervals[k]
-            h = durs[k] / n_int
-            for j in range(n_int):
+        for k, ph in enumerate(self.phases):
+            n_int = self.settings.intervals[ph - 1]
+            steps = [durs[k] / n_int] * n_int
+            if self.parametric_start and k == 0:
+                steps = [self.settings.exec_interval] + steps
+            for h in steps:
                 us.append(z[self._index["U"][ui]:self._index["U"][ui] + 3] * U_SCALE)
                 ui += 1
                 off = self._index["XC"][xci] + 5 * (d - 1)
                 xs.append(z[off:off + 5] * X_SCALE)
                 xci += 1
-                ts.append(t0 + (j + 1) * h)
-            t0 += durs[k]
+                t0 += h
+                ts.append(t0)
+                phase.append(ph)
         xs = np.array(xs)
-        # phase[i] is the phase of the interval that starts at sample i; the last sample closes phase 4
-        phase = [k + 1 for k in range(4) for _ in range(self.settings.intervals[k])] + [4]
         return {"durations": durs, "t": np.array(ts), "states": xs[:, :4], "position": xs[:, 4],
-                "controls": np.array(us), "phase": np.array(phase)}
+                "controls": np.array(us), "phase": np.array(phase + [4])}
 
     def objective_parts(self, z: np.ndarray) -> tuple[float, float]:
         fuel_g, T, _ = (float(v) for v in self._fn_parts(z))

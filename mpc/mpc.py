@@ -1,0 +1,384 @@
+"""Receding (shrinking) horizon MPC that drives ``WheelLoader-v0`` through the cycle.
+
+At every control step the controller reads the state from the observation, solves the cycle OCP of
+:mod:`mpc.ocp` from that state over the phases still ahead (the same model and constraints as the
+offline benchmark, on a coarser mesh), applies the first control and requests a shift when its plan
+says the current phase ends. The NLP of each starting phase is built once; the measured state and the
+remaining time enter as parameters, and every solve is warm-started from the previous one (primal and
+dual). A failed or over-budget solve applies the previous plan, shifted by the time since it was made,
+and says so in ``last_info``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mpc.ocp import FUEL_REF_G, TIME_REF, U_SCALE, X_SCALE, CycleOCP, OCPSettings, solve_ocp
+from wl_env import cycle
+from wl_env.params import LoaderParams, resolve
+
+MODES = ("time", "target_time", "weighted")
+TERMINAL_SPEED = 0.05  # m/s: below this in phase 4 the terminal law takes over (see _terminal)
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    """MPC settings. ``mode``: minimum time, minimum fuel finishing by ``target_time``, or weighted."""
+
+    mode: str = "time"
+    target_time: float | None = None
+    w_fuel: float | None = None
+    intervals: tuple[int, int, int, int] = (8, 5, 8, 5)
+    degree: int = 2
+    max_iter: int = 60  # per solve after the first: the deterministic budget
+    time_budget: float | None = None  # s of wall time per solve (real-time use; makes runs timing-dependent)
+    deadline_weight: float = 10.0  # objective units per second beyond the target time
+    tighten: float = 0.1  # the plan keeps 10 % off the deceleration limit: coarse mesh, early shifts, mismatch
+    omega_margin: float = 5.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
+    max_time: float = 40.0  # the env's max_time (to read the elapsed time from the observation)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode == "target_time" and not (self.target_time and math.isfinite(self.target_time) and self.target_time > 0):
+            raise ValueError(f"mode 'target_time' needs a target_time > 0 (s), got {self.target_time!r}")
+        if self.mode == "weighted" and (self.w_fuel is None or not 0.0 <= self.w_fuel <= 1.0):
+            raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {self.w_fuel!r}")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time_budget must be > 0 s or None, got {self.time_budget!r}")
+
+
+_SOLVERS: dict[tuple, CycleOCP] = {}
+
+
+def _mpc_ocp(braking: str, params: LoaderParams, config: MPCConfig, first_phase: int) -> CycleOCP:
+    key = (braking, params.fingerprint(), config.intervals, config.degree, config.max_iter, config.tighten,
+           config.omega_margin, first_phase)
+    if key not in _SOLVERS:
+        settings = OCPSettings(intervals=config.intervals, degree=config.degree, smoothing=(0.0,),
+                               max_iter=config.max_iter, tol=1e-6, tighten=config.tighten,
+                               omega_margin=config.omega_margin)
+        _SOLVERS[key] = CycleOCP(braking, params, settings, first_phase=first_phase, parametric_start=True)
+    return _SOLVERS[key]
+
+
+class MPCController:
+    """Shrinking-horizon MPC for ``WheelLoader-v0`` (controller protocol: ``reset()``, ``act(obs)``)."""
+
+    def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
+                 config: MPCConfig | None = None, dt: float = 0.1) -> None:
+        self.braking = cycle.check_braking(braking)
+        self.params = resolve(params)
+        self.config = config or MPCConfig()
+        self.dt = dt
+        self.solve_times: list[float] = []
+        self.fallbacks = 0
+        self.last_info: dict[str, Any] = {}
+        self._force_failure = False  # test hook: the next solve counts as failed
+        self._reference = None
+        self._sim = None
+        self.reset()
+
+    # ------------------------------------------------------------------ protocol
+    def reset(self) -> None:
+        self._plan: dict[str, Any] | None = None  # last good plan, with the time it was made
+        self._last: tuple | None = None  # (state, phase, control) of the previous step
+        self._disturbance = 0.0  # estimated acceleration the nominal model misses (m/s^2)
+        self._warm: dict[int, tuple] = {}  # per first phase: (z, lam_x, lam_g)
+        self.solve_times = []
+        self.fallbacks = 0
+        self.last_info = {}
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        x, t, phase = self.state_from_obs(obs)
+        self._estimate_disturbance(x, phase)
+        u, shift, info = self.control(x, t, phase)
+        self._last = (x, phase + 1 if shift else phase, u)
+        info["disturbance"] = self._disturbance
+        p = self.params
+        lo, hi = p.U_ab_bounds
+        action = np.array([
+            2.0 * u[0] / p.U_mf_max - 1.0,
+            2.0 * (u[1] - lo) / (hi - lo) - 1.0,
+            2.0 * u[2] / p.U_b_max - 1.0,
+            1.0 if shift else -1.0,
+        ])
+        action = np.clip(np.nan_to_num(action, nan=-1.0), -1.0, 1.0).astype(np.float32)
+        self.last_info = info
+        return action
+
+    def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """[omega, V, H, V_b, s], elapsed time and phase from a WheelLoader-v0 observation."""
+        p = self.params
+        o = np.asarray(obs, dtype=np.float64)
+        x = np.array([o[0] * p.omega_max, o[1] * p.V_max, o[2] * p.H_T, o[3], o[4] * p.distance])
+        return x, float(o[6] * self.config.max_time), int(np.argmax(o[8:12])) + 1
+
+    # ------------------------------------------------------------------ one step
+    def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
+        """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
+        if phase == 2 and abs(x[1]) < 1e-9:
+            phase = 3  # the env switches at the reversing point by itself
+        if phase == 4 and x[1] < TERMINAL_SPEED:
+            return self._terminal(x), False, {"solve_time": 0.0, "status": "terminal", "fallback": False,
+                                               "over_budget": False, "planned_T_remaining": 0.0}
+        # The env shifts only at the start of a step, so near the planned end of phase 1 or 3 the
+        # controller compares the two plans it can carry out (stay one more step, or shift now) and
+        # takes the cheaper one: the gear change is a discrete decision on the step grid.
+        rest = self._plan["sol"]["durations"][0] - (t - self._plan["t_made"]) if self._plan else math.inf
+        options = [phase]
+        if phase in (1, 3) and self._plan is not None and self._plan["phases"][0] == phase and rest < 1.5 * self.dt:
+            options.append(phase + 1)
+        best, solve_time, statuses = None, 0.0, []
+        for first in options:
+            cand = self._replan(x, t, first)
+            solve_time += cand["solve_time"]
+            statuses.append(cand["status"])
+            if cand["ok"] and (best is None or cand["f"] < best["f"]):
+                best = cand
+        over_budget = self.config.time_budget is not None and self._plan is not None and solve_time > self.config.time_budget
+        ok = best is not None and not over_budget
+        if ok:
+            self._plan = best["plan"]
+            self._warm[best["plan"]["phases"][0]] = best["warm"]
+            shift = best["plan"]["phases"][0] != phase
+            u, _ = self._from_plan(t, best["plan"]["phases"][0])
+        else:
+            self.fallbacks += 1
+            u, shift = self._from_plan(t, phase)  # the old plan, shifted by its age (gear change included)
+        info = {"solve_time": solve_time, "status": "; ".join(statuses), "fallback": not ok,
+                "over_budget": over_budget,
+                "planned_T_remaining": float(self._plan["sol"]["t"][-1] - (t - self._plan["t_made"])) if self._plan else math.nan}
+        return u, shift, info
+
+    def _replan(self, x: np.ndarray, t: float, phase: int) -> dict[str, Any]:
+        """Solve from state x at time t for the phases from ``phase`` on (no side effects but timing)."""
+        x = self.project_state(x, phase)
+        ocp = _mpc_ocp(self.braking, self.params, self.config, phase)
+        t0 = time.perf_counter()
+        out: dict[str, Any] = {"ok": False, "status": "not solved", "f": math.inf}
+        try:
+            if self._force_failure:
+                self._force_failure = False
+                raise RuntimeError("forced failure (test hook)")
+            z, lam_x, lam_g, status, ok, f = self._solve(ocp, x, t, phase)
+            out.update(status=status, ok=ok, f=f)
+            if ok:
+                out["plan"] = {"t_made": t, "sol": ocp.unpack(z, x_start=x), "phases": ocp.phases}
+                out["warm"] = (z, lam_x, lam_g)
+        except RuntimeError as exc:
+            out["status"] = f"error: {exc}"
+        if not out["ok"]:
+            self._warm.pop(phase, None)
+        out["solve_time"] = time.perf_counter() - t0
+        self.solve_times.append(out["solve_time"])
+        return out
+
+    def _solve(self, ocp: CycleOCP, x: np.ndarray, t: float, phase: int):
+        cfg = self.config
+        if cfg.mode == "time":
+            w_f, w_t = 0.0, 1.0
+        elif cfg.mode == "target_time":
+            w_f, w_t = 1.0, 0.0
+        else:
+            w_f, w_t = cfg.w_fuel / FUEL_REF_G, (1.0 - cfg.w_fuel) / TIME_REF
+        lbg, ubg = ocp._lbg.copy(), ocp._ubg.copy()
+        if cfg.mode == "target_time":
+            ubg[ocp._g_deadline_index] = max(cfg.target_time - t, 0.0)
+        par = [w_f, w_t, 0.0, cfg.deadline_weight * (1.0 if cfg.mode == "target_time" else 0.0), *(x / X_SCALE),
+               self._disturbance]
+        warm = self._warm.get(phase)
+        if warm is not None:
+            z0, lam_x, lam_g = warm
+        else:
+            z0, lam_x, lam_g = self._guess(ocp, x, t), None, None
+        args = dict(x0=z0, p=par, lbx=ocp._lbw, ubx=ocp._ubw, lbg=lbg, ubg=ubg)
+        if warm is not None:
+            args.update(lam_x0=lam_x, lam_g0=lam_g)
+        # Only the very first solve of a cycle may take long (no plan to fall back on yet).
+        solver = self._solver_for(ocp, warm=warm is not None, budget=self._plan is not None)
+        sol = solver(**args)
+        stats = solver.stats()
+        status = str(stats.get("return_status", "unknown"))
+        ok = bool(stats.get("success")) or status in ("Solved_To_Acceptable_Level",)
+        return np.array(sol["x"]).ravel(), sol["lam_x"], sol["lam_g"], status, ok, float(sol["f"])
+
+    _ipopt: dict[tuple, Any] = {}
+
+    def _solver_for(self, ocp: CycleOCP, warm: bool, budget: bool):
+        import casadi as ca
+
+        key = (id(ocp), warm, budget, self.config.time_budget, self.config.max_iter)
+        if key not in self._ipopt:
+            opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                    "ipopt.max_iter": self.config.max_iter if budget else 3000, "ipopt.tol": 1e-6,
+                    "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 3,
+                    "ipopt.max_wall_time": (self.config.time_budget or 60.0) if budget else 60.0,
+                    "ipopt.mu_strategy": "adaptive"}
+            if warm:
+                opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
+                             "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
+            self._ipopt[key] = ca.nlpsol("mpc", "ipopt", ocp._nlp, opts)
+        return self._ipopt[key]
+
+    def _guess(self, ocp: CycleOCP, x: np.ndarray, t: float) -> np.ndarray:
+        """Initial guess: the previous plan shifted to now, else the offline optimum of the mode."""
+        if self._plan is not None:
+            sol = self._plan["sol"]
+            shift = t - self._plan["t_made"]
+            ts = sol["t"] - shift
+            keep = ts >= 0.0
+            if keep.sum() >= 2:
+                first = np.flatnonzero(keep)[0]
+                return ocp.guess_from_trajectory(ts[first:], sol["states"][first:], sol["position"][first:],
+                                                 sol["controls"][first:] if first < len(sol["controls"]) else sol["controls"][-1:],
+                                                 sol["phase"][first:])
+        ref = self.reference()
+        ts = np.asarray(ref.t) - t
+        first = int(np.clip(np.searchsorted(ts, 0.0), 0, len(ts) - 2))
+        return ocp.guess_from_trajectory(ts[first:], np.asarray(ref.states)[first:], np.asarray(ref.position)[first:],
+                                         np.asarray(ref.controls)[first:], np.asarray(ref.phase)[first:])
+
+    def reference(self):
+        """The offline optimum of this mode (the cold-start guess), solved once."""
+        if self._reference is None:
+            cfg = self.config
+            if cfg.mode == "time":
+                self._reference = solve_ocp(self.braking, "time", params=self.params, verify=False)
+            elif cfg.mode == "target_time":
+                try:
+                    self._reference = solve_ocp(self.braking, "fuel_at_time", T=cfg.target_time, params=self.params, verify=False)
+                except RuntimeError:
+                    self._reference = solve_ocp(self.braking, "time", params=self.params, verify=False)
+            else:
+                self._reference = solve_ocp(self.braking, "weighted", w_fuel=cfg.w_fuel, params=self.params, verify=False)
+        return self._reference
+
+    def _from_plan(self, t: float, phase: int) -> tuple[np.ndarray, bool]:
+        """Control and shift request now, from the last good plan (shifted by its age)."""
+        if self._plan is None:
+            ref = self.reference()
+            i = int(np.clip(np.searchsorted(ref.t, t, side="right") - 1, 0, len(ref.controls) - 1))
+            return np.asarray(ref.controls[i], dtype=float), int(ref.phase[i]) > phase
+        sol = self._plan["sol"]
+        age = t - self._plan["t_made"]
+        ts, ph = sol["t"], sol["phase"]
+        if age >= ts[-1]:  # the plan is used up: hold still (brakes where allowed, bucket stopped)
+            return self._terminal(None), False
+        # the planned end of the current phase, relative to now
+        in_phase = np.flatnonzero(ph[:-1] == phase)
+        end_of_phase = ts[in_phase[-1] + 1] - age if in_phase.size else -math.inf
+        # Shift in this step if the plan ends the phase before the next step: early is always feasible
+        # (brake a little less), late may not be (at 2.5 m/s a step costs 25 cm of stopping distance).
+        shift = phase in (1, 3) and end_of_phase < self.dt
+        if shift:
+            nxt = np.flatnonzero(ph[:-1] == phase + 1)
+            i = int(nxt[0]) if nxt.size else len(sol["controls"]) - 1
+            i = max(i, int(np.clip(np.searchsorted(ts, age, side="right") - 1, 0, len(sol["controls"]) - 1)))
+        else:
+            i = int(np.clip(np.searchsorted(ts, age, side="right") - 1, 0, len(sol["controls"]) - 1))
+        return np.asarray(sol["controls"][i], dtype=float), bool(shift)
+
+    def _estimate_disturbance(self, x: np.ndarray, phase: int) -> None:
+        """Offset-free MPC: the acceleration the nominal model missed over the last step, low-passed.
+
+        Payload and rolling-resistance errors show up as a steady offset in dV/dt; the plan adds it.
+        Steps that stop, reverse or change phase say nothing about it and are skipped.
+        """
+        if self._last is None:
+            return
+        x0, ph0, u = self._last
+        if ph0 != phase or abs(x0[1]) < 0.2 or abs(x[1]) < 0.2:
+            return
+        if self._sim is None:
+            from wl_env.simulator import Simulator
+
+            self._sim = Simulator(self.params, self.braking)
+        y = (float(x0[0]), float(x0[1]), float(x0[2]), float(x0[3]), 0.0, 0.0)
+        ue = self._sim.effective_controls(y, ph0, float(u[0]), float(u[1]), float(u[2]), self.dt)
+        y1, _, _, _ = self._sim.substep(y, ph0, ue[:3], self.dt)
+        residual = (x[1] - y1[1]) / self.dt
+        self._disturbance = float(np.clip(0.5 * self._disturbance + 0.5 * residual, -1.0, 1.0))
+
+    def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:
+        """The measurement moved onto the constraints it may graze (by a hair, through the simulator's
+        per-substep saturation): a plan must start from a state its constraints admit."""
+        from wl_env.physics import lift
+
+        p = self.params
+        x = np.array(x, dtype=float)
+        x[0] = min(max(x[0], p.omega_min), p.omega_max)
+        d = -1.0 if phase <= 2 else 1.0
+        x[1] = d * min(max(d * x[1], 0.0), p.V_max)
+        x[2] = min(max(x[2], p.H_0), lift.max_bucket_height(p))
+        x[3] = min(max(x[3], 0.0), (1.0 - 1e-6) * float(lift.max_lift_speed(x[2], x[0], p)))
+        return x
+
+    def _terminal(self, x: np.ndarray | None) -> np.ndarray:
+        """End of the cycle, the vehicle (nearly) standing: brake, bring the bucket to H_T and hold it.
+
+        The OCP has no stiction (a standing machine would roll back under the brake torque), so the
+        last tenths of a second are a simple feedback law rather than an NLP.
+        """
+        p = self.params
+        # the brake torque that decelerates at the 0.18 g limit with rolling resistance helping
+        u_b = min(max((p.decel_max * p.g * p.M_tot - p.F_roll) * p.r_w, 0.0), p.U_b_max)
+        if x is None:
+            return np.array([0.0, p.U_ab_bounds[0], u_b])
+        omega, _, H, V_b = x[0], x[1], x[2], x[3]
+        lo, hi = p.U_ab_bounds
+        # bucket speed that stops exactly at H_T with 80 % of the lowest deceleration
+        v_ref = math.copysign(math.sqrt(2.0 * 0.8 * -lo * abs(p.H_T - H)), p.H_T - H)
+        u_ab = min(max((max(v_ref, 0.0) - V_b) / self.dt, lo), hi)
+        from wl_env.physics import engine, lift
+
+        load = lift.lift_power(max(V_b, 0.0), u_ab, p) / max(omega, 1.0)
+        u_mf = (engine.friction_torque(omega, p) + load) / p.T_ig_per_mg  # hold the engine speed
+        return np.array([min(max(u_mf, 0.0), p.U_mf_max), u_ab, u_b])
+
+    def stats(self) -> dict[str, float]:
+        st = np.asarray(self.solve_times) if self.solve_times else np.zeros(1)
+        return {"median_s": float(np.median(st)), "p95_s": float(np.percentile(st, 95)), "max_s": float(st.max()),
+                "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks)}
+
+
+def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
+                    params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
+                    score: bool = True, seed: int = 0) -> dict[str, Any]:
+    """One cycle of ``WheelLoader-v0`` under the MPC; returns the trajectory, the result and its score.
+
+    ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
+    they differ in a model-mismatch study.
+    """
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401  (registers the env)
+    from wl_env.rollout import run_episode
+
+    config = config or MPCConfig()
+    model = resolve(params)
+    plant = resolve(plant_params) if plant_params is not None else model
+    env = gym.make("WheelLoader-v0", braking=braking, params=plant, max_time=config.max_time)
+    ctrl = MPCController(braking, model, config, dt=env.unwrapped.core.dt)
+    ep = run_episode(env, ctrl, seed=seed)
+    result = {
+        "controller": "mpc", "braking": braking, "mode": config.mode, "target_time": config.target_time,
+        "T": ep["T"], "fuel_g": ep["fuel_g"], "success": ep["success"], "completed": ep["completed"],
+        "reversing_error_m": ep["reversing_error"], "final_position_error_m": ep["final_s"],
+        "final_height_error_m": ep["final_H"] - plant.H_T, "max_violation": ep["max_excess"],
+        "t": ep["t"], "states": ep["states"], "controls": ep["controls"], "phase": ep["phase"],
+        "solve_time": ctrl.stats(), "plant_params": plant.to_dict() if plant is not model else None,
+    }
+    if score and ep["completed"]:
+        from mpc.scoring import score_run
+
+        s = score_run(ep["T"], ep["fuel_g"], braking, success=ep["success"], max_violation=ep["max_excess"],
+                      params=model)
+        result["score"] = s.to_dict()
+    return result
