@@ -43,7 +43,7 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
     if args.objective == "weighted" and args.w_fuel is None:
         raise ValueError("--objective weighted needs --w-fuel W (0..1, the fuel weight W1; W2 = 1 - W1)")
     params = _params_from(args)
-    settings = OCPSettings(solver=args.solver) if args.solver else None
+    settings = OCPSettings(hessian=args.hessian) if args.hessian else None
     _progress(f"solving the {args.braking} {objective} OCP ...")
     r = solve_ocp(args.braking, objective, T=args.time, w_fuel=args.w_fuel, params=params, settings=settings)
     r.save(args.out)
@@ -98,6 +98,14 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     return 0 if r["completed"] else 1
 
 
+def _run_cmd(args: argparse.Namespace) -> int:
+    from wl_report import run_all
+
+    run_all(args.out, cache=args.cache)
+    print((Path(args.out) / "leaderboard.md").read_text())
+    return 0
+
+
 def _params_from(args: argparse.Namespace):
     from wl_env.params import LoaderParams
 
@@ -123,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--objective", choices=["time", "fuel", "weighted"], default="time")
     p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel")
     p.add_argument("--w-fuel", type=float, metavar="W", help="fuel weight W1 in [0, 1] for --objective weighted")
-    p.add_argument("--solver", choices=["ipopt", "fatrop"], help="NLP solver (default ipopt)")
+    p.add_argument("--hessian", choices=["exact", "limited-memory"], help="IPOPT's Hessian (default exact)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the result")
     p.set_defaults(func=_ocp_cmd)
@@ -149,6 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
     p.add_argument("--out", required=True, metavar="FILE.json")
     p.set_defaults(func=_mpc_cmd)
+
+    p = sub.add_parser("run", help="the main job: benchmark, every controller, report (results/)")
+    p.add_argument("--out", default="results", metavar="DIR", help="report folder (default results/)")
+    p.add_argument("--cache", metavar="DIR", help="cache folder for solved optima")
+    p.set_defaults(func=_run_cmd)
     return parser
 
 

@@ -54,6 +54,7 @@ class OCPSettings:
     tol: float = 1e-8
     solver: str = "ipopt"
     linear_solver: str = "mumps"
+    hessian: str = "exact"  # or "limited-memory" (L-BFGS): the alternative the benchmarks compare
     print_level: int = 0
     tighten: float = 0.0  # fraction by which the deceleration limit is tightened (MPC robustness margin)
     omega_margin: float = 0.0  # rad/s kept above omega_min (MPC: a plan on the stall limit stalls the plant)
@@ -69,8 +70,12 @@ class OCPSettings:
             raise ValueError(f"smoothing must be a non-empty sequence of k >= 0 ending with 0, got {self.smoothing}")
         if not 0.0 <= self.tighten < 0.5:
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten}")
-        if self.solver not in ("ipopt", "fatrop"):
-            raise ValueError(f"solver must be 'ipopt' or 'fatrop', got {self.solver!r}")
+        if self.solver != "ipopt":
+            # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free
+            # phase durations are global variables of this NLP.
+            raise ValueError(f"solver must be 'ipopt', got {self.solver!r}")
+        if self.hessian not in ("exact", "limited-memory"):
+            raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
     def refined(self, factor: int = 2) -> "OCPSettings":
         from dataclasses import replace
@@ -358,21 +363,18 @@ class CycleOCP:
 
     def _make_solver(self) -> ca.Function:
         st = self.settings
-        if st.solver == "ipopt":
-            opts = {
-                "ipopt.print_level": st.print_level,
-                "print_time": False,
-                "ipopt.max_iter": st.max_iter,
-                "ipopt.tol": st.tol,
-                "ipopt.acceptable_tol": 1e-6,
-                "ipopt.linear_solver": st.linear_solver,
-                "ipopt.mu_strategy": "adaptive",
-                "ipopt.sb": "yes",
-            }
-            return ca.nlpsol("cycle_ocp", "ipopt", self._nlp, opts)
-        opts = {"print_time": False, "fatrop.print_level": st.print_level, "structure_detection": "auto",
-                "fatrop.max_iter": st.max_iter, "fatrop.tol": st.tol}
-        return ca.nlpsol("cycle_ocp", "fatrop", self._nlp, opts)
+        opts = {
+            "ipopt.print_level": st.print_level,
+            "print_time": False,
+            "ipopt.max_iter": st.max_iter,
+            "ipopt.tol": st.tol,
+            "ipopt.acceptable_tol": 1e-6,
+            "ipopt.linear_solver": st.linear_solver,
+            "ipopt.mu_strategy": "adaptive",
+            "ipopt.hessian_approximation": st.hessian,
+            "ipopt.sb": "yes",
+        }
+        return ca.nlpsol("cycle_ocp", "ipopt", self._nlp, opts)
 
     # ------------------------------------------------------------------ initial guesses
     def guess_from_trajectory(self, t: np.ndarray, states: np.ndarray, position: np.ndarray,
