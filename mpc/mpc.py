@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from mpc.ocp import FUEL_REF_G, TIME_REF, U_SCALE, X_SCALE, CycleOCP, OCPSettings, solve_ocp
+from mpc.ocp import FUEL_REF_G, TIME_REF, X_SCALE, CycleOCP, OCPSettings, solve_ocp
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 
