@@ -15,6 +15,11 @@ from wl_env.params import LoaderParams, resolve
 from wl_env.physics import torque_converter
 
 
+def _clip_unit(v: float) -> float:
+    """min(max(v, -1), 1) for a finite v."""
+    return -1.0 if v < -1.0 else (1.0 if v > 1.0 else v)
+
+
 def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None, w_time: float | None) -> RewardConfig:
     """A RewardConfig from a config, a dict of fields or None, with the weight shortcuts applied."""
     if reward is None:
@@ -157,10 +162,11 @@ class WheelLoaderEnv(gym.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (4,):
             raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be finite numbers in [-1, 1], got {a.tolist()}")
-        a0, a1, a2, a3 = (min(max(v, -1.0), 1.0) for v in a.tolist())
-        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a0, a1, a2, a3))
+        values = a.tolist()  # checked and clipped as Python floats: numpy calls would cost more than the math
+        if not all(map(math.isfinite, values)):
+            raise ValueError(f"action must be finite numbers in [-1, 1], got {values}")
+        action = tuple(map(_clip_unit, values))
+        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         if self.render_mode == "human":
@@ -169,31 +175,33 @@ class WheelLoaderEnv(gym.Env):
 
     def _obs(self) -> np.ndarray:
         obs = np.array(self.core.observation(self._y, self._phase, self._t), dtype=np.float32)
-        return np.clip(obs, OBS_LOW, OBS_HIGH)
+        return obs.clip(OBS_LOW, OBS_HIGH, out=obs)  # = np.clip(obs, ...) without its Python layers
 
     def _info(self, r: dict) -> dict[str, Any]:
-        p = self.params
-        omega, V = self._y[0], self._y[1]
-        gear = self._gears[self._phase]
-        phi = torque_converter.speed_ratio(V, omega, gear, p)
-        u_mf, u_ab, u_b = r["u"]
-        cmd_mf = min(max(r["u_cmd"][0], 0.0), p.U_mf_max)
-        cmd_ab = min(max(r["u_cmd"][1], p.U_ab_bounds[0]), p.U_ab_bounds[1])
+        p, y, phase = self.params, self._y, self._phase
+        gear = self._gears[phase]
+        phi = torque_converter.speed_ratio(y[1], y[0], gear, p)
+        controls = r["u"]
+        u_mf, u_ab = controls[0], controls[1]
+        u_cmd, u_mf_torque, u_ab_pressure = r["u_cmd"], r["u_mf_torque"], r["u_ab_pressure"]
+        cmd_mf = min(max(u_cmd[0], 0.0), p.U_mf_max)
+        lo, hi = p.U_ab_bounds
+        cmd_ab = min(max(u_cmd[1], lo), hi)
         return {
             "t": self._t,
-            "fuel_g": self._y[5] * 1000.0,
-            "phase": self._phase,
+            "fuel_g": y[5] * 1000.0,
+            "phase": phase,
             "gear": gear,
             "tc_mode": torque_converter.operating_mode(phi) if gear != 0 else 0,
             "phi": phi,
-            "state": self._y[:4],
-            "s": self._y[4],
-            "controls": (u_mf, u_ab, u_b),
+            "state": y[:4],
+            "s": y[4],
+            "controls": controls,
             "saturations": {
-                "torque_limit": cmd_mf > r["u_mf_torque"] + 1e-9,
-                "governor": u_mf < min(cmd_mf, r["u_mf_torque"]) - 1e-9,
-                "relief_pressure": cmd_ab > r["u_ab_pressure"] + 1e-9,
-                "pump_flow": u_ab < min(cmd_ab, r["u_ab_pressure"]) - 1e-9,
+                "torque_limit": cmd_mf > u_mf_torque + 1e-9,
+                "governor": u_mf < min(cmd_mf, u_mf_torque) - 1e-9,
+                "relief_pressure": cmd_ab > u_ab_pressure + 1e-9,
+                "pump_flow": u_ab < min(cmd_ab, u_ab_pressure) - 1e-9,
             },
             "violations": {"excess": r["excess"], "max_excess": self._violation},
             "reversing_error": None if math.isnan(self._rev_err) else self._rev_err,  # m, None until reached

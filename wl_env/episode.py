@@ -1,7 +1,8 @@
 """The cycle as an episode: actions -> controls, phase changes, reward, termination, observation.
 
 Written once for one loader (Python floats) and for a batch (numpy arrays), like the simulator under
-it, so that ``WheelLoaderEnv`` and ``WheelLoaderVectorEnv`` compute the same numbers.
+it, so that ``WheelLoaderEnv`` and ``WheelLoaderVectorEnv`` compute the same numbers. For one loader,
+:meth:`CycleStepper.step` runs itself flattened to straight-line float code (:mod:`wl_env.physics.flatten`).
 """
 
 from __future__ import annotations
@@ -15,12 +16,16 @@ import numpy as np
 from wl_env import cycle
 from wl_env.params import LoaderParams
 from wl_env.physics.backend import ops_for
+from wl_env.physics.flatten import flatten_cached
 from wl_env.simulator import Simulator
 
 # Tolerances of the end targets (the project's acceptance figures: 5 cm in distance, 2 cm in height).
 DISTANCE_TOL = 0.05  # m
 HEIGHT_TOL = 0.02  # m
 STILL_SPEED = 1e-6  # m/s: the bucket counts as still below this
+
+# The flattened step unrolls the substeps (~150 lines of code each); beyond this many it is not worth it.
+MAX_FLAT_SUBSTEPS = 8
 
 OBS_NAMES = (
     "omega/omega_max", "V/V_max", "H/H_T", "V_b/(1 m/s)", "s/distance", "to_go/distance",
@@ -150,6 +155,39 @@ class CycleStepper:
         Returns a dict with the new ``y, phase, t, rev_err, violation`` and ``reward``, ``terminated``,
         ``truncated`` and the step's diagnostics (see WheelLoaderEnv's info).
         """
+        if type(y[0]) is float and self.substeps <= MAX_FLAT_SUBSTEPS:
+            # One loader: this method flattened to float arithmetic (same numbers, ~2x faster). It returns
+            # None if a substep reached V = 0 and must be cut there: that rare case runs the code below.
+            flat = self._flat
+            if flat is None or flat[1] is not self.sim._flat:  # new, or the simulator was reconfigured
+                flat = self._flatten_step()
+            r = flat[0](y, phase, t, rev_err, violation, action)
+            if r is not None:
+                return r
+        return self._step(y, phase, t, rev_err, violation, action)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        # The flattened step bakes in the configuration: assigning any attribute (e.g. a reward
+        # curriculum replacing ``reward``) discards it.
+        object.__setattr__(self, name, value)
+        object.__setattr__(self, "_flat", None)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_flat": None}  # generated code is rebuilt after unpickling, not pickled
+
+    def _flatten_step(self) -> tuple[Any, Any]:
+        sim = self.sim
+        # Everything _step reads, from this stepper and from its simulator.
+        key = repr((
+            type(self), self.params, self.reward, self.dt, self.h, self.substeps, self.max_time, self._ab_mid,
+            self._ab_half, self._decel_max, type(sim), sim.params, sim._h_stop, sim._tables_py,
+        ))
+        inputs = (("y", 6), "phase", "t", "rev_err", "violation", ("action", 4))
+        step = flatten_cached(key, self._step, *inputs, name="step", speculate=True)
+        object.__setattr__(self, "_flat", (step, sim._flattened()))  # (sim's part tells when it goes stale)
+        return self._flat
+
+    def _step(self, y: Any, phase: Any, t: Any, rev_err: Any, violation: Any, action: tuple[Any, Any, Any, Any]) -> dict[str, Any]:
         p, rw, sim = self.params, self.reward, self.sim
         ops = ops_for(y[0])
         u_cmd = self.controls(action[0], action[1], action[2])

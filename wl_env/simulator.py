@@ -12,6 +12,9 @@ lowered (V_b >= 0), the brake range, and brakes only in the phases that use them
 machine that the forces would push against the phase's travel direction stays put. A substep in which
 the speed crosses zero is cut at the crossing (no overshoot past V = 0): at the reversing point (end of
 phase 2) the machine switches to phase 3 and the rest of the substep runs forward; otherwise it stands.
+
+On Python floats, :meth:`Simulator.effective_controls` and :meth:`Simulator.rk4` run their own code
+flattened by :mod:`wl_env.physics.flatten` into straight-line float arithmetic: same results, less overhead.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift, torque_converter
 from wl_env.physics.backend import ops_for
+from wl_env.physics.flatten import Sym, flatten_cached, take
 
 # Engine speed floor used inside the right-hand side only: keeps P_load/omega finite if an engine
 # stalls within a substep (the environment ends the episode at omega_min, far above this).
@@ -45,6 +49,27 @@ class Simulator:
         self._tables_py = (tuple(gear.tolist()), tuple(direction.tolist()), tuple(brake.tolist()))
         self._h_stop = lift.max_bucket_height(self.params)
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        # The flattened code bakes in the attributes' values: assigning any one discards it.
+        object.__setattr__(self, name, value)
+        object.__setattr__(self, "_flat", None)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_flat": None}  # generated code is rebuilt after unpickling, not pickled
+
+    def _flattened(self) -> tuple[Any, Any]:
+        """``_controls`` and ``_rk4`` flattened to straight-line float code (see ``physics.flatten``): on
+        floats they are mostly call and dispatch overhead. Built on first use with floats."""
+        if self._flat is None:
+            key = repr((type(self), self.params, self._h_stop))  # all that _controls and _rk4 read
+            controls_inputs = (("y", 4), "gear", "brake", "u_mf", "u_ab", "u_b", "h")
+            flat = (
+                flatten_cached(f"{key} controls", self._controls, *controls_inputs, name="controls"),
+                flatten_cached(f"{key} rk4", self._rk4, ("y", 6), ("u", 3), "gear", "d", "h", name="rk4"),
+            )
+            object.__setattr__(self, "_flat", flat)
+        return self._flat
+
     # ------------------------------------------------------------------ phase tables
     def phase_constants(self, phase: Any) -> tuple[Any, Any, Any]:
         """(gear, direction, brake allowed 0/1) of a phase number or an array of them."""
@@ -52,6 +77,8 @@ class Simulator:
             g, d, b = self._tables_np
             return g[phase], d[phase], b[phase]
         g, d, b = self._tables_py
+        if isinstance(phase, Sym):  # a whole step being flattened (CycleStepper): look up at run time
+            return take(g, phase), take(d, phase), take(b, phase)
         return g[phase], d[phase], b[phase]
 
     # ------------------------------------------------------------------ machine limits
@@ -61,10 +88,15 @@ class Simulator:
         Returns ``(U_mf, U_ab, U_b, U_mf limit of the torque curve, U_ab limit of the relief pressure)``;
         the last two let a caller tell which saturation was active.
         """
+        gear, _, brake = self.phase_constants(phase)
+        if type(y[0]) is float:  # one loader: the same code flattened to plain float arithmetic
+            return self._flattened()[0](y, gear, brake, u_mf, u_ab, u_b, h)
+        return self._controls(y, gear, brake, u_mf, u_ab, u_b, h)
+
+    def _controls(self, y: State, gear: Any, brake: Any, u_mf: Any, u_ab: Any, u_b: Any, h: float) -> tuple[Any, ...]:
         p = self.params
         omega, V, H, V_b = y[0], y[1], y[2], y[3]
         ops = ops_for(omega)
-        gear, _, brake = self.phase_constants(phase)
         lo, hi = p.U_ab_bounds
         u_ab = ops.clip(u_ab, lo, hi)
         u_ab_pressure, v_lift_max = lift.lift_limits(H, omega, p)
@@ -98,6 +130,11 @@ class Simulator:
 
         Returns the new state and dV/dt at the start of the step (m/s^2).
         """
+        if type(y[0]) is float:  # one loader: the same code flattened to plain float arithmetic
+            return self._flattened()[1](y, u, gear, d, h)
+        return self._rk4(y, u, gear, d, h)
+
+    def _rk4(self, y: State, u: tuple[Any, Any, Any], gear: Any, d: Any, h: Any) -> tuple[State, Any]:
         ops = ops_for(y[0])
         k1 = self._rhs(y, u, gear, d, None)
         # Stiction: standing (d V <= 0) and pushed against the travel direction -> held for the substep.

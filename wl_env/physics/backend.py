@@ -5,6 +5,7 @@ path), numpy arrays (the vectorized environment, plots) and CasADi symbols (the 
 They only use + - * /, and the primitives below, picked from the type of the argument. The model
 avoids transcendental functions where algebra does (sin(theta2) = (H - G)/r, cos by sqrt), so floats and
 numpy arrays give bit-identical results: every operation used is correctly rounded in IEEE 754.
+A fourth kind, the recording ``flatten.Sym``, turns the float path into generated straight-line code.
 """
 
 from __future__ import annotations
@@ -61,6 +62,13 @@ if ca is not None:
     )
 
 
+class Traced:
+    """Base of recording numbers (``flatten.Sym``): ``ops_for`` hands them their class's ``OPS``."""
+
+    __slots__ = ()
+    OPS: SimpleNamespace
+
+
 def ops_for(*values: Any) -> SimpleNamespace:
     """The primitive set for these arguments: CasADi if any is symbolic, numpy if any is an array."""
     if type(values[0]) is float and len(values) == 1:  # the single environment's hot path
@@ -71,6 +79,8 @@ def ops_for(*values: Any) -> SimpleNamespace:
             return CASADI_OPS
         if isinstance(v, np.ndarray):
             kind = NUMPY_OPS
+        elif isinstance(v, Traced):
+            return v.OPS
     return kind
 
 

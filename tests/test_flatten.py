@@ -1,0 +1,125 @@
+"""The flattened float code (wl_env.physics.flatten) computes exactly what the code it was traced from does."""
+
+import dataclasses
+import math
+import pickle
+
+import numpy as np
+import pytest
+
+from wl_env.episode import CycleStepper, RewardConfig
+from wl_env.params import DEFAULT_PARAMS as P
+from wl_env.physics.backend import FLOAT_OPS, ops_for
+from wl_env.physics.flatten import Sym, flatten
+from wl_env.simulator import Simulator
+
+
+def same(a, b):
+    """Bit-identical, types included (repr tells -0.0 from 0.0 and True from 1)."""
+    return repr(a) == repr(b)
+
+
+def random_states(rng, n):
+    for _ in range(n):
+        yield (
+            float(rng.choice([rng.uniform(1.0, 260.0), 57.0, P.omega_max])),
+            float(rng.choice([rng.uniform(-3.5, 3.5), 0.0, -0.0])),
+            float(rng.uniform(-1.0, 6.0)),  # beyond both end stops of the boom too
+            float(rng.choice([rng.uniform(0.0, 1.5), 0.0])),
+            float(rng.uniform(-15.0, 8.0)),
+            float(rng.uniform(0.0, 0.2)),
+        )
+
+
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_flattened_simulator_equals_the_traced_code(braking):
+    sim = Simulator(P, braking)
+    controls, rk4 = sim._flattened()
+    rng = np.random.default_rng(0)
+    for y in random_states(rng, 300):
+        phase = int(rng.integers(1, 5))
+        gear, d, brake = sim.phase_constants(phase)
+        cmd = (float(rng.uniform(-50, 300)), float(rng.uniform(-3, 3)), float(rng.uniform(-1e3, 7e4)))
+        h = float(rng.choice([0.1, 0.05, 0.013]))
+        u = controls(y, gear, brake, *cmd, h)
+        assert same(u, sim._controls(y, gear, brake, *cmd, h))
+        assert same(rk4(y, u[:3], gear, d, h), sim._rk4(y, u[:3], gear, d, h))
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_flattened_step_equals_the_traced_code(braking, substeps):
+    core = CycleStepper(P, braking, 0.1, substeps, 40.0, RewardConfig())
+    rng = np.random.default_rng(1)
+    cut = 0
+    for y in random_states(rng, 400):
+        phase = int(rng.integers(1, 5))
+        t, rev_err = float(rng.uniform(0, 40)), float(rng.choice([math.nan, rng.uniform(-1, 1)]))
+        action = tuple(float(v) for v in rng.uniform(-1, 1, 4))
+        flat = core._flatten_step()[0](y, phase, t, rev_err, 0.1, action)
+        reference = core._step(y, phase, t, rev_err, 0.1, action)
+        if flat is None:  # the guard: a substep reached V = 0 and is cut there by the original code
+            cut += 1
+        else:
+            assert same(flat, reference)
+        assert same(core.step(y, phase, t, rev_err, 0.1, action), reference)
+    assert cut > 0  # the fallback was exercised
+
+
+def test_reconfiguration_discards_the_flattened_code():
+    core = CycleStepper(P, "service", 0.1, 1, 40.0, RewardConfig())
+    y, action = (P.omega_0, 0.0, P.H_0, 0.0, 0.0, 0.0), (1.0, 0.2, -1.0, -1.0)
+    before = core.step(y, 1, 0.0, math.nan, 0.0, action)["reward"]
+    core.reward = dataclasses.replace(core.reward, w_time=5.0)  # e.g. a reward curriculum
+    after = core.step(y, 1, 0.0, math.nan, 0.0, action)
+    assert after["reward"] != before and same(after, core._step(y, 1, 0.0, math.nan, 0.0, action))
+    core.sim.params = P.replace(M_load=2000.0)  # the simulator's parameters, behind the stepper's back
+    lighter = core.step(y, 1, 0.0, math.nan, 0.0, action)
+    assert lighter["y"] != after["y"] and same(lighter, core._step(y, 1, 0.0, math.nan, 0.0, action))
+
+
+def test_steppers_with_flattened_code_pickle():
+    core = CycleStepper(P, "tc", 0.1, 1, 40.0, RewardConfig())
+    y, action = (P.omega_0, -1.0, 2.0, 0.1, -2.0, 0.01), (0.5, 0.2, -1.0, 1.0)
+    r = core.step(y, 1, 0.0, math.nan, 0.0, action)
+    copy = pickle.loads(pickle.dumps(core))
+    assert same(copy.step(y, 1, 0.0, math.nan, 0.0, action), r)
+
+
+def test_primitives_keep_float_semantics():
+    ops = FLOAT_OPS
+
+    def f(a, b):
+        o = ops_for(a)
+        assert o is not FLOAT_OPS
+        return o.fmin(a, b), o.fmax(a, b), o.clip(a, -1.0, b), o.where(a < b, a, b), o.sqrt(abs(b)), -a / b
+
+    flat = flatten(f, "a", "b")
+    values = [-2.0, -0.0, 0.0, 0.5, 3.0, math.inf, -math.inf, math.nan]
+    for a in values:
+        for b in values:
+            try:
+                expected = (
+                    ops.fmin(a, b),
+                    ops.fmax(a, b),
+                    ops.clip(a, -1.0, b),
+                    ops.where(a < b, a, b),
+                    ops.sqrt(abs(b)),
+                    -a / b,
+                )
+            except ZeroDivisionError:
+                with pytest.raises(ZeroDivisionError):
+                    flat(a, b)
+                continue
+            assert same(flat(a, b), expected)
+
+
+def test_python_branches_are_refused_unless_speculating():
+    def branchy(x):
+        return x if x > 0.0 else -x
+
+    with pytest.raises(TypeError, match="ops.where"):
+        flatten(branchy, "x")
+    guarded = flatten(branchy, "x", speculate=True)  # traced along x > 0.0 being false
+    assert guarded(-2.0) == 2.0 and guarded(3.0) is None
+    assert isinstance(Sym.OPS.fmin(1.0, 2.0), float)  # constants are folded at trace time
