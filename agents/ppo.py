@@ -1,0 +1,775 @@
+"""PPO agents for ``WheelLoader-v0`` (stable-baselines3), the logic behind ``scripts/train_ppo.py``.
+
+* :class:`PPOConfig` - every option of a run (environment, reward, PPO hyperparameters, logging).
+* :func:`make_env` - the native vector env as an SB3 ``VecEnv`` (:mod:`agents.sb3_vec`), with episode
+  statistics (``VecMonitor``) and optional ``VecNormalize``.
+* :func:`train` - trains one policy in a run directory, with periodic deterministic evaluations (logged
+  to ``eval.csv`` and TensorBoard), atomic checkpoints and ``resume``.
+* :func:`load_policy` - a trained policy as an object with ``act(obs) -> action`` (deterministic, with
+  the saved observation normalization), e.g. for :func:`agents.operator.run_episode`.
+* :func:`evaluate` - deterministic episodes in single environments, with the score against the optimum.
+
+Run directory layout (``<log_dir>/<run_name>/``)::
+
+    config.json                      the run's PPOConfig (``resume`` reads it back)
+    tb/PPO_1/                        TensorBoard events (a resumed run appends to the same folder)
+    eval.csv                         one row per evaluation (the learning curve)
+    checkpoints/latest.json          points at the newest complete checkpoint
+    checkpoints/step_<n>/            model.zip, vecnormalize.pkl, progress.json
+    final/                           model.zip, vecnormalize.pkl, summary.json after the last step
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import pickle
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
+from stable_baselines3.common.policies import ActorCriticPolicy
+
+import wl_env  # noqa: F401  (registers WheelLoader-v0)
+from agents.sb3_vec import make_sb3_vec_env
+from wl_env import cycle
+
+EVAL_FIELDS = (
+    "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
+    "time_gap", "fuel_gap", "reversing_error", "end_error", "height_error", "max_violation",
+    "success_rate", "completion_rate", "mean_return", "mean_T", "mean_fuel_g", "train_w_fuel", "train_w_time",
+    "train_target_distance",
+)
+
+
+@dataclass
+class PPOConfig:
+    """One PPO training run. The defaults are the recipe of the shipped policies (their exact settings
+    and commands are in ``agents/policies/ppo_<braking>.json``)."""
+
+    # --- run
+    braking: str = field(default="service", metadata={"help": "braking alternative: 'service' or 'tc'"})
+    seed: int = field(default=0, metadata={"help": "seed of PPO, torch and the environments"})
+    total_timesteps: int = field(default=12_000_000, metadata={"help": "environment steps to train for"})
+    num_envs: int = field(default=64, metadata={"help": "loaders stepped together (native vector env)"})
+    log_dir: str = field(default="runs", metadata={"help": "parent folder of run directories"})
+    run_name: str = field(default="", metadata={"help": "run directory name (default ppo_<braking>_s<seed>)"})
+    time_limit: float = field(
+        default=0.0, metadata={"help": "stop after this much training wall time (s, summed over resumes; 0: off)"})
+    torch_threads: int = field(default=1, metadata={"help": "torch.set_num_threads (1 is fastest for small MLPs)"})
+    progress_bar: bool = field(default=True, metadata={"help": "show a tqdm/rich progress bar"})
+    # --- environment and reward (RewardConfig fields by name; see wl_env.episode.RewardConfig)
+    w_fuel: float = field(default=2.0, metadata={"help": "fuel weight of the reward (RewardConfig.w_fuel)"})
+    w_time: float = field(default=3.0, metadata={"help": "time weight of the reward (RewardConfig.w_time)"})
+    reward: dict[str, float] = field(
+        default_factory=lambda: {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0},
+        metadata={"help": "other RewardConfig fields, e.g. --reward target_distance=30 shaping=1"},
+    )
+    init_noise: float = field(default=1.0, metadata={"help": "start-state perturbation while training (0..1)"})
+    max_time: float = field(default=40.0, metadata={"help": "episode time limit (s)"})
+    # --- curriculum: these RewardConfig fields (w_fuel/w_time too) start at the given values and ramp
+    # linearly to the run's values over the first curriculum_fraction of training
+    curriculum_start: dict[str, float] = field(
+        default_factory=lambda: {"target_distance": 2.0, "target_height": 2.0},
+        metadata={"help": "start values, e.g. --curriculum-start target_distance=2 w_time=0.5"})
+    curriculum_fraction: float = field(default=0.5, metadata={"help": "fraction of training the ramp lasts"})
+    # --- PPO
+    learning_rate: float = field(default=3e-4, metadata={"help": "Adam step size"})
+    lr_schedule: str = field(default="linear", metadata={"help": "'constant' or 'linear' (decay to 0)"})
+    n_steps: int = field(default=128, metadata={"help": "steps per loader per rollout"})
+    batch_size: int = field(default=2048, metadata={"help": "minibatch size"})
+    n_epochs: int = field(default=10, metadata={"help": "epochs over each rollout"})
+    gamma: float = field(default=0.995, metadata={"help": "discount factor"})
+    gae_lambda: float = field(default=0.95, metadata={"help": "GAE lambda"})
+    clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
+    ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
+    vf_coef: float = field(default=0.5, metadata={"help": "value loss weight"})
+    max_grad_norm: float = field(default=0.5, metadata={"help": "gradient clipping"})
+    target_kl: float | None = field(default=None, metadata={"help": "early stop of the epochs (none: off)"})
+    net_arch: tuple[int, ...] = field(default=(64, 64), metadata={"help": "hidden layers of policy and value nets"})
+    log_std_init: float = field(default=-0.5, metadata={"help": "initial log std of the Gaussian policy"})
+    log_std_final: float | None = field(
+        default=-2.0, metadata={"help": "anneal a cap on the log std linearly to this at the end (none: off)"})
+    shift_bias_init: float = field(
+        default=-1.0, metadata={"help": "initial mean of the shift action (< 0: hold the gear at first)"})
+    fuel_bias_init: float = field(
+        default=0.0, metadata={"help": "initial mean of the fuel action (< 0: explore below the governor)"})
+    bucket_bias_init: float = field(
+        default=0.0, metadata={"help": "initial mean of the bucket action (> 0: lift from the start)"})
+    bounded_mean: bool = field(
+        default=False, metadata={"help": "squash the Gaussian's mean into [-1.1, 1.1] (BoundedMeanPolicy)"})
+    use_sde: bool = field(default=False, metadata={"help": "generalized state-dependent exploration (gSDE)"})
+    sde_sample_freq: int = field(default=-1, metadata={"help": "gSDE: resample the noise every n steps (-1: per rollout)"})
+    norm_obs: bool = field(default=True, metadata={"help": "VecNormalize observations"})
+    norm_reward: bool = field(default=True, metadata={"help": "VecNormalize rewards (by the return's std)"})
+    # --- evaluation and checkpoints
+    eval_freq: int = field(default=200_000, metadata={"help": "evaluate every this many steps"})
+    eval_episodes: int = field(default=50, metadata={"help": "perturbed start states per evaluation"})
+    eval_init_noise: float = field(default=1.0, metadata={"help": "init_noise of the evaluation episodes"})
+    score: bool = field(default=True, metadata={"help": "score evaluations against the Pareto front (mpc)"})
+    checkpoint_freq: int = field(default=500_000, metadata={"help": "checkpoint every this many steps"})
+    keep_checkpoints: int = field(default=2, metadata={"help": "checkpoints kept on disk"})
+
+    def __post_init__(self) -> None:
+        cycle.check_braking(self.braking)
+        self.net_arch = tuple(int(n) for n in self.net_arch)
+        self.reward = {str(k): float(v) for k, v in dict(self.reward).items()}
+        self.curriculum_start = {str(k): float(v) for k, v in dict(self.curriculum_start).items()}
+        from wl_env.episode import RewardConfig
+
+        unknown = (set(self.reward) | set(self.curriculum_start)) - set(RewardConfig.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)}")
+        if self.num_envs < 1 or self.n_steps < 1 or self.batch_size < 1:
+            raise ValueError("num_envs, n_steps and batch_size must be >= 1")
+        if self.lr_schedule not in ("constant", "linear"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'linear', got {self.lr_schedule!r}")
+
+    @property
+    def name(self) -> str:
+        return self.run_name or f"ppo_{self.braking}_s{self.seed}"
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.log_dir) / self.name
+
+    def env_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``WheelLoader-v0`` (single or vector) for this run, without init_noise."""
+        return {"braking": self.braking, "max_time": self.max_time, "reward": dict(self.reward),
+                "w_fuel": self.w_fuel, "w_time": self.w_time}
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["net_arch"] = list(self.net_arch)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PPOConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+# ---------------------------------------------------------------------------------------------- files
+def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write a file so that readers see the old or the new content, never a part (tmp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file, not mkstemp's 0600
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
+    """JSON (NaN written as null, so that strict parsers read it too), atomically."""
+    return write_atomic(path, json.dumps(_finite(obj), indent=2, default=_json_default, allow_nan=False) + "\n")
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any]) -> Path:
+    """model.zip + vecnormalize.pkl + progress.json into ``folder``, made visible at once (dir rename)."""
+    folder = Path(folder)
+    tmp = folder.parent / f".{folder.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    model.save(tmp / "model.zip")
+    if vecnorm is not None:
+        vecnorm.save(tmp / "vecnormalize.pkl")
+    write_json_atomic(tmp / "progress.json", extra)
+    if folder.exists():
+        old = folder.parent / f".{folder.name}.old"
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(folder, old)
+        os.replace(tmp, folder)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, folder)
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------- env
+def make_env(cfg: PPOConfig, num_envs: int | None = None, seed: int | None = None, vecnormalize: Any = None):
+    """The training env: native vector env -> SB3 VecEnv -> VecMonitor (-> VecNormalize).
+
+    ``vecnormalize`` (a path or a ``VecNormalize``) restores saved normalization statistics.
+    """
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    env = make_sb3_vec_env(num_envs or cfg.num_envs, seed=cfg.seed if seed is None else seed,
+                           init_noise=cfg.init_noise, **cfg.env_kwargs())
+    env = VecMonitor(env)
+    if not (cfg.norm_obs or cfg.norm_reward):
+        return env
+    if isinstance(vecnormalize, (str, os.PathLike)):
+        return VecNormalize.load(str(vecnormalize), env)
+    if vecnormalize is not None:
+        vecnormalize.set_venv(env)
+        return vecnormalize
+    return VecNormalize(env, norm_obs=cfg.norm_obs, norm_reward=cfg.norm_reward, gamma=cfg.gamma, clip_obs=10.0)
+
+
+def _vecnorm_of(env: Any) -> Any:
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    return env if isinstance(env, VecNormalize) else None
+
+
+def _native_of(env: Any) -> Any:
+    """The WheelLoaderVectorEnv under the SB3 wrappers."""
+    e = env
+    while hasattr(e, "venv"):
+        e = e.venv
+    return e
+
+
+def reward_config(cfg: PPOConfig, step: int | None = None):
+    """The run's RewardConfig at a training step (``None``: the final one, after the curriculum)."""
+    from wl_env.env import make_reward_config
+
+    final = make_reward_config(dict(cfg.reward), cfg.w_fuel, cfg.w_time)
+    if step is None or not cfg.curriculum_start:
+        return final
+    frac = min(1.0, step / max(1.0, cfg.curriculum_fraction * cfg.total_timesteps))
+    changes = {k: v0 + frac * (getattr(final, k) - v0) for k, v0 in cfg.curriculum_start.items()}
+    return dataclasses.replace(final, **changes)
+
+
+# ---------------------------------------------------------------------------------------------- policy
+class PPOPolicy:
+    """A trained PPO policy: ``act(obs)`` returns the deterministic action (mean of the Gaussian, clipped
+    to the action space) for one observation (shape (12,)) or a batch (shape (n, 12))."""
+
+    def __init__(self, model: Any, obs_rms: Any = None, clip_obs: float = 10.0, epsilon: float = 1e-8,
+                 meta: dict[str, Any] | None = None) -> None:
+        self.model = model
+        self.obs_rms = obs_rms
+        self.clip_obs = clip_obs
+        self.epsilon = epsilon
+        self.meta = meta or {}
+        self.braking = self.meta.get("braking")
+
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float32)
+        if self.obs_rms is None:
+            return obs
+        z = (obs - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + self.epsilon)
+        return np.clip(z, -self.clip_obs, self.clip_obs).astype(np.float32)
+
+    def reset(self) -> None:  # stateless; present for the controller protocol of run_episode
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+    __call__ = act
+
+
+def load_policy(path: str | os.PathLike, device: str = "cpu") -> PPOPolicy:
+    """Load a policy saved by :func:`train` or shipped in ``agents/policies/``.
+
+    ``path`` is a model zip (``.../ppo_service.zip`` or ``.../model.zip``), a folder holding
+    ``model.zip`` (a run's ``final/`` or a checkpoint) or a run directory. The VecNormalize statistics
+    are read from ``<stem>_vecnormalize.pkl`` or ``vecnormalize.pkl`` beside the zip, if present (else from
+    the ``obs_normalization`` entry of ``<stem>.json``), and the metadata from
+    ``<stem>.json``/``summary.json``/``progress.json``.
+    """
+    from stable_baselines3 import PPO
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / "final" / "model.zip" if (p / "final" / "model.zip").exists() else p / "model.zip"
+    if not p.exists():
+        raise FileNotFoundError(f"no policy at {path}")
+    stem = p.with_suffix("")
+    candidates = [stem.parent / f"{stem.name}_vecnormalize.pkl", p.parent / "vecnormalize.pkl"]
+    obs_rms, clip_obs, eps = None, 10.0, 1e-8
+    for c in candidates:
+        if c.exists():
+            with open(c, "rb") as f:
+                vn = pickle.load(f)
+            if getattr(vn, "norm_obs", True):
+                obs_rms, clip_obs, eps = vn.obs_rms, float(vn.clip_obs), float(vn.epsilon)
+            break
+    meta: dict[str, Any] = {}
+    for c in (stem.parent / f"{stem.name}.json", p.parent / "summary.json", p.parent / "progress.json"):
+        if c.exists():
+            meta = json.loads(c.read_text())
+            break
+    norm = meta.get("obs_normalization")
+    if obs_rms is None and norm:  # no pickle (e.g. an installed package ships only zip + json)
+        from types import SimpleNamespace
+
+        obs_rms = SimpleNamespace(mean=np.asarray(norm["mean"]), var=np.asarray(norm["var"]))
+        clip_obs, eps = float(norm["clip_obs"]), float(norm["epsilon"])
+    model = PPO.load(str(p), device=device)
+    if "braking" not in meta and isinstance(meta.get("config"), dict):
+        meta["braking"] = meta["config"].get("braking")
+    return PPOPolicy(model, obs_rms, clip_obs, eps, meta)
+
+
+# ---------------------------------------------------------------------------------------------- evaluation
+def rollout(act: Any, braking: str, n_episodes: int = 1, init_noise: float = 0.0, seed: int = 0,
+            env_kwargs: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Run ``n_episodes`` single ``WheelLoader-v0`` episodes in lockstep (episode i seeded ``seed + i``)
+    with a batched ``act(obs_batch) -> actions``; returns per episode the final info's numbers."""
+    kwargs = dict(env_kwargs or {})
+    kwargs["braking"] = braking
+    envs = [gym.make("WheelLoader-v0", init_noise=init_noise, **kwargs) for _ in range(n_episodes)]
+    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
+    returns = np.zeros(n_episodes)
+    results: list[dict[str, Any] | None] = [None] * n_episodes
+    active = list(range(n_episodes))
+    while active:
+        actions = np.asarray(act(obs[active]), dtype=np.float32).reshape(len(active), -1)
+        still = []
+        for a, i in zip(actions, active, strict=True):
+            o, r, term, trunc, info = envs[i].step(a)
+            obs[i] = o
+            returns[i] += r
+            if term or trunc:
+                results[i] = {
+                    "T": info["t"], "fuel_g": info["fuel_g"], "success": info["is_success"],
+                    "completed": info["completed"], "stalled": info["stalled"], "off_site": info["off_site"],
+                    "truncated": bool(trunc), "return": float(returns[i]),
+                    "reversing_error": info["reversing_error"], "end_error": info["s"],
+                    "height_error": info["state"][2] - envs[i].unwrapped.params.H_T,
+                    "max_violation": info["violations"]["max_excess"],
+                }
+            else:
+                still.append(i)
+        active = still
+    for env in envs:
+        env.close()
+    return results  # type: ignore[return-value]
+
+
+def score(T: float, fuel_g: float, braking: str, front: Any = None) -> tuple[float, float]:
+    """(time gap, fuel gap) against the optimum (see :func:`mpc.scoring.score_run`). Cycles slower than
+    the fuel-optimal one are compared with the minimum fuel (no on-demand solve)."""
+    from mpc.pareto import pareto_front
+
+    front = front or pareto_front(braking)
+    time_gap = T / front.T_min - 1.0
+    if T < front.T_min:
+        fuel_opt = front.fuel_g[0]
+    elif T >= front.T_fuel_opt:
+        fuel_opt = front.fuel_min_g
+    else:
+        fuel_opt = front.fuel_at(T)
+    return time_gap, fuel_g / fuel_opt - 1.0
+
+
+def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 1.0, seed: int = 10_000,
+             env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None) -> dict[str, Any]:
+    """Deterministic evaluation: the nominal start (init_noise 0, what the optimum is computed for) and
+    ``n_episodes`` perturbed starts. Gaps are relative (0.1 = 10 % above the optimum)."""
+    nominal = rollout(act, braking, 1, 0.0, seed, env_kwargs)[0]
+    out: dict[str, Any] = {
+        "nominal_success": float(nominal["success"]), "nominal_completed": float(nominal["completed"]),
+        "nominal_return": nominal["return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
+        "reversing_error": nominal["reversing_error"], "end_error": nominal["end_error"],
+        "height_error": nominal["height_error"], "max_violation": nominal["max_violation"],
+        "time_gap": math.nan, "fuel_gap": math.nan,
+    }
+    if with_score and nominal["completed"]:
+        try:
+            out["time_gap"], out["fuel_gap"] = score(nominal["T"], nominal["fuel_g"], braking, front)
+        except Exception as e:  # noqa: BLE001 - a missing optimum must not stop training
+            print(f"warning: no score ({e})", file=sys.stderr)
+    if n_episodes > 0:
+        eps = rollout(act, braking, n_episodes, init_noise, seed, env_kwargs)
+        done = [e for e in eps if e["completed"]]
+        out.update({
+            "success_rate": float(np.mean([e["success"] for e in eps])),
+            "completion_rate": len(done) / len(eps),
+            "mean_return": float(np.mean([e["return"] for e in eps])),
+            "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
+            "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
+        })
+        if with_score and done and not math.isnan(out["time_gap"]):
+            gaps = [score(e["T"], e["fuel_g"], braking, front) for e in done]
+            out["mean_time_gap"] = float(np.mean([g[0] for g in gaps]))
+            out["mean_fuel_gap"] = float(np.mean([g[1] for g in gaps]))
+            out["max_time_gap"] = float(np.max([g[0] for g in gaps]))
+            out["max_fuel_gap"] = float(np.max([g[1] for g in gaps]))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- training
+def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class RunCallback(BaseCallback):
+        """At the start of each rollout (the model just updated): curriculum, evaluation, checkpoint."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.front = None
+            self.last_eval = state["last_eval"]
+            self.last_ckpt = state["last_ckpt"]
+
+        def _on_training_start(self) -> None:
+            if cfg.score:
+                try:
+                    from mpc.pareto import pareto_front
+
+                    self.front = pareto_front(cfg.braking)
+                except Exception as e:  # noqa: BLE001
+                    print(f"warning: no Pareto front, evaluations are not scored ({e})", file=sys.stderr)
+            self._apply_curriculum()
+
+        def _on_rollout_start(self) -> None:
+            step = self.num_timesteps
+            self._apply_curriculum()
+            if self.last_eval is None or step - self.last_eval >= cfg.eval_freq:
+                self._evaluate()
+            if step - self.last_ckpt >= cfg.checkpoint_freq:
+                self._checkpoint()
+
+        def _on_step(self) -> bool:
+            if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
+                if not state.get("timed_out"):
+                    print(f"time limit: {cfg.time_limit:.0f} s of training reached at step {self.num_timesteps}",
+                          file=sys.stderr)
+                state["timed_out"] = True
+                return False
+            return True
+
+        def _on_training_end(self) -> None:
+            if self.last_eval != self.num_timesteps:
+                self._evaluate()
+            if self.last_ckpt != self.num_timesteps:
+                self._checkpoint()
+
+        # ---- pieces
+        def _apply_curriculum(self) -> None:
+            if cfg.log_std_final is not None and not cfg.use_sde:
+                # Exploration annealing: a noisy policy aims short of targets it cannot undo (the bucket
+                # is never lowered), and the deterministic policy inherits that offset; capping the
+                # std late in training removes it.
+                frac = min(1.0, self.num_timesteps / max(1, cfg.total_timesteps))
+                cap = cfg.log_std_init + frac * (cfg.log_std_final - cfg.log_std_init)
+                with th.no_grad():
+                    self.model.policy.log_std.clamp_(max=cap)
+                self.logger.record("train/log_std_cap", cap)
+            native = _native_of(self.training_env)
+            rc = reward_config(cfg, self.num_timesteps)
+            if native.core.reward != rc:
+                native.core.reward = rc  # the vector env reads its RewardConfig at every step
+            for k in cfg.curriculum_start:
+                self.logger.record(f"curriculum/{k}", getattr(rc, k))
+
+        def _evaluate(self) -> None:
+            vn = _vecnorm_of(self.training_env)
+
+            def act(obs: np.ndarray) -> np.ndarray:
+                if vn is not None:
+                    obs = vn.normalize_obs(obs)
+                return self.model.predict(obs, deterministic=True)[0]
+
+            res = evaluate(act, cfg.braking, cfg.eval_episodes, cfg.eval_init_noise, seed=10_000,
+                           env_kwargs=cfg.env_kwargs(), with_score=cfg.score and self.front is not None,
+                           front=self.front)
+            rc = reward_config(cfg, self.num_timesteps)
+            row = {"step": self.num_timesteps, "wall_time": state["wall_time"] + time.time() - state["t0"],
+                   "train_w_time": rc.w_time, "train_w_fuel": rc.w_fuel, "train_target_distance": rc.target_distance,
+                   **res}
+            for k, v in res.items():
+                if isinstance(v, (int, float)) and v is not None and math.isfinite(v):
+                    self.logger.record(f"eval/{k}", v)
+            _append_eval_row(run_dir / "eval.csv", row)
+            state["last_eval_row"] = row
+            self.last_eval = self.num_timesteps
+            if self.verbose or cfg.progress_bar is False:
+                print(_eval_line(row), flush=True)
+
+        def _checkpoint(self) -> None:
+            step = self.num_timesteps
+            wall = state["wall_time"] + time.time() - state["t0"]
+            ckpt_root = run_dir / "checkpoints"
+            folder = save_model_files(self.model, _vecnorm_of(self.training_env), ckpt_root / f"step_{step:010d}", {
+                "num_timesteps": step, "total_timesteps": cfg.total_timesteps, "wall_time": wall,
+                "last_eval": self.last_eval, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                "braking": cfg.braking, "seed": cfg.seed,
+            })
+            write_json_atomic(ckpt_root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
+            self.last_ckpt = step
+            old = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())[: -max(1, cfg.keep_checkpoints)]
+            for p in old:
+                shutil.rmtree(p, ignore_errors=True)
+
+    return RunCallback()
+
+
+def _eval_line(row: dict[str, Any]) -> str:
+    def f(k: str, fmt: str) -> str:
+        v = row.get(k)
+        return "nan" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+    return (f"[eval] step {row['step']:>9d}  success {f('success_rate', '.2f')} (nominal {f('nominal_success', '.0f')})"
+            f"  T {f('T', '.2f')} s  fuel {f('fuel_g', '.1f')} g  gaps {f('time_gap', '+.3f')}/{f('fuel_gap', '+.3f')}"
+            f"  errors rev {f('reversing_error', '+.3f')} end {f('end_error', '+.3f')} H {f('height_error', '+.3f')}"
+            f"  return {f('nominal_return', '.3f')}")
+
+
+def _append_eval_row(path: Path, row: dict[str, Any]) -> None:
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(EVAL_FIELDS) + ["mean_time_gap", "mean_fuel_gap", "max_time_gap", "max_fuel_gap"],
+                           extrasaction="ignore")
+        if new:
+            w.writeheader()
+        w.writerow({k: ("" if v is None else v) for k, v in row.items()})
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def read_eval_csv(path: str | os.PathLike) -> list[dict[str, float]]:
+    """The rows of a run's eval.csv as floats (NaN for empty cells)."""
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            rows.append({k: (float(v) if v not in ("", None) else math.nan) for k, v in r.items()})
+    return rows
+
+
+def _truncate_eval_csv(path: Path, step: int) -> None:
+    """On resume: keep the evaluations up to the checkpoint (later ones are redone; a line cut short by
+    the interruption is dropped)."""
+    if not path.exists():
+        return
+    lines = path.read_text().splitlines(keepends=True)
+    if not lines:
+        return
+    n_cols = len(next(csv.reader(lines[:1])))
+
+    def keep(line: str) -> bool:
+        cells = next(csv.reader([line]), [])
+        return line.endswith("\n") and len(cells) == n_cols and float(cells[0]) <= step
+
+    write_atomic(path, "".join(lines[:1] + [line for line in lines[1:] if keep(line)]))
+
+
+def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
+    """The newest complete checkpoint folder of a run, or None."""
+    root = Path(run_dir) / "checkpoints"
+    ptr = root / "latest.json"
+    if ptr.exists():
+        folder = root / json.loads(ptr.read_text())["checkpoint"]
+        if (folder / "model.zip").exists() and (folder / "progress.json").exists():
+            return folder
+    folders = sorted(p for p in root.glob("step_*") if (p / "progress.json").exists())
+    return folders[-1] if folders else None
+
+
+class BoundedMeanPolicy(ActorCriticPolicy):
+    """SB3's ``MlpPolicy`` with the Gaussian's mean squashed to ``mean_bound * tanh(.)``.
+
+    The env clips actions to [-1, 1]. An unbounded mean can drift far outside, where neither the clipped
+    action nor the return depends on it and samples rarely come back inside: PPO then stops learning
+    that action (e.g. a bucket held at full lift past its target, up to the end stop).
+    """
+
+    def __init__(self, *args: Any, mean_bound: float = 1.1, **kwargs: Any) -> None:
+        self.mean_bound = mean_bound
+        super().__init__(*args, **kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        return {**super()._get_constructor_parameters(), "mean_bound": self.mean_bound}
+
+    def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:
+        if not isinstance(self.action_dist, DiagGaussianDistribution):
+            return super()._get_action_dist_from_latent(latent_pi)
+        mean = self.mean_bound * th.tanh(self.action_net(latent_pi))
+        return self.action_dist.proba_distribution(mean, self.log_std)
+
+
+def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
+    from stable_baselines3 import PPO
+
+    lr: Any = cfg.learning_rate
+    if cfg.lr_schedule == "linear":
+        lr0 = cfg.learning_rate
+
+        def lr(progress_remaining: float) -> float:  # noqa: F811 - SB3 schedule: 1 -> 0 over training
+            return lr0 * max(progress_remaining, 0.05)
+
+    bounded = cfg.bounded_mean and not cfg.use_sde
+    model = PPO(
+        BoundedMeanPolicy if bounded else "MlpPolicy", env, learning_rate=lr, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
+        gamma=cfg.gamma, gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range, ent_coef=cfg.ent_coef,
+        vf_coef=cfg.vf_coef, max_grad_norm=cfg.max_grad_norm, target_kl=cfg.target_kl,
+        use_sde=cfg.use_sde, sde_sample_freq=cfg.sde_sample_freq,
+        policy_kwargs={"net_arch": {"pi": list(cfg.net_arch), "vf": list(cfg.net_arch)},
+                       "log_std_init": cfg.log_std_init},
+        tensorboard_log=str(tb_dir), seed=cfg.seed, device="cpu", verbose=0,
+    )
+    # Initial action means. The shift is a threshold (action[3] > 0) on a continuous action: start by
+    # holding the gear, or the untrained policy ends phases 1 and 3 within a step or two and never sees a
+    # full leg. The fuel: above ~40 mg the governor caps a neutral engine at omega_max, so a policy that
+    # starts around half injection sees no gain from less fuel (a flat region) and keeps racing the engine.
+    def raw(mean: float) -> float:  # the bias giving this initial mean
+        return math.atanh(max(-0.99, min(0.99, mean / 1.1))) if bounded else mean
+
+    with th.no_grad():
+        model.policy.action_net.bias[0] = raw(cfg.fuel_bias_init)
+        model.policy.action_net.bias[1] = raw(cfg.bucket_bias_init)
+        model.policy.action_net.bias[3] = raw(cfg.shift_bias_init)
+    return model
+
+
+def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, callbacks: list | None = None) -> dict[str, Any]:
+    """Train (or, with ``resume``, continue) the run ``cfg.run_dir``; returns the run's summary.
+
+    ``command`` (the command line) is recorded in config.json; ``callbacks`` are extra SB3 callbacks.
+
+    Resuming reads the run's saved config (the given one only names the run), loads the newest
+    checkpoint (model, optimizer, VecNormalize statistics, step count) and trains for the rest of the
+    same ``total_timesteps``; TensorBoard events and ``eval.csv`` continue where the checkpoint was.
+    """
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.utils import set_random_seed
+
+    th.set_num_threads(max(1, cfg.torch_threads))
+    run_dir = cfg.run_dir
+    state: dict[str, Any] = {"wall_time": 0.0, "last_eval": None, "last_ckpt": 0, "t0": time.time()}
+    ckpt = latest_checkpoint(run_dir) if resume else None
+    commands: list[str] = []
+    if resume:
+        saved = run_dir / "config.json"
+        if not saved.exists():
+            raise FileNotFoundError(f"nothing to resume: {saved} does not exist")
+        meta = json.loads(saved.read_text())
+        given = cfg
+        cfg = PPOConfig.from_dict(meta["config"])
+        cfg.progress_bar = given.progress_bar
+        commands = list(meta.get("commands", []))
+        if ckpt is None:
+            print(f"resume: no checkpoint in {run_dir}, starting from step 0", file=sys.stderr)
+    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+        raise FileExistsError(f"{run_dir} already holds a run; pass resume=True (--resume) or another run name")
+    if command:
+        commands.append(command)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(run_dir / "config.json", {"config": cfg.to_dict(), "commands": commands})
+
+    tb_dir = run_dir / "tb"
+    if ckpt is not None:
+        progress = json.loads((ckpt / "progress.json").read_text())
+        step = int(progress["num_timesteps"])
+        vn_path = ckpt / "vecnormalize.pkl"
+        # Fresh episodes after the interruption; a different env seed so they are not a replay.
+        env = make_env(cfg, seed=cfg.seed + step, vecnormalize=vn_path if vn_path.exists() else None)
+        set_random_seed(cfg.seed + step)
+        model = PPO.load(str(ckpt / "model.zip"), env=env, device="cpu", tensorboard_log=str(tb_dir))
+        model.num_timesteps = step
+        state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"), last_ckpt=step)
+        _truncate_eval_csv(run_dir / "eval.csv", step)
+        print(f"resume: {ckpt.name}, {step} of {cfg.total_timesteps} steps done", file=sys.stderr)
+    else:
+        step = 0
+        (run_dir / "eval.csv").unlink(missing_ok=True)
+        shutil.rmtree(tb_dir, ignore_errors=True)
+        env = make_env(cfg)
+        model = build_model(cfg, env, tb_dir)
+
+    remaining = cfg.total_timesteps - step
+    if remaining > 0:
+        model.learn(total_timesteps=remaining, callback=[_callbacks(cfg, run_dir, state), *(callbacks or [])],
+                    reset_num_timesteps=ckpt is None, tb_log_name="PPO", progress_bar=cfg.progress_bar)
+    wall = state["wall_time"] + time.time() - state["t0"]
+    final = save_model_files(model, _vecnorm_of(env), run_dir / "final", {
+        "num_timesteps": int(model.num_timesteps), "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed,
+        "config": cfg.to_dict(), "commands": commands, "last_eval": state.get("last_eval_row"),
+        "stopped_by_time_limit": bool(state.get("timed_out")),
+    })
+    env.close()
+    summary = json.loads((final / "progress.json").read_text())
+    write_json_atomic(final / "summary.json", summary)
+    return summary
+
+
+# ---------------------------------------------------------------------------------------------- shipping
+def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: str, n_episodes: int = 100,
+                  init_noise: float = 1.0, extra: dict[str, Any] | None = None, front: Any = None) -> dict[str, Any]:
+    """Copy a run's final policy to ``out_dir/<name>.zip`` + ``<name>_vecnormalize.pkl`` and write
+    ``<name>.json`` (config, commands, steps, wall time and a fresh deterministic evaluation, scored
+    against ``front`` or else :func:`mpc.pareto.pareto_front`)."""
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    final = run_dir / "final"
+    summary = json.loads((final / "summary.json").read_text())
+    cfg = PPOConfig.from_dict(summary["config"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(out_dir / f"{name}.zip", (final / "model.zip").read_bytes())
+    if (final / "vecnormalize.pkl").exists():
+        write_atomic(out_dir / f"{name}_vecnormalize.pkl", (final / "vecnormalize.pkl").read_bytes())
+    policy = load_policy(out_dir / f"{name}.zip")
+    if front is None:
+        try:
+            from mpc.pareto import pareto_front
+
+            front = pareto_front(cfg.braking)
+        except Exception as e:  # noqa: BLE001
+            print(f"warning: no Pareto front, the evaluation is not scored ({e})", file=sys.stderr)
+    ev = evaluate(policy.act, cfg.braking, n_episodes, init_noise, env_kwargs=cfg.env_kwargs(),
+                  with_score=front is not None, front=front)
+    if front is not None:
+        ev["optimum"] = {"T_min": front.T_min, "fuel_at_T_g": front.fuel_at(ev["T"]) if front.T_min <= ev["T"]
+                         < front.T_fuel_opt else None, "T_fuel_opt": front.T_fuel_opt, "fuel_min_g": front.fuel_min_g}
+    if policy.obs_rms is not None:  # also in the JSON, for installs without the pickle
+        extra = {**(extra or {}), "obs_normalization": {
+            "mean": policy.obs_rms.mean.tolist(), "var": policy.obs_rms.var.tolist(),
+            "clip_obs": policy.clip_obs, "epsilon": policy.epsilon}}
+    meta = {
+        "name": name, "braking": cfg.braking, "seed": cfg.seed, "num_timesteps": summary["num_timesteps"],
+        "training_wall_time_s": round(float(summary["wall_time"]), 1), "commands": summary.get("commands", []),
+        "config": summary["config"], "env_kwargs": cfg.env_kwargs(),
+        "evaluation": {"deterministic": True, "episodes": n_episodes, "init_noise": init_noise,
+                       "seed": 10_000, **ev},
+        **(extra or {}),
+    }
+    write_json_atomic(out_dir / f"{name}.json", meta)
+    return meta

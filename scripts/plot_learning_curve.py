@@ -1,0 +1,131 @@
+"""Plot a PPO run's learning curve from its ``eval.csv`` (written by ``scripts/train_ppo.py``).
+
+Four panels against training steps: success rate of the deterministic policy (perturbed starts and
+the nominal start), return, cycle time and fuel of the nominal cycle with the optimum's references, and
+the time and fuel gaps to the optimum with the 15 % target. Usage::
+
+    python scripts/plot_learning_curve.py runs/ppo_service_s0 --out docs/learning_curve_service.png
+    python scripts/plot_learning_curve.py docs/learning_curve_tc.csv --braking tc --out docs/learning_curve_tc.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from agents.ppo import read_eval_csv  # noqa: E402
+
+GAP_TARGET = 0.15
+
+
+def _series(rows: list[dict[str, float]], key: str) -> np.ndarray:
+    return np.array([r.get(key, math.nan) for r in rows], dtype=float)
+
+
+def plot(rows: list[dict[str, float]], braking: str, title: str, out: Path, front: object | None = None) -> Path:
+    steps = _series(rows, "step") / 1e6
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    ax = axes[0, 0]
+    ax.plot(steps, _series(rows, "success_rate"), label="success rate (perturbed starts)")
+    ax.plot(steps, _series(rows, "completion_rate"), "--", label="completion rate (perturbed starts)")
+    ax.plot(steps, _series(rows, "nominal_success"), ".", label="nominal start: success (0/1)")
+    ax.axhline(0.95, color="grey", lw=0.8, ls=":")
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_ylabel("rate")
+    ax.legend(fontsize=8, loc="lower right")
+
+    ax = axes[0, 1]
+    ax.plot(steps, _series(rows, "nominal_return"), label="nominal start")
+    ax.plot(steps, _series(rows, "mean_return"), "--", label="perturbed starts (mean)")
+    ret = np.concatenate([_series(rows, "nominal_return"), _series(rows, "mean_return")])
+    ret = ret[np.isfinite(ret)]
+    if ret.size:
+        ax.set_ylim(max(np.min(ret), np.max(ret) - 40.0), np.max(ret) + 0.1 * (np.ptp(ret) + 1e-3))
+    ax.set_ylabel("return (the run's final reward weights)")
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]
+    done = _series(rows, "nominal_completed") == 1.0  # time and fuel of completed cycles only
+    ax.plot(steps, np.where(done, _series(rows, "T"), np.nan), color="C0", label="cycle time T (s)")
+    ax.set_ylabel("T (s)", color="C0")
+    ax.set_ylim(7.5, 14)
+    ax2 = ax.twinx()
+    ax2.plot(steps, np.where(done, _series(rows, "fuel_g"), np.nan), color="C1", label="fuel (g)")
+    ax2.set_ylabel("fuel (g)", color="C1")
+    ax2.set_ylim(40, 130)
+    if front is not None:
+        ax.axhline(front.T_min, color="C0", ls=":", lw=0.8)
+        ax2.axhline(front.fuel_min_g, color="C1", ls=":", lw=0.8)
+    ax.set_xlabel("training steps (millions)")
+    ax.set_title("nominal cycle, when completed (dotted: minimum time / minimum fuel)", fontsize=9)
+
+    ax = axes[1, 1]
+    ax.plot(steps, 100 * _series(rows, "time_gap"), label="time gap")
+    ax.plot(steps, 100 * _series(rows, "fuel_gap"), label="fuel gap (same cycle time)")
+    ax.axhline(100 * GAP_TARGET, color="grey", lw=0.8, ls=":", label="15 % target")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_ylim(-10, 60)
+    ax.set_ylabel("gap to the optimum (%)")
+    ax.set_xlabel("training steps (millions)")
+    ax.legend(fontsize=8)
+    for a in axes.flat:
+        a.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(out)
+    plt.close(fig)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("source", help="a run directory (with eval.csv) or an eval CSV file")
+    ap.add_argument("--out", required=True, help="PNG to write")
+    ap.add_argument("--braking", default=None, help="braking alternative (default: from the run's config.json)")
+    ap.add_argument("--title", default=None)
+    ap.add_argument("--no-front", action="store_true", help="do not draw the optimum's references")
+    ap.add_argument("--front", default=None, metavar="JSON",
+                    help="a saved Pareto front (ParetoFront.save) instead of mpc.pareto.pareto_front(braking)")
+    args = ap.parse_args(argv)
+    src = Path(args.source)
+    csv_path = src / "eval.csv" if src.is_dir() else src
+    braking = args.braking
+    if braking is None and (src / "config.json").exists():
+        braking = json.loads((src / "config.json").read_text())["config"]["braking"]
+    braking = braking or "service"
+    front = None
+    if not args.no_front:
+        try:
+            from mpc.pareto import ParetoFront, pareto_front
+
+            front = ParetoFront.load(args.front) if args.front else pareto_front(braking)
+        except Exception as e:  # noqa: BLE001
+            print(f"warning: no Pareto front ({e})", file=sys.stderr)
+    rows = read_eval_csv(csv_path)
+    if front is not None:  # score the rows logged while no front was at hand
+        from agents.ppo import score
+
+        for r in rows:
+            if math.isnan(r.get("time_gap", math.nan)) and r.get("nominal_completed") == 1.0:
+                r["time_gap"], r["fuel_gap"] = score(r["T"], r["fuel_g"], braking, front)
+    title = args.title or f"PPO, {braking} braking: deterministic evaluations during training"
+    print(plot(rows, braking, title, Path(args.out), front))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

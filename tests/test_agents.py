@@ -1,0 +1,176 @@
+"""PPO agents: the SB3 adapter of the vector env, training, checkpoints, resume, save/load, shipped policies."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+import wl_env  # noqa: F401
+from agents.operator import OperatorPolicy, run_episode
+from agents.ppo import (
+    PPOConfig,
+    build_model,
+    latest_checkpoint,
+    load_policy,
+    make_env,
+    read_eval_csv,
+    reward_config,
+    save_model_files,
+    train,
+)
+from agents.sb3_vec import make_sb3_vec_env
+
+POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
+
+
+# ------------------------------------------------------------------------------------------ adapter
+@pytest.mark.parametrize("braking,max_time", [("service", 40.0), ("tc", 40.0), ("service", 3.0)])
+def test_adapter_matches_dummy_vec_env(braking, max_time):
+    """Same observations, rewards, dones, terminal observations and infos as DummyVecEnv of single envs."""
+    n, seed = 5, 7
+    kw = dict(braking=braking, init_noise=1.0, max_time=max_time)
+    ours = make_sb3_vec_env(n, seed=seed, **kw)
+    ref = DummyVecEnv([lambda: gym.make("WheelLoader-v0", **kw) for _ in range(n)])
+    ref.seed(seed)
+    obs_a, obs_b = ours.reset(), ref.reset()
+    np.testing.assert_array_equal(obs_a, obs_b)
+    operator, rng = OperatorPolicy(braking), np.random.default_rng(0)
+    ends = {"done": 0, "truncated": 0, "completed": 0}
+    for _ in range(600):
+        actions = operator.act(obs_a) + rng.normal(0.0, 0.3, (n, 4)).astype(np.float32)
+        actions[0, 3] = rng.uniform(-1.0, 1.0)  # loader 0 shifts at random: short, failed episodes
+        obs_a, rew_a, done_a, info_a = ours.step(actions)
+        obs_b, rew_b, done_b, info_b = ref.step(actions)
+        np.testing.assert_allclose(obs_a, obs_b, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(rew_a, rew_b, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(done_a, done_b)
+        for a, b in zip(info_a, info_b, strict=True):
+            assert a["TimeLimit.truncated"] == b["TimeLimit.truncated"]
+            assert a["is_success"] == b["is_success"]
+            assert a["phase"] == b["phase"]
+            assert a["t"] == pytest.approx(b["t"])
+            assert ("terminal_observation" in a) == ("terminal_observation" in b)
+            if "terminal_observation" in a:
+                np.testing.assert_allclose(a["terminal_observation"], b["terminal_observation"], atol=1e-6)
+                ends["done"] += 1
+                ends["truncated"] += a["TimeLimit.truncated"]
+                ends["completed"] += b["completed"]
+    assert ends["done"] > 10
+    if max_time < 10:
+        assert ends["truncated"] > 0
+    else:
+        assert ends["completed"] > 0
+
+
+# ------------------------------------------------------------------------------------------ training
+def _tiny(tmp_path: Path, **kw) -> PPOConfig:
+    base = dict(total_timesteps=4096, num_envs=8, n_steps=64, batch_size=256, n_epochs=2, eval_freq=1024,
+                eval_episodes=2, checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path),
+                run_name="tiny", net_arch=(16, 16))
+    base.update(kw)
+    return PPOConfig(**base)
+
+
+class _Interrupt(BaseCallback):
+    """Stops training like Ctrl-C once ``at`` steps are done."""
+
+    def __init__(self, at: int) -> None:
+        super().__init__()
+        self.at = at
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.at:
+            raise KeyboardInterrupt
+        return True
+
+
+def test_short_training_checkpoints_and_saves(tmp_path):
+    cfg = _tiny(tmp_path)
+    summary = train(cfg, command="pytest")
+    run = cfg.run_dir
+    assert summary["num_timesteps"] >= cfg.total_timesteps
+    for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv"):
+        assert (run / f).exists(), f
+    assert list((run / "tb").glob("PPO_1/events.*"))
+    ckpt = latest_checkpoint(run)
+    assert ckpt is not None and json.loads((ckpt / "progress.json").read_text())["num_timesteps"] >= 4096
+    assert len(list((run / "checkpoints").glob("step_*"))) == cfg.keep_checkpoints
+    rows = read_eval_csv(run / "eval.csv")
+    assert rows[0]["step"] == 0 and rows[-1]["step"] == summary["num_timesteps"]
+    assert json.loads((run / "config.json").read_text())["commands"] == ["pytest"]
+    with pytest.raises(FileExistsError):
+        train(cfg)  # an existing run is only continued with resume
+
+
+def test_resume_continues_from_checkpoint(tmp_path):
+    cfg = _tiny(tmp_path, total_timesteps=6144)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, callbacks=[_Interrupt(3500)])
+    ckpt = latest_checkpoint(cfg.run_dir)
+    done = json.loads((ckpt / "progress.json").read_text())["num_timesteps"]
+    assert 1024 <= done < 3500
+    assert not (cfg.run_dir / "final").exists()
+    # the given config only names the run: the saved one (6144 steps) is used
+    summary = train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True, command="again")
+    assert cfg.total_timesteps <= summary["num_timesteps"] < cfg.total_timesteps + 8 * 64
+    steps = [r["step"] for r in read_eval_csv(cfg.run_dir / "eval.csv")]
+    assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == summary["num_timesteps"]
+    assert [p.name for p in (cfg.run_dir / "tb").iterdir()] == ["PPO_1"]  # logs appended to the same folder
+    assert summary["commands"] == ["again"] or summary["commands"][-1] == "again"
+
+
+def test_save_load_round_trip_gives_identical_actions(tmp_path):
+    cfg = _tiny(tmp_path)
+    env = make_env(cfg)
+    model = build_model(cfg, env, tmp_path / "tb")
+    model.learn(1024)
+    obs = env.get_original_obs()
+    obs = np.concatenate([obs, np.random.default_rng(1).uniform(-1, 1, obs.shape).astype(np.float32)])
+    expected = model.predict(env.normalize_obs(obs), deterministic=True)[0]
+    folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking})
+    policy = load_policy(folder)
+    np.testing.assert_array_equal(policy.act(obs), expected)
+    single = model.predict(env.normalize_obs(obs[:1])[0], deterministic=True)[0]
+    np.testing.assert_array_equal(policy.act(obs[0]), single)  # one observation, shape (12,)
+    np.testing.assert_array_equal(load_policy(folder / "model.zip").act(obs), expected)
+
+
+def test_reward_curriculum_ramps_to_the_run_values():
+    cfg = PPOConfig(total_timesteps=1000, curriculum_fraction=0.5, w_time=3.0,
+                    reward={"target_distance": 60.0}, curriculum_start={"target_distance": 2.0, "w_time": 1.0})
+    assert (reward_config(cfg, 0).target_distance, reward_config(cfg, 0).w_time) == (2.0, 1.0)
+    assert reward_config(cfg, 250).target_distance == pytest.approx(31.0)
+    assert reward_config(cfg, 500) == reward_config(cfg, 10_000) == reward_config(cfg)
+    assert reward_config(cfg).target_distance == 60.0 and reward_config(cfg).w_time == 3.0
+    with pytest.raises(ValueError, match="unknown"):
+        PPOConfig(reward={"no_such_weight": 1.0})
+
+
+# ------------------------------------------------------------------------------------------ shipped
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_shipped_policy_completes_the_cycle(braking):
+    path = POLICIES / f"ppo_{braking}.zip"
+    assert path.exists() and path.stat().st_size < 2_000_000
+    assert (POLICIES / f"ppo_{braking}_vecnormalize.pkl").exists()
+    meta = json.loads((POLICIES / f"ppo_{braking}.json").read_text())
+    assert meta["braking"] == braking
+    policy = load_policy(path)
+    env = gym.make("WheelLoader-v0", braking=braking)
+    result = run_episode(env, policy)
+    assert result["completed"], result
+    env = gym.make("WheelLoader-v0", braking=braking, init_noise=1.0)
+    assert run_episode(env, policy, seed=123)["completed"]
+
+
+def test_shipped_policy_without_pickle_uses_the_json_normalization(tmp_path):
+    for suffix in (".zip", ".json"):
+        (tmp_path / f"ppo_tc{suffix}").write_bytes((POLICIES / f"ppo_tc{suffix}").read_bytes())
+    obs = np.random.default_rng(0).uniform(0.0, 1.0, (8, 12)).astype(np.float32)
+    np.testing.assert_allclose(load_policy(tmp_path / "ppo_tc.zip").act(obs), load_policy(POLICIES / "ppo_tc.zip").act(obs),
+                               atol=1e-6)
