@@ -132,12 +132,14 @@ class MPCController:
         # controller compares the two plans it can carry out (stay one more step, or shift now) and
         # takes the cheaper one: the gear change is a discrete decision on the step grid.
         rest = self._plan["sol"]["durations"][0] - (t - self._plan["t_made"]) if self._plan else math.inf
-        options = [phase]
+        # options: (first phase of the plan, bounds on the rest of the current phase after this step)
+        options: list[tuple[int, tuple[float, float] | None]] = [(phase, None)]
         if phase in (1, 3) and self._plan is not None and self._plan["phases"][0] == phase and rest < 1.5 * self.dt:
-            options.append(phase + 1)
+            # shift now / shift at the next step / not before the step after: the switch on the grid
+            options = [(phase + 1, None), (phase, (0.0, 0.0)), (phase, (self.dt, math.inf))]
         best, solve_time, statuses = None, 0.0, []
-        for first in options:
-            cand = self._replan(x, t, first)
+        for first, rest_bounds in options:
+            cand = self._replan(x, t, first, rest_bounds)
             solve_time += cand["solve_time"]
             statuses.append(cand["status"])
             if cand["ok"] and (best is None or cand["f"] < best["f"]):
@@ -157,8 +159,11 @@ class MPCController:
                 "planned_T_remaining": float(self._plan["sol"]["t"][-1] - (t - self._plan["t_made"])) if self._plan else math.nan}
         return u, shift, info
 
-    def _replan(self, x: np.ndarray, t: float, phase: int) -> dict[str, Any]:
-        """Solve from state x at time t for the phases from ``phase`` on (no side effects but timing)."""
+    def _replan(self, x: np.ndarray, t: float, phase: int, rest_bounds: tuple[float, float] | None = None) -> dict[str, Any]:
+        """Solve from state x at time t for the phases from ``phase`` on (no side effects but timing).
+
+        ``rest_bounds`` bounds how long the current phase lasts after this step's execution interval.
+        """
         x = self.project_state(x, phase)
         ocp = _mpc_ocp(self.braking, self.params, self.config, phase)
         t0 = time.perf_counter()
@@ -167,7 +172,7 @@ class MPCController:
             if self._force_failure:
                 self._force_failure = False
                 raise RuntimeError("forced failure (test hook)")
-            z, lam_x, lam_g, status, ok, f = self._solve(ocp, x, t, phase)
+            z, lam_x, lam_g, status, ok, f = self._solve(ocp, x, t, phase, rest_bounds)
             out.update(status=status, ok=ok, f=f)
             if ok:
                 out["plan"] = {"t_made": t, "sol": ocp.unpack(z, x_start=x), "phases": ocp.phases}
@@ -180,7 +185,8 @@ class MPCController:
         self.solve_times.append(out["solve_time"])
         return out
 
-    def _solve(self, ocp: CycleOCP, x: np.ndarray, t: float, phase: int):
+    def _solve(self, ocp: CycleOCP, x: np.ndarray, t: float, phase: int,
+               rest_bounds: tuple[float, float] | None = None):
         cfg = self.config
         if cfg.mode == "time":
             w_f, w_t = 0.0, 1.0
@@ -198,7 +204,14 @@ class MPCController:
             z0, lam_x, lam_g = warm
         else:
             z0, lam_x, lam_g = self._guess(ocp, x, t), None, None
-        args = dict(x0=z0, p=par, lbx=ocp._lbw, ubx=ocp._ubw, lbg=lbg, ubg=ubg)
+        lbx, ubx = ocp._lbw, ocp._ubw
+        if rest_bounds is not None:
+            lbx, ubx = lbx.copy(), ubx.copy()
+            i = ocp._index["dur"][0]
+            lbx[i], ubx[i] = rest_bounds[0], min(rest_bounds[1], ubx[i])
+            z0 = np.array(z0, dtype=float)
+            z0[i] = min(max(z0[i], lbx[i]), ubx[i])
+        args = dict(x0=z0, p=par, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
         if warm is not None:
             args.update(lam_x0=lam_x, lam_g0=lam_g)
         # Only the very first solve of a cycle may take long (no plan to fall back on yet).

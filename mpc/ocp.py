@@ -271,7 +271,7 @@ class CycleOCP:
                 U, off = add_var(f"U{spec.phase}_{j}", 3, u_lb, u_ub)
                 self._index["U"].append(off)
                 u = U * us
-                if u_prev is not None:  # eq. (33): integral of the squared rates of U_mf and U_ab
+                if u_prev is not None and not self.parametric_start:  # eq. (33): squared rates of U_mf, U_ab
                     du = (U[:2] - u_prev[:2])
                     smooth += ca.sumsqr(du) / h
                 u_prev = U

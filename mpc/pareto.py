@@ -19,19 +19,18 @@ from typing import Any, Callable
 import numpy as np
 
 from mpc.ocp import (
-    OCPError,
     OCPResult,
     OCPSettings,
     refined_mesh,
     solve_ocp,
-    verification_passed,
     write_json_atomic,
 )
-from mpc.verify import verify_result
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 
 CACHE_ENV = "WL_CACHE_DIR"
+FIRST_POINT_SLACK = 1e-3  # the front starts at T_min * (1 + this): minimum fuel in the fastest cycle
+SWEEP_ACCEL_FRACTIONS = (0.7, 0.8)  # template starts (leg = T/2) tried beside the neighbour's warm start
 
 
 def cache_dir(path: str | os.PathLike | None = None) -> Path:
@@ -58,7 +57,10 @@ class ParetoFront:
     points: list[dict[str, Any]] = field(default_factory=list)  # per point: T, fuel, verification summary
 
     def fuel_at(self, T: float) -> float:
-        """Optimal fuel (g) at cycle time T, interpolated linearly on the front (T_min <= T <= T_fuel_opt)."""
+        """Optimal fuel (g) at cycle time T, interpolated on the front (monotone cubic, T_min <= T < T_fuel_opt).
+
+        Between T_min and the first point (0.1 % above it) the first point's fuel is returned.
+        """
         if not math.isfinite(T):
             raise ValueError(f"cycle time must be finite, got {T!r}")
         if T < self.T_min - 1e-6:
@@ -71,7 +73,7 @@ class ParetoFront:
                 f"cycle time {T:.3f} s lies beyond the fuel-optimal cycle ({self.T_fuel_opt:.3f} s); "
                 f"use optimal_fuel_at(), which solves such points on demand"
             )
-        return float(pchip(np.asarray(self.T), np.asarray(self.fuel_g), T))
+        return float(pchip(np.asarray(self.T), np.asarray(self.fuel_g), max(T, self.T[0])))
 
     def save(self, path: str | os.PathLike) -> Path:
         return write_json_atomic(path, self.__dict__)
@@ -100,7 +102,7 @@ def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
 
 
 def _key(braking: str, p: LoaderParams, n_points: int) -> str:
-    return f"{braking}_{p.fingerprint()}_n{n_points}"
+    return f"{braking}_{p.fingerprint()}_n{n_points}_v2"
 
 
 def pareto_front(
@@ -144,38 +146,27 @@ def pareto_front(
     # One mesh for the sweep: fine enough for the longest (fuel-optimal) cycle.
     mesh = refined_mesh(r_fuel.phase_durations, tuple(r_fuel.mesh), max_interval)
     settings = OCPSettings(intervals=mesh)
-    # Points cluster towards the minimum time, where the front bends most.
+    # Points cluster towards the minimum time, where the front bends most. The minimum-time problem
+    # leaves the fuel free (its optimum is not unique), so the front's first point is the minimum fuel
+    # a hair above the minimum time instead.
     times = r_time.T + (r_fuel.T - r_time.T) * np.linspace(0.0, 1.0, n_points) ** 2
-    points: list[OCPResult] = [r_time]
+    times[0] = r_time.T * (1.0 + FIRST_POINT_SLACK)
+    points: list[OCPResult] = []
     previous = r_time
-    for i, T in enumerate(times[1:-1], start=1):
+    for i, T in enumerate(times[:-1]):
         say(f"[{braking}] point {i + 1}/{n_points}: minimum fuel at T = {T:.3f} s")
-        try:
-            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings, warm_start=previous)
-        except OCPError:
-            # continuation lost the way: start afresh from templates at this T
-            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings)
+        # Continuation from the neighbour and fresh template starts: at some cycle times they end in
+        # different local optima (other splits of the time between the phases); the best one is kept.
+        r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings,
+                         warm_start=previous, starts=tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS))
         points.append(r)
         previous = r
     points.append(r_fuel)
     fuel = [r.fuel_g for r in points]
-    # Continuation from the other end: a point that the neighbour on the long side solves better wins.
-    for i in range(len(points) - 2, 0, -1):
-        try:
-            alt = solve_ocp(braking, objective="fuel_at_time", T=float(times[i]), params=p, settings=settings,
-                            warm_start=points[i + 1], verify=False)
-        except OCPError:
-            continue
-        if alt.fuel_g < fuel[i] - 1e-6:
-            alt.verification = verify_result(alt, p)
-            alt.verification["passed"] = verification_passed(alt.verification)
-        if alt.fuel_g < fuel[i] - 1e-6 and alt.verification["passed"]:
-            say(f"[{braking}] T = {times[i]:.3f} s improved from the long side: {fuel[i]:.3f} -> {alt.fuel_g:.3f} g")
-            alt.save(folder / f"T_{times[i]:.4f}.json")
-            points[i], fuel[i] = alt, alt.fuel_g
     front = ParetoFront(
         braking=braking, T=[float(r.T) for r in points], fuel_g=fuel, params_fingerprint=p.fingerprint(),
-        T_min=float(r_time.T), T_fuel_opt=float(r_fuel.T), fuel_min_g=float(r_fuel.fuel_g), mesh=list(mesh),
+        T_min=float(r_time.T),  # the minimum time itself; the first point lies 0.1 % above it
+        T_fuel_opt=float(r_fuel.T), fuel_min_g=float(r_fuel.fuel_g), mesh=list(mesh),
         wall_time=time.perf_counter() - t0,
         points=[{"T": r.T, "fuel_g": r.fuel_g, "mesh": r.mesh, "verified": r.verification.get("passed"),
                  "final_position_error_m": r.verification.get("final_position_error_m"),
