@@ -8,11 +8,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 SUBCOMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
+
+
+class UsageError(Exception):
+    """A command line argparse rejects, reported like every other user error (one line, exit code 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see `{self.prog} --help`)")
 
 
 def _params_cmd(args: argparse.Namespace) -> int:
@@ -98,12 +108,71 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     return 0 if r["completed"] else 1
 
 
+def _evaluate_cmd(args: argparse.Namespace) -> int:
+    from agents.evaluate import evaluate_controller, load_controller, summary_line
+    from mpc.ocp import write_json_atomic
+
+    controller = load_controller(args.controller, args.braking, args.model)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
+    _progress(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
+    r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
+                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress)
+    r = {"controller": args.controller, "model": args.model, **r}
+    write_json_atomic(args.out, r)
+    print(f"{summary_line(r, args.controller)} -> {args.out}")
+    return 0
+
+
+def _train_cmd(args: argparse.Namespace) -> int:
+    from agents.train_cli import run_train
+
+    return run_train(args, command="wl " + shlex.join(args.argv), prog="wl train")
+
+
 def _run_cmd(args: argparse.Namespace) -> int:
     from wl_report import run_all
 
     run_all(args.out, cache=args.cache)
     print((Path(args.out) / "leaderboard.md").read_text())
     return 0
+
+
+def _report_cmd(args: argparse.Namespace) -> int:
+    from wl_report import load_results, render
+
+    results = load_results(args.results)
+    out = Path(args.out or args.results)
+    written = render(results, out)
+    print(f"report rebuilt from {Path(args.results) / 'results.json'}: {', '.join(str(p) for p in written)}")
+    return 0
+
+
+def _number(text: str, kind: type) -> float:
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    value = _number(text, int)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _unit_float(text: str) -> float:
+    value = _number(text, float)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
+    return value
+
+
+def _seed(text: str) -> int:
+    value = _number(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
 
 
 def _params_from(args: argparse.Namespace):
@@ -113,7 +182,7 @@ def _params_from(args: argparse.Namespace):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="wl",
         description="wheel-loader-gym: the wheel loader short loading cycle as a Gymnasium environment, "
         "its optimal control benchmark, and controllers scored against it.",
@@ -158,16 +227,66 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE.json")
     p.set_defaults(func=_mpc_cmd)
 
+    p = sub.add_parser("evaluate", help="run a controller for some episodes and score it against the optimum",
+                       description="Run a controller in WheelLoader-v0 and score it against the optimal control "
+                       "benchmark. Episode 0 starts at the nominal state (the one the optimum is computed for), "
+                       "episodes 1..N-1 perturbed by --init-noise, episode i seeded SEED + i. Per episode and "
+                       "aggregated: success (cycle completed, end targets met), cycle time, fuel, constraint "
+                       "violation, time gap to the minimum cycle time and fuel gap to the Pareto fuel at the "
+                       "same cycle time.")
+    p.add_argument("--controller", required=True, metavar="{ppo,operator,mpc,module:Class}",
+                   help="a built-in controller, or your class as module:Class or path/to/file.py:Class "
+                   "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
+    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    p.add_argument("--model", metavar="PATH", help="ppo: the policy zip (default agents/policies/ppo_<braking>.zip); "
+                   "module:Class: passed as model=")
+    p.add_argument("--episodes", type=_positive_int, default=10, metavar="N", help="episodes (default 10)")
+    p.add_argument("--init-noise", type=_unit_float, default=1.0, metavar="X",
+                   help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0)")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of episode 0; episode i uses S + i")
+    p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts (default $WL_CACHE_DIR or "
+                   "~/.cache/wheel-loader-gym); a front not cached there is solved first (minutes)")
+    p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
+    p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
+    p.set_defaults(func=_evaluate_cmd)
+
+    from agents.train_cli import add_train_args
+
+    p = sub.add_parser("train", help="train a PPO policy (stable-baselines3 on the native vector env)",
+                       description="Train a PPO policy for WheelLoader-v0; every field of agents.ppo.PPOConfig is a "
+                       "flag. A run lives in <log-dir>/<run-name>/ (config.json, tb/, eval.csv, checkpoints/, "
+                       "final/); --resume continues it from its newest checkpoint, --export PATH ships the final "
+                       "policy as PATH.zip + PATH_vecnormalize.pkl + PATH.json.")
+    add_train_args(p)
+    p.set_defaults(func=_train_cmd)
+
     p = sub.add_parser("run", help="the main job: benchmark, every controller, report (results/)")
     p.add_argument("--out", default="results", metavar="DIR", help="report folder (default results/)")
     p.add_argument("--cache", metavar="DIR", help="cache folder for solved optima")
     p.set_defaults(func=_run_cmd)
+
+    p = sub.add_parser("report", help="rebuild the report of `wl run` from its results.json (nothing is solved or run)")
+    p.add_argument("--results", required=True, metavar="DIR", help="the folder holding results.json")
+    p.add_argument("--out", metavar="DIR", help="where to write the report (default: the --results folder)")
+    p.set_defaults(func=_report_cmd)
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help: return its code instead of leaving the caller (tests, scripts)
+        return exc.code if isinstance(exc.code, int) else 0
+    args.argv = argv  # the command line as given, recorded by `wl train`
     if args.version:
         import wl_env
 
@@ -179,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, RuntimeError, OSError, json.JSONDecodeError) as exc:
-        print(f"wl: error: {exc}", file=sys.stderr)
+        print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("wl: interrupted", file=sys.stderr)

@@ -1,22 +1,29 @@
 """The main job: solve the benchmark, run every controller on both braking alternatives, write the report.
 
-``wl run`` (the README's first command) calls :func:`run_all`; it writes into ``results/``:
-``leaderboard.md`` (controller, braking, cycle time, fuel, time gap, fuel gap, violation, success),
-``pareto.png`` (the fronts with every controller's point), ``trajectories_<braking>.png`` (each
-controller's states beside the time-optimal ones) and ``results.json``. Optima are cached.
+``wl run`` (the README's first command) calls :func:`run_all` = :func:`collect` + :func:`render`; it writes
+into ``results/``: ``results.json`` (everything the report is drawn from: the rows, the Pareto fronts,
+the time-optimal cycles and each controller's trajectory), ``leaderboard.md`` (controller, braking,
+cycle time, fuel, time gap, fuel gap, violation, success), ``pareto.png`` (the fronts with every
+controller's point) and ``trajectories_<braking>.png`` (each controller's states beside the time-optimal
+ones). Optima are cached. ``wl report`` calls :func:`load_results` + :func:`render`: the report again from
+``results.json``, without solving or running anything.
 """
 
 from __future__ import annotations
 
-import math
+import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 BRAKINGS = ("service", "tc")
+RESULTS_FILE = "results.json"
+RESULTS_FORMAT = 2  # 1: rows only (cannot be re-rendered); 2: + fronts, optima, trajectories
+ROW_KEYS = ("controller", "braking", "T", "fuel_g", "time_gap", "fuel_gap", "max_violation", "success")
 
 
 def _say(msg: str) -> None:
@@ -25,61 +32,136 @@ def _say(msg: str) -> None:
 
 def controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
     """(name, factory) of the controllers the report compares; PPO only where a policy is shipped."""
-    from agents.operator import OperatorPolicy
+    from agents.evaluate import default_policy_path, load_controller
     from mpc.mpc import MPCConfig, MPCController
 
     out: list[tuple[str, Callable[[], Any]]] = [
-        ("operator", lambda: OperatorPolicy(braking)),
+        ("operator", lambda: load_controller("operator", braking)),
         ("mpc (min time)", lambda: MPCController(braking, config=MPCConfig(mode="time"))),
         ("mpc (T = 11 s)", lambda: MPCController(braking, config=MPCConfig(mode="target_time", target_time=11.0))),
     ]
-    policy = Path(__file__).resolve().parent / "agents" / "policies" / f"ppo_{braking}.zip"
-    if policy.exists():
-        def load(path: Path = policy) -> Any:
-            from agents.ppo import load_policy
-
-            return load_policy(path)
-
-        out.append(("ppo", load))
+    if default_policy_path(braking).exists():
+        out.append(("ppo", lambda: load_controller("ppo", braking)))
     return out
 
 
-def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[str, Any]:
-    import gymnasium as gym
+# ---------------------------------------------------------------------------------------------- collect
+def collect(out_dir: str | Path = "results", cache: str | None = None,
+            controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = controllers,
+            brakings: tuple[str, ...] = BRAKINGS) -> dict[str, Any]:
+    """Solve (or load) the fronts, run each controller from the nominal start, save ``results.json``.
+
+    Every controller runs through :func:`agents.evaluate.evaluate_controller` (one episode, seed 0), the
+    same evaluation as ``wl evaluate``. Returns what was saved.
+    """
+    from agents.evaluate import evaluate_controller
+    from mpc.ocp import OCPResult, write_json_atomic
+    from mpc.pareto import cache_dir, pareto_front
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fronts, optima, rows, trajectories = {}, {}, [], []
+    for b in brakings:
+        _say(f"[benchmark] Pareto front, {b} braking (cached after the first run)")
+        front = pareto_front(b, cache=cache, progress=lambda m: _say("  " + m))
+        fronts[b] = dict(front.__dict__)
+        folder = next((cache_dir(cache) / "pareto").glob(f"{b}_{front.params_fingerprint}_n*"))
+        opt = OCPResult.load(folder / "min_time.json")
+        optima[b] = {"T": opt.T, "fuel_g": opt.fuel_g, "t": opt.t, "states": opt.states}
+        rows.append({"controller": "optimum (min time)", "braking": b, "T": opt.T, "fuel_g": opt.fuel_g,
+                     "time_gap": 0.0, "fuel_gap": 0.0, "max_violation": 0.0, "success": True})
+        for name, factory in controllers(b):
+            _say(f"[{b}] {name}")
+            ev = evaluate_controller(factory(), b, episodes=1, seed=0, front=front, cache=cache, trajectories=True)
+            ep = ev["per_episode"][0]
+            rows.append({"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"],
+                         "time_gap": ep["time_gap"], "fuel_gap": ep["fuel_gap"], "max_violation": ep["max_violation"],
+                         "success": ep["success"], "completed": ep["completed"]})
+            trajectories.append({"controller": name, "braking": b, "t": ep["t"], "states": ep["states"]})
+    results = {"format": RESULTS_FORMAT, "brakings": list(brakings), "rows": rows, "fronts": fronts,
+               "optima": optima, "trajectories": trajectories, "wall_time_s": time.perf_counter() - t_start}
+    write_json_atomic(out / RESULTS_FILE, results)
+    return results
+
+
+def load_results(folder: str | Path) -> dict[str, Any]:
+    """``results.json`` of a ``wl run`` folder, checked to hold everything :func:`render` draws."""
+    path = Path(folder) / RESULTS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"no {RESULTS_FILE} in {folder} (write one with `wl run --out {folder}`)")
+    try:
+        results = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+
+    problem = _problem(results)
+    if problem:
+        raise ValueError(f"{path} cannot be rendered: {problem} (`wl run` writes a complete one)")
+    return results
+
+
+def _problem(results: Any) -> str | None:
+    """What keeps :func:`render` from drawing ``results``, or None."""
+    if not isinstance(results, dict):
+        return "not a JSON object"
+    if results.get("format") != RESULTS_FORMAT:
+        return f"format {results.get('format')!r}, this version renders format {RESULTS_FORMAT}"
+    try:
+        if not results["brakings"] or not set(results["brakings"]) <= set(BRAKINGS):
+            return f"brakings {results['brakings']!r}, expected some of {list(BRAKINGS)}"
+        for b in results["brakings"]:
+            front = results["fronts"][b]
+            if len(front["T"]) != len(front["fuel_g"]) or len(front["T"]) < 2:
+                return f"the {b} front needs as many fuels as cycle times, at least 2"
+            if not all(map(_is_number, [front["T_min"], front["T_fuel_opt"], *front["T"], *front["fuel_g"]])):
+                return f"the {b} front holds a value that is not a number"
+            _check_trajectory(results["optima"][b])
+        for r in results["rows"]:
+            missing = [k for k in ROW_KEYS if k not in r]
+            if missing:
+                return f"a row lacks {missing}"
+            if not (all(map(_is_number, (r["T"], r["fuel_g"], r["max_violation"])))
+                    and all(v is None or _is_number(v) for v in (r["time_gap"], r["fuel_gap"]))):
+                return f"a row of {r['controller']!r} holds a value that is not a number"
+        for tr in results["trajectories"]:
+            str(tr["controller"]), str(tr["braking"])
+            _check_trajectory(tr)
+        if not _is_number(results["wall_time_s"]):
+            return "wall_time_s is not a number"
+    except (KeyError, TypeError, IndexError) as exc:
+        return f"missing or malformed entry {exc}"
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _check_trajectory(d: dict[str, Any]) -> None:
+    states = np.asarray(d["states"], dtype=float)
+    if states.shape != (len(d["t"]), 4):
+        raise ValueError(f"states of shape {states.shape} for {len(d['t'])} times (4 states each)")
+
+
+# ---------------------------------------------------------------------------------------------- render
+def _gap(v: float | None) -> str:
+    return "n/a" if v is None or v != v else f"{100 * v:+.1f} %"
+
+
+def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Path]:
+    """Leaderboard, Pareto figure and trajectory figures from :func:`collect`'s results; returns the files."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    import wl_env  # noqa: F401
-    from mpc.ocp import OCPResult, write_json_atomic
-    from mpc.pareto import cache_dir, pareto_front
-    from mpc.scoring import score_run
-    from wl_env.rollout import run_episode
-
-    t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fronts, optima, rows, runs = {}, {}, [], {}
-    for b in BRAKINGS:
-        _say(f"[benchmark] Pareto front, {b} braking (cached after the first run)")
-        fronts[b] = pareto_front(b, cache=cache, progress=lambda m: _say("  " + m))
-        folder = next((cache_dir(cache) / "pareto").glob(f"{b}_{fronts[b].params_fingerprint}_n*"))
-        optima[b] = OCPResult.load(folder / "min_time.json")
-        rows.append({"controller": "optimum (min time)", "braking": b, "T": optima[b].T, "fuel_g": optima[b].fuel_g,
-                     "time_gap": 0.0, "fuel_gap": 0.0, "max_violation": 0.0, "success": True})
-        for name, factory in controllers(b):
-            _say(f"[{b}] {name}")
-            env = gym.make("WheelLoader-v0", braking=b)
-            ep = run_episode(env, factory(), seed=0)
-            runs[(name, b)] = ep
-            row = {"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"], "time_gap": math.nan,
-                   "fuel_gap": math.nan, "max_violation": ep["max_excess"], "success": ep["success"],
-                   "completed": ep["completed"]}
-            if ep["completed"]:
-                s = score_run(ep["T"], ep["fuel_g"], b, front=fronts[b], cache=cache)
-                row.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap)
-            rows.append(row)
+    brakings, rows, fronts = results["brakings"], results["rows"], results["fronts"]
+    written = []
     # ---- leaderboard
     lines = ["# Leaderboard", "", "Cycle time and fuel of each controller in `WheelLoader-v0`, scored against the "
              "optimal control benchmark: time gap to the minimum cycle time, fuel gap to the minimum fuel at the "
@@ -89,18 +171,19 @@ def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[s
              "| controller | braking | cycle time (s) | fuel (g) | time gap | fuel gap | violation | success |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        gap = (lambda v: "n/a" if v != v else f"{100 * v:+.1f} %")
-        lines.append(f"| {r['controller']} | {r['braking']} | {r['T']:.2f} | {r['fuel_g']:.1f} | {gap(r['time_gap'])} | "
-                     f"{gap(r['fuel_gap'])} | {100 * r['max_violation']:.1f} % | {'yes' if r['success'] else 'no'} |")
-    lines += ["", f"Pareto fronts: {', '.join(f'{b}: {len(fronts[b].T)} points, T {fronts[b].T_min:.2f}-{fronts[b].T_fuel_opt:.2f} s' for b in BRAKINGS)}.",
-              f"Generated by `wl run` in {time.perf_counter() - t_start:.0f} s."]
-    (out / "leaderboard.md").write_text("\n".join(lines) + "\n")
+        lines.append(f"| {r['controller']} | {r['braking']} | {r['T']:.2f} | {r['fuel_g']:.1f} | {_gap(r['time_gap'])} | "
+                     f"{_gap(r['fuel_gap'])} | {100 * r['max_violation']:.1f} % | {'yes' if r['success'] else 'no'} |")
+    front_text = ", ".join(f"{b}: {len(fronts[b]['T'])} points, T {fronts[b]['T_min']:.2f}-{fronts[b]['T_fuel_opt']:.2f} s"
+                           for b in brakings)
+    lines += ["", f"Pareto fronts: {front_text}.", f"Generated by `wl run` in {results['wall_time_s']:.0f} s."]
+    written.append(out / "leaderboard.md")
+    written[-1].write_text("\n".join(lines) + "\n")
     # ---- Pareto figure with the controllers' points
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colors = {"service": "tab:blue", "tc": "tab:red"}
     markers = {"operator": "s", "mpc (min time)": "^", "mpc (T = 11 s)": "v", "ppo": "o"}
-    for b in BRAKINGS:
-        ax.plot(fronts[b].T, fronts[b].fuel_g, "-", color=colors[b], label=f"Pareto front, {b}")
+    for b in brakings:
+        ax.plot(fronts[b]["T"], fronts[b]["fuel_g"], "-", color=colors[b], label=f"Pareto front, {b}")
         for r in rows:
             if r["braking"] == b and r["controller"] in markers and r.get("completed"):
                 ax.plot(r["T"], r["fuel_g"], markers[r["controller"]], color=colors[b], mfc="none", ms=8,
@@ -110,20 +193,20 @@ def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[s
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(out / "pareto.png", dpi=130)
+    written.append(out / "pareto.png")
+    fig.savefig(written[-1], dpi=130)
     plt.close(fig)
     # ---- trajectories beside the time-optimal ones
-    for b in BRAKINGS:
+    labels = ["engine speed (rpm)", "vehicle speed (m/s)", "bucket height (m)", "bucket speed (m/s)"]
+    scale = [30 / np.pi, 1, 1, 1]
+    for b in brakings:
         fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
-        labels = ["engine speed (rpm)", "vehicle speed (m/s)", "bucket height (m)", "bucket speed (m/s)"]
-        scale = [30 / np.pi, 1, 1, 1]
-        opt = np.asarray(optima[b].states)
+        opt = np.asarray(results["optima"][b]["states"])
         for i, ax in enumerate(axes.ravel()):
-            ax.plot(optima[b].t, opt[:, i] * scale[i], "k-", lw=2, label="optimum (min time)")
-            for (name, bb), ep in runs.items():
-                if bb == b:
-                    st = np.asarray(ep["states"])
-                    ax.plot(ep["t"], st[:, i] * scale[i], lw=1, label=name)
+            ax.plot(results["optima"][b]["t"], opt[:, i] * scale[i], "k-", lw=2, label="optimum (min time)")
+            for tr in results["trajectories"]:
+                if tr["braking"] == b:
+                    ax.plot(tr["t"], np.asarray(tr["states"])[:, i] * scale[i], lw=1, label=tr["controller"])
             ax.set_ylabel(labels[i])
             ax.grid(alpha=0.3)
         for ax in axes[1]:
@@ -131,8 +214,16 @@ def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[s
         axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{b} braking: controllers against the time-optimal cycle")
         fig.tight_layout()
-        fig.savefig(out / f"trajectories_{b}.png", dpi=120)
+        written.append(out / f"trajectories_{b}.png")
+        fig.savefig(written[-1], dpi=120)
         plt.close(fig)
-    write_json_atomic(out / "results.json", {"rows": rows, "wall_time_s": time.perf_counter() - t_start})
-    _say(f"report written to {out}/ in {time.perf_counter() - t_start:.0f} s")
-    return {"rows": rows}
+    return written
+
+
+def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[str, Any]:
+    """``wl run``: :func:`collect` then :func:`render` into ``out_dir``; returns the results."""
+    t_start = time.perf_counter()
+    results = collect(out_dir, cache=cache)
+    render(results, out_dir)
+    _say(f"report written to {out_dir}/ in {time.perf_counter() - t_start:.0f} s")
+    return results

@@ -1,6 +1,7 @@
-"""PPO agents for ``WheelLoader-v0`` (stable-baselines3), the logic behind ``scripts/train_ppo.py``.
+"""PPO agents for ``WheelLoader-v0`` (stable-baselines3), the logic behind ``wl train`` and ``scripts/train_ppo.py``.
 
-* :class:`PPOConfig` - every option of a run (environment, reward, PPO hyperparameters, logging).
+* :class:`PPOConfig` - every option of a run (environment, reward, PPO hyperparameters, logging); it
+  lives in :mod:`agents.ppo_config` (importable without torch) and the command line in :mod:`agents.train_cli`.
 * :func:`make_env` - the native vector env as an SB3 ``VecEnv`` (:mod:`agents.sb3_vec`), with episode
   statistics (``VecMonitor``) and optional ``VecNormalize``.
 * :func:`train` - trains one policy in a run directory, with periodic deterministic evaluations (logged
@@ -31,7 +32,6 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +42,8 @@ from stable_baselines3.common.distributions import DiagGaussianDistribution, Dis
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 import wl_env  # noqa: F401  (registers WheelLoader-v0)
+from agents.ppo_config import PPOConfig
 from agents.sb3_vec import make_sb3_vec_env
-from wl_env import cycle
 
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
@@ -51,113 +51,6 @@ EVAL_FIELDS = (
     "success_rate", "completion_rate", "mean_return", "mean_T", "mean_fuel_g", "train_w_fuel", "train_w_time",
     "train_target_distance",
 )
-
-
-@dataclass
-class PPOConfig:
-    """One PPO training run. The defaults are the recipe of the shipped policies (their exact settings
-    and commands are in ``agents/policies/ppo_<braking>.json``)."""
-
-    # --- run
-    braking: str = field(default="service", metadata={"help": "braking alternative: 'service' or 'tc'"})
-    seed: int = field(default=0, metadata={"help": "seed of PPO, torch and the environments"})
-    total_timesteps: int = field(default=12_000_000, metadata={"help": "environment steps to train for"})
-    num_envs: int = field(default=64, metadata={"help": "loaders stepped together (native vector env)"})
-    log_dir: str = field(default="runs", metadata={"help": "parent folder of run directories"})
-    run_name: str = field(default="", metadata={"help": "run directory name (default ppo_<braking>_s<seed>)"})
-    time_limit: float = field(
-        default=0.0, metadata={"help": "stop after this much training wall time (s, summed over resumes; 0: off)"})
-    torch_threads: int = field(default=1, metadata={"help": "torch.set_num_threads (1 is fastest for small MLPs)"})
-    progress_bar: bool = field(default=True, metadata={"help": "show a tqdm/rich progress bar"})
-    # --- environment and reward (RewardConfig fields by name; see wl_env.episode.RewardConfig)
-    w_fuel: float = field(default=2.0, metadata={"help": "fuel weight of the reward (RewardConfig.w_fuel)"})
-    w_time: float = field(default=3.0, metadata={"help": "time weight of the reward (RewardConfig.w_time)"})
-    reward: dict[str, float] = field(
-        default_factory=lambda: {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0},
-        metadata={"help": "other RewardConfig fields, e.g. --reward target_distance=30 shaping=1"},
-    )
-    init_noise: float = field(default=1.0, metadata={"help": "start-state perturbation while training (0..1)"})
-    max_time: float = field(default=40.0, metadata={"help": "episode time limit (s)"})
-    # --- curriculum: these RewardConfig fields (w_fuel/w_time too) start at the given values and ramp
-    # linearly to the run's values over the first curriculum_fraction of training
-    curriculum_start: dict[str, float] = field(
-        default_factory=lambda: {"target_distance": 2.0, "target_height": 2.0},
-        metadata={"help": "start values, e.g. --curriculum-start target_distance=2 w_time=0.5"})
-    curriculum_fraction: float = field(default=0.5, metadata={"help": "fraction of training the ramp lasts"})
-    # --- PPO
-    learning_rate: float = field(default=3e-4, metadata={"help": "Adam step size"})
-    lr_schedule: str = field(default="linear", metadata={"help": "'constant' or 'linear' (decay to 0)"})
-    n_steps: int = field(default=128, metadata={"help": "steps per loader per rollout"})
-    batch_size: int = field(default=2048, metadata={"help": "minibatch size"})
-    n_epochs: int = field(default=10, metadata={"help": "epochs over each rollout"})
-    gamma: float = field(default=0.995, metadata={"help": "discount factor"})
-    gae_lambda: float = field(default=0.95, metadata={"help": "GAE lambda"})
-    clip_range: float = field(default=0.2, metadata={"help": "PPO clip range"})
-    ent_coef: float = field(default=0.0, metadata={"help": "entropy bonus"})
-    vf_coef: float = field(default=0.5, metadata={"help": "value loss weight"})
-    max_grad_norm: float = field(default=0.5, metadata={"help": "gradient clipping"})
-    target_kl: float | None = field(default=None, metadata={"help": "early stop of the epochs (none: off)"})
-    net_arch: tuple[int, ...] = field(default=(64, 64), metadata={"help": "hidden layers of policy and value nets"})
-    log_std_init: float = field(default=-0.5, metadata={"help": "initial log std of the Gaussian policy"})
-    log_std_final: float | None = field(
-        default=-2.0, metadata={"help": "anneal a cap on the log std linearly to this at the end (none: off)"})
-    shift_bias_init: float = field(
-        default=-1.0, metadata={"help": "initial mean of the shift action (< 0: hold the gear at first)"})
-    fuel_bias_init: float = field(
-        default=0.0, metadata={"help": "initial mean of the fuel action (< 0: explore below the governor)"})
-    bucket_bias_init: float = field(
-        default=0.0, metadata={"help": "initial mean of the bucket action (> 0: lift from the start)"})
-    bounded_mean: bool = field(
-        default=False, metadata={"help": "squash the Gaussian's mean into [-1.1, 1.1] (BoundedMeanPolicy)"})
-    use_sde: bool = field(default=False, metadata={"help": "generalized state-dependent exploration (gSDE)"})
-    sde_sample_freq: int = field(default=-1, metadata={"help": "gSDE: resample the noise every n steps (-1: per rollout)"})
-    norm_obs: bool = field(default=True, metadata={"help": "VecNormalize observations"})
-    norm_reward: bool = field(default=True, metadata={"help": "VecNormalize rewards (by the return's std)"})
-    # --- evaluation and checkpoints
-    eval_freq: int = field(default=200_000, metadata={"help": "evaluate every this many steps"})
-    eval_episodes: int = field(default=50, metadata={"help": "perturbed start states per evaluation"})
-    eval_init_noise: float = field(default=1.0, metadata={"help": "init_noise of the evaluation episodes"})
-    score: bool = field(default=True, metadata={"help": "score evaluations against the Pareto front (mpc)"})
-    checkpoint_freq: int = field(default=500_000, metadata={"help": "checkpoint every this many steps"})
-    keep_checkpoints: int = field(default=2, metadata={"help": "checkpoints kept on disk"})
-
-    def __post_init__(self) -> None:
-        cycle.check_braking(self.braking)
-        self.net_arch = tuple(int(n) for n in self.net_arch)
-        self.reward = {str(k): float(v) for k, v in dict(self.reward).items()}
-        self.curriculum_start = {str(k): float(v) for k, v in dict(self.curriculum_start).items()}
-        from wl_env.episode import RewardConfig
-
-        unknown = (set(self.reward) | set(self.curriculum_start)) - set(RewardConfig.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)}")
-        if self.num_envs < 1 or self.n_steps < 1 or self.batch_size < 1:
-            raise ValueError("num_envs, n_steps and batch_size must be >= 1")
-        if self.lr_schedule not in ("constant", "linear"):
-            raise ValueError(f"lr_schedule must be 'constant' or 'linear', got {self.lr_schedule!r}")
-
-    @property
-    def name(self) -> str:
-        return self.run_name or f"ppo_{self.braking}_s{self.seed}"
-
-    @property
-    def run_dir(self) -> Path:
-        return Path(self.log_dir) / self.name
-
-    def env_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``WheelLoader-v0`` (single or vector) for this run, without init_noise."""
-        return {"braking": self.braking, "max_time": self.max_time, "reward": dict(self.reward),
-                "w_fuel": self.w_fuel, "w_time": self.w_time}
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["net_arch"] = list(self.net_arch)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> PPOConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 # ---------------------------------------------------------------------------------------------- files
@@ -387,19 +280,16 @@ def rollout(act: Any, braking: str, n_episodes: int = 1, init_noise: float = 0.0
 
 
 def score(T: float, fuel_g: float, braking: str, front: Any = None) -> tuple[float, float]:
-    """(time gap, fuel gap) against the optimum (see :func:`mpc.scoring.score_run`). Cycles slower than
-    the fuel-optimal one are compared with the minimum fuel (no on-demand solve)."""
+    """(time gap, fuel gap) against the optimum by :func:`mpc.scoring.score_run`, except that cycles slower
+    than the fuel-optimal one are compared with the minimum fuel: no OCP is solved on demand while training."""
     from mpc.pareto import pareto_front
+    from mpc.scoring import score_run
 
     front = front or pareto_front(braking)
-    time_gap = T / front.T_min - 1.0
-    if T < front.T_min:
-        fuel_opt = front.fuel_g[0]
-    elif T >= front.T_fuel_opt:
-        fuel_opt = front.fuel_min_g
-    else:
-        fuel_opt = front.fuel_at(T)
-    return time_gap, fuel_g / fuel_opt - 1.0
+    if T >= front.T_fuel_opt:
+        return T / front.T_min - 1.0, fuel_g / front.fuel_min_g - 1.0
+    s = score_run(float(T), float(fuel_g), braking, front=front)
+    return s.time_gap, s.fuel_gap
 
 
 def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 1.0, seed: int = 10_000,

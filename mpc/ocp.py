@@ -18,7 +18,7 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -77,9 +77,7 @@ class OCPSettings:
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
-    def refined(self, factor: int = 2) -> "OCPSettings":
-        from dataclasses import replace
-
+    def refined(self, factor: int = 2) -> OCPSettings:
         return replace(self, intervals=tuple(int(n) * factor for n in self.intervals))
 
 
@@ -119,7 +117,7 @@ class OCPResult:
         return write_json_atomic(path, self.to_dict())
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "OCPResult":
+    def load(cls, path: str | os.PathLike) -> OCPResult:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no OCP result at {path}")
@@ -202,7 +200,7 @@ class CycleOCP:
         us = ca.DM(U_SCALE)
         w, w_lb, w_ub = [], [], []
         g, g_lb, g_ub = [], [], []
-        self._index: dict[str, list] = {"dur": [], "X": [], "XC": [], "U": []}
+        self._index: dict[str, list] = {"dur": [], "dur_copies": [], "X": [], "XC": [], "U": []}
         n_w = 0
 
         def add_var(name: str, n: int, lb: np.ndarray, ub: np.ndarray) -> tuple[ca.SX, int]:
@@ -267,7 +265,16 @@ class CycleOCP:
             if self.parametric_start and k == 0:
                 mesh = [(st.exec_interval, self._free_start_fns[k])] + mesh
                 durations.append(st.exec_interval)
+            self._index["dur_copies"].append([off])
+            dur_prev = dur
             for j, (h, fn) in enumerate(mesh):
+                if j > 0:
+                    # Each interval carries its own copy of the phase duration, chained by equalities:
+                    # the KKT system stays banded (a shared duration would be a dense column per phase).
+                    dur_j, off = add_var(f"T{spec.phase}_{j}", 1, np.array([min_dur]), np.array([30.0]))
+                    self._index["dur_copies"][-1].append(off)
+                    add_con(dur_j - dur_prev, 0.0, 0.0)
+                    dur_prev, h = dur_j, dur_j / n_int
                 U, off = add_var(f"U{spec.phase}_{j}", 3, u_lb, u_ub)
                 self._index["U"].append(off)
                 u = U * us
@@ -417,7 +424,7 @@ class CycleOCP:
                     z[self._index["XC"][xci] + 5 * c:self._index["XC"][xci] + 5 * c + 5] = xv / X_SCALE
                 xci += 1
                 dur = max(dur - ex, 0.0)
-            z[self._index["dur"][k]] = dur
+            z[self._index["dur_copies"][k]] = dur
             n_int = self.settings.intervals[ph - 1]
             for j in range(n_int):
                 ci = cmask[min(int((j + 0.5) / n_int * len(cmask)), len(cmask) - 1)]
@@ -585,7 +592,7 @@ def verification_passed(v: dict[str, Any]) -> bool:
 
 def refined_mesh(durations: list[float], base: tuple[int, ...], max_interval: float) -> tuple[int, int, int, int]:
     """Intervals per phase so that no mesh interval is longer than ``max_interval`` seconds."""
-    return tuple(max(int(b), int(math.ceil(dur / max_interval))) for dur, b in zip(durations, base))  # type: ignore[return-value]
+    return tuple(max(int(b), int(math.ceil(dur / max_interval))) for dur, b in zip(durations, base, strict=True))  # type: ignore[return-value]
 
 
 def solve_ocp(
@@ -605,40 +612,39 @@ def solve_ocp(
     """Solve the cycle OCP and return the best optimum found, re-simulated and refined until it holds.
 
     Multi-start: each (leg time, acceleration fraction) in ``starts`` gives a template guess; a
-    ``warm_start`` result is tried first. All starts are recorded in ``result.starts``. With
-    ``refine``, a solution whose re-simulation misses the targets (``VERIFY_TOL``) is solved again on
-    a mesh with intervals no longer than ``max_interval`` (halved at each further failure), warm-started
-    from the previous one; ``result.starts`` records every mesh tried.
+    ``warm_start`` result is tried first. All starts are recorded in ``result.starts``. With ``verify``,
+    the best candidate whose re-simulation meets the targets (``VERIFY_TOL``) wins; a better one that
+    does not reproduce is a discretization artefact, not an optimum. With ``refine``, if no candidate
+    reproduces, the best is solved again on a mesh with at least twice the intervals and none longer than
+    ``max_interval`` (halved at each further failure), warm-started from it; ``result.starts`` records
+    every mesh tried.
     """
     cycle.check_braking(braking)
     p = resolve(params)
     settings = settings or OCPSettings()
-    result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts)
-    history = []
-    for attempt in range(max_refinements + 1):
-        if not verify:
-            return result
-        from mpc.verify import verify_result
-
-        result.verification = verify_result(result, p)
-        history.append({"mesh": list(result.mesh), "T": result.T, "fuel_g": result.fuel_g,
-                        "verified": verification_passed(result.verification)})
-        if history[-1]["verified"] or not refine or attempt == max_refinements:
+    result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
+    if not verify:
+        return result
+    history = [_mesh_record(result)]
+    for attempt in range(max_refinements if refine else 0):
+        if history[-1]["verified"]:
             break
-        mesh = refined_mesh(result.phase_durations, settings.intervals, max_interval / 2**attempt)
-        if mesh == tuple(result.mesh):
-            mesh = tuple(2 * n for n in mesh)
-        from dataclasses import replace
-
+        # at least twice the intervals of the mesh that failed: a few more barely change the error
+        mesh = tuple(max(n, 2 * m) for n, m in zip(
+            refined_mesh(result.phase_durations, settings.intervals, max_interval / 2**attempt), result.mesh, strict=True))
         previous = result
-        result = _solve_on_mesh(braking, objective, T, w_fuel, p, replace(settings, intervals=mesh), previous, ())
+        result = _solve_on_mesh(braking, objective, T, w_fuel, p, replace(settings, intervals=mesh), previous, (), verify)
         result.starts = previous.starts + result.starts
+        history.append(_mesh_record(result))
     result.verification["mesh_history"] = history
-    result.verification["passed"] = history[-1]["verified"]
     return result
 
 
-def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts) -> OCPResult:
+def _mesh_record(r: OCPResult) -> dict[str, Any]:
+    return {"mesh": list(r.mesh), "T": r.T, "fuel_g": r.fuel_g, "verified": r.verification["passed"]}
+
+
+def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify) -> OCPResult:
     ocp = get_ocp(braking, p, settings)
     candidates: list[tuple[str, np.ndarray]] = []
     if warm_start is not None:
@@ -652,7 +658,7 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
     for leg, frac in starts:
         g = template_guess(p, leg, frac)
         candidates.append((f"template(leg={leg:g}s, accel={frac:g})", ocp.guess_from_trajectory(**g)))
-    best, records, errors = None, [], []
+    solved, records, errors = [], [], []
     mesh = list(ocp.settings.intervals)
     for name, z0 in candidates:
         try:
@@ -665,9 +671,8 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
         value = info["smoothing"][-1]["objective"]
         records.append({"start": name, "mesh": mesh, "status": info["status"], "objective": value, "T": T_sol,
                         "fuel_g": fuel_g, "iterations": info["iterations"], "wall_time": info["wall_time"]})
-        if best is None or value < best[2] - 1e-9:
-            best = (z, info, value)
-    if best is None:
+        solved.append((value, len(records) - 1, z, info))
+    if not solved:
         statuses = sorted({e.rsplit("status ", 1)[-1] for e in errors})
         hint = ""
         if objective == "fuel_at_time" and any("Infeasible" in s for s in statuses):
@@ -677,14 +682,32 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
             hint = "; the targets cannot be met within the constraints (e.g. H_T out of the boom's reach)"
         raise OCPError(f"{ocp.settings.solver} found no optimum for the {braking} {objective} problem from "
                        f"{len(errors)} start(s), solver status: {', '.join(statuses)}{hint}")
-    z, info, _ = best
+    # Best objective first; with verify, the first that reproduces in simulation wins (else the best).
+    solved.sort(key=lambda c: c[0])
+    best = None
+    for _value, i, z, info in solved:
+        result = _result(ocp, z, info, objective, T, w_fuel, p, records)
+        if not verify:
+            return result
+        from mpc.verify import verify_result
+
+        result.verification = verify_result(result, p)
+        result.verification["passed"] = records[i]["verified"] = verification_passed(result.verification)
+        best = best or result
+        if result.verification["passed"]:
+            return result
+    return best
+
+
+def _result(ocp: CycleOCP, z: np.ndarray, info: dict[str, Any], objective: str, T: float | None,
+            w_fuel: float | None, p: LoaderParams, records: list[dict[str, Any]]) -> OCPResult:
     sol = ocp.unpack(z)
     fuel_g, T_sol = ocp.objective_parts(z)
     return OCPResult(
-        braking=braking, objective=objective, T=T_sol, fuel_g=fuel_g, phase_durations=sol["durations"],
+        braking=ocp.braking, objective=objective, T=T_sol, fuel_g=fuel_g, phase_durations=sol["durations"],
         t=sol["t"].tolist(), states=sol["states"].tolist(), controls=sol["controls"].tolist(),
         phase=[int(v) for v in sol["phase"]], position=sol["position"].tolist(), status=info["status"],
         success=True, iterations=info["iterations"], wall_time=sum(r.get("wall_time", 0.0) for r in records),
-        w_fuel=w_fuel, target_T=T, params_fingerprint=p.fingerprint(), mesh=mesh,
+        w_fuel=w_fuel, target_T=T, params_fingerprint=p.fingerprint(), mesh=list(ocp.settings.intervals),
         degree=ocp.settings.degree, solver=ocp.settings.solver, smoothing=info["smoothing"], starts=records,
     )

@@ -41,10 +41,11 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
     ph = 1
     s_rev = math.nan
     rows = [y]
-    phases = [1]
+    phases = []  # phases[i]: the phase interval i starts in (the OCPResult convention)
     applied = []
     for i in range(len(t) - 1):
         ph = max(ph, int(phase[i]))  # the simulator may already be past the OCP's phase 2
+        phases.append(ph)
         dt = t[i + 1] - t[i]
         n = max(1, int(math.ceil(dt / max_substep - 1e-9)))
         h = dt / n
@@ -63,7 +64,7 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
         if ph_before <= 2 and int(phase[i + 1]) >= 3 and s_rev != s_rev:
             s_rev = y[4]  # the OCP's reversing point: phase 2 ends here in the plan
         rows.append(y)
-        phases.append(ph)
+    phases.append(ph)
     arr = np.array(rows)
     return {"t": np.asarray(t), "states": arr[:, :4], "position": arr[:, 4], "fuel_g": arr[-1, 5] * 1000.0,
             "s_rev": s_rev, "phase": np.array(phases), "applied": np.array(applied)}
@@ -97,7 +98,7 @@ def constraint_violations(states: np.ndarray, controls: np.ndarray, phase: np.nd
     return {k: max(v, 0.0) for k, v in worst.items()}
 
 
-def verify_result(result: Any, params: LoaderParams | dict | None = None, max_substep: float = 0.01) -> dict[str, Any]:
+def verify_result(result: Any, params: LoaderParams | dict | None = None, max_substep: float = 0.005) -> dict[str, Any]:
     """Re-simulate an OCPResult; report terminal errors, fuel/time agreement and constraint violations."""
     p = resolve(params)
     t = np.asarray(result.t)

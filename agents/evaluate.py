@@ -1,0 +1,301 @@
+"""A controller in ``WheelLoader-v0`` scored against the optimal control benchmark (``wl evaluate``, ``wl run``).
+
+* :func:`load_controller` - ``"ppo"``, ``"operator"``, ``"mpc"`` or a user's ``"module:Class"`` /
+  ``"path/to/file.py:Class"`` as a :class:`wl_env.controller.Controller`.
+* :func:`evaluate_controller` - episodes through :func:`wl_env.rollout.run_episode`: the nominal start
+  (episode 0, the one the optimum is computed for) and perturbed starts (episodes 1..N-1, seeded
+  ``seed + i``); per episode and aggregated: success (cycle completed, end targets met), cycle time,
+  fuel, constraint violation, and the score of :func:`mpc.scoring.score_run` (time gap to the minimum
+  cycle time, fuel gap to the Pareto fuel at the same cycle time).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import inspect
+import math
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from wl_env import cycle
+from wl_env.controller import Controller
+
+BUILTIN_CONTROLLERS = ("ppo", "operator", "mpc")
+POLICY_DIR = Path(__file__).resolve().parent / "policies"
+
+
+def default_policy_path(braking: str) -> Path:
+    """The shipped PPO policy of a braking alternative."""
+    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.zip"
+
+
+# ---------------------------------------------------------------------------------------------- loading
+def load_controller(spec: str, braking: str, model: str | None = None) -> Controller:
+    """The controller named by ``spec`` for ``braking``.
+
+    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>.zip``), ``"operator"``
+    is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
+    ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
+    that argument (and ``model=`` if a model is given), else without arguments; the result needs an
+    ``act(obs)`` method (``reset()`` is optional for :func:`wl_env.rollout.run_episode`).
+    """
+    cycle.check_braking(braking)
+    spec = spec.strip()
+    if spec == "ppo":
+        return _load_ppo(braking, model)
+    if spec in ("operator", "mpc") and model is not None:
+        raise ValueError(f"--model is for learned controllers (ppo, module:Class), not {spec!r}")
+    if spec == "operator":
+        from agents.operator import OperatorPolicy
+
+        return OperatorPolicy(braking)
+    if spec == "mpc":
+        from mpc.mpc import MPCController
+
+        return MPCController(braking)
+    if ":" not in spec:
+        raise ValueError(f"unknown controller {spec!r}: use {', '.join(BUILTIN_CONTROLLERS)}, module:Class "
+                         f"or path/to/file.py:Class")
+    return _load_user_controller(spec, braking, model)
+
+
+def _load_ppo(braking: str, model: str | None) -> Controller:
+    path = Path(model).expanduser() if model is not None else default_policy_path(braking)
+    if not path.exists():
+        hint = "" if model is not None else f" (train one with `wl train --braking {braking} --export PATH`, " \
+                                            "then pass --model PATH.zip)"
+        raise FileNotFoundError(f"no PPO policy at {path}{hint}")
+    from agents.ppo import load_policy
+
+    policy = load_policy(path)
+    if policy.braking not in (None, braking):
+        # Allowed (a cross-evaluation is a legitimate experiment), but usually a mix-up.
+        print(f"warning: the policy {path} was trained with {policy.braking} braking, evaluated with {braking}",
+              file=sys.stderr)
+    return policy
+
+
+def _load_user_controller(spec: str, braking: str, model: str | None) -> Controller:
+    target, _, name = spec.rpartition(":")
+    if not target or not name.isidentifier():
+        raise ValueError(f"controller {spec!r}: expected module:Class or path/to/file.py:Class")
+    is_file = target.endswith(".py") or "/" in target or os.sep in target
+    module = _import_file(target, spec) if is_file else _import_module(target, spec)
+    factory = getattr(module, name, None)
+    if factory is None:
+        raise ValueError(f"controller {spec!r}: {target} defines no {name!r}")
+    if not callable(factory):
+        raise ValueError(f"controller {spec!r}: {name} is not a class or factory")
+    kwargs: dict[str, Any] = {}
+    if _accepts(factory, "braking"):
+        kwargs["braking"] = braking
+    if model is not None:
+        if not _accepts(factory, "model"):
+            raise ValueError(f"--model given, but controller {spec!r} takes no model= argument")
+        kwargs["model"] = model
+    try:
+        controller = factory(**kwargs)
+    except Exception as exc:
+        raise ValueError(f"controller {spec!r}: {name}({', '.join(f'{k}={v!r}' for k, v in kwargs.items())}) "
+                         f"failed: {type(exc).__name__}: {exc}") from exc
+    if not callable(getattr(controller, "act", None)):
+        raise ValueError(f"controller {spec!r}: {name} has no act(obs) method")
+    return controller
+
+
+def _accepts(factory: Callable[..., Any], arg: str) -> bool:
+    try:
+        sig = inspect.signature(factory)
+    except (TypeError, ValueError):  # some builtins have no signature: call them without arguments
+        return False
+    return any(p.kind is p.VAR_KEYWORD or (p.name == arg and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+               for p in sig.parameters.values())
+
+
+def _import_module(target: str, spec: str) -> ModuleType:
+    # The console script `wl` does not put the working directory on sys.path (python -m would):
+    # append it, so a user's module beside them imports, without shadowing installed packages.
+    if os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.append(os.getcwd())
+    try:
+        return importlib.import_module(target)
+    except Exception as exc:
+        raise ValueError(f"controller {spec!r}: cannot import {target}: {type(exc).__name__}: {exc}") from exc
+
+
+def _import_file(target: str, spec: str) -> ModuleType:
+    path = Path(target).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"no controller file {path} (from --controller {spec})")
+    path = path.resolve()
+    # A unique module name per file: two controllers named alike in different folders do not collide.
+    name = f"wl_user_{path.stem}_{hashlib.sha1(str(path).encode()).hexdigest()[:10]}"
+    module_spec = importlib.util.spec_from_file_location(name, path)
+    if module_spec is None or module_spec.loader is None:
+        raise ValueError(f"controller {spec!r}: {path} is not a Python module")
+    module = importlib.util.module_from_spec(module_spec)
+    sys.modules[name] = module  # dataclasses and pickle look classes up by module name
+    if str(path.parent) not in sys.path:
+        sys.path.append(str(path.parent))  # its sibling imports work as when run as a script
+    try:
+        module_spec.loader.exec_module(module)
+    except Exception as exc:
+        del sys.modules[name]
+        raise ValueError(f"controller {spec!r}: importing {path} failed: {type(exc).__name__}: {exc}") from exc
+    return module
+
+
+# ---------------------------------------------------------------------------------------------- evaluation
+def check_settings(episodes: int, init_noise: float, seed: int) -> None:
+    """Raise ValueError for settings no evaluation can run with."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+        raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+
+
+def evaluate_controller(
+    controller: Controller,
+    braking: str,
+    episodes: int = 10,
+    init_noise: float = 1.0,
+    seed: int = 0,
+    *,
+    score: bool = True,
+    front: Any = None,
+    cache: str | os.PathLike | None = None,
+    trajectories: bool = False,
+    env_kwargs: dict[str, Any] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run ``episodes`` episodes of ``controller`` and score the completed ones against the optimum.
+
+    Episode 0 starts at the nominal state (init_noise 0), episodes 1..N-1 perturbed by ``init_noise``,
+    each reset with seed ``seed + i``: the same call gives the same result. The Pareto front (``front``,
+    else :func:`mpc.pareto.pareto_front` from ``cache``) is loaded once, when the first episode completes.
+    ``trajectories`` keeps each episode's t, states, controls and phase. Values that do not exist (the
+    gaps of an unfinished cycle, the mean time of no completed cycle) are None.
+    """
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401  (registers WheelLoader-v0)
+    from wl_env.rollout import run_episode
+
+    cycle.check_braking(braking)
+    check_settings(episodes, init_noise, seed)
+    say = progress or (lambda msg: None)
+    kwargs = {**(env_kwargs or {}), "braking": braking}
+    nominal_env = gym.make("WheelLoader-v0", **{**kwargs, "init_noise": 0.0})
+    perturbed_env = gym.make("WheelLoader-v0", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
+    H_T = nominal_env.unwrapped.params.H_T
+    records: list[dict[str, Any]] = []
+    try:
+        for i in range(episodes):
+            env = nominal_env if i == 0 else perturbed_env
+            ep = run_episode(env, controller, seed=seed + i)
+            rec: dict[str, Any] = {
+                "episode": i, "seed": seed + i, "init_noise": 0.0 if i == 0 else float(init_noise),
+                "success": bool(ep["success"]), "completed": bool(ep["completed"]),
+                "truncated": bool(ep["truncated"]), "stalled": bool(ep["stalled"]),
+                "T": float(ep["T"]), "fuel_g": float(ep["fuel_g"]), "return": float(ep["return"]),
+                "reversing_error": None if ep["reversing_error"] is None else float(ep["reversing_error"]),
+                "end_error": float(ep["final_s"]), "height_error": float(ep["final_H"] - H_T),
+                "max_violation": float(ep["max_excess"]),
+                "time_gap": None, "fuel_gap": None, "fuel_opt_g": None,
+            }
+            if score and ep["completed"]:
+                if front is None:
+                    from mpc.pareto import pareto_front
+
+                    # Solved (minutes) unless cached: say so, a silent wait looks like a hang.
+                    front = pareto_front(braking, params=kwargs.get("params"), cache=cache,
+                                         progress=lambda m: say("  [optimum] " + m))
+                from mpc.scoring import score_run
+
+                s = score_run(rec["T"], rec["fuel_g"], braking, success=rec["success"],
+                              max_violation=rec["max_violation"], params=kwargs.get("params"), front=front, cache=cache)
+                rec.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap, fuel_opt_g=s.fuel_opt_g)
+            if trajectories:
+                rec.update(t=ep["t"], states=ep["states"], controls=ep["controls"], phase=ep["phase"])
+            records.append(rec)
+            say(_episode_line(rec))
+    finally:
+        nominal_env.close()
+        if perturbed_env is not None:
+            perturbed_env.close()
+    optimum = None if front is None else {
+        "T_min": front.T_min, "T_fuel_opt": front.T_fuel_opt, "fuel_min_g": front.fuel_min_g,
+        "params_fingerprint": front.params_fingerprint}
+    return {"braking": braking, "episodes": episodes, "init_noise": float(init_noise), "seed": seed,
+            "optimum": optimum, "summary": summarize(records), "per_episode": records}
+
+
+def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Aggregates over episodes: rates over all of them, times and fuels over the completed ones, gaps
+    over the scored ones; ``nominal`` repeats episode 0."""
+    if not records:
+        raise ValueError("no episodes to summarize")
+    done = [r for r in records if r["completed"]]
+    scored = [r for r in done if r["time_gap"] is not None]
+    violations = [r["max_violation"] for r in records]
+    nominal = records[0]
+    return {
+        "episodes": len(records),
+        "success_rate": _mean([float(r["success"]) for r in records]),
+        "completion_rate": len(done) / len(records),
+        "violation_rate": _mean([float(v > 0.0) for v in violations]),  # any excess over the driver's limits
+        "max_violation": max(violations),
+        "mean_max_violation": _mean(violations),
+        "T": _stats([r["T"] for r in done]),
+        "fuel_g": _stats([r["fuel_g"] for r in done]),
+        "scored": len(scored),
+        "time_gap": _stats([r["time_gap"] for r in scored]),
+        "fuel_gap": _stats([r["fuel_gap"] for r in scored]),
+        "nominal": {k: nominal[k] for k in ("success", "completed", "T", "fuel_g", "max_violation", "time_gap",
+                                            "fuel_gap")},
+    }
+
+
+def _mean(values: list[float]) -> float | None:
+    return math.fsum(values) / len(values) if values else None
+
+
+def _stats(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"mean": None, "std": None, "min": None, "max": None}
+    mean = math.fsum(values) / len(values)
+    std = math.sqrt(math.fsum((v - mean) ** 2 for v in values) / len(values))
+    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
+
+
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:+.2f} %"
+
+
+def _episode_line(r: dict[str, Any]) -> str:
+    state = "success" if r["success"] else "completed" if r["completed"] else "failed"
+    return (f"  episode {r['episode']} (seed {r['seed']}, init_noise {r['init_noise']:g}): {state}, "
+            f"T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, time gap {_pct(r['time_gap'])}, "
+            f"fuel gap {_pct(r['fuel_gap'])}, max violation {100 * r['max_violation']:.1f} %")
+
+
+def summary_line(result: dict[str, Any], name: str) -> str:
+    """One line of an :func:`evaluate_controller` result, for the command line."""
+    s = result["summary"]
+
+    def num(stats: dict[str, float | None], fmt: str, unit: str) -> str:
+        return "n/a" if stats["mean"] is None else f"{format(stats['mean'], fmt)}{unit}"
+
+    return (f"{name}, {result['braking']} braking, {s['episodes']} episodes: success {100 * s['success_rate']:.0f} %, "
+            f"completed {100 * s['completion_rate']:.0f} %, mean T {num(s['T'], '.2f', ' s')}, "
+            f"mean fuel {num(s['fuel_g'], '.2f', ' g')}, mean time gap {_pct(s['time_gap']['mean'])}, "
+            f"mean fuel gap {_pct(s['fuel_gap']['mean'])} ({s['scored']} scored), "
+            f"max violation {100 * s['max_violation']:.1f} %")

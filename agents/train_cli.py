@@ -1,0 +1,116 @@
+"""The command line of PPO training, shared by ``wl train`` and ``scripts/train_ppo.py``.
+
+Every field of :class:`agents.ppo_config.PPOConfig` is a flag of the same name (``--total-timesteps``,
+``--reward KEY=VALUE ...``), generated from the dataclass so that a new option needs no parser code.
+Building the parser does not import torch; :func:`run_train` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shlex
+import sys
+import types
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from agents.ppo_config import PPOConfig
+
+# options that only name the run: with --resume everything else comes from the run's saved config
+RUN_NAMING = {"braking", "seed", "run_name", "log_dir", "progress_bar"}
+
+
+def _parse_bool(text: str) -> bool:
+    if text.lower() in ("1", "true", "yes", "on"):
+        return True
+    if text.lower() in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected a boolean, got {text!r}")
+
+
+def _optional(convert: Callable[[str], Any]) -> Callable[[str], Any]:
+    return lambda text: None if text.lower() == "none" else convert(text)
+
+
+def _key_value(text: str) -> tuple[str, float]:
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"expected key=value, got {text!r}")
+    return key.strip(), float(value)
+
+
+def add_dataclass_args(parser: argparse.ArgumentParser, cls: type) -> None:
+    """One flag per dataclass field (``--field-name``); the field's metadata["help"] is the help text.
+
+    Handles bool (``--x/--no-x``), int, float, str, ``X | None`` (the word ``none``), ``tuple[int, ...]``
+    (several values) and ``dict[str, float]`` (several ``key=value``).
+    """
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp, flag = hints[f.name], "--" + f.name.replace("_", "-")
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        help_text = f"{f.metadata.get('help', '')} (default: {default})"
+        args = typing.get_args(tp)
+        origin = typing.get_origin(tp)
+        if tp is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        elif origin in (typing.Union, types.UnionType) and type(None) in args:
+            inner = next(a for a in args if a is not type(None))
+            parser.add_argument(flag, type=_optional(inner), default=None, help=help_text)
+        elif origin is tuple:
+            parser.add_argument(flag, type=args[0], nargs="+", default=None, help=help_text)
+        elif origin is dict:
+            parser.add_argument(flag, type=_key_value, nargs="*", default=None, metavar="KEY=VALUE", help=help_text)
+        else:
+            parser.add_argument(flag, type=_parse_bool if tp is bool else tp, default=None, help=help_text)
+
+
+def config_from_args(cls: type, ns: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """The dataclass with the given flags applied over its defaults (flags not given keep the default),
+    and the given flags."""
+    hints, given = typing.get_type_hints(cls), {}
+    for f in dataclasses.fields(cls):
+        v = getattr(ns, f.name, None)
+        if v is not None:
+            given[f.name] = dict(v) if typing.get_origin(hints[f.name]) is dict else v
+    return cls(**given), given
+
+
+def add_train_args(parser: argparse.ArgumentParser) -> None:
+    """The training options: every PPOConfig field, ``--resume``, ``--export PATH``, ``--export-episodes``."""
+    add_dataclass_args(parser, PPOConfig)
+    parser.add_argument("--resume", action="store_true", help="continue the run from its newest checkpoint")
+    parser.add_argument("--export", metavar="PATH", default=None,
+                        help="after training, ship the policy as PATH.zip, PATH_vecnormalize.pkl, PATH.json")
+    parser.add_argument("--export-episodes", type=int, default=100, help="evaluation episodes of --export")
+
+
+def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
+    """Train (or resume) the run the parsed options describe, export it if asked; returns the exit code.
+
+    ``command`` (the command line) is recorded in the run's config.json; ``prog`` is how the user called
+    the trainer, for the hint that continues an interrupted run.
+    """
+    from agents.ppo import export_policy, train
+
+    cfg, given = config_from_args(PPOConfig, ns)
+    if "reward" in given:  # --reward overrides single fields; the other defaults stay
+        cfg.reward = {**PPOConfig().reward, **cfg.reward}
+    if ns.resume and set(given) - RUN_NAMING:
+        print("note: --resume uses the run's saved config; options other than the run's name are ignored",
+              file=sys.stderr)
+    try:
+        summary = train(cfg, resume=ns.resume, command=command)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; continue with: {prog} --run-name {shlex.quote(cfg.name)} "
+              f"--log-dir {shlex.quote(cfg.log_dir)} --resume", file=sys.stderr)
+        return 130
+    print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
+    if ns.export:
+        meta = export_policy(cfg.run_dir, Path(ns.export).parent, Path(ns.export).name, n_episodes=ns.export_episodes)
+        print(json.dumps(meta["evaluation"], indent=2, default=str))
+    return 0

@@ -1,0 +1,329 @@
+"""The ``wl`` command line, in process: params, evaluate (built-in and user controllers), train, report,
+one-line user errors and every subcommand's --help.
+
+Scoring needs a Pareto front; solving one takes minutes, so the tests write a synthetic front where
+:func:`mpc.pareto.pareto_front` looks for it (``--cache tmp_path``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import wl_cli
+import wl_env  # noqa: F401
+import wl_report
+from agents.evaluate import load_controller, summarize
+from agents.operator import OperatorPolicy
+from mpc.ocp import OCPResult
+from mpc.pareto import ParetoFront, _key, cache_dir
+from wl_env.controller import Controller
+from wl_env.params import resolve
+from wl_env.rollout import run_episode
+
+SUBCOMMANDS = ["params", "ocp", "pareto", "mpc", "evaluate", "train", "run", "report"]
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _front(braking: str) -> ParetoFront:
+    """A made-up convex front around the operator's cycles (8-9 s), wide enough to score every episode."""
+    T = [7.0, 8.0, 10.0, 14.0, 20.0]
+    fuel = [110.0, 95.0, 80.0, 70.0, 65.0] if braking == "service" else [100.0, 86.0, 72.0, 63.0, 60.0]
+    return ParetoFront(braking, T, fuel, resolve(None).fingerprint(), T[0], T[-1], fuel[-1], [20, 12, 20, 12])
+
+
+@pytest.fixture
+def cache(tmp_path: Path) -> Path:
+    """A cache folder holding synthetic fronts and minimum-time cycles for both braking alternatives."""
+    root = tmp_path / "cache"
+    for b in ("service", "tc"):
+        folder = cache_dir(root) / "pareto" / _key(b, resolve(None), 8)
+        _front(b).save(folder / "front.json")
+        t = np.linspace(0.0, 7.0, 15)
+        states = np.column_stack([np.full_like(t, 200.0), np.sin(t), 0.7 + 0.6 * t, np.full_like(t, 0.5)])
+        OCPResult(b, "time", 7.0, 110.0, [2.0, 1.5, 2.0, 1.5], t.tolist(), states.tolist(), [[0.0, 0.0, 0.0]] * 14,
+                  [1] * 15, t.tolist(), "Solve_Succeeded", True, 10, 0.1).save(folder / "min_time.json")
+    return root
+
+
+def _run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = wl_cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _check_scores(episodes: list[dict], braking: str) -> None:
+    front = _front(braking)
+    for e in episodes:
+        assert e["time_gap"] == pytest.approx(e["T"] / front.T_min - 1.0, rel=1e-12)
+        assert e["fuel_gap"] == pytest.approx(e["fuel_g"] / front.fuel_at(e["T"]) - 1.0, rel=1e-12)
+
+
+# ------------------------------------------------------------------------------------------ params
+def test_params_prints_every_parameter(capsys):
+    code, out, _ = _run(capsys, "params", "--json")
+    assert code == 0 and json.loads(out) == json.loads(json.dumps(resolve(None).to_dict()))
+    code, out, _ = _run(capsys, "params")
+    assert code == 0 and len(out.splitlines()) == len(resolve(None).to_dict())
+
+
+# ------------------------------------------------------------------------------------------ evaluate
+def test_evaluate_operator_nominal_then_perturbed_and_scored(tmp_path, cache, capsys):
+    out = tmp_path / "eval.json"
+    code, stdout, _ = _run(capsys, "evaluate", "--controller", "operator", "--braking", "service", "--episodes", 2,
+                           "--seed", 5, "--cache", cache, "--out", out)
+    assert code == 0
+    assert len(stdout.strip().splitlines()) == 1 and stdout.strip().endswith(f"-> {out}")
+    r = json.loads(out.read_text())
+    eps = r["per_episode"]
+    assert [(e["episode"], e["seed"], e["init_noise"]) for e in eps] == [(0, 5, 0.0), (1, 6, 1.0)]
+    # episode 0 is the nominal cycle, episode 1 the perturbed start of seed 6: the same as rolled by hand
+    for e, noise in zip(eps, (0.0, 1.0), strict=True):
+        ref = run_episode(gym.make("WheelLoader-v0", braking="service", init_noise=noise), OperatorPolicy("service"),
+                          seed=e["seed"])
+        assert (e["T"], e["fuel_g"], e["completed"], e["success"]) == (ref["T"], ref["fuel_g"], ref["completed"],
+                                                                      ref["success"])
+    assert eps[0]["fuel_g"] != eps[1]["fuel_g"]  # the perturbation was applied
+    assert all(e["completed"] for e in eps)
+    _check_scores(eps, "service")
+    s = r["summary"]
+    assert s["success_rate"] == np.mean([e["success"] for e in eps])
+    assert s["completion_rate"] == 1.0 and s["scored"] == 2
+    assert s["fuel_gap"]["mean"] == pytest.approx(np.mean([e["fuel_gap"] for e in eps]))
+    assert s["T"]["max"] == max(e["T"] for e in eps)
+    assert s["nominal"]["fuel_g"] == eps[0]["fuel_g"]
+    assert r["optimum"]["T_min"] == 7.0 and r["controller"] == "operator"
+    # reproducible: the same command gives the same file
+    code, _, _ = _run(capsys, "evaluate", "--controller", "operator", "--episodes", 2, "--seed", 5, "--cache", cache,
+                      "--out", tmp_path / "again.json")
+    assert code == 0 and json.loads((tmp_path / "again.json").read_text()) == r
+
+
+USER_CONTROLLER = '''
+import numpy as np
+
+from agents.operator import OperatorPolicy
+
+LOG = {log!r}
+
+
+class GentleDriver:
+    """The operator with at most 60 % fuel injection: a slower, different cycle."""
+
+    def __init__(self, braking):
+        self.braking = braking
+        self.inner = OperatorPolicy(braking)
+        self._write("init " + braking)
+
+    def _write(self, line):
+        with open(LOG, "a") as f:
+            f.write(line + "\\n")
+
+    def reset(self):
+        self._write("reset")
+
+    def act(self, obs):
+        self._write("act")
+        action = self.inner.act(obs).copy()
+        action[0] = min(action[0], 0.2)
+        return action
+
+
+class NoBraking:
+    def __init__(self):
+        self.inner = OperatorPolicy("service")
+
+    def act(self, obs):
+        return self.inner.act(obs)
+'''
+
+
+def test_evaluate_user_controller_from_a_file(tmp_path, cache, capsys):
+    log = tmp_path / "calls.log"
+    module = tmp_path / "my_controllers.py"
+    module.write_text(USER_CONTROLLER.format(log=str(log)))
+    out = tmp_path / "eval.json"
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{module}:GentleDriver", "--braking", "tc",
+                        "--episodes", 3, "--cache", cache, "--out", out)
+    assert code == 0, err
+    eps = json.loads(out.read_text())["per_episode"]
+    calls = log.read_text().split()
+    # constructed once with the braking, reset before each episode, one act per 0.1 s step
+    assert calls[:2] == ["init", "tc"] and calls.count("reset") == 3
+    assert calls.count("act") == sum(round(e["T"] / 0.1) for e in eps)
+    # its actions drove the episodes: the nominal one equals a rollout of the class, not the operator's
+    ctrl = load_controller(f"{module}:GentleDriver", "tc")
+    ref = run_episode(gym.make("WheelLoader-v0", braking="tc"), ctrl, seed=0)
+    op = run_episode(gym.make("WheelLoader-v0", braking="tc"), OperatorPolicy("tc"), seed=0)
+    assert (eps[0]["T"], eps[0]["fuel_g"]) == (ref["T"], ref["fuel_g"])
+    assert eps[0]["T"] > op["T"] and eps[0]["fuel_g"] != op["fuel_g"]
+    _check_scores([e for e in eps if e["completed"]], "tc")
+    # a class without a braking argument is made without arguments (and needs no reset); modules import by name
+    plain = load_controller(f"{module}:NoBraking", "tc")
+    assert type(plain).__name__ == "NoBraking" and plain.inner.braking == "service"
+    assert load_controller("agents.operator:OperatorPolicy", "tc").braking == "tc"
+
+
+def test_load_controller_builtins_follow_the_protocol():
+    for spec in ("operator", "mpc", "ppo"):
+        c = load_controller(spec, "tc")
+        assert isinstance(c, Controller), spec
+        assert c.act(np.zeros(12, np.float32)).shape == (4,)
+
+
+def test_summary_aggregates_per_episode_values():
+    def ep(success, completed, T, fuel, gap, viol):
+        return {"success": success, "completed": completed, "T": T, "fuel_g": fuel, "max_violation": viol,
+                "time_gap": gap, "fuel_gap": None if gap is None else 2 * gap}
+
+    records = [ep(True, True, 9.0, 90.0, 0.1, 0.0), ep(False, True, 11.0, 80.0, 0.3, 0.02),
+               ep(False, False, 40.0, 300.0, None, 0.5), ep(True, True, 10.0, 85.0, 0.2, 0.0)]
+    s = summarize(records)
+    assert s["success_rate"] == 0.5 and s["completion_rate"] == 0.75 and s["violation_rate"] == 0.5
+    assert s["T"]["mean"] == pytest.approx(10.0) and s["T"]["max"] == 11.0  # only completed cycles
+    assert s["fuel_gap"]["mean"] == pytest.approx(0.4) and s["scored"] == 3
+    assert s["max_violation"] == 0.5 and s["nominal"]["T"] == 9.0
+
+
+# ------------------------------------------------------------------------------------------ train
+def test_train_tiny_run_then_evaluate_its_policy(tmp_path, capsys):
+    argv = ["train", "--total-timesteps", "2048", "--num-envs", "8", "--n-steps", "64", "--batch-size", "256",
+            "--n-epochs", "2", "--eval-freq", "1024", "--eval-episodes", "2", "--checkpoint-freq", "1024",
+            "--no-score", "--no-progress-bar", "--log-dir", str(tmp_path), "--run-name", "tiny",
+            "--net-arch", "16", "16", "--reward", "target_distance=30"]
+    code, out, err = _run(capsys, *argv)
+    assert code == 0, err
+    run = tmp_path / "tiny"
+    assert "[eval] step" in out  # the evaluation lines, then the run's summary as JSON
+    assert json.loads(out[out.index("\n{") + 1:])["num_timesteps"] >= 2048
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["commands"] == ["wl " + " ".join(argv)]
+    cfg = saved["config"]
+    assert (cfg["num_envs"], cfg["net_arch"], cfg["score"], cfg["total_timesteps"]) == (8, [16, 16], False, 2048)
+    assert cfg["reward"] == {"target_distance": 30.0, "target_height": 60.0, "failure": 100.0}  # one field overridden
+    assert (run / "final" / "model.zip").exists()
+    # the same run again is a user error; the trained policy evaluates through --model
+    code, _, err = _run(capsys, *argv)
+    assert code == 2 and err.startswith("wl: error:") and "already holds a run" in err
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", run / "final" / "model.zip",
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "ppo.json")
+    assert code == 0, err
+    assert json.loads((tmp_path / "ppo.json").read_text())["model"] == str(run / "final" / "model.zip")
+
+
+def test_train_script_is_the_same_command_line(capsys):
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_ppo.py"
+    spec = importlib.util.spec_from_file_location("train_ppo_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--help"])
+    assert exc.value.code == 0
+    script_help = capsys.readouterr().out
+    code, cli_help, _ = _run(capsys, "train", "--help")
+    assert code == 0
+
+    def flags(text):  # the flags of the options section (the script's description has examples)
+        return {w.strip("[],") for w in text.split("options:")[1].split() if w.startswith("--")}
+
+    assert flags(script_help) == flags(cli_help) and "--total-timesteps" in flags(cli_help)
+
+
+# ------------------------------------------------------------------------------------------ report
+def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsys):
+    out = tmp_path / "results"
+    results = wl_report.collect(out, cache=str(cache),
+                                controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+    wl_report.render(results, out)
+    first = (out / "leaderboard.md").read_text()
+    rows = {(r["controller"], r["braking"]): r for r in results["rows"]}
+    assert rows[("optimum (min time)", "tc")]["T"] == 7.0
+    for b in ("service", "tc"):
+        _check_scores([rows[("operator", b)]], b)
+    for f in ("leaderboard.md", "pareto.png", "trajectories_service.png", "trajectories_tc.png"):
+        (out / f).unlink()
+    code, stdout, err = _run(capsys, "report", "--results", out)
+    assert code == 0, err
+    assert (out / "leaderboard.md").read_text() == first
+    for f in ("pareto.png", "trajectories_service.png", "trajectories_tc.png"):
+        assert (out / f).stat().st_size > 10_000, f
+    assert "leaderboard.md" in stdout
+    code, _, _ = _run(capsys, "report", "--results", out, "--out", tmp_path / "elsewhere")
+    assert code == 0 and (tmp_path / "elsewhere" / "leaderboard.md").read_text() == first
+
+
+def _broken(results: dict, what: str) -> dict:
+    results = json.loads(json.dumps(results))
+    if what == "trajectories":
+        del results["trajectories"]
+    elif what == "states":
+        results["trajectories"][0]["states"] = results["trajectories"][0]["states"][:-1]
+    elif what == "row":
+        results["rows"][1]["T"] = "fast"
+    elif what == "old":
+        results = {"rows": results["rows"], "wall_time_s": 1.0}
+    return results
+
+
+@pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old"])
+def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
+    out = tmp_path / "results"
+    if what != "missing":
+        results = wl_report.collect(out, cache=str(cache), brakings=("service",),
+                                    controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+        text = "{\"rows\": [" if what == "garbled" else json.dumps(_broken(results, what))
+        (out / "results.json").write_text(text)
+        capsys.readouterr()  # collect's progress lines
+    code, _, err = _run(capsys, "report", "--results", out)
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and err.startswith("wl: error:") and "results.json" in err
+    assert not (out / "leaderboard.md").exists()
+
+
+# ------------------------------------------------------------------------------------------ errors, help
+@pytest.mark.parametrize("argv,needle", [
+    (["evaluate", "--controller", "operator", "--braking", "hydraulic"], "--braking"),
+    (["evaluate", "--controller", "operator", "--episodes", "0"], "--episodes"),
+    (["evaluate", "--controller", "operator", "--init-noise", "1.5"], "--init-noise"),
+    (["evaluate", "--controller", "ppo", "--model", "{tmp}/no_policy.zip"], "no_policy.zip"),
+    (["evaluate", "--controller", "not_a_controller"], "not_a_controller"),
+    (["evaluate", "--controller", "{tmp}/nothing.py:Driver"], "nothing.py"),
+    (["evaluate", "--controller", "agents.operator:NoSuchClass"], "NoSuchClass"),
+    (["train", "--braking", "hydraulic", "--log-dir", "{tmp}"], "braking"),
+    (["train", "--num-envs", "many"], "--num-envs"),
+    (["ocp", "--objective", "speed", "--out", "{tmp}/x.json"], "--objective"),
+    (["report"], "--results"),
+])
+def test_user_errors_are_one_line(tmp_path, capsys, argv, needle):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    if argv[0] == "evaluate":
+        argv += ["--out", str(tmp_path / "eval.json")]
+    code, _, err = _run(capsys, *argv)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("wl: error:") and needle in lines[0], err
+    assert not (tmp_path / "eval.json").exists()
+
+
+def test_missing_shipped_policy_names_the_path(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("agents.evaluate.POLICY_DIR", tmp_path)
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--braking", "tc", "--out", tmp_path / "e.json")
+    assert code == 2 and err.count("\n") == 1 and str(tmp_path / "ppo_tc.zip") in err
+
+
+@pytest.mark.parametrize("command", SUBCOMMANDS + [None])
+def test_help_of_every_subcommand(capsys, command):
+    code, out, err = _run(capsys, *([command] if command else []), "--help")
+    assert code == 0 and err == ""
+    assert out.startswith(f"usage: wl {command}" if command else "usage: wl")
+
+
+def test_every_subcommand_is_tested():
+    sub = next(a for a in wl_cli.build_parser()._actions if a.dest == "command")
+    assert sorted(sub.choices) == sorted(SUBCOMMANDS)
