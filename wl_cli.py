@@ -66,14 +66,14 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
 
 
 def _pareto_cmd(args: argparse.Namespace) -> int:
-    from mpc.pareto import pareto_front
+    from mpc.pareto import pareto_fronts
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    brakings = ["service", "tc"] if args.braking == "both" else [args.braking]
-    for b in brakings:
-        front = pareto_front(b, n_points=args.points, params=_params_from(args), cache=args.cache,
-                             use_cache=not args.no_cache, progress=_progress)
+    brakings = ("service", "tc") if args.braking == "both" else (args.braking,)
+    fronts = pareto_fronts(brakings, n_points=args.points, params=_params_from(args), cache=args.cache,
+                           use_cache=not args.no_cache, progress=True)  # in parallel processes
+    for b, front in fronts.items():
         path = front.save(out / f"pareto_{b}.json")
         print(f"{b}: {len(front.T)} points, T {front.T_min:.3f}..{front.T_fuel_opt:.3f} s, fuel "
               f"{front.fuel_g[0]:.2f}..{front.fuel_min_g:.2f} g -> {path}")

@@ -56,18 +56,18 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     """
     from agents.evaluate import evaluate_controller
     from mpc.ocp import OCPResult, write_json_atomic
-    from mpc.pareto import cache_dir, pareto_front
+    from mpc.pareto import front_folder, pareto_fronts
 
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fronts, optima, rows, trajectories = {}, {}, [], []
+    _say(f"[benchmark] Pareto fronts, {' and '.join(brakings)} braking (solved in parallel; cached after the first run)")
+    solved = pareto_fronts(tuple(brakings), cache=cache, progress=True)
     for b in brakings:
-        _say(f"[benchmark] Pareto front, {b} braking (cached after the first run)")
-        front = pareto_front(b, cache=cache, progress=lambda m: _say("  " + m))
+        front = solved[b]
         fronts[b] = dict(front.__dict__)
-        folder = next((cache_dir(cache) / "pareto").glob(f"{b}_{front.params_fingerprint}_n*"))
-        opt = OCPResult.load(folder / "min_time.json")
+        opt = OCPResult.load(front_folder(b, cache=cache) / "min_time.json")  # the default 8-point front
         optima[b] = {"T": opt.T, "fuel_g": opt.fuel_g, "t": opt.t, "states": opt.states}
         rows.append({"controller": "optimum (min time)", "braking": b, "T": opt.T, "fuel_g": opt.fuel_g,
                      "time_gap": 0.0, "fuel_gap": 0.0, "max_violation": 0.0, "success": True})

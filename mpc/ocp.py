@@ -31,12 +31,30 @@ from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
 
 OBJECTIVES = ("time", "fuel", "weighted", "fuel_at_time")
+LINEAR_SOLVERS = ("mumps", "spral")  # IPOPT's linear solvers in CasADi's wheels (HSL's need a licensed library)
 # Nominal magnitudes: decision variables are scaled by these so IPOPT sees numbers of order one.
 X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])  # omega, V, H, V_b, s
 U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
 TARGET_WEIGHT = 1.0e4  # MPC: objective units per unit of relative target miss (15 per cm at 6.6 m)
+DECEL_EXCESS_WEIGHT = 1.0e6  # MPC: per unit of excess over the deceleration limit at the start (1 % ~ 7 cm of miss)
+
+
+N_PARAMETERS = 11
+
+
+def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0, deadline_weight: float = 0.0,
+                   x_start: np.ndarray | None = None, accel_offset: float = 0.0, accel_gain: float = 1.0) -> list[float]:
+    """The parameter vector of a :class:`CycleOCP` NLP.
+
+    ``w_fuel`` per g and ``w_time`` per s weigh the objective; ``smoothing`` is k of eq. (33);
+    ``deadline_weight`` (per s) prices the MPC's deadline slack; ``x_start`` ([omega, V, H, V_b, s]) is
+    the measured start of an NLP with a parametric start; ``accel_gain`` and ``accel_offset`` correct the
+    longitudinal dynamics to dV/dt = gain * model + d * offset (the MPC's estimate of the plant).
+    """
+    x = np.zeros(5) if x_start is None else np.asarray(x_start, dtype=float) / X_SCALE
+    return [w_fuel, w_time, smoothing, deadline_weight, *x, accel_offset, accel_gain]
 
 
 class OCPError(RuntimeError):
@@ -74,6 +92,8 @@ class OCPSettings:
             # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free
             # phase durations are global variables of this NLP.
             raise ValueError(f"solver must be 'ipopt', got {self.solver!r}")
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {self.linear_solver!r}")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
@@ -218,9 +238,8 @@ class CycleOCP:
             g_lb.append(np.broadcast_to(lb, (n,)))
             g_ub.append(np.broadcast_to(ub, (n,)))
 
-        # NLP parameters: [fuel weight per g, time weight per s, smoothing k, deadline slack weight per s,
-        # start state (5, scaled; used with parametric_start)]
-        par = ca.SX.sym("par", 10)  # ..., [9]: disturbance acceleration on V (m/s^2, MPC estimate)
+        # NLP parameters: see nlp_parameters()
+        par = ca.SX.sym("par", N_PARAMETERS)
         H_stop = lift.max_bucket_height(p)
         x0 = cycle.initial_state(p)
         path_lb, path_ub = self._path_bounds()
@@ -231,6 +250,7 @@ class CycleOCP:
         # Position and height targets: exact offline; for the MPC, elastic (L1 penalty TARGET_WEIGHT on
         # the miss), so a measured state the targets cannot be met from still gets the closest plan.
         soft_terms = []
+        decel_excess = []  # MPC: the elastic deceleration row at the measured start (see below)
 
         def soft_target(name: str) -> ca.SX:
             ub = math.inf if self.parametric_start else 0.0
@@ -284,8 +304,16 @@ class CycleOCP:
                 u_prev = U
                 XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
                 self._index["XC"].append(off)
-                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9])
+                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9], par[10])
                 add_con(defects, 0.0, 0.0)
+                n_rows = int(path.numel()) // (d + 1)
+                if fn is self._free_start_fns[k]:
+                    # The deceleration the plant shows at the measured state under the first control: a
+                    # brake can always meet the limit there, the converter's drag (a function of the state)
+                    # may not, so this one row is elastic (an L1 penalty like the targets' miss).
+                    excess, _ = add_var("decel_at_start", 1, np.zeros(1), np.array([math.inf]))
+                    decel_excess.append(excess)
+                    path = path + ca.vertcat(ca.DM.zeros(n_rows - 1), excess, ca.DM.zeros(n_rows * d))
                 add_con(path, path_lb, path_ub)
                 fuel_total += fuel
                 x_k = XC[5 * (d - 1):] * xs
@@ -308,7 +336,7 @@ class CycleOCP:
         self._g_deadline_index = self._g_T_index + 1
         add_con(T - slack, -math.inf, math.inf)  # MPC deadline: remaining time, bounds set per solve
         fuel_g = fuel_total * 1000.0
-        J = par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms)
+        J = par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms) + DECEL_EXCESS_WEIGHT * sum(decel_excess)
 
         z = ca.vertcat(*w)
         self.n_var = int(z.numel())
@@ -328,28 +356,32 @@ class CycleOCP:
         xc = ca.SX.sym("xc", 5 * d)
         u = ca.SX.sym("u", 3)
         h = ca.SX.sym("h")
-        dist = ca.SX.sym("dist")  # additive acceleration of V: 0 offline, the MPC's mismatch estimate
+        # The MPC's estimate of the plant's longitudinal dynamics: dV/dt = gain * (model's dV/dt) + d * offset
+        # (gain: model mass / plant mass; offset: an acceleration along the travel direction d, e.g. a
+        # rolling-resistance error). Offline gain = 1, offset = 0.
+        offset, gain = ca.SX.sym("offset"), ca.SX.sym("gain")
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
         for c in range(d + 1):
             x = pts[c]
             d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
-            d_v = d_v + dist
+            d_v = gain * d_v + spec.direction * offset
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
             rows = self._path_expressions(x, u, d_v, spec.direction)
             if c == 0:
-                # A measured start state is what it is: keep the rows the control can always meet there
-                # (torque limit, pressure) and zero those it cannot change at that instant (lift speed,
-                # deceleration); the layout stays, zero rows meet their bounds.
-                path.append(rows if start_constraints else rows * ca.DM([1, 1, 1, 0, 0, 1, 0]))
+                # A measured start state is what it is: zero the rows the control cannot change at that
+                # instant (the lift speed against the pump limit); the layout stays, zero rows meet their
+                # bounds. The deceleration row stays, elastic (see _build).
+                path.append(rows if start_constraints else rows * ca.DM([1, 1, 1, 0, 0, 1, 1]))
                 continue
             path.append(rows)
             xp = sum(self._C[r, c] * pts[r] for r in range(d + 1))
             defects.append((h * ca.vertcat(d_om, d_v, d_h, d_vb, x[1]) - xp) / ca.DM(X_SCALE))
             fuel += self._B[c] * m_dot * h
-        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, dist], [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
+        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, offset, gain],
+                           [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
     def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
         """Eq. (31) path constraints, scaled; bounds in :meth:`_path_bounds`."""
@@ -468,7 +500,7 @@ class CycleOCP:
         for k in ks:
             # the smoothing penalty is scaled like the objective so k means the same for every objective
             scale = max(weights)
-            args = dict(x0=z, p=[weights[0], weights[1], k * scale, 0.0, 0, 0, 0, 0, 0, 0], lbx=self._lbw, ubx=self._ubw,
+            args = dict(x0=z, p=nlp_parameters(weights[0], weights[1], k * scale), lbx=self._lbw, ubx=self._ubw,
                         lbg=lbg, ubg=ubg)
             if lam_x is not None:
                 args.update(lam_x0=lam_x, lam_g0=lam_g)

@@ -113,6 +113,13 @@ def _key(braking: str, p: LoaderParams, n_points: int) -> str:
     return f"{braking}_{p.fingerprint()}_n{n_points}_v3"
 
 
+def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
+                 cache: str | os.PathLike | None = None) -> Path:
+    """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
+    and one ``T_<cycle time>.json`` per point (each an :class:`mpc.ocp.OCPResult`)."""
+    return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), n_points)
+
+
 def sweep_mesh(ends: list[OCPResult], max_interval: float) -> tuple[int, int, int, int]:
     """One mesh for the whole sweep (one NLP, built once): no interval longer than ``max_interval`` in
     the longest phase durations of the front's two ends, half that in the braking phases 2 and 4.
@@ -145,7 +152,7 @@ def pareto_front(
         raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
     p = resolve(params)
     say = progress or (lambda msg: None)
-    folder = cache_dir(cache) / "pareto" / _key(braking, p, n_points)
+    folder = front_folder(braking, n_points, p, cache)
     front_file = folder / "front.json"
     if use_cache and front_file.exists():
         return ParetoFront.load(front_file)

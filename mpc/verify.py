@@ -17,7 +17,6 @@ from wl_env.model import outputs
 from wl_env.params import LoaderParams, resolve
 from wl_env.simulator import Simulator
 
-
 # Engine-speed feedback of the re-simulation (mg per rad/s): an ECU's speed governor tracking the plan.
 # The fuel-optimal cycles ride omega_min with the lift loading the engine, an open-loop unstable
 # operating point (lift torque P_lift/omega grows as omega falls), so pure open-loop replay of any plan

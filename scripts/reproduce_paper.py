@@ -45,7 +45,7 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from mpc.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed  # noqa: E402
-from mpc.pareto import ParetoFront, cache_dir, pareto_front, pchip  # noqa: E402
+from mpc.pareto import ParetoFront, cache_dir, front_folder, pareto_front, pchip  # noqa: E402
 from wl_env.cycle import BRAKING_MODES, phase_specs  # noqa: E402
 from wl_env.model import outputs  # noqa: E402
 from wl_env.params import LoaderParams, resolve  # noqa: E402
@@ -125,17 +125,6 @@ def _jsonable(v: Any) -> Any:
 # ====================================================================================================
 # The optima (from the Pareto cache where available)
 # ====================================================================================================
-def front_folder(braking: str, n_points: int, params: LoaderParams, cache: str | os.PathLike | None) -> Path:
-    """The folder where :func:`pareto_front` keeps this front's solved points."""
-    try:
-        from mpc.pareto import _key
-
-        key = _key(braking, params, n_points)
-    except ImportError:  # pragma: no cover - keep working if the private helper is renamed
-        key = f"{braking}_{params.fingerprint()}_n{n_points}"
-    return cache_dir(cache) / "pareto" / key
-
-
 def _load_or_solve(path: Path, solve: Callable[[], OCPResult], what: str) -> OCPResult:
     if path.exists():
         try:

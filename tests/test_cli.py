@@ -20,7 +20,7 @@ import wl_report
 from agents.evaluate import load_controller, summarize
 from agents.operator import OperatorPolicy
 from mpc.ocp import OCPResult
-from mpc.pareto import ParetoFront, _key, cache_dir
+from mpc.pareto import ParetoFront, front_folder
 from wl_env.controller import Controller
 from wl_env.params import resolve
 from wl_env.rollout import run_episode
@@ -41,7 +41,7 @@ def cache(tmp_path: Path) -> Path:
     """A cache folder holding synthetic fronts and minimum-time cycles for both braking alternatives."""
     root = tmp_path / "cache"
     for b in ("service", "tc"):
-        folder = cache_dir(root) / "pareto" / _key(b, resolve(None), 8)
+        folder = front_folder(b, 8, cache=root)
         _front(b).save(folder / "front.json")
         t = np.linspace(0.0, 7.0, 15)
         states = np.column_stack([np.full_like(t, 200.0), np.sin(t), 0.7 + 0.6 * t, np.full_like(t, 0.5)])

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from mpc.mpc import MPCConfig, MPCController, run_closed_loop
+from mpc.ocp import solve_ocp
 from wl_env.params import DEFAULT_PARAMS
 
 
@@ -13,14 +14,14 @@ from wl_env.params import DEFAULT_PARAMS
         ("service", "time"),
         ("service", "target_time"),
         ("tc", "target_time"),
-        pytest.param("tc", "time", marks=pytest.mark.xfail(
-            strict=True, reason="known defect: TC braking at minimum time violates the deceleration limit "
-            "at the step-grid gear change (issue 4 note)")),
+        ("tc", "time"),
     ],
 )
 def test_closed_loop_cycle(braking, mode):
     config = MPCConfig(mode=mode, target_time=11.0 if mode == "target_time" else None)
     r = run_closed_loop(braking, config, score=False)
+    if mode == "time":  # near the OCP minimum (measured +4.1 % service, +3.8 % tc; the env steps 0.1 s)
+        assert r["T"] <= 1.05 * solve_ocp(braking, "time", verify=False).T
     assert r["completed"] and r["success"]
     assert abs(r["reversing_error_m"]) <= 0.05 and abs(r["final_position_error_m"]) <= 0.05
     assert abs(r["final_height_error_m"]) <= 0.02
@@ -60,13 +61,19 @@ def test_fallback_applies_the_shifted_plan_on_a_forced_failure():
     assert info["completed"] and info["is_success"]
 
 
-def test_model_mismatch_case_completes():
-    plant = DEFAULT_PARAMS.variant(payload_scale=1.2, rolling_scale=1.3)
-    r = run_closed_loop("service", MPCConfig(mode="time"), plant_params=plant, score=False)
+@pytest.mark.parametrize("payload, rolling", [(0.8, 1.3), (1.2, 0.7)])
+def test_model_mismatch_case_completes(payload, rolling):
+    plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
+    ctrl = MPCController("service")  # the nominal model
+    r = run_closed_loop("service", MPCConfig(mode="time"), plant_params=plant, score=False, controller=ctrl)
     assert r["completed"] and r["success"]
-    # the nominal model under-predicts the braking of a 30 % rougher ground for the first steps of
-    # each braking phase (the disturbance estimate needs them): measured 1.0 % over the 0.18 g limit
-    assert r["max_violation"] < 0.02
+    # the first braking step starts from a model-error estimate a few percent short of the truth:
+    # measured up to 0.5 % over the 0.18 g limit there, none after
+    assert r["max_violation"] < 0.01
+    # the estimate: gain = model mass / plant mass, offset = the rolling-resistance error (m/s^2)
+    gain, offset = ctrl._theta
+    assert gain == pytest.approx(DEFAULT_PARAMS.M_tot / plant.M_tot, abs=0.01)
+    assert offset == pytest.approx((DEFAULT_PARAMS.F_roll - plant.F_roll) / plant.M_tot, abs=0.03)
 
 
 def test_bad_configuration_raises():
