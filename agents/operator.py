@@ -2,8 +2,11 @@
 
 Full throttle out of the pile, lift while travelling, brake at the stopping distance so the machine
 stops on the mark, and stop the bucket at the target height. With ``braking="tc"`` the driver shifts
-to forward gear instead of using the service brakes while reversing, and meters the deceleration with
-the throttle, as drivers prefer. It reads only the environment's observation.
+to forward gear instead of using the service brakes while reversing, as drivers prefer: they lift off
+the throttle shortly before the braking point (the converter would brake far too hard with the engine
+at full speed), shift, and meter the deceleration with the throttle. The driver's "feel" for the machine
+is the model itself: the deceleration the converter gives at an engine speed. It reads only the
+environment's observation.
 """
 
 from __future__ import annotations
@@ -11,25 +14,34 @@ from __future__ import annotations
 import numpy as np
 
 from wl_env import cycle
+from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 
 
 class OperatorPolicy:
     """Rule-based driver for ``WheelLoader-v0`` (acts on single observations or batches).
 
-    ``decel_margin`` is the fraction of the 0.18 g deceleration limit the driver plans with.
+    ``decel_margin`` is the fraction of the 0.18 g deceleration limit the driver plans with;
+    ``lift_off_time`` (s) is how long before the braking point a TC-braking driver lifts off the throttle.
     """
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 max_time: float = 40.0, decel_margin: float = 0.85, lift_accel: float = 1.5) -> None:
+                 max_time: float = 40.0, decel_margin: float = 0.85, lift_accel: float = 1.5,
+                 lift_off_time: float = 1.2, dt: float = 0.1) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = p = resolve(params)
         if not 0.1 <= decel_margin <= 1.0:
             raise ValueError(f"decel_margin must lie in [0.1, 1], got {decel_margin}")
+        if not 0.0 <= lift_off_time <= 5.0:
+            raise ValueError(f"lift_off_time must lie in [0, 5] s, got {lift_off_time}")
         self.max_time = max_time
-        self.a_plan = decel_margin * p.decel_max * p.g  # m/s^2 the driver brakes with
+        self.dt = dt
+        self.a_limit = p.decel_max * p.g
+        self.a_plan = decel_margin * self.a_limit  # m/s^2 the driver brakes with
         self.lift_accel = lift_accel
+        self.lift_off_time = lift_off_time
         self._ab_lo, self._ab_hi = p.U_ab_bounds
+        self._specs = cycle.phase_specs(braking, p)
 
     def reset(self) -> None:  # stateless; present for the controller protocol
         pass
@@ -39,43 +51,66 @@ class OperatorPolicy:
         if obs.ndim == 2:
             return np.stack([self.act(o) for o in obs])
         p = self.params
-        V = obs[1] * p.V_max
-        H = obs[2] * p.H_T
-        V_b = obs[3]
+        omega, V, H, V_b = obs[0] * p.omega_max, obs[1] * p.V_max, obs[2] * p.H_T, obs[3]
         to_go = obs[5] * p.distance
         phase = int(np.argmax(obs[8:12])) + 1
         speed = abs(V)
         stop_dist = speed * speed / (2.0 * self.a_plan)
 
-        fuel, brake, shift = 1.0, -1.0, -1.0
-        if phase in (1, 3) and stop_dist >= to_go - 0.02 and speed > 0.05:
-            shift = 1.0
-        if phase == 2 or phase == 4:
-            # Deceleration that stops the machine on the mark, capped at the plan.
-            a_req = min(speed * speed / (2.0 * max(to_go, 1e-3)), p.decel_max * p.g * 0.98) if speed > 1e-3 else 0.0
-            if phase == 4 or self.braking == "service":
-                f_brake = p.M_tot * a_req - p.F_roll
-                u_b = min(max(f_brake * p.r_w, 0.0), p.U_b_max)
-                brake = 2.0 * u_b / p.U_b_max - 1.0
-                fuel = 2.0 * 0.45 - 1.0 if phase == 2 else 2.0 * 0.35 - 1.0  # keep the engine up for the lift
-            else:
-                # TC braking: the converter's braking torque grows with engine speed; meter it with fuel.
-                omega = obs[0] * p.omega_max
-                a_now_needed = a_req
-                fuel = float(np.clip(-1.0 + 2.0 * (0.15 + 0.5 * a_now_needed / (p.decel_max * p.g)), -1, 1))
-                if omega < p.omega_min * 1.4:
-                    fuel = 0.0
-        # Bucket: accelerate up, then decelerate to stop at H_T.
-        h_left = p.H_T - H
-        if h_left <= 0.0:
-            u_ab = self._ab_lo
-        elif V_b * V_b / (2.0 * max(h_left, 1e-4)) >= 0.8 * -self._ab_lo:
-            u_ab = -V_b * V_b / (2.0 * max(h_left, 1e-4))
-        else:
-            u_ab = self.lift_accel
-        u_ab = min(max(u_ab, self._ab_lo), self._ab_hi)
-        a_bucket = 2.0 * (u_ab - self._ab_lo) / (self._ab_hi - self._ab_lo) - 1.0
-        return np.array([fuel, a_bucket, brake, shift], dtype=np.float32)
+        fuel, brake, shift = p.U_mf_max, 0.0, False
+        if phase in (1, 3) and speed > 0.05 and stop_dist >= to_go - speed * self.dt:
+            shift = True  # braking from the next step on would stop past the mark: brake now
+        braking_phase = phase + 1 if shift else phase
+        if braking_phase in (2, 4):
+            # The deceleration that stops the machine on the mark, within the limit.
+            a_req = min(speed * speed / (2.0 * max(to_go, 1e-3)), 0.98 * self.a_limit) if speed > 1e-3 else 0.0
+            if self._specs[braking_phase - 1].brake_allowed:
+                brake = min(max((p.M_tot * a_req - p.F_roll) * p.r_w, 0.0), p.U_b_max)
+                fuel = (0.45 if braking_phase == 2 else 0.35) * p.U_mf_max  # keep the engine up for the lift
+            else:  # TC braking: the throttle sets the engine speed, the engine speed the converter's braking
+                fuel = self._tc_throttle(omega, V, H, V_b, a_req, 2)
+        elif phase == 1 and self.braking == "tc" and stop_dist + speed * self.lift_off_time >= to_go:
+            # ease off before the braking point, to the engine speed at which the shift brakes as planned
+            fuel = self._tc_throttle(omega, V, H, V_b, self.a_plan, 1)
+
+        # Bucket: lift at lift_accel up to the speed from which 80 % of the strongest bucket deceleration
+        # stops it at H_T, then follow that stopping curve down (the height left counted from the end of
+        # the coming step, which the command holds for).
+        h_left = max(p.H_T - H - V_b * self.dt, 0.0)
+        v_stop = np.sqrt(2.0 * 0.8 * -self._ab_lo * h_left)
+        u_ab = min(max((v_stop - V_b) / self.dt, self._ab_lo), min(self.lift_accel, self._ab_hi))
+        return np.array([
+            2.0 * fuel / p.U_mf_max - 1.0,
+            2.0 * (u_ab - self._ab_lo) / (self._ab_hi - self._ab_lo) - 1.0,
+            2.0 * brake / p.U_b_max - 1.0,
+            1.0 if shift else -1.0,
+        ], dtype=np.float32)
+
+    def _tc_decel(self, omega: float, V: float, H: float, V_b: float) -> float:
+        """Deceleration (m/s^2) of the reversing machine in forward gear at engine speed omega."""
+        spec = self._specs[1]
+        return float(derivatives(omega, V, H, V_b, 0.0, 0.0, 0.0, spec.gear, spec.direction, self.params)[1])
+
+    def _tc_throttle(self, omega: float, V: float, H: float, V_b: float, a_req: float, phase: int) -> float:
+        """Injection (mg) that moves the engine towards the speed at which the converter, in forward gear,
+        brakes with a_req; the engine's load is that of ``phase`` (the gear it is in now)."""
+        p = self.params
+        lo, hi = p.omega_min * 1.3, p.omega_max  # keep well clear of a stall
+        if self._tc_decel(lo, V, H, V_b) >= a_req:
+            target = lo
+        elif self._tc_decel(hi, V, H, V_b) <= a_req:
+            target = hi
+        else:  # the converter brakes harder the faster the engine turns: bisect
+            for _ in range(20):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if self._tc_decel(mid, V, H, V_b) < a_req else (lo, mid)
+            target = 0.5 * (lo + hi)
+        spec = self._specs[phase - 1]
+        # with no injection the engine decelerates by d_omega0 (friction, converter, lift); add the torque
+        # that moves it to the target in ~0.2 s
+        d_omega0 = derivatives(omega, V, H, V_b, 0.0, 0.0, 0.0, spec.gear, spec.direction, p)[0]
+        torque = p.J_ice * ((target - omega) / 0.2 - d_omega0)
+        return min(max(torque / p.T_ig_per_mg, 0.0), p.U_mf_max)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         return self.act(obs)

@@ -3,10 +3,11 @@
 The sweep runs from the minimum-time cycle to the fuel-optimal one. Every point is warm-started from
 its neighbour (continuation) on one mesh fine enough for the longest cycle; near the minimum time,
 where the problem has several local optima (other splits of the time between the four phases), template
-starts are tried beside it and the best is kept. Each point is re-simulated and written to the cache as
-soon as it is solved, so an interrupted sweep resumes where it stopped. The cache key is the braking
-alternative, the parameter fingerprint and the number of points. :func:`pareto_fronts` sweeps both
-braking alternatives in parallel processes.
+starts are tried beside it. A second pass continues back from the fuel-optimal end (a forward chain
+that took a worse basin carries it along). The best verified solution of each point is kept. Each
+solve is re-simulated and written to the cache as soon as it is done, so an interrupted sweep resumes
+where it stopped. The cache key is the braking alternative, the parameter fingerprint and the number of
+points. :func:`pareto_fronts` sweeps both braking alternatives in parallel processes.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
 
 
 def _key(braking: str, p: LoaderParams, n_points: int) -> str:
-    return f"{braking}_{p.fingerprint()}_n{n_points}_v3"
+    return f"{braking}_{p.fingerprint()}_n{n_points}_v4"
 
 
 def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
@@ -190,6 +191,16 @@ def pareto_front(
         points.append(r)
         previous = r
     points.append(r_fuel)
+    # Continuation back from the fuel-optimal end: a forward chain that took a worse basin near T_min
+    # carries it along; the neighbour on the long side may lead into a better one.
+    for i in range(len(points) - 2, 0, -1):
+        T = float(times[i])
+        say(f"[{braking}] point {i + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
+        alt = cached_solve(f"T_{T:.4f}_back", objective="fuel_at_time", T=T, settings=settings,
+                           warm_start=points[i + 1], starts=())
+        if alt.verification.get("passed") and alt.fuel_g < points[i].fuel_g - 1e-6:
+            alt.starts = points[i].starts + alt.starts
+            points[i] = alt
     fuel = [r.fuel_g for r in points]
     front = ParetoFront(
         braking=braking, T=[float(r.T) for r in points], fuel_g=fuel, params_fingerprint=p.fingerprint(),

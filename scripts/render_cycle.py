@@ -4,7 +4,7 @@
     python scripts/render_cycle.py --braking service --out cycle.gif
     python scripts/render_cycle.py --braking tc --out cycle_tc.mp4 --fps 20   # needs imageio-ffmpeg
 
-Runs the rule-based operator (agents.operator.OperatorPolicy) in an env with ``render_mode="rgb_array"``,
+Runs a controller (default: the rule-based operator; any ``wl evaluate --controller``) in an env with ``render_mode="rgb_array"``,
 one frame at the reset and one per control step (dt = 0.1 s, so the default 10 fps plays in real time),
 and writes the animation atomically (a temporary file in the same directory, then ``os.replace``).
 """
@@ -22,16 +22,6 @@ from wl_env import cycle  # noqa: E402
 from wl_env.env import WheelLoaderEnv  # noqa: E402
 from wl_env.rendering import mp4_available, save_animation  # noqa: E402
 
-CONTROLLERS = ("operator",)
-
-
-def make_controller(name: str, braking: str):
-    if name == "operator":
-        from agents.operator import OperatorPolicy
-
-        return OperatorPolicy(braking)
-    raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLERS}")
-
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -41,7 +31,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--out", default=None, help="output file, .gif or .mp4 (default: cycle_<braking>.gif)")
     ap.add_argument("--fps", type=float, default=float(WheelLoaderEnv.metadata["render_fps"]),
                     help="frames per second of the animation (10 = real time at dt = 0.1 s)")
-    ap.add_argument("--controller", choices=CONTROLLERS, default="operator", help="who drives")
+    ap.add_argument("--controller", default="operator",
+                    help="who drives: ppo, operator, mpc, module:Class or path/to/file.py:Class (as wl evaluate)")
+    ap.add_argument("--model", default=None, help="policy file for --controller ppo (default: the shipped one)")
     ap.add_argument("--seed", type=int, default=0, help="reset seed")
     ap.add_argument("--max-steps", type=int, default=None,
                     help="stop after this many steps (frames = steps + 1); default: the whole cycle")
@@ -62,11 +54,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> dict:
+    from agents.evaluate import load_controller
+
+    policy = load_controller(args.controller, args.braking, args.model)
     env = WheelLoaderEnv(braking=args.braking, render_mode="rgb_array")
-    policy = make_controller(args.controller, args.braking)
     t0 = time.perf_counter()
     obs, info = env.reset(seed=args.seed)
-    policy.reset()
+    if hasattr(policy, "reset"):
+        policy.reset()
     frames = [env.render()]
     steps, info, done = 0, {}, False
     while not done and (args.max_steps is None or steps < args.max_steps):

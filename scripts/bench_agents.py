@@ -1,0 +1,68 @@
+"""The shipped PPO policies and the rule-based operator, scored against the optimum, both alternatives.
+
+Each controller runs ``--episodes`` episodes through :func:`agents.evaluate.evaluate_controller` (the
+evaluation of ``wl evaluate``): episode 0 from the nominal start, the others from starts perturbed with
+``--init-noise``. The table gives the success rate over all episodes, the nominal episode's cycle time,
+fuel and gaps (time gap to the minimum cycle time, fuel gap to the Pareto fuel at the same cycle time),
+the mean gaps over the successful episodes, and for PPO the training wall time and steps recorded with
+the shipped policy (``agents/policies/ppo_<braking>.json``). Usage::
+
+    python scripts/bench_agents.py [--episodes 100] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.evaluate import default_policy_path, evaluate_controller, load_controller  # noqa: E402
+from mpc.ocp import write_json_atomic  # noqa: E402
+from mpc.pareto import pareto_fronts  # noqa: E402
+
+
+def pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:+.1f} %"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--init-noise", type=float, default=1.0)
+    ap.add_argument("--seed", type=int, default=10_000)
+    ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
+    args = ap.parse_args()
+    fronts = pareto_fronts(progress=True)
+    rows: list[dict[str, Any]] = []
+    for braking in ("service", "tc"):
+        for name in ("ppo", "operator"):
+            print(f"[{braking}] {name}: {args.episodes} episodes", file=sys.stderr, flush=True)
+            result = evaluate_controller(load_controller(name, braking), braking, episodes=args.episodes,
+                                         init_noise=args.init_noise, seed=args.seed, front=fronts[braking])
+            row = {"controller": name, "braking": braking, **result["summary"]}
+            if name == "ppo":
+                meta = json.loads(default_policy_path(braking).with_suffix(".json").read_text())
+                row.update(training_wall_time_s=meta["training_wall_time_s"], num_timesteps=meta["num_timesteps"])
+            rows.append(row)
+
+    print("| controller | braking | success rate | nominal T (s) | nominal fuel (g) | nominal time gap | "
+          "nominal fuel gap | mean time gap | mean fuel gap | max violation | training |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    for r in rows:
+        nom = r["nominal"]
+        train = (f"{r['training_wall_time_s'] / 60:.1f} min, {r['num_timesteps'] / 1e6:.1f} M steps"
+                 if "training_wall_time_s" in r else "-")
+        print(f"| {r['controller']} | {r['braking']} | {100 * r['success_rate']:.0f} % | {nom['T']:.2f} | "
+              f"{nom['fuel_g']:.2f} | {pct(nom['time_gap'])} | {pct(nom['fuel_gap'])} | {pct(r['time_gap']['mean'])} | "
+              f"{pct(r['fuel_gap']['mean'])} | {100 * r['max_violation']:.1f} % | {train} |")
+    if args.json:
+        write_json_atomic(args.json, {"rows": rows, "episodes": args.episodes, "init_noise": args.init_noise,
+                                      "seed": args.seed})
+
+
+if __name__ == "__main__":
+    main()
