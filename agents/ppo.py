@@ -30,7 +30,6 @@ import os
 import pickle
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -44,6 +43,8 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 import wl_env  # noqa: F401  (registers WheelLoader-v0)
 from agents.ppo_config import PPOConfig
 from agents.sb3_vec import make_sb3_vec_env
+from wl_env import atomic_io
+from wl_env.atomic_io import write_atomic
 
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
@@ -54,51 +55,9 @@ EVAL_FIELDS = (
 
 
 # ---------------------------------------------------------------------------------------------- files
-def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
-    """Write a file so that readers see the old or the new content, never a part (tmp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file, not mkstemp's 0600
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
     """JSON (NaN written as null, so that strict parsers read it too), atomically."""
-    return write_atomic(path, json.dumps(_finite(obj), indent=2, default=_json_default, allow_nan=False) + "\n")
-
-
-def _finite(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        o = o.item()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    return o
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    if isinstance(o, (tuple, set)):
-        return list(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+    return atomic_io.write_json_atomic(path, obj, indent=2, nan_as_null=True)
 
 
 def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any]) -> Path:

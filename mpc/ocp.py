@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -26,6 +25,7 @@ import casadi as ca
 import numpy as np
 
 from wl_env import cycle
+from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
@@ -154,21 +154,6 @@ class OCPResult:
     @property
     def mesh_times(self) -> np.ndarray:
         return np.asarray(self.t)
-
-
-def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1, allow_nan=True)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -28,7 +28,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
@@ -46,6 +45,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 
 from mpc.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed  # noqa: E402
 from mpc.pareto import ParetoFront, cache_dir, front_folder, pareto_front, pchip  # noqa: E402
+from wl_env.atomic_io import atomic_path  # noqa: E402
 from wl_env.cycle import BRAKING_MODES, phase_specs  # noqa: E402
 from wl_env.model import outputs  # noqa: E402
 from wl_env.params import LoaderParams, resolve  # noqa: E402
@@ -80,19 +80,9 @@ def say(msg: str) -> None:
 # Atomic output
 # ====================================================================================================
 def _atomic_write(path: str | os.PathLike, write: Callable[[Any], None], binary: bool) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb" if binary else "w") as fh:
-            write(fh)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    with atomic_path(path) as tmp, open(tmp, "wb" if binary else "w") as fh:
+        write(fh)
+    return Path(path)
 
 
 def save_figure(fig: Figure, path: str | os.PathLike) -> Path:

@@ -61,7 +61,7 @@ def test_vector_env_equals_single_envs(braking):
     rng = np.random.default_rng(2)
     done = np.zeros(n, dtype=bool)
     ends = 0
-    for k in range(250):
+    for _ in range(250):
         a = pilot.act(ov) + rng.normal(0, 0.2, (n, 4)).astype(np.float32)
         a = np.clip(a, -1, 1)
         ov, rv, tv, trv, iv = venv.step(a)

@@ -6,7 +6,8 @@ import pytest
 
 from wl_env import model
 from wl_env.params import DEFAULT_PARAMS as P
-from wl_env.physics import engine, lift, torque_converter as tc
+from wl_env.physics import engine, lift
+from wl_env.physics import torque_converter as tc
 from wl_env.simulator import Simulator
 
 RPM = np.pi / 30.0

@@ -100,9 +100,9 @@ def test_batch_equals_single_loaders():
     ys = [(float(rng.uniform(120, 220)), float(-rng.uniform(0.0, 2.5)), float(rng.uniform(0.7, 4.5)), 0.3, -3.0, 0.0) for _ in range(n)]
     phases = [int(rng.integers(1, 3)) for _ in range(n)]
     cmd = [(float(rng.uniform(0, 260)), float(rng.uniform(-2.5, 2.5)), float(rng.uniform(0, 57800))) for _ in range(n)]
-    yb = tuple(np.array(col) for col in zip(*ys))
+    yb = tuple(np.array(col) for col in zip(*ys, strict=True))
     pb = np.array(phases)
-    cb = tuple(np.array(col) for col in zip(*cmd))
+    cb = tuple(np.array(col) for col in zip(*cmd, strict=True))
     for _ in range(40):
         ub = sim.effective_controls(yb, pb, *cb, 0.1)
         yb, pb, _, _ = sim.substep(yb, pb, ub[:3], 0.1)

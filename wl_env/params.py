@@ -228,7 +228,7 @@ class LoaderParams:
             )
 
     # ---- variants and serialization ----
-    def replace(self, **changes: Any) -> "LoaderParams":
+    def replace(self, **changes: Any) -> LoaderParams:
         """A copy with some fields changed (validated). Unknown names raise ``ValueError``."""
         known = {f.name for f in dataclasses.fields(self) if f.init}
         unknown = set(changes) - known
@@ -236,7 +236,7 @@ class LoaderParams:
             raise ValueError(f"unknown LoaderParams field(s): {sorted(unknown)}; known: {sorted(known)}")
         return dataclasses.replace(self, **changes)
 
-    def variant(self, *, payload_scale: float = 1.0, rolling_scale: float = 1.0, **changes: Any) -> "LoaderParams":
+    def variant(self, *, payload_scale: float = 1.0, rolling_scale: float = 1.0, **changes: Any) -> LoaderParams:
         """A variant for robustness studies: scale the payload M_load and the rolling coefficient c_r."""
         if not (math.isfinite(payload_scale) and payload_scale >= 0):
             raise ValueError(f"payload_scale must be a finite number >= 0, got {payload_scale!r}")
@@ -250,7 +250,7 @@ class LoaderParams:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "LoaderParams":
+    def from_dict(cls, data: dict[str, Any]) -> LoaderParams:
         if not isinstance(data, dict):
             raise ValueError(f"parameter overrides must be a mapping of field -> value, got {type(data).__name__}")
         return cls().replace(**data)
@@ -275,7 +275,7 @@ def _check_finite(name: str, value: Any) -> None:
 DEFAULT_PARAMS = LoaderParams()
 
 
-def resolve(params: "LoaderParams | dict | None") -> LoaderParams:
+def resolve(params: LoaderParams | dict | None) -> LoaderParams:
     """``None`` -> the defaults, a dict -> the defaults with those overrides, a LoaderParams -> itself."""
     if params is None:
         return DEFAULT_PARAMS

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 import time
 import warnings
 import weakref
@@ -27,6 +26,8 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
+
+from wl_env.atomic_io import atomic_path
 
 WIDTH, HEIGHT = 600, 400  # pixels of a frame
 _DPI = 100
@@ -426,18 +427,6 @@ def show(frame: np.ndarray, handle: tuple[Any, Any] | None = None, *, fps: float
 
 
 # --------------------------------------------------------------------------- animations
-def _atomic_target(path: str, suffix: str) -> str:
-    """A new temporary file beside ``path`` (same file system, so os.replace is atomic), mode as by open()."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp" + suffix)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600
-    return tmp
-
-
 def save_gif(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps: float = 10.0) -> int:
     """Write frames as an animated GIF (Pillow), atomically; returns the number of frames written."""
     from PIL import Image
@@ -456,15 +445,9 @@ def save_gif(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps
         montage.paste(images[i].convert("RGB"), (0, k * h))
     palette = montage.quantize(colors=256, method=Image.Quantize.MEDIANCUT)
     indexed = [im.quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
-    tmp = _atomic_target(path, ".gif")
-    try:
+    with atomic_path(path, ".gif") as tmp:
         indexed[0].save(tmp, format="GIF", save_all=True, append_images=indexed[1:], duration=round(1000.0 / fps),
                         loop=0, optimize=False, disposal=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return len(indexed)
 
 
@@ -487,19 +470,13 @@ def save_mp4(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps
     if not frames:
         raise ValueError("no frames to write")
     h, w = frames[0].shape[:2]
-    tmp = _atomic_target(path, ".mp4")
-    try:
-        writer = imageio_ffmpeg.write_frames(tmp, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+    with atomic_path(path, ".mp4") as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
                                              macro_block_size=2)
         writer.send(None)
         for f in frames:
             writer.send(f)
         writer.close()
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return len(frames)
 
 

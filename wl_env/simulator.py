@@ -170,7 +170,7 @@ class Simulator:
             sub_u = tuple(a[idx] if isinstance(a, np.ndarray) else a for a in u)
             ys, ph, sr = self._cut_at_stop(sub, tuple(a[idx] for a in y1), phase[idx], sub_u, h)
             y1 = tuple(a.copy() for a in y1)
-            for a, b in zip(y1, ys):
+            for a, b in zip(y1, ys, strict=True):
                 a[idx] = b
             phase = phase.copy()
             phase[idx] = ph

@@ -1,0 +1,80 @@
+"""Atomic file output: readers see a file's old content or its new one, never a part of it.
+
+Results, caches, checkpoints, figures and animations are all written through :func:`atomic_path`: a
+temporary file beside the target (same file system, so the rename is atomic), flushed to disk, renamed
+over the target when the writing succeeded and removed when it failed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on leaving the block it replaces ``path`` (or is removed if
+    the block raised). ``suffix`` keeps a file type for writers that go by the extension (".gif")."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file, not mkstemp's 0600
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write ``data`` (text as UTF-8) to ``path`` atomically; returns the path."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+    return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 1, nan_as_null: bool = False) -> Path:
+    """``obj`` as JSON, atomically. numpy scalars and arrays, tuples and paths are converted; non-finite
+    floats are written as NaN/Infinity (Python's json reads them back) or, with ``nan_as_null``, as null
+    (strict JSON)."""
+    text = json.dumps(_finite(obj) if nan_as_null else obj, indent=indent, default=_json_default,
+                      allow_nan=not nan_as_null)
+    return write_atomic(path, text + "\n")
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serializable")
