@@ -10,10 +10,7 @@ import argparse
 import json
 import shlex
 import sys
-from collections.abc import Callable
 from pathlib import Path
-
-SUBCOMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
 
 class UsageError(Exception):

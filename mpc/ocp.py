@@ -39,9 +39,7 @@ FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
 TARGET_WEIGHT = 1.0e4  # MPC: objective units per unit of relative target miss (15 per cm at 6.6 m)
 DECEL_EXCESS_WEIGHT = 1.0e6  # MPC: per unit of excess over the deceleration limit at the start (1 % ~ 7 cm of miss)
-
-
-N_PARAMETERS = 11
+N_PARAMETERS = 11  # length of the NLP parameter vector, see nlp_parameters()
 
 
 def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0, deadline_weight: float = 0.0,
@@ -96,9 +94,6 @@ class OCPSettings:
             raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {self.linear_solver!r}")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
-
-    def refined(self, factor: int = 2) -> OCPSettings:
-        return replace(self, intervals=tuple(int(n) * factor for n in self.intervals))
 
 
 @dataclass

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from mpc.ocp import (
+    OCPError,
     OCPResult,
     OCPSettings,
     solve_ocp,
@@ -185,9 +187,12 @@ def pareto_front(
         say(f"[{braking}] point {i + 1}/{n_points}: minimum fuel at T = {T:.3f} s")
         # Continuation from the neighbour; near T_min also fresh template starts, which can end in
         # other local optima (other splits of the time between the phases). The best one is kept.
-        near = T < MULTI_START_BELOW * r_time.T
-        r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings,
-                         warm_start=previous, starts=tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS) if near else ())
+        templates = tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS)
+        try:
+            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings,
+                             warm_start=previous, starts=templates if T < MULTI_START_BELOW * r_time.T else ())
+        except OCPError:  # continuation lost the way: start afresh from the templates
+            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings, starts=templates)
         points.append(r)
         previous = r
     points.append(r_fuel)
@@ -196,8 +201,11 @@ def pareto_front(
     for i in range(len(points) - 2, 0, -1):
         T = float(times[i])
         say(f"[{braking}] point {i + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
-        alt = cached_solve(f"T_{T:.4f}_back", objective="fuel_at_time", T=T, settings=settings,
-                           warm_start=points[i + 1], starts=())
+        try:
+            alt = cached_solve(f"T_{T:.4f}_back", objective="fuel_at_time", T=T, settings=settings,
+                               warm_start=points[i + 1], starts=())
+        except OCPError:  # the forward point stands
+            continue
         if alt.verification.get("passed") and alt.fuel_g < points[i].fuel_g - 1e-6:
             alt.starts = points[i].starts + alt.starts
             points[i] = alt
@@ -217,8 +225,6 @@ def pareto_front(
 
 
 def _stderr(msg: str) -> None:
-    import sys
-
     print(msg, file=sys.stderr, flush=True)
 
 
@@ -232,7 +238,11 @@ def pareto_fronts(
     workers: int | None = None,
 ) -> dict[str, ParetoFront]:
     """The fronts of several braking alternatives, swept in parallel processes (one per alternative,
-    at most ``workers``, default the CPU count). ``progress`` prints each step to stderr."""
+    at most ``workers``, default the CPU count). ``progress`` prints each step to stderr.
+
+    The processes are spawned, so they import the caller's main module: a script that calls this needs
+    the usual ``if __name__ == "__main__":`` guard (``wl`` and pytest have it).
+    """
     for b in brakings:
         cycle.check_braking(b)
     p = resolve(params)
