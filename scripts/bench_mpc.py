@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mpc.mpc import MPCConfig, run_closed_loop  # noqa: E402
 from mpc.ocp import write_json_atomic  # noqa: E402
 from mpc.pareto import pareto_fronts  # noqa: E402
+from mpc.scoring import score_run  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 
 MISMATCH = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload scale, rolling-resistance scale)
@@ -45,11 +46,9 @@ def closed_loop(braking: str, config: MPCConfig, front: Any, plant: Any = None) 
            "max_violation": r["max_violation"], "reversing_error_m": r["reversing_error_m"],
            "final_position_error_m": r["final_position_error_m"], "final_height_error_m": r["final_height_error_m"],
            "solve_time": r["solve_time"], "solve_times_s": r["solve_times_s"], "wall_s": wall}
-    if r["completed"] and plant is None:
-        row["time_gap"] = r["T"] / front.T_min - 1.0
-        if front.T[0] <= r["T"] < front.T_fuel_opt:
-            row["fuel_opt_g"] = front.fuel_at(r["T"])
-            row["fuel_gap"] = r["fuel_g"] / row["fuel_opt_g"] - 1.0
+    if r["completed"] and plant is None:  # the gaps every controller gets (mpc.scoring)
+        s = score_run(r["T"], r["fuel_g"], braking, front=front)
+        row.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap, fuel_opt_g=s.fuel_opt_g)
     return row
 
 
