@@ -20,12 +20,19 @@ import numpy as np
 
 from mpc.ocp import FUEL_REF_G, TIME_REF, CycleOCP, OCPSettings, nlp_parameters, solve_ocp
 from wl_env import cycle
+from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
+from wl_env.physics import engine, lift
 
 MODES = ("time", "target_time", "weighted")
 # In phase 4 the terminal law (see _terminal) takes over from the NLP once braking at this fraction of
 # the deceleration limit stops the machine within one control step (then < 1 cm from where it stands).
 TERMINAL_DECEL_FRACTION = 0.9
+# m/s: a machine this slow in phase 2 is at its reversing point (it stops within the step, < 0.3 mm on);
+# a plan for the rest of phase 2 would be a plan of nothing, which the NLP may call infeasible.
+REVERSING_SPEED = 0.01
+# Steps ahead of the planned end of phase 1 or 3 from which the MPC puts the gear change on the step grid.
+SHIFT_GRID_STEPS = 15
 # Model-error estimate [gain, offset m/s^2] (see MPCController._estimate_model_error): prior, its spread
 # (a payload or mass error of ~20 %, a rolling-resistance error of ~0.3 m/s^2), bounds, forgetting.
 THETA_PRIOR = np.array([1.0, 0.0])
@@ -33,6 +40,11 @@ THETA_PRIOR_STD = np.array([0.2, 0.3])
 THETA_MIN, THETA_MAX = np.array([0.5, -1.0]), np.array([1.5, 1.0])
 RLS_FORGETTING = 0.98
 ACCEL_NOISE_STD = 0.01  # m/s^2: how well one step of the model predicts the measured acceleration
+# Lift-load gain (plant payload / model payload, as the lift's power drawn from the engine shows it):
+# prior, spread, bounds, and how well one step of the model predicts the engine's acceleration.
+LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD = 1.0, 0.2
+LIFT_GAIN_MIN, LIFT_GAIN_MAX = 0.5, 1.5
+ENGINE_ACCEL_NOISE_STD = 1.0  # rad/s^2
 
 
 @dataclass(frozen=True)
@@ -47,9 +59,12 @@ class MPCConfig:
     max_iter: int = 60  # per solve after the first: the deterministic budget
     time_budget: float | None = None  # s of wall time per solve (real-time use; makes runs timing-dependent)
     deadline_weight: float = 10.0  # objective units per second beyond the target time
-    # The plan keeps 2 % off the deceleration limit: over one 0.1 s step the coarse collocation predicts the
-    # converter's drag in TC braking up to 2 % low (measured: 2.2 % excess at 10 s with 0.5 %, none with 2 %).
+    # The plan keeps 2 % off the deceleration limit. Measured with 1 %: no faster in min-time mode, fuel
+    # gaps +3.6 / +3.7 % (service, 9 / 10 s targets), and a heavy plant's reversing point missed by 10 cm.
     tighten: float = 0.02
+    # The least margin: a plan may cut into the margin down to it, at a price (see ocp.DECEL_MARGIN_WEIGHT),
+    # where the measured state leaves no plan within the full margin (a gear change a hair late, say).
+    min_tighten: float = 0.005
     omega_margin: float = 5.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
     max_time: float = 40.0  # the env's max_time (to read the elapsed time from the observation)
 
@@ -70,11 +85,11 @@ _SOLVERS: dict[tuple, CycleOCP] = {}
 
 def _mpc_ocp(braking: str, params: LoaderParams, config: MPCConfig, first_phase: int) -> CycleOCP:
     key = (braking, params.fingerprint(), config.intervals, config.degree, config.max_iter, config.tighten,
-           config.omega_margin, first_phase)
+           config.min_tighten, config.omega_margin, first_phase)
     if key not in _SOLVERS:
         settings = OCPSettings(intervals=config.intervals, degree=config.degree, smoothing=(0.0,),
                                max_iter=config.max_iter, tol=1e-6, tighten=config.tighten,
-                               omega_margin=config.omega_margin)
+                               min_tighten=min(config.min_tighten, config.tighten), omega_margin=config.omega_margin)
         _SOLVERS[key] = CycleOCP(braking, params, settings, first_phase=first_phase, parametric_start=True)
     return _SOLVERS[key]
 
@@ -91,7 +106,7 @@ class MPCController:
         self.solve_times: list[float] = []
         self.fallbacks = 0
         self.last_info: dict[str, Any] = {}
-        self._force_failure = False  # test hook: the next solve counts as failed
+        self._force_failure = False  # test hook: the solves of the next step count as failed
         self._reference = None
         self._sim = None
         self.reset()
@@ -100,9 +115,11 @@ class MPCController:
     def reset(self) -> None:
         self._plan: dict[str, Any] | None = None  # last good plan, with the time it was made
         self._last: tuple | None = None  # (state, phase, control) of the previous step
+        self._shift_at: tuple[int, float] | None = None  # (phase, time) the controller committed to end it
         # estimate of the plant's dV/dt = gain * model + d * offset: [gain, offset (m/s^2)], and its covariance
         self._theta = THETA_PRIOR.copy()
         self._theta_cov = np.diag(THETA_PRIOR_STD**2)
+        self._lift_gain, self._lift_gain_var = LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD**2
         self._warm: dict[int, tuple] = {}  # per first phase: (z, lam_x, lam_g)
         self.solve_times = []
         self.fallbacks = 0
@@ -114,6 +131,7 @@ class MPCController:
         u, shift, info = self.control(x, t, phase)
         self._last = (x, phase + 1 if shift else phase, u)
         info["accel_gain"], info["accel_offset"] = float(self._theta[0]), float(self._theta[1])
+        info["lift_gain"] = float(self._lift_gain)
         p = self.params
         lo, hi = p.U_ab_bounds
         action = np.array([
@@ -136,34 +154,36 @@ class MPCController:
     # ------------------------------------------------------------------ one step
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
-        if phase == 2 and abs(x[1]) < 1e-9:
-            phase = 3  # the env switches at the reversing point by itself
+        if phase == 2 and abs(x[1]) < REVERSING_SPEED:
+            phase = 3  # at the reversing point (the env switches there by itself): plan the way forward
+        if phase == 2 and self._last is not None and -x[1] < TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt:
+            # The machine reaches the reversing point within this step, and the plan's first interval
+            # (a whole step in phase 2) would run past it: hold the braking of the previous step.
+            return self._stopping(x), False, {"solve_time": 0.0, "status": "stopping", "fallback": False,
+                                              "over_budget": False, "planned_T_remaining": math.nan}
         if phase == 4 and x[1] < TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt:
             return self._terminal(x), False, {"solve_time": 0.0, "status": "terminal", "fallback": False,
                                                "over_budget": False, "planned_T_remaining": 0.0}
-        # The env shifts only at the start of a step, so near the planned end of phase 1 or 3 the
-        # controller compares the two plans it can carry out (stay one more step, or shift now) and
-        # takes the cheaper one: the gear change is a discrete decision on the step grid.
-        rest = self._plan["sol"]["durations"][0] - (t - self._plan["t_made"]) if self._plan else math.inf
-        # options: (first phase of the plan, bounds on the rest of the current phase after this step)
-        options: list[tuple[int, tuple[float, float] | None]] = [(phase, None)]
-        if phase in (1, 3) and self._plan is not None and self._plan["phases"][0] == phase and rest < 1.5 * self.dt:
-            # shift now / shift at the next step / not before the step after: the switch on the grid
-            options = [(phase + 1, None), (phase, (0.0, 0.0)), (phase, (self.dt, math.inf))]
         best, solve_time, statuses = None, 0.0, []
-        for first, rest_bounds in options:
-            cand = self._replan(x, t, first, rest_bounds)
-            solve_time += cand["solve_time"]
-            statuses.append(cand["status"])
-            if cand["ok"] and (best is None or cand["f"] < best["f"]):
-                best = cand
-        self.solve_times.append(solve_time)  # per control step: the solves it took (1, or 3 at a gear change)
+        for tier in self._shift_options(t, phase):  # the next tier only if no plan of this one succeeds
+            for first, rest_bounds in tier:
+                cand = self._replan(x, t, first, rest_bounds)
+                solve_time += cand["solve_time"]
+                statuses.append(cand["status"])
+                if cand["ok"] and (best is None or cand["f"] < best["f"]):
+                    best = cand
+            if best is not None:
+                break
+        self._force_failure = False  # (the test hook fails every solve of one step)
+        self.solve_times.append(solve_time)  # per control step: the solves it took (1, or 2 at a gear-change decision)
         over_budget = self.config.time_budget is not None and self._plan is not None and solve_time > self.config.time_budget
         ok = best is not None and not over_budget
         if ok:
             self._plan = best["plan"]
             self._warm[best["plan"]["phases"][0]] = best["warm"]
             shift = best["plan"]["phases"][0] != phase
+            fixed = best["rest_bounds"] is not None and best["rest_bounds"][0] == best["rest_bounds"][1]
+            self._shift_at = (phase, t + self.dt + best["rest_bounds"][0]) if fixed and not shift else None
             u, _ = self._from_plan(t, best["plan"]["phases"][0])
         else:
             self.fallbacks += 1
@@ -173,6 +193,34 @@ class MPCController:
                 "planned_T_remaining": float(self._plan["sol"]["t"][-1] - (t - self._plan["t_made"])) if self._plan else math.nan}
         return u, shift, info
 
+    def _shift_options(self, t: float, phase: int) -> list[list[tuple[int, tuple[float, float] | None]]]:
+        """The plans to solve this step, in tiers: (first phase, bounds on the rest of the current phase
+        after this step); a tier is tried only if no plan of the tiers before succeeded.
+
+        The env shifts only at the start of a step, so once the planned end of phase 1 or 3 is less than
+        SHIFT_GRID_STEPS steps ahead, the controller puts it on the step grid: it plans with the phase
+        ending at the grid point before and at the one after the planned end, and commits to the cheaper.
+        A committed end is kept (one solve per step), and moved a step later only if it has become
+        infeasible. Deciding early leaves the plan time to prepare the shift: with TC braking the engine
+        must slow down before the converter takes the drag, at the fuel cut's pace (~1 s from full speed).
+        """
+        dt = self.dt
+        plan = self._plan
+        if phase not in (1, 3) or plan is None or plan["phases"][0] != phase:
+            return [[(phase, None)]]
+        if self._shift_at is not None and self._shift_at[0] == phase:
+            k = round((self._shift_at[1] - t) / dt) - 1  # the phase ends k steps after this one
+            if k < 0:
+                return [[(phase + 1, None)], [(phase, (0.0, 0.0))]]
+            return [[(phase, (k * dt, k * dt))], [(phase, ((k + 1) * dt, (k + 1) * dt))], [(phase, None)]]
+        rest = plan["sol"]["durations"][0] - (t - plan["t_made"])  # planned time in phase after this step
+        if rest >= SHIFT_GRID_STEPS * dt:
+            return [[(phase, None)]]
+        k = math.floor(rest / dt + 1e-6)
+        if k < 0:  # planned to end before this step is over: shift now, or at the next step
+            return [[(phase + 1, None), (phase, (0.0, 0.0))]]
+        return [[(phase, (k * dt, k * dt)), (phase, ((k + 1) * dt, (k + 1) * dt))], [(phase, None)]]
+
     def _replan(self, x: np.ndarray, t: float, phase: int, rest_bounds: tuple[float, float] | None = None) -> dict[str, Any]:
         """Solve from state x at time t for the phases from ``phase`` on (no side effects but timing).
 
@@ -181,10 +229,9 @@ class MPCController:
         x = self.project_state(x, phase)
         ocp = _mpc_ocp(self.braking, self.params, self.config, phase)
         t0 = time.perf_counter()
-        out: dict[str, Any] = {"ok": False, "status": "not solved", "f": math.inf}
+        out: dict[str, Any] = {"ok": False, "status": "not solved", "f": math.inf, "rest_bounds": rest_bounds}
         try:
             if self._force_failure:
-                self._force_failure = False
                 raise RuntimeError("forced failure (test hook)")
             z, lam_x, lam_g, status, ok, f = self._solve(ocp, x, t, phase, rest_bounds)
             out.update(status=status, ok=ok, f=f)
@@ -213,7 +260,8 @@ class MPCController:
             # to the millisecond leaves a few mm/s for one more step
             ubg[ocp._g_deadline_index] = max(cfg.target_time - t - 0.5 * self.dt, 0.0)
         par = nlp_parameters(w_f, w_t, 0.0, cfg.deadline_weight * (1.0 if cfg.mode == "target_time" else 0.0), x,
-                             accel_offset=float(self._theta[1]), accel_gain=float(self._theta[0]))
+                             accel_offset=float(self._theta[1]), accel_gain=float(self._theta[0]),
+                             lift_gain=float(self._lift_gain))
         warm = self._warm.get(phase)
         if warm is not None:
             z0, lam_x, lam_g = warm
@@ -314,41 +362,78 @@ class MPCController:
         return np.asarray(sol["controls"][i], dtype=float), bool(shift)
 
     def _estimate_model_error(self, x: np.ndarray, phase: int) -> None:
-        """Adaptive MPC: fit the plant's dV/dt = gain * (model's dV/dt) + d * offset by recursive least
-        squares over the steps so far.
+        """Adaptive MPC: fit the plant's deviation from the model by recursive least squares over the
+        steps so far, from the one-step prediction error of the previous step.
 
-        A payload error scales the acceleration of every force (gain = model mass / plant mass); a
-        rolling-resistance error is an acceleration against the travel direction (offset). Phase 1 varies
-        the model's acceleration enough to tell them apart, so the braking phases start with the plant's
-        deceleration per unit of brake or converter torque, not the nominal one. Steps that stop, reverse
-        or change phase say nothing about it and are skipped.
+        * dV/dt = gain * (model's dV/dt) + d * offset: a payload error scales the acceleration of every
+          force (gain = model mass / plant mass); a rolling-resistance error is an acceleration against
+          the travel direction (offset). Phase 1 varies the model's acceleration enough to tell them
+          apart, so the braking phases start with the plant's deceleration per unit of brake or converter
+          torque, not the nominal one. Steps that stop, reverse or change phase say nothing about it.
+        * The lift's power drawn from the engine is proportional to the payload (eq. (10)), so a payload
+          error also shows in the engine's acceleration: d omega/dt = model - (lift_gain - 1) P_lift /
+          (omega J_ice). With TC braking the engine speed at the shift sets the converter's drag, so a
+          plan must predict it to the rad/s.
         """
         if self._last is None:
             return
         x0, ph0, u = self._last
-        if ph0 != phase or abs(x0[1]) < 0.2 or abs(x[1]) < 0.2:
+        if ph0 != phase:
             return
         if self._sim is None:
             from wl_env.simulator import Simulator
 
             self._sim = Simulator(self.params, self.braking)
+        p, dt = self.params, self.dt
         y = (float(x0[0]), float(x0[1]), float(x0[2]), float(x0[3]), 0.0, 0.0)
-        ue = self._sim.effective_controls(y, ph0, float(u[0]), float(u[1]), float(u[2]), self.dt)
-        y1, _, _, _ = self._sim.substep(y, ph0, ue[:3], self.dt)
-        d = -1.0 if ph0 <= 2 else 1.0
-        regressor = np.array([(y1[1] - x0[1]) / self.dt, d])  # model's mean dV/dt over the step, direction
-        measured = (x[1] - x0[1]) / self.dt
-        P = self._theta_cov
-        k = P @ regressor / (RLS_FORGETTING * ACCEL_NOISE_STD**2 + regressor @ P @ regressor)
-        self._theta = self._theta + k * (measured - regressor @ self._theta)
-        self._theta_cov = (P - np.outer(k, regressor @ P)) / RLS_FORGETTING
-        self._theta = np.clip(self._theta, THETA_MIN, THETA_MAX)
+        ue = self._sim.effective_controls(y, ph0, float(u[0]), float(u[1]), float(u[2]), dt)[:3]
+        if max(x0[0], x[0]) < 0.99 * p.omega_max:  # at the governor's cap the fuel, not the load, sets omega
+            # the predicted omega is (nearly) linear in the gain: omega(g) = omega(1) + (g - 1) r dt
+            omega1, _ = self._predict(x0, ph0, ue, 1.0, self._theta)
+            r = (omega1 - self._predict(x0, ph0, ue, 0.0, self._theta)[0]) / dt
+            residual = (x[0] - omega1) / dt  # measured minus modelled d omega/dt
+            var = self._lift_gain_var
+            k = var * r / (RLS_FORGETTING * ENGINE_ACCEL_NOISE_STD**2 + r * var * r)
+            self._lift_gain += k * (residual - (self._lift_gain - 1.0) * r)
+            self._lift_gain_var = (var - k * r * var) / RLS_FORGETTING
+            self._lift_gain = min(max(self._lift_gain, LIFT_GAIN_MIN), LIFT_GAIN_MAX)
+        if abs(x0[1]) >= 0.2 and abs(x[1]) >= 0.2:
+            # the model's mean dV/dt over the step, its engine speed as the lift-load estimate has it
+            _, v1 = self._predict(x0, ph0, ue, self._lift_gain, THETA_PRIOR)
+            d = -1.0 if ph0 <= 2 else 1.0
+            regressor = np.array([(v1 - x0[1]) / dt, d])
+            measured = (x[1] - x0[1]) / dt
+            P = self._theta_cov
+            k = P @ regressor / (RLS_FORGETTING * ACCEL_NOISE_STD**2 + regressor @ P @ regressor)
+            self._theta = self._theta + k * (measured - regressor @ self._theta)
+            self._theta_cov = (P - np.outer(k, regressor @ P)) / RLS_FORGETTING
+            self._theta = np.clip(self._theta, THETA_MIN, THETA_MAX)
+
+    def _predict(self, x0: np.ndarray, phase: int, u: tuple, lift_gain: float, accel: np.ndarray) -> tuple[float, float]:
+        """(omega, V) one control step after x0 under the effective controls u: the model (one RK4 step,
+        as the simulator's), its lift drawing lift_gain times the model's power from the engine, its
+        dV/dt = accel[0] * model + d * accel[1]."""
+        p = self.params
+        gear, direction, _ = cycle.phase_tables(self.braking, p)
+        gear, direction = float(gear[phase]), float(direction[phase])
+
+        def f(y: np.ndarray) -> np.ndarray:
+            d_om, d_v, _, _, _ = derivatives(y[0], y[1], y[2], y[3], u[0], u[1], u[2], gear, direction, p)
+            d_om -= (lift_gain - 1.0) * lift.lift_power(y[3], u[1], p) / (y[0] * p.J_ice)
+            return np.array([d_om, accel[0] * d_v + direction * accel[1], y[3], u[1]])
+
+        h = self.dt
+        y = np.asarray(x0[:4], dtype=float)
+        k1 = f(y)
+        k2 = f(y + 0.5 * h * k1)
+        k3 = f(y + 0.5 * h * k2)
+        k4 = f(y + h * k3)
+        y1 = y + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
+        return float(y1[0]), float(y1[1])
 
     def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:
         """The measurement moved onto the constraints it may graze (by a hair, through the simulator's
         per-substep saturation): a plan must start from a state its constraints admit."""
-        from wl_env.physics import lift
-
         p = self.params
         x = np.array(x, dtype=float)
         x[0] = min(max(x[0], p.omega_min), p.omega_max)
@@ -357,6 +442,14 @@ class MPCController:
         x[2] = min(max(x[2], p.H_0), lift.max_bucket_height(p))
         x[3] = min(max(x[3], 0.0), (1.0 - 1e-6) * float(lift.max_lift_speed(x[2], x[0], p)))
         return x
+
+    def _stopping(self, x: np.ndarray) -> np.ndarray:
+        """The last part-step of phase 2: the previous step's controls; with service brakes the brake
+        torque that decelerates at the limit (as the terminal law brakes)."""
+        u = np.array(self._last[2], dtype=float)
+        if self.braking == "service":
+            u[2] = self._terminal(None)[2]
+        return u
 
     def _terminal(self, x: np.ndarray | None) -> np.ndarray:
         """End of the cycle, the vehicle (nearly) standing: brake, bring the bucket to H_T and hold it.
@@ -374,12 +467,14 @@ class MPCController:
             return np.array([0.0, p.U_ab_bounds[0], u_b])
         omega, _, H, V_b = x[0], x[1], x[2], x[3]
         lo, hi = p.U_ab_bounds
-        # bucket speed that stops exactly at H_T with 80 % of the lowest deceleration
-        v_ref = math.copysign(math.sqrt(2.0 * 0.8 * -lo * abs(p.H_T - H)), p.H_T - H)
+        # Approach H_T on the speed that stops there with 80 % of the lowest deceleration; a bucket
+        # already too fast for that brakes with what stops it exactly at H_T (as much as it can).
+        gap = p.H_T - H
+        v_ref = math.copysign(math.sqrt(2.0 * 0.8 * -lo * abs(gap)), gap)
         u_ab = min(max((max(v_ref, 0.0) - V_b) / self.dt, lo), hi)
-        from wl_env.physics import engine, lift
-
-        load = lift.lift_power(max(V_b, 0.0), u_ab, p) / max(omega, 1.0)
+        if V_b > 0.0 and (gap <= 0.0 or V_b**2 / (2.0 * gap) > 0.8 * -lo):
+            u_ab = max(-V_b**2 / (2.0 * gap), lo) if gap > 0.0 else lo
+        load = self._lift_gain * lift.lift_power(max(V_b, 0.0), u_ab, p) / max(omega, 1.0)
         u_mf = (engine.friction_torque(omega, p) + load) / p.T_ig_per_mg  # hold the engine speed
         return np.array([min(max(u_mf, 0.0), p.U_mf_max), u_ab, u_b])
 

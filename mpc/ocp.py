@@ -38,21 +38,30 @@ U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
 TARGET_WEIGHT = 1.0e4  # MPC: objective units per unit of relative target miss (15 per cm at 6.6 m)
-DECEL_EXCESS_WEIGHT = 1.0e6  # MPC: per unit of excess over the deceleration limit at the start (1 % ~ 7 cm of miss)
-N_PARAMETERS = 11  # length of the NLP parameter vector, see nlp_parameters()
+# MPC: per unit of excess over the deceleration limit at the measured start. 1 % costs as much as 6.6 m
+# of target miss: practically a hard limit, yet a start the limit cannot hold from still gets a plan.
+DECEL_EXCESS_WEIGHT = 1.0e6
+# MPC: per unit of the robustness margin (tighten - min_tighten) a plan uses at one point of its horizon.
+# A plan rides its constraints, and the next measurement can leave it a hair short of them (a gear change
+# a hair late). Using 1 % of the margin at one point costs as much as 66 cm of target miss: a plan uses
+# it only where the full margin leaves no plan.
+DECEL_MARGIN_WEIGHT = 1.0e5
+N_PARAMETERS = 12  # length of the NLP parameter vector, see nlp_parameters()
 
 
 def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0, deadline_weight: float = 0.0,
-                   x_start: np.ndarray | None = None, accel_offset: float = 0.0, accel_gain: float = 1.0) -> list[float]:
+                   x_start: np.ndarray | None = None, accel_offset: float = 0.0, accel_gain: float = 1.0,
+                   lift_gain: float = 1.0) -> list[float]:
     """The parameter vector of a :class:`CycleOCP` NLP.
 
     ``w_fuel`` per g and ``w_time`` per s weigh the objective; ``smoothing`` is k of eq. (33);
     ``deadline_weight`` (per s) prices the MPC's deadline slack; ``x_start`` ([omega, V, H, V_b, s]) is
     the measured start of an NLP with a parametric start; ``accel_gain`` and ``accel_offset`` correct the
-    longitudinal dynamics to dV/dt = gain * model + d * offset (the MPC's estimate of the plant).
+    longitudinal dynamics to dV/dt = gain * model + d * offset, and ``lift_gain`` scales the lift's
+    power drawn from the engine (plant payload / model payload): the MPC's estimate of the plant.
     """
     x = np.zeros(5) if x_start is None else np.asarray(x_start, dtype=float) / X_SCALE
-    return [w_fuel, w_time, smoothing, deadline_weight, *x, accel_offset, accel_gain]
+    return [w_fuel, w_time, smoothing, deadline_weight, *x, accel_offset, accel_gain, lift_gain]
 
 
 class OCPError(RuntimeError):
@@ -73,6 +82,9 @@ class OCPSettings:
     hessian: str = "exact"  # or "limited-memory" (L-BFGS): the alternative the benchmarks compare
     print_level: int = 0
     tighten: float = 0.0  # fraction by which the deceleration limit is tightened (MPC robustness margin)
+    # MPC: the least margin; a plan may cut into the margin between min_tighten and tighten at a price
+    # (DECEL_MARGIN_WEIGHT), so that a measured state a hair off the plan still has a plan
+    min_tighten: float = 0.0
     omega_margin: float = 0.0  # rad/s kept above omega_min (MPC: a plan on the stall limit stalls the plant)
     exec_interval: float = 0.1  # s, MPC only: the first control holds this long (the env's control step)
 
@@ -86,6 +98,8 @@ class OCPSettings:
             raise ValueError(f"smoothing must be a non-empty sequence of k >= 0 ending with 0, got {self.smoothing}")
         if not 0.0 <= self.tighten < 0.5:
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten}")
+        if not 0.0 <= self.min_tighten <= self.tighten:
+            raise ValueError(f"min_tighten must lie in [0, tighten = {self.tighten}], got {self.min_tighten}")
         if self.solver != "ipopt":
             # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free
             # phase durations are global variables of this NLP.
@@ -231,6 +245,8 @@ class CycleOCP:
         # the miss), so a measured state the targets cannot be met from still gets the closest plan.
         soft_terms = []
         decel_excess = []  # MPC: the elastic deceleration row at the measured start (see below)
+        decel_soft = []  # MPC: the margin a plan uses (see DECEL_MARGIN_WEIGHT)
+        soft_margin = st.tighten - st.min_tighten if self.parametric_start else 0.0
 
         def soft_target(name: str) -> ca.SX:
             ub = math.inf if self.parametric_start else 0.0
@@ -284,7 +300,7 @@ class CycleOCP:
                 u_prev = U
                 XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
                 self._index["XC"].append(off)
-                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9], par[10])
+                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9], par[10], par[11])
                 add_con(defects, 0.0, 0.0)
                 n_rows = int(path.numel()) // (d + 1)
                 if fn is self._free_start_fns[k]:
@@ -294,6 +310,10 @@ class CycleOCP:
                     excess, _ = add_var("decel_at_start", 1, np.zeros(1), np.array([math.inf]))
                     decel_excess.append(excess)
                     path = path + ca.vertcat(ca.DM.zeros(n_rows - 1), excess, ca.DM.zeros(n_rows * d))
+                if soft_margin > 0.0:
+                    soft, _ = add_var("decel_soft", d + 1, np.zeros(d + 1), np.full(d + 1, soft_margin))
+                    decel_soft.append(soft)
+                    path = path + ca.vertcat(*[ca.vertcat(ca.DM.zeros(n_rows - 1), soft[c]) for c in range(d + 1)])
                 add_con(path, path_lb, path_ub)
                 fuel_total += fuel
                 x_k = XC[5 * (d - 1):] * xs
@@ -316,7 +336,8 @@ class CycleOCP:
         self._g_deadline_index = self._g_T_index + 1
         add_con(T - slack, -math.inf, math.inf)  # MPC deadline: remaining time, bounds set per solve
         fuel_g = fuel_total * 1000.0
-        J = par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms) + DECEL_EXCESS_WEIGHT * sum(decel_excess)
+        J = (par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms) + DECEL_EXCESS_WEIGHT * sum(decel_excess)
+             + DECEL_MARGIN_WEIGHT * sum(ca.sum1(e) for e in decel_soft))
 
         z = ca.vertcat(*w)
         self.n_var = int(z.numel())
@@ -338,8 +359,9 @@ class CycleOCP:
         h = ca.SX.sym("h")
         # The MPC's estimate of the plant's longitudinal dynamics: dV/dt = gain * (model's dV/dt) + d * offset
         # (gain: model mass / plant mass; offset: an acceleration along the travel direction d, e.g. a
-        # rolling-resistance error). Offline gain = 1, offset = 0.
-        offset, gain = ca.SX.sym("offset"), ca.SX.sym("gain")
+        # rolling-resistance error). The lift draws lift_gain times the model's power from the engine (its
+        # power is proportional to the payload, eq. (10)). Offline gain = lift_gain = 1, offset = 0.
+        offset, gain, lift_gain = ca.SX.sym("offset"), ca.SX.sym("gain"), ca.SX.sym("lift_gain")
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
@@ -347,20 +369,25 @@ class CycleOCP:
             x = pts[c]
             d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
             d_v = gain * d_v + spec.direction * offset
+            d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
             rows = self._path_expressions(x, u, d_v, spec.direction)
             if c == 0:
-                # A measured start state is what it is: zero the rows the control cannot change at that
-                # instant (the lift speed against the pump limit); the layout stays, zero rows meet their
-                # bounds. The deceleration row stays, elastic (see _build).
-                path.append(rows if start_constraints else rows * ca.DM([1, 1, 1, 0, 0, 1, 1]))
+                if not start_constraints:
+                    # A measured start state is what it is: its lift speed against the pump limit is not
+                    # the control's to change. In their place, the pump limit as the machine applies it
+                    # to a held step: the bucket speed at the step's end within the limit at its start
+                    # (a plan counting on more lift power than the pump delivers mispredicts the engine).
+                    held = [x[3] + u[1] * h - v_lim for v_lim in lift.max_lift_speed_pieces(x[2], x[0], p)]
+                    rows = ca.vertcat(rows[:3], *held, rows[5:])
+                path.append(rows)  # the deceleration row stays, elastic (see _build)
                 continue
             path.append(rows)
             xp = sum(self._C[r, c] * pts[r] for r in range(d + 1))
             defects.append((h * ca.vertcat(d_om, d_v, d_h, d_vb, x[1]) - xp) / ca.DM(X_SCALE))
             fuel += self._B[c] * m_dot * h
-        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, offset, gain],
+        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, offset, gain, lift_gain],
                            [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
     def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
