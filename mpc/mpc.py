@@ -18,9 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from mpc.ocp import FUEL_REF_G, TIME_REF, CycleOCP, OCPSettings, nlp_parameters, solve_ocp
+from mpc.ocp import FUEL_REF_G, TIME_REF, CycleOCP, OCPSettings, estimated_derivatives, nlp_parameters, solve_ocp
 from wl_env import cycle
-from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
 
@@ -156,12 +155,14 @@ class MPCController:
         """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
         if phase == 2 and abs(x[1]) < REVERSING_SPEED:
             phase = 3  # at the reversing point (the env switches there by itself): plan the way forward
-        if phase == 2 and self._last is not None and -x[1] < TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt:
+        # the speed that braking at TERMINAL_DECEL_FRACTION of the limit takes away within one step
+        v_step = TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt
+        if phase == 2 and self._last is not None and -x[1] < v_step:
             # The machine reaches the reversing point within this step, and the plan's first interval
             # (a whole step in phase 2) would run past it: hold the braking of the previous step.
             return self._stopping(x), False, {"solve_time": 0.0, "status": "stopping", "fallback": False,
                                               "over_budget": False, "planned_T_remaining": math.nan}
-        if phase == 4 and x[1] < TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt:
+        if phase == 4 and x[1] < v_step:
             return self._terminal(x), False, {"solve_time": 0.0, "status": "terminal", "fallback": False,
                                                "over_budget": False, "planned_T_remaining": 0.0}
         best, solve_time, statuses = None, 0.0, []
@@ -418,9 +419,7 @@ class MPCController:
         gear, direction = float(gear[phase]), float(direction[phase])
 
         def f(y: np.ndarray) -> np.ndarray:
-            d_om, d_v, _, _, _ = derivatives(y[0], y[1], y[2], y[3], u[0], u[1], u[2], gear, direction, p)
-            d_om -= (lift_gain - 1.0) * lift.lift_power(y[3], u[1], p) / (y[0] * p.J_ice)
-            return np.array([d_om, accel[0] * d_v + direction * accel[1], y[3], u[1]])
+            return np.array(estimated_derivatives(y, u, gear, direction, p, accel[1], accel[0], lift_gain)[:4])
 
         h = self.dt
         y = np.asarray(x0[:4], dtype=float)
@@ -472,8 +471,10 @@ class MPCController:
         gap = p.H_T - H
         v_ref = math.copysign(math.sqrt(2.0 * 0.8 * -lo * abs(gap)), gap)
         u_ab = min(max((max(v_ref, 0.0) - V_b) / self.dt, lo), hi)
-        if V_b > 0.0 and (gap <= 0.0 or V_b**2 / (2.0 * gap) > 0.8 * -lo):
-            u_ab = max(-V_b**2 / (2.0 * gap), lo) if gap > 0.0 else lo
+        if V_b > 0.0:
+            decel_to_stop = V_b**2 / (2.0 * gap) if gap > 0.0 else math.inf
+            if decel_to_stop > 0.8 * -lo:
+                u_ab = max(-decel_to_stop, lo)
         load = self._lift_gain * lift.lift_power(max(V_b, 0.0), u_ab, p) / max(omega, 1.0)
         u_mf = (engine.friction_torque(omega, p) + load) / p.T_ig_per_mg  # hold the engine speed
         return np.array([min(max(u_mf, 0.0), p.U_mf_max), u_ab, u_b])

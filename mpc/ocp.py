@@ -64,6 +64,18 @@ def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0, deadlin
     return [w_fuel, w_time, smoothing, deadline_weight, *x, accel_offset, accel_gain, lift_gain]
 
 
+def estimated_derivatives(x: Any, u: Any, gear: float, direction: float, p: LoaderParams,
+                          offset: Any = 0.0, gain: Any = 1.0, lift_gain: Any = 1.0) -> tuple[Any, ...]:
+    """The model's derivatives (:func:`wl_env.model.derivatives`) as the MPC estimates the plant: dV/dt =
+    gain * model + d * offset (gain: model mass / plant mass; offset: an acceleration along the travel
+    direction d, e.g. a rolling-resistance error), and the lift drawing lift_gain times the model's power
+    from the engine (its power is proportional to the payload, eq. (10)). Floats or CasADi symbols."""
+    d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], gear, direction, p)
+    d_v = gain * d_v + direction * offset
+    d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
+    return d_om, d_v, d_h, d_vb, m_dot
+
+
 class OCPError(RuntimeError):
     """The solver did not find an optimum; the message carries its status."""
 
@@ -357,19 +369,14 @@ class CycleOCP:
         xc = ca.SX.sym("xc", 5 * d)
         u = ca.SX.sym("u", 3)
         h = ca.SX.sym("h")
-        # The MPC's estimate of the plant's longitudinal dynamics: dV/dt = gain * (model's dV/dt) + d * offset
-        # (gain: model mass / plant mass; offset: an acceleration along the travel direction d, e.g. a
-        # rolling-resistance error). The lift draws lift_gain times the model's power from the engine (its
-        # power is proportional to the payload, eq. (10)). Offline gain = lift_gain = 1, offset = 0.
+        # The MPC's estimate of the plant (see estimated_derivatives); offline gain = lift_gain = 1, offset = 0.
         offset, gain, lift_gain = ca.SX.sym("offset"), ca.SX.sym("gain"), ca.SX.sym("lift_gain")
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
         for c in range(d + 1):
             x = pts[c]
-            d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
-            d_v = gain * d_v + spec.direction * offset
-            d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
+            d_om, d_v, d_h, d_vb, m_dot = estimated_derivatives(x, u, spec.gear, spec.direction, p, offset, gain, lift_gain)
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
             rows = self._path_expressions(x, u, d_v, spec.direction)
