@@ -1,37 +1,60 @@
-"""Receding (shrinking) horizon MPC that drives ``WheelLoader-v0`` through the cycle.
+"""Shrinking-horizon MPC that drives ``WheelLoader-v0`` through the cycle, on the environment's own grid.
 
-At every control step the controller reads the state from the observation, solves the cycle OCP of
-:mod:`mpc.ocp` from that state over the phases still ahead (the same model and constraints as the
-offline benchmark, on a coarser mesh), applies the first control and requests a shift when its plan
-says the current phase ends. The NLP of each starting phase is built once; the measured state and the
-remaining time enter as parameters, and every solve is warm-started from the previous one (primal and
-dual). A failed or over-budget solve applies the previous plan, shifted by the time since it was made,
-and says so in ``last_info``.
+At every control step the controller reads the state from the observation and solves the rest of the
+cycle as the environment will run it (:mod:`mpc.grid`: the plant's RK4 step, its saturations and its
+cut at V = 0, the driver's limits where the environment checks them), from the measured state, with the
+plant as its model-error estimate has it. It applies the plan's first control and requests the gear
+change when the plan's next step belongs to the next phase. Without model error the plan is what
+happens, so the closed loop is the optimum on the grid.
+
+The cycle time is the *schedule*: whole steps per phase. The first step plans it (rounded from the
+continuous optimum of :mod:`mpc.ocp`, then improved by moves of single steps between phases); later
+steps keep it, and try the move that the parametric sensitivities of the step lengths predict to pay
+(one extra solve, at most, per step). The mode decides what pays: the fewest steps (minimum time),
+the least fuel in the steps until the target time (target time), or fuel and time weighed.
+
+The NLPs (one per first phase) are built once and reused; each solve is warm-started from the
+previous one (primal and dual; the plan one step later is the same vector). A failed or over-budget
+solve applies the previous plan's next step and says so in ``last_info``.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from mpc.ocp import FUEL_REF_G, TIME_REF, CycleOCP, OCPSettings, estimated_derivatives, nlp_parameters, solve_ocp
+from mpc.grid import (
+    MIN_STOP_SPEED,
+    GridNLP,
+    StepModel,
+    apportion,
+    estimated_derivatives,
+    steps_of,
+)
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
 
 MODES = ("time", "target_time", "weighted")
-# In phase 4 the terminal law (see _terminal) takes over from the NLP once braking at this fraction of
-# the deceleration limit stops the machine within one control step (then < 1 cm from where it stands).
-TERMINAL_DECEL_FRACTION = 0.9
-# m/s: a machine this slow in phase 2 is at its reversing point (it stops within the step, < 0.3 mm on);
-# a plan for the rest of phase 2 would be a plan of nothing, which the NLP may call infeasible.
-REVERSING_SPEED = 0.01
-# Steps ahead of the planned end of phase 1 or 3 from which the MPC puts the gear change on the step grid.
-SHIFT_GRID_STEPS = 15
+FUEL_REF_G, TIME_REF = 100.0, 10.0  # the weighted mode's normalization (as the OCP's weighted objective)
+# A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
+MISS_TOL = 1e-3
+EXCESS_TOL = 1e-4  # ... and no planned deceleration exceeds the limit by more than this (relative)
+# Objective (g) per step in minimum-time mode and per step late in target-time mode: a step outweighs
+# any fuel, not a target miss (MISS_TOL decides that first).
+STEP_PRICE = 1.0e3
+# g: the least predicted improvement worth a solve, when the first step plans the cycle and during it
+# (a schedule move takes 10-30 iterations, 0.2-0.5 s: during the cycle only for a clear gain)
+MIN_GAIN = 0.05
+MIN_GAIN_ONLINE = 0.2
+SEARCH_SOLVES = 12  # solves the first step may spend on the schedule
+SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's search
+RETRY_AFTER = 10  # steps before a move that did not pay is tried again (twice as many after each failure)
+SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared between nearby schedules)
 # Model-error estimate [gain, offset m/s^2] (see MPCController._estimate_model_error): prior, its spread
 # (a payload or mass error of ~20 %, a rolling-resistance error of ~0.3 m/s^2), bounds, forgetting.
 THETA_PRIOR = np.array([1.0, 0.0])
@@ -44,324 +67,531 @@ ACCEL_NOISE_STD = 0.01  # m/s^2: how well one step of the model predicts the mea
 LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD = 1.0, 0.2
 LIFT_GAIN_MIN, LIFT_GAIN_MAX = 0.5, 1.5
 ENGINE_ACCEL_NOISE_STD = 1.0  # rad/s^2
+PREDICTION_ERROR_DECAY = 0.9  # per step, of the moving mean square of the one-step prediction error
 
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """MPC settings. ``mode``: minimum time, minimum fuel finishing by ``target_time``, or weighted."""
+    """MPC settings. ``mode``: minimum time, minimum fuel finishing by ``target_time`` (s), or
+    ``w_fuel`` * fuel / 100 g + (1 - ``w_fuel``) * time / 10 s (weighted)."""
 
     mode: str = "time"
     target_time: float | None = None
     w_fuel: float | None = None
-    intervals: tuple[int, int, int, int] = (8, 5, 8, 5)
-    degree: int = 2
-    max_iter: int = 60  # per solve after the first: the deterministic budget
-    time_budget: float | None = None  # s of wall time per solve (real-time use; makes runs timing-dependent)
-    deadline_weight: float = 10.0  # objective units per second beyond the target time
-    # The plan keeps 2 % off the deceleration limit. Measured with 1 %: no faster in min-time mode, fuel
-    # gaps +3.6 / +3.7 % (service, 9 / 10 s targets), and a heavy plant's reversing point missed by 10 cm.
-    tighten: float = 0.02
-    # The least margin: a plan may cut into the margin down to it, at a price (see ocp.DECEL_MARGIN_WEIGHT),
-    # where the measured state leaves no plan within the full margin (a gear change a hair late, say).
-    min_tighten: float = 0.005
-    omega_margin: float = 5.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
+    # IPOPT iterations per solve after the first (the deterministic budget): a warm start takes 2-5; a
+    # model estimate that jumps (a heavier plant seen) can take ~90, from a plan the new estimate
+    # cannot keep to the least-miss one. A real-time controller bounds it with time_budget.
+    max_iter: int = 100
+    time_budget: float | None = None  # s of wall time per step (real-time use; makes runs timing-dependent)
+    # Fraction of the deceleration limit a plan keeps free (it may use the margin at a price, see
+    # grid.DECEL_MARGIN_WEIGHT). The plan is the plant's own step, so a nominal plant needs only the
+    # solver's tolerance; after the first step the margin grows as the plans mispredict the engine speed
+    # (MARGIN_PER_RAD_S): a plant unlike the model.
+    tighten: float = 0.005
+    omega_margin: float = 1.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
+    spare_steps: int = 3  # slots per phase beyond the first schedule's steps (room for schedule moves)
     max_time: float = 40.0  # the env's max_time (to read the elapsed time from the observation)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.mode == "target_time" and not (self.target_time and math.isfinite(self.target_time) and self.target_time > 0):
+        if self.mode == "target_time" and not (
+                isinstance(self.target_time, (int, float)) and math.isfinite(self.target_time) and self.target_time > 0):
             raise ValueError(f"mode 'target_time' needs a target_time > 0 (s), got {self.target_time!r}")
         if self.mode == "weighted" and (self.w_fuel is None or not 0.0 <= self.w_fuel <= 1.0):
             raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {self.w_fuel!r}")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError(f"time_budget must be > 0 s or None, got {self.time_budget!r}")
+        if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
+            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        if not (isinstance(self.spare_steps, int) and self.spare_steps >= 1):
+            raise ValueError(f"spare_steps must be an integer >= 1, got {self.spare_steps!r}")
+        if not 0.0 <= self.tighten < 0.5:
+            raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
 
 
-_SOLVERS: dict[tuple, CycleOCP] = {}
+@dataclass
+class Solve:
+    """One NLP solve: the schedule it was for and what came of it."""
+
+    counts: dict[int, int]
+    first_phase: int
+    ok: bool
+    status: str
+    J: float = math.inf  # the NLP objective: fuel (g) plus the target and deceleration penalties
+    fuel_g: float = math.nan
+    misses: dict[str, float] = field(default_factory=dict)
+    excess: float = 0.0  # the largest relative excess over the deceleration limit the plan has
+    z: np.ndarray | None = None
+    lam_x: np.ndarray | None = None
+    lam_g: np.ndarray | None = None
+    lam_p: np.ndarray | None = None
+    iterations: int = 0
+    wall: float = 0.0
+
+    @property
+    def feasible(self) -> bool:
+        return self.ok and all(abs(v) <= MISS_TOL for v in self.misses.values()) and self.excess <= EXCESS_TOL
 
 
-def _mpc_ocp(braking: str, params: LoaderParams, config: MPCConfig, first_phase: int) -> CycleOCP:
-    key = (braking, params.fingerprint(), config.intervals, config.degree, config.max_iter, config.tighten,
-           config.min_tighten, config.omega_margin, first_phase)
-    if key not in _SOLVERS:
-        settings = OCPSettings(intervals=config.intervals, degree=config.degree, smoothing=(0.0,),
-                               max_iter=config.max_iter, tol=1e-6, tighten=config.tighten,
-                               min_tighten=min(config.min_tighten, config.tighten), omega_margin=config.omega_margin)
-        _SOLVERS[key] = CycleOCP(braking, params, settings, first_phase=first_phase, parametric_start=True)
-    return _SOLVERS[key]
+# Built NLPs and their solvers, shared by the controllers of a process (building takes a second or two).
+_NLPS: dict[tuple, GridNLP] = {}
+_SOLVERS: dict[tuple, Any] = {}
+_MODELS: dict[tuple, StepModel] = {}
+_REFERENCES: dict[tuple, Any] = {}
+# The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
+# engine-speed error (see MPCController._later_margin): per rad/s of RMS error, and at most.
+# Measured on the TC cycle, payload x1.2 and rolling resistance x1.3: 0.08 missed the reversing
+# point by 9.9 cm, 0.16 met it (and every other corner); a nominal plant keeps MPCConfig.tighten.
+MARGIN_PER_RAD_S = 0.16
+MAX_MARGIN = 0.03
+
+REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
 
 
 class MPCController:
-    """Shrinking-horizon MPC for ``WheelLoader-v0`` (controller protocol: ``reset()``, ``act(obs)``)."""
+    """Shrinking-horizon MPC for ``WheelLoader-v0`` (controller protocol: ``reset()``, ``act(obs)``).
+
+    ``dt`` and ``substeps`` must be the environment's (``run_closed_loop`` reads them from it).
+    """
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 config: MPCConfig | None = None, dt: float = 0.1) -> None:
+                 config: MPCConfig | None = None, dt: float = 0.1, substeps: int = 1) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
         self.config = config or MPCConfig()
-        self.dt = dt
-        self.solve_times: list[float] = []
-        self.fallbacks = 0
-        self.last_info: dict[str, Any] = {}
-        self._force_failure = False  # test hook: the solves of the next step count as failed
-        self._reference = None
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
+            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
+        self.dt, self.substeps = float(dt), int(substeps)
+        key = (self.braking, self.params.fingerprint(), self.dt, self.substeps, self.config.omega_margin)
+        if key not in _MODELS:
+            _MODELS[key] = StepModel(self.braking, self.params, self.dt, self.substeps, self.config.omega_margin)
+        self.model = _MODELS[key]
         self._sim = None
+        self._force_failure = False  # test hook: the solves of the next step count as failed
         self.reset()
 
     # ------------------------------------------------------------------ protocol
     def reset(self) -> None:
-        self._plan: dict[str, Any] | None = None  # last good plan, with the time it was made
+        self._sol: Solve | None = None  # the last good solve (its z is the plan, shifted by the counts)
+        self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
+        self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
+        self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
         self._last: tuple | None = None  # (state, phase, control) of the previous step
-        self._shift_at: tuple[int, float] | None = None  # (phase, time) the controller committed to end it
-        # estimate of the plant's dV/dt = gain * model + d * offset: [gain, offset (m/s^2)], and its covariance
+        self._tried: dict[tuple, tuple[int, int]] = {}  # schedule move -> (step it last failed to pay, failures)
+        self._last_failure = -10**9  # the step a schedule move last failed to pay
+        self._failures = 0  # schedule moves in a row that did not pay (each doubles the wait for the next)
         self._theta = THETA_PRIOR.copy()
         self._theta_cov = np.diag(THETA_PRIOR_STD**2)
         self._lift_gain, self._lift_gain_var = LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD**2
-        self._warm: dict[int, tuple] = {}  # per first phase: (z, lam_x, lam_g)
-        self.solve_times = []
+        self._omega_err2 = 0.0  # moving mean square of the plans' one-step engine-speed error (rad/s)^2
+        self.solve_times: list[float] = []
+        self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.fallbacks = 0
-        self.last_info = {}
+        self.planning_time = 0.0
+        self.last_info: dict[str, Any] = {}
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
         self._estimate_model_error(x, phase)
+        self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
         self._last = (x, phase + 1 if shift else phase, u)
         info["accel_gain"], info["accel_offset"] = float(self._theta[0]), float(self._theta[1])
         info["lift_gain"] = float(self._lift_gain)
+        self.last_info = info
+        return self.action(u, shift)
+
+    def action(self, u: np.ndarray, shift: bool) -> np.ndarray:
+        """The env's normalized action for the control [U_mf, U_ab, U_b] and a shift request."""
         p = self.params
         lo, hi = p.U_ab_bounds
-        action = np.array([
-            2.0 * u[0] / p.U_mf_max - 1.0,
-            2.0 * (u[1] - lo) / (hi - lo) - 1.0,
-            2.0 * u[2] / p.U_b_max - 1.0,
-            1.0 if shift else -1.0,
-        ])
-        action = np.clip(np.nan_to_num(action, nan=-1.0), -1.0, 1.0).astype(np.float32)
-        self.last_info = info
-        return action
+        a = np.array([2.0 * u[0] / p.U_mf_max - 1.0, 2.0 * (u[1] - lo) / (hi - lo) - 1.0,
+                      2.0 * u[2] / p.U_b_max - 1.0, 1.0 if shift else -1.0])
+        return np.clip(np.nan_to_num(a, nan=-1.0), -1.0, 1.0).astype(np.float32)
 
     def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
         """[omega, V, H, V_b, s], elapsed time and phase from a WheelLoader-v0 observation."""
         p = self.params
         o = np.asarray(obs, dtype=np.float64)
+        if o.shape != (12,) or not np.isfinite(o).all():
+            raise ValueError(f"obs must be a finite WheelLoader-v0 observation of shape (12,), got {o!r}")
         x = np.array([o[0] * p.omega_max, o[1] * p.V_max, o[2] * p.H_T, o[3], o[4] * p.distance])
         return x, float(o[6] * self.config.max_time), int(np.argmax(o[8:12])) + 1
 
     # ------------------------------------------------------------------ one step
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
-        if phase == 2 and abs(x[1]) < REVERSING_SPEED:
-            phase = 3  # at the reversing point (the env switches there by itself): plan the way forward
-        # the speed that braking at TERMINAL_DECEL_FRACTION of the limit takes away within one step
-        v_step = TERMINAL_DECEL_FRACTION * self.params.decel_max * self.params.g * self.dt
-        if phase == 2 and self._last is not None and -x[1] < v_step:
-            # The machine reaches the reversing point within this step, and the plan's first interval
-            # (a whole step in phase 2) would run past it: hold the braking of the previous step.
-            return self._stopping(x), False, {"solve_time": 0.0, "status": "stopping", "fallback": False,
-                                              "over_budget": False, "planned_T_remaining": math.nan}
-        if phase == 4 and x[1] < v_step:
-            return self._terminal(x), False, {"solve_time": 0.0, "status": "terminal", "fallback": False,
-                                               "over_budget": False, "planned_T_remaining": 0.0}
-        best, solve_time, statuses = None, 0.0, []
-        for tier in self._shift_options(t, phase):  # the next tier only if no plan of this one succeeds
-            for first, rest_bounds in tier:
-                cand = self._replan(x, t, first, rest_bounds)
-                solve_time += cand["solve_time"]
-                statuses.append(cand["status"])
-                if cand["ok"] and (best is None or cand["f"] < best["f"]):
-                    best = cand
-            if best is not None:
-                break
+        k = int(round(t / self.dt))
+        if phase == 2 and -x[1] < MIN_STOP_SPEED:
+            phase = 3  # at the reversing point (the env switches within this step): plan the way forward
+        if phase == 4 and x[1] < MIN_STOP_SPEED:
+            # standing at the truck and not done (a plant the plan misjudged): bring the bucket to rest
+            info = {"solve_time": 0.0, "status": "terminal", "fallback": False, "over_budget": False,
+                    "solves": 0, "iterations": 0, "schedule": dict(self._counts or {}), "planned_T_remaining": self.dt}
+            return self._terminal(x), False, info
+        t0 = time.perf_counter()
+        x_plan = self.project_state(x, phase)
+        if self._counts is None:  # the first step plans the cycle (a real controller would before it starts)
+            self._plan_cycle(x_plan, phase, k)
+            solves, ok, over_budget = [self._sol], True, False
+            solve_time = self.planning_time = time.perf_counter() - t0
+        else:
+            self._enter_phase(phase)
+            sol = self._solve(phase, self._counts, x_plan, warm=self._iterate)
+            solves, over_budget = [sol], self._over_budget(t0)
+            ok = sol.ok and not over_budget
+            if sol.z is not None:  # the next solve goes on from here, converged or not
+                self._iterate = sol
+            if ok:
+                self._sol = sol
+                extra = self._try_better_schedule(x_plan, phase, k, budget_left=not self._over_budget(t0, 0.5))
+                if extra is not None:
+                    solves.append(extra)
+            solve_time = sum(s.wall for s in solves)
         self._force_failure = False  # (the test hook fails every solve of one step)
-        self.solve_times.append(solve_time)  # per control step: the solves it took (1, or 2 at a gear-change decision)
-        over_budget = self.config.time_budget is not None and self._plan is not None and solve_time > self.config.time_budget
-        ok = best is not None and not over_budget
         if ok:
-            self._plan = best["plan"]
-            self._warm[best["plan"]["phases"][0]] = best["warm"]
-            shift = best["plan"]["phases"][0] != phase
-            fixed = best["rest_bounds"] is not None and best["rest_bounds"][0] == best["rest_bounds"][1]
-            self._shift_at = (phase, t + self.dt + best["rest_bounds"][0]) if fixed and not shift else None
-            u, _ = self._from_plan(t, best["plan"]["phases"][0])
+            self._plan = self._make_plan(self._sol, x_plan, k)
+            self._iterate = self._sol
         else:
             self.fallbacks += 1
-            u, shift = self._from_plan(t, phase)  # the old plan, shifted by its age (gear change included)
-        info = {"solve_time": solve_time, "status": "; ".join(statuses), "fallback": not ok,
-                "over_budget": over_budget,
-                "planned_T_remaining": float(self._plan["sol"]["t"][-1] - (t - self._plan["t_made"])) if self._plan else math.nan}
+        u, shift = self._from_plan(k, phase)
+        self.solve_times.append(solve_time)
+        self.step_solves.append(len(solves))
+        info = {"solve_time": solve_time, "status": "; ".join(s.status for s in solves), "fallback": not ok,
+                "over_budget": over_budget, "solves": len(solves), "iterations": sum(s.iterations for s in solves),
+                "schedule": dict(self._counts), "planned_T_remaining": self._planned_remaining()}
         return u, shift, info
 
-    def _shift_options(self, t: float, phase: int) -> list[list[tuple[int, tuple[float, float] | None]]]:
-        """The plans to solve this step, in tiers: (first phase, bounds on the rest of the current phase
-        after this step); a tier is tried only if no plan of the tiers before succeeded.
+    def _over_budget(self, t0: float, fraction: float = 1.0) -> bool:
+        b = self.config.time_budget
+        return b is not None and time.perf_counter() - t0 > fraction * b
 
-        The env shifts only at the start of a step, so once the planned end of phase 1 or 3 is less than
-        SHIFT_GRID_STEPS steps ahead, the controller puts it on the step grid: it plans with the phase
-        ending at the grid point before and at the one after the planned end, and commits to the cheaper.
-        A committed end is kept (one solve per step), and moved a step later only if it has become
-        infeasible. Deciding early leaves the plan time to prepare the shift: with TC braking the engine
-        must slow down before the converter takes the drag, at the fuel cut's pace (~1 s from full speed).
-        """
-        dt = self.dt
+    # ------------------------------------------------------------------ the plan
+    def _make_plan(self, sol: Solve, x: np.ndarray, k: int) -> dict[str, Any]:
+        nlp = self._nlp(sol.first_phase)
+        plan = nlp.plan(sol.z, sol.counts, x, self.dt)
+        plan["k_made"] = k
+        return plan
+
+    def _from_plan(self, k: int, phase: int) -> tuple[np.ndarray, bool]:
+        """Control and shift request now, from the last good plan (its step ``k - k_made``), and the
+        schedule advanced past the step applied."""
         plan = self._plan
-        if phase not in (1, 3) or plan is None or plan["phases"][0] != phase:
-            return [[(phase, None)]]
-        if self._shift_at is not None and self._shift_at[0] == phase:
-            k = round((self._shift_at[1] - t) / dt) - 1  # the phase ends k steps after this one
-            if k < 0:
-                return [[(phase + 1, None)], [(phase, (0.0, 0.0))]]
-            return [[(phase, (k * dt, k * dt))], [(phase, ((k + 1) * dt, (k + 1) * dt))], [(phase, None)]]
-        rest = plan["sol"]["durations"][0] - (t - plan["t_made"])  # planned time in phase after this step
-        if rest >= SHIFT_GRID_STEPS * dt:
-            return [[(phase, None)]]
-        k = math.floor(rest / dt + 1e-6)
-        if k < 0:  # planned to end before this step is over: shift now, or at the next step
-            return [[(phase + 1, None), (phase, (0.0, 0.0))]]
-        return [[(phase, (k * dt, k * dt)), (phase, ((k + 1) * dt, (k + 1) * dt))], [(phase, None)]]
+        i = k - plan["k_made"]
+        if i >= len(plan["phase"]):  # the plan is used up: hold still (brakes where allowed, bucket stopped)
+            return self._terminal(None), False
+        step_phase, stop = int(plan["phase"][i]), bool(plan["stop"][i])
+        if step_phase < phase:  # the plant is ahead of the plan (a phase ended early): its first step there
+            later = np.flatnonzero(plan["phase"][i:] >= phase)
+            i = i + int(later[0]) if later.size else len(plan["phase"]) - 1
+            step_phase, stop = int(plan["phase"][i]), bool(plan["stop"][i])
+        u = np.array(plan["controls"][i], dtype=float)
+        if stop and step_phase == 4:
+            u[1] = self.params.U_ab_bounds[0]  # the simulator lands the bucket speed on 0 exactly (V_b >= 0)
+        if not stop and self._counts.get(step_phase, 0) > 0:
+            self._counts[step_phase] -= 1
+        for q in range(phase, step_phase):
+            self._counts[q] = 0
+        shift = phase in (1, 3) and step_phase > phase
+        return u, shift
 
-    def _replan(self, x: np.ndarray, t: float, phase: int, rest_bounds: tuple[float, float] | None = None) -> dict[str, Any]:
-        """Solve from state x at time t for the phases from ``phase`` on (no side effects but timing).
+    def _planned_remaining(self) -> float:
+        return float(steps_of(self._counts) * self.dt) if self._counts else math.nan
 
-        ``rest_bounds`` bounds how long the current phase lasts after this step's execution interval.
+    def _enter_phase(self, phase: int) -> None:
+        """The plant is in ``phase``: drop what the schedule had left of the phases before (the plant
+        ended them early) and cut the warm starts to the NLP from ``phase`` on (it is the tail)."""
+        for q in [q for q in self._counts if q < phase]:
+            del self._counts[q]
+        self._sol, self._iterate = self._tail(self._sol, phase), self._tail(self._iterate, phase)
+
+    def _tail(self, sol: Solve | None, phase: int) -> Solve | None:
+        if sol is None or sol.first_phase >= phase:
+            return sol
+        zo, go = self._nlp(sol.first_phase).segment_offsets(phase)
+        return Solve(counts={q: n for q, n in sol.counts.items() if q >= phase}, first_phase=phase, ok=sol.ok,
+                     status=sol.status, J=sol.J, misses=sol.misses, excess=sol.excess, z=sol.z[zo:], lam_x=sol.lam_x[zo:],
+                     lam_g=sol.lam_g[go:], lam_p=None)
+
+    # ------------------------------------------------------------------ schedule
+    def _cost(self, sol: Solve, k: int) -> tuple:
+        """How a mode ranks a solved schedule: targets met first, then steps and fuel as the mode weighs them."""
+        if not sol.ok:
+            return (2, math.inf)
+        if not sol.feasible:
+            return (1, sol.J)
+        return (0, self._scalar_cost(sol.J, steps_of(sol.counts), k))
+
+    def _scalar_cost(self, J: float, n_steps: int, k: int) -> float:
+        cfg = self.config
+        if cfg.mode == "time":
+            return J + STEP_PRICE * n_steps
+        if cfg.mode == "target_time":
+            return J + STEP_PRICE * max(k + n_steps - self._n_target, 0)
+        if cfg.w_fuel == 0.0:
+            return J + STEP_PRICE * n_steps
+        # weighted: grams of fuel per step of time at the mode's exchange rate
+        return J + (1.0 - cfg.w_fuel) / TIME_REF * self.dt / (cfg.w_fuel / FUEL_REF_G) * n_steps
+
+    def _moves(self, sol: Solve, phase: int, k: int) -> list[tuple[float, tuple]]:
+        """Schedule moves of one step, with the change the sensitivities predict, best first.
+
+        A move (i, j) takes a step from phase i and gives it to phase j; i or j None adds or removes one.
+        Phases 1 and 3 keep a step until they are under way (each phase lasts >= 0.1 s), and a phase in
+        its last step keeps its end (the plan shifts now; one step more at a time runs away past the
+        reversing point when the targets are out of reach). The prediction is the mode's cost while the
+        schedule meets the targets, else the objective alone (the misses first, whatever the steps).
         """
-        x = self.project_state(x, phase)
-        ocp = _mpc_ocp(self.braking, self.params, self.config, phase)
+        nlp = self._nlp(sol.first_phase)
+        sens = nlp.sensitivities(sol.lam_p, sol.counts, self.dt)
+        counts, n = sol.counts, steps_of(sol.counts)
+        base = self._scalar_cost(sol.J, n, k)
+        phases = list(counts)
+
+        def removable(q: int) -> bool:
+            return counts[q] > (0 if q in (2, 4) or q == phase else 1)
+
+        def fits(q: int) -> bool:
+            return counts[q] < nlp.slots_per_phase[q] and not (q == phase and q in (1, 3) and counts[q] == 0)
+
+        out = []
+        for i in [None, *phases]:
+            for j in [None, *phases]:
+                if i == j or (i is not None and not removable(i)) or (j is not None and not fits(j)):
+                    continue
+                dJ = (sens[j] if j is not None else 0.0) - (sens[i] if i is not None else 0.0)
+                dn = (j is not None) - (i is not None)
+                out.append((self._scalar_cost(sol.J + dJ, n + dn, k) - base if sol.feasible else dJ, (i, j)))
+        return sorted(out)
+
+    def _moved(self, counts: dict[int, int], move: tuple) -> dict[int, int]:
+        c = dict(counts)
+        i, j = move
+        if i is not None:
+            c[i] -= 1
+        if j is not None:
+            c[j] += 1
+        return c
+
+    def _candidate(self, sol: Solve, phase: int, k: int, failed: set, removals: bool = True,
+                   min_gain: float = MIN_GAIN) -> tuple | None:
+        """The move to try: the best predicted one not tried in vain (``failed``, or within RETRY_AFTER
+        steps); while the targets are missed, the one predicted to cut the misses most, never a removal."""
+        for gain, move in self._moves(sol, phase, k):
+            last, failures = self._tried.get(move, (-10**9, 0))
+            if move in failed or k - last < RETRY_AFTER * 2 ** max(failures - 1, 0):
+                continue
+            if move[1] is None and (not removals or not sol.feasible):
+                continue
+            return move if gain < -min_gain else None
+        return None
+
+    def _try_move(self, sol: Solve, move: tuple, phase: int, x: np.ndarray) -> Solve:
+        """Solve a schedule move, warm-started from ``sol`` stretched onto the new schedule."""
+        counts = self._moved(sol.counts, move)
+        nlp = self._nlp(sol.first_phase)
+        z, lam_x, lam_g = nlp.resample(sol.z, sol.lam_x, sol.lam_g, sol.counts, counts)
+        warm = Solve(counts=counts, first_phase=sol.first_phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
+        return self._solve(phase, counts, x, warm=warm)
+
+    def _try_better_schedule(self, x: np.ndarray, phase: int, k: int, budget_left: bool) -> Solve | None:
+        """One step's schedule move: solve the predicted best one and keep it if it ranks better.
+
+        Steps are dropped where the mode prices time (minimum time, weighted) or the cycle runs late
+        (target time), and added in any mode when the targets are missed. A move that did not pay waits
+        RETRY_AFTER steps, twice as long after each such move in a row (a schedule too short fails
+        slowly: 0.2-0.6 s), so a nominal cycle tries 3-4.
+        """
+        if not budget_left or self._sol.lam_p is None:
+            return None
+        if self._sol.feasible and k - self._last_failure < RETRY_AFTER * 2 ** max(self._failures - 1, 0):
+            return None
+        late = self.config.mode == "target_time" and k + steps_of(self._sol.counts) > self._n_target
+        move = self._candidate(self._sol, phase, k, failed=set(), removals=self.config.mode != "target_time" or late,
+                               min_gain=MIN_GAIN_ONLINE)
+        if move is None:
+            return None
+        alt = self._try_move(self._sol, move, phase, x)
+        if self._cost(alt, k) < self._cost(self._sol, k):
+            self._sol = alt
+            self._counts = dict(alt.counts)
+            self._failures = 0
+        else:
+            self._tried[move] = (k, self._tried.get(move, (0, 0))[1] + 1)
+            self._last_failure, self._failures = k, self._failures + 1
+        return alt
+
+    def _plan_cycle(self, x: np.ndarray, phase: int, k: int) -> None:
+        """The first step: the schedule from the continuous optimum, then improved by single-step moves
+        (the predicted best first; it ends after SEARCH_FAILURES moves in a row that did not pay)."""
+        ref = self.reference()
+        cfg = self.config
+        durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
+        if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
+            durations = {q: d for q, d in durations.items() if q >= phase}
+        if cfg.mode == "target_time":
+            self._n_target = int(math.floor(cfg.target_time / self.dt + 1e-6))
+            n = max(self._n_target - k, len(durations))
+        else:
+            self._n_target = 0
+            n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
+        counts = apportion(durations, n, self.dt)
+        self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
+        for q in range(phase, 5):  # build them all now, not in the middle of the cycle
+            self._solver(self._nlp(q), warm=True)
+        sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
+        failed: set = set()
+        for _ in range(SEARCH_SOLVES):
+            # a step fewer that did not hold the targets will not from another phase either
+            removals = sum(1 for m in failed if m[1] is None) < 1
+            move = self._candidate(sol, phase, k, failed, removals=removals) if sol.ok else None
+            if move is None or len(failed) >= SEARCH_FAILURES:
+                break
+            alt = self._try_move(sol, move, phase, x)
+            if self._cost(alt, k) < self._cost(sol, k):
+                sol, failed = alt, set()
+            else:
+                failed.add(move)
+        if not sol.ok:
+            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
+        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+
+    def reference(self):
+        """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""
+        key = (self.braking, self.params.fingerprint(), self.config.mode, self.config.target_time,
+               self.config.w_fuel, self.dt)
+        if key not in _REFERENCES:
+            _REFERENCES[key] = self._solve_reference()
+        return _REFERENCES[key]
+
+    def _solve_reference(self):
+        from mpc.ocp import OCPError, OCPSettings, solve_ocp
+
+        cfg, b, p = self.config, self.braking, self.params
+        settings = OCPSettings(intervals=REFERENCE_MESH, smoothing=(0.0,))
+        opts = dict(params=p, verify=False, settings=settings)
+        if cfg.mode == "target_time":
+            T = math.floor(cfg.target_time / self.dt + 1e-6) * self.dt
+            try:  # the split of the time between the phases has local optima: start from several
+                return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in (0.3, 0.5, 0.7)), **opts)
+            except OCPError:
+                fastest = solve_ocp(b, "time", params=p)  # as the benchmark solves it: T_min itself
+                if cfg.target_time < fastest.T:
+                    raise ValueError(
+                        f"target_time {cfg.target_time:g} s is impossible: the minimum cycle time with {b} braking is "
+                        f"{fastest.T:.3f} s (MPCConfig.target_time must be at least that)") from None
+                return fastest  # feasible, but not on the control grid: the cycle ends a step late
+        if cfg.mode == "time" or cfg.w_fuel == 0.0:
+            return solve_ocp(b, "time", starts=((4.2, 0.6), (4.2, 0.8)), **opts)
+        return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)
+
+    def _guess(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray) -> np.ndarray:
+        """A decision vector from the continuous optimum: each phase's steps at phase-normalized times."""
+        from mpc.grid import N_X, U_SCALE, X_SCALE
+
+        nlp = self._nlp(phase)
+        rt, rph = np.asarray(ref.t), np.asarray(ref.phase)
+        rx = np.column_stack([np.asarray(ref.states), np.asarray(ref.position)])
+        ru = np.asarray(ref.controls)
+        starts = np.concatenate([[0.0], np.cumsum(ref.phase_durations)])
+        z = np.zeros(nlp.n_var)
+        active = nlp.active_slots(counts)
+        x_prev = np.asarray(x, dtype=float)
+        per_phase = {q: [k for k in active if nlp.slots[k].phase == q] for q in nlp.phases}
+        for k_slot, s in enumerate(nlp.slots):
+            if k_slot in active:
+                ks = per_phase[s.phase]
+                frac = (ks.index(k_slot) + 1) / len(ks)
+                tr = starts[s.phase - 1] + frac * ref.phase_durations[s.phase - 1]
+                x_prev = np.array([np.interp(tr, rt, rx[:, m]) for m in range(N_X)])
+                i = int(np.clip(np.searchsorted(rt, tr - 0.5 * self.dt) - 1, 0, len(ru) - 1))
+                if rph[i] != s.phase:
+                    i = int(np.flatnonzero(rph[:-1] == s.phase)[-1]) if (rph[:-1] == s.phase).any() else i
+                z[s.u:s.u + 3] = ru[i] / U_SCALE
+            z[s.x:s.x + N_X] = x_prev / X_SCALE
+        return z
+
+    # ------------------------------------------------------------------ NLP solves
+    def _nlp(self, first_phase: int, symbolic: str = "SX") -> GridNLP:
+        slots = {q: self._slots[q] for q in range(first_phase, 5)}
+        key = (id(self.model), first_phase, tuple(sorted(slots.items())), symbolic)
+        if key not in _NLPS:
+            _NLPS[key] = GridNLP(self.model, first_phase, slots, symbolic)
+        return _NLPS[key]
+
+    def _solver(self, nlp: GridNLP, warm: bool) -> Any:
+        import casadi as ca
+
+        cfg = self.config
+        key = (id(nlp), warm, cfg.max_iter, cfg.time_budget)
+        if key not in _SOLVERS:
+            opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
+                    "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
+                    "ipopt.max_iter": cfg.max_iter if warm else 500}
+            if warm:
+                opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
+                             "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
+                             "ipopt.warm_start_slack_bound_push": 1e-6})
+                if cfg.time_budget is not None:
+                    opts["ipopt.max_wall_time"] = cfg.time_budget
+            _SOLVERS[key] = ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
+        return _SOLVERS[key]
+
+    def _estimate(self) -> np.ndarray:
+        return np.array([self._theta[1], self._theta[0], self._lift_gain])
+
+    def _solve(self, first_phase: int, counts: dict[int, int], x: np.ndarray, warm: Solve | None,
+               guess: np.ndarray | None = None) -> Solve:
+        """Solve the schedule ``counts`` from state x (no side effects but timing)."""
         t0 = time.perf_counter()
-        out: dict[str, Any] = {"ok": False, "status": "not solved", "f": math.inf, "rest_bounds": rest_bounds}
+        out = Solve(counts=dict(counts), first_phase=first_phase, ok=False, status="not solved")
         try:
             if self._force_failure:
                 raise RuntimeError("forced failure (test hook)")
-            z, lam_x, lam_g, status, ok, f = self._solve(ocp, x, t, phase, rest_bounds)
-            out.update(status=status, ok=ok, f=f)
-            if ok:
-                out["plan"] = {"t_made": t, "sol": ocp.unpack(z, x_start=x), "phases": ocp.phases}
-                out["warm"] = (z, lam_x, lam_g)
-        except RuntimeError as exc:
-            out["status"] = f"error: {exc}"
-        if not out["ok"]:
-            self._warm.pop(phase, None)
-        out["solve_time"] = time.perf_counter() - t0
+            nlp = self._nlp(first_phase)
+            args = nlp.arguments(counts, x, self._estimate(), self.dt, tighten=(self.config.tighten, self._later_margin()))
+            if warm is not None and warm.first_phase == first_phase and warm.z is not None:
+                solver = self._solver(nlp, warm=True)
+                sol = solver(x0=np.clip(warm.z, args["lbx"], args["ubx"]), lam_x0=warm.lam_x, lam_g0=warm.lam_g, **args)
+            else:  # a cold solve (the first of a cycle): on the MX twin, which builds in a tenth of the time
+                z0 = guess if guess is not None else (nlp.lbw + nlp.ubw) / 2
+                solver = self._solver(self._nlp(first_phase, "MX"), warm=False)
+                sol = solver(x0=np.clip(z0, args["lbx"], args["ubx"]), **args)
+            stats = solver.stats()
+            out.status = str(stats.get("return_status", "unknown"))
+            out.iterations = int(stats.get("iter_count", 0))
+            out.ok = bool(stats.get("success")) or out.status == "Solved_To_Acceptable_Level"
+            out.z = np.array(sol["x"]).ravel()
+            out.lam_x, out.lam_g = np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel()
+            out.lam_p = np.array(sol["lam_p"]).ravel()
+            out.J = float(sol["f"])
+            out.fuel_g = float(nlp.fuel_g(out.z, args["p"]))
+            out.misses = nlp.misses(out.z)
+            out.excess = nlp.excess(out.z)
+            if not np.isfinite(out.z).all():
+                out.ok, out.status = False, out.status + " (non-finite iterate)"
+        except (RuntimeError, ValueError) as exc:
+            out.status = f"error: {exc}"
+        out.wall = time.perf_counter() - t0
         return out
 
-    def _solve(self, ocp: CycleOCP, x: np.ndarray, t: float, phase: int,
-               rest_bounds: tuple[float, float] | None = None):
-        cfg = self.config
-        if cfg.mode == "time":
-            w_f, w_t = 0.0, 1.0
-        elif cfg.mode == "target_time":
-            w_f, w_t = 1.0, 0.0
-        else:
-            w_f, w_t = cfg.w_fuel / FUEL_REF_G, (1.0 - cfg.w_fuel) / TIME_REF
-        lbg, ubg = ocp._lbg.copy(), ocp._ubg.copy()
-        if cfg.mode == "target_time":
-            # half a control step early: the plant stops on the step grid, a plan ending on the deadline
-            # to the millisecond leaves a few mm/s for one more step
-            ubg[ocp._g_deadline_index] = max(cfg.target_time - t - 0.5 * self.dt, 0.0)
-        par = nlp_parameters(w_f, w_t, 0.0, cfg.deadline_weight * (1.0 if cfg.mode == "target_time" else 0.0), x,
-                             accel_offset=float(self._theta[1]), accel_gain=float(self._theta[0]),
-                             lift_gain=float(self._lift_gain))
-        warm = self._warm.get(phase)
-        if warm is not None:
-            z0, lam_x, lam_g = warm
-        else:
-            z0, lam_x, lam_g = self._guess(ocp, x, t), None, None
-        lbx, ubx = ocp._lbw, ocp._ubw
-        if rest_bounds is not None:
-            lbx, ubx = lbx.copy(), ubx.copy()
-            i = ocp._index["dur"][0]
-            lbx[i], ubx[i] = rest_bounds[0], min(rest_bounds[1], ubx[i])
-            z0 = np.array(z0, dtype=float)
-            z0[i] = min(max(z0[i], lbx[i]), ubx[i])
-        args = dict(x0=z0, p=par, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
-        if warm is not None:
-            args.update(lam_x0=lam_x, lam_g0=lam_g)
-        # Only the very first solve of a cycle may take long (no plan to fall back on yet).
-        solver = self._solver_for(ocp, warm=warm is not None, budget=self._plan is not None)
-        sol = solver(**args)
-        stats = solver.stats()
-        status = str(stats.get("return_status", "unknown"))
-        ok = bool(stats.get("success")) or status in ("Solved_To_Acceptable_Level",)
-        return np.array(sol["x"]).ravel(), sol["lam_x"], sol["lam_g"], status, ok, float(sol["f"])
+    def _track_prediction_error(self, x: np.ndarray, t: float) -> None:
+        """How far the last plan's next state was off the measurement in engine speed (moving RMS)."""
+        plan, k = self._plan, int(round(t / self.dt))
+        if plan is None or k - plan["k_made"] != 1 or len(plan["states"]) < 2:
+            return
+        e = float(x[0] - plan["states"][1][0])
+        self._omega_err2 = PREDICTION_ERROR_DECAY * self._omega_err2 + (1.0 - PREDICTION_ERROR_DECAY) * e * e
 
-    _ipopt: dict[tuple, Any] = {}
+    def _later_margin(self) -> float:
+        """The margin below the deceleration limit the plan keeps after its first step: the configured
+        one, and more as the plans mispredict the engine speed. With TC braking the converter's drag at
+        the shift follows the engine speed, which a fuel cut sets about a second before, with no way to
+        slow the engine further: the errors of that second add up (1.6 % of the limit per rad/s)."""
+        return min(self.config.tighten + MARGIN_PER_RAD_S * math.sqrt(self._omega_err2), MAX_MARGIN)
 
-    def _solver_for(self, ocp: CycleOCP, warm: bool, budget: bool):
-        import casadi as ca
-
-        key = (id(ocp), warm, budget, self.config.time_budget, self.config.max_iter)
-        if key not in self._ipopt:
-            opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
-                    "ipopt.max_iter": self.config.max_iter if budget else 3000, "ipopt.tol": 1e-6,
-                    "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 3,
-                    "ipopt.max_wall_time": (self.config.time_budget or 60.0) if budget else 60.0,
-                    "ipopt.mu_strategy": "adaptive"}
-            if warm:
-                opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
-                             "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
-            self._ipopt[key] = ca.nlpsol("mpc", "ipopt", ocp._nlp, opts)
-        return self._ipopt[key]
-
-    def _guess(self, ocp: CycleOCP, x: np.ndarray, t: float) -> np.ndarray:
-        """Initial guess: the previous plan shifted to now, else the offline optimum of the mode."""
-        if self._plan is not None:
-            sol = self._plan["sol"]
-            shift = t - self._plan["t_made"]
-            ts = sol["t"] - shift
-            keep = ts >= 0.0
-            if keep.sum() >= 2:
-                first = np.flatnonzero(keep)[0]
-                return ocp.guess_from_trajectory(ts[first:], sol["states"][first:], sol["position"][first:],
-                                                 sol["controls"][first:] if first < len(sol["controls"]) else sol["controls"][-1:],
-                                                 sol["phase"][first:])
-        ref = self.reference()
-        ts = np.asarray(ref.t) - t
-        first = int(np.clip(np.searchsorted(ts, 0.0), 0, len(ts) - 2))
-        return ocp.guess_from_trajectory(ts[first:], np.asarray(ref.states)[first:], np.asarray(ref.position)[first:],
-                                         np.asarray(ref.controls)[first:], np.asarray(ref.phase)[first:])
-
-    def reference(self):
-        """The offline optimum of this mode (the cold-start guess), solved once."""
-        if self._reference is None:
-            cfg = self.config
-            if cfg.mode == "time":
-                self._reference = solve_ocp(self.braking, "time", params=self.params, verify=False)
-            elif cfg.mode == "target_time":
-                try:
-                    self._reference = solve_ocp(self.braking, "fuel_at_time", T=cfg.target_time, params=self.params, verify=False)
-                except RuntimeError:
-                    self._reference = solve_ocp(self.braking, "time", params=self.params, verify=False)
-            else:
-                self._reference = solve_ocp(self.braking, "weighted", w_fuel=cfg.w_fuel, params=self.params, verify=False)
-        return self._reference
-
-    def _from_plan(self, t: float, phase: int) -> tuple[np.ndarray, bool]:
-        """Control and shift request now, from the last good plan (shifted by its age)."""
-        if self._plan is None:
-            ref = self.reference()
-            i = int(np.clip(np.searchsorted(ref.t, t, side="right") - 1, 0, len(ref.controls) - 1))
-            return np.asarray(ref.controls[i], dtype=float), int(ref.phase[i]) > phase
-        sol = self._plan["sol"]
-        age = t - self._plan["t_made"]
-        ts, ph = sol["t"], sol["phase"]
-        if age >= ts[-1]:  # the plan is used up: hold still (brakes where allowed, bucket stopped)
-            return self._terminal(None), False
-        # the planned end of the current phase, relative to now
-        in_phase = np.flatnonzero(ph[:-1] == phase)
-        end_of_phase = ts[in_phase[-1] + 1] - age if in_phase.size else -math.inf
-        # Shift in this step if the plan ends the phase before the next step: early is always feasible
-        # (brake a little less), late may not be (at 2.5 m/s a step costs 25 cm of stopping distance).
-        shift = phase in (1, 3) and end_of_phase < self.dt
-        if shift:
-            nxt = np.flatnonzero(ph[:-1] == phase + 1)
-            i = int(nxt[0]) if nxt.size else len(sol["controls"]) - 1
-            i = max(i, int(np.clip(np.searchsorted(ts, age, side="right") - 1, 0, len(sol["controls"]) - 1)))
-        else:
-            i = int(np.clip(np.searchsorted(ts, age, side="right") - 1, 0, len(sol["controls"]) - 1))
-        return np.asarray(sol["controls"][i], dtype=float), bool(shift)
-
+    # ------------------------------------------------------------------ model-error estimate
     def _estimate_model_error(self, x: np.ndarray, phase: int) -> None:
         """Adaptive MPC: fit the plant's deviation from the model by recursive least squares over the
         steps so far, from the one-step prediction error of the previous step.
@@ -430,36 +660,25 @@ class MPCController:
         y1 = y + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
         return float(y1[0]), float(y1[1])
 
+    # ------------------------------------------------------------------ helpers
     def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:
         """The measurement moved onto the constraints it may graze (by a hair, through the simulator's
-        per-substep saturation): a plan must start from a state its constraints admit."""
+        saturation and the observation's float32): a plan must start from a state its constraints admit."""
         p = self.params
         x = np.array(x, dtype=float)
         x[0] = min(max(x[0], p.omega_min), p.omega_max)
         d = -1.0 if phase <= 2 else 1.0
         x[1] = d * min(max(d * x[1], 0.0), p.V_max)
         x[2] = min(max(x[2], p.H_0), lift.max_bucket_height(p))
-        x[3] = min(max(x[3], 0.0), (1.0 - 1e-6) * float(lift.max_lift_speed(x[2], x[0], p)))
+        x[3] = max(x[3], 0.0)
         return x
 
-    def _stopping(self, x: np.ndarray) -> np.ndarray:
-        """The last part-step of phase 2: the previous step's controls; with service brakes the brake
-        torque that decelerates at the limit (as the terminal law brakes)."""
-        u = np.array(self._last[2], dtype=float)
-        if self.braking == "service":
-            u[2] = self._terminal(None)[2]
-        return u
-
     def _terminal(self, x: np.ndarray | None) -> np.ndarray:
-        """End of the cycle, the vehicle (nearly) standing: brake, bring the bucket to H_T and hold it.
-
-        The OCP has no stiction (a standing machine would roll back under the brake torque), so the
-        last tenths of a second are a simple feedback law rather than an NLP.
-        """
+        """The machine standing at the truck: brake, bring the bucket to H_T and hold it (a plan needs a
+        moving machine for its stop step; this serves a plant that stopped before the plan said)."""
         p = self.params
-        # the brake torque that decelerates at the 0.18 g limit with rolling resistance helping, in the plant
-        # as estimated: deceleration = gain * (U_b / r_w + F_roll) / M_tot - offset
         gain, offset = self._theta
+        # the brake torque that decelerates at the limit with rolling resistance helping, in the plant as estimated
         a_stop = (1.0 - self.config.tighten) * p.decel_max * p.g + offset
         u_b = min(max((a_stop * p.M_tot / gain - p.F_roll) * p.r_w, 0.0), p.U_b_max)
         if x is None:
@@ -480,9 +699,10 @@ class MPCController:
         return np.array([min(max(u_mf, 0.0), p.U_mf_max), u_ab, u_b])
 
     def stats(self) -> dict[str, float]:
-        st = np.asarray(self.solve_times) if self.solve_times else np.zeros(1)
+        """Per-step solve times (s; the first step's planning apart) and the fallback count."""
+        st = np.asarray(self.solve_times[1:] or self.solve_times or [0.0])
         return {"median_s": float(np.median(st)), "p95_s": float(np.percentile(st, 95)), "max_s": float(st.max()),
-                "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks)}
+                "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks), "planning_s": float(self.planning_time)}
 
 
 def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
@@ -503,7 +723,8 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
     model = resolve(params)
     plant = resolve(plant_params) if plant_params is not None else model
     env = gym.make("WheelLoader-v0", braking=braking, params=plant, max_time=config.max_time)
-    ctrl = controller or MPCController(braking, model, config, dt=env.unwrapped.core.dt)
+    core = env.unwrapped.core
+    ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps)
     ep = run_episode(env, ctrl, seed=seed)
     result = {
         "controller": "mpc", "braking": braking, "mode": config.mode, "target_time": config.target_time,

@@ -37,43 +37,13 @@ X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])  # omega, V, H, V_b, s
 U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
-TARGET_WEIGHT = 1.0e4  # MPC: objective units per unit of relative target miss (15 per cm at 6.6 m)
-# MPC: per unit of excess over the deceleration limit at the measured start. 1 % costs as much as 6.6 m
-# of target miss: practically a hard limit, yet a start the limit cannot hold from still gets a plan.
-DECEL_EXCESS_WEIGHT = 1.0e6
-# MPC: per unit of the robustness margin (tighten - min_tighten) a plan uses at one point of its horizon.
-# A plan rides its constraints, and the next measurement can leave it a hair short of them (a gear change
-# a hair late). Using 1 % of the margin at one point costs as much as 66 cm of target miss: a plan uses
-# it only where the full margin leaves no plan.
-DECEL_MARGIN_WEIGHT = 1.0e5
-N_PARAMETERS = 12  # length of the NLP parameter vector, see nlp_parameters()
+N_PARAMETERS = 3  # length of the NLP parameter vector, see nlp_parameters()
 
 
-def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0, deadline_weight: float = 0.0,
-                   x_start: np.ndarray | None = None, accel_offset: float = 0.0, accel_gain: float = 1.0,
-                   lift_gain: float = 1.0) -> list[float]:
-    """The parameter vector of a :class:`CycleOCP` NLP.
-
-    ``w_fuel`` per g and ``w_time`` per s weigh the objective; ``smoothing`` is k of eq. (33);
-    ``deadline_weight`` (per s) prices the MPC's deadline slack; ``x_start`` ([omega, V, H, V_b, s]) is
-    the measured start of an NLP with a parametric start; ``accel_gain`` and ``accel_offset`` correct the
-    longitudinal dynamics to dV/dt = gain * model + d * offset, and ``lift_gain`` scales the lift's
-    power drawn from the engine (plant payload / model payload): the MPC's estimate of the plant.
-    """
-    x = np.zeros(5) if x_start is None else np.asarray(x_start, dtype=float) / X_SCALE
-    return [w_fuel, w_time, smoothing, deadline_weight, *x, accel_offset, accel_gain, lift_gain]
-
-
-def estimated_derivatives(x: Any, u: Any, gear: float, direction: float, p: LoaderParams,
-                          offset: Any = 0.0, gain: Any = 1.0, lift_gain: Any = 1.0) -> tuple[Any, ...]:
-    """The model's derivatives (:func:`wl_env.model.derivatives`) as the MPC estimates the plant: dV/dt =
-    gain * model + d * offset (gain: model mass / plant mass; offset: an acceleration along the travel
-    direction d, e.g. a rolling-resistance error), and the lift drawing lift_gain times the model's power
-    from the engine (its power is proportional to the payload, eq. (10)). Floats or CasADi symbols."""
-    d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], gear, direction, p)
-    d_v = gain * d_v + direction * offset
-    d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
-    return d_om, d_v, d_h, d_vb, m_dot
+def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0) -> list[float]:
+    """The parameter vector of a :class:`CycleOCP` NLP: ``w_fuel`` per g and ``w_time`` per s weigh the
+    objective; ``smoothing`` is k of eq. (33)."""
+    return [w_fuel, w_time, smoothing]
 
 
 class OCPError(RuntimeError):
@@ -93,12 +63,6 @@ class OCPSettings:
     linear_solver: str = "mumps"
     hessian: str = "exact"  # or "limited-memory" (L-BFGS): the alternative the benchmarks compare
     print_level: int = 0
-    tighten: float = 0.0  # fraction by which the deceleration limit is tightened (MPC robustness margin)
-    # MPC: the least margin; a plan may cut into the margin between min_tighten and tighten at a price
-    # (DECEL_MARGIN_WEIGHT), so that a measured state a hair off the plan still has a plan
-    min_tighten: float = 0.0
-    omega_margin: float = 0.0  # rad/s kept above omega_min (MPC: a plan on the stall limit stalls the plant)
-    exec_interval: float = 0.1  # s, MPC only: the first control holds this long (the env's control step)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
@@ -108,10 +72,6 @@ class OCPSettings:
             raise ValueError(f"degree must lie in [1, 9], got {self.degree}")
         if not self.smoothing or self.smoothing[-1] != 0.0 or any(k < 0 for k in self.smoothing):
             raise ValueError(f"smoothing must be a non-empty sequence of k >= 0 ending with 0, got {self.smoothing}")
-        if not 0.0 <= self.tighten < 0.5:
-            raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten}")
-        if not 0.0 <= self.min_tighten <= self.tighten:
-            raise ValueError(f"min_tighten must lie in [0, tighten = {self.tighten}], got {self.min_tighten}")
         if self.solver != "ipopt":
             # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free
             # phase durations are global variables of this NLP.
@@ -179,25 +139,16 @@ class OCPResult:
 
 # ----------------------------------------------------------------------------------------------------
 class CycleOCP:
-    """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused).
-
-    The offline benchmark starts at Table II's initial state in phase 1. The MPC builds the same NLP
-    with ``first_phase`` > 1 for the phases still ahead and ``parametric_start=True``: the start state
-    [omega, V, H, V_b, s] is then an NLP parameter (the measurement), the current phase may last
-    0 s, and a soft deadline (sum of durations <= remaining time + slack, slack penalized) replaces the
-    exact cycle time.
-    """
+    """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused),
+    from Table II's initial state in phase 1. (The MPC plans on the environment's own grid instead,
+    :mod:`mpc.grid`.)"""
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 settings: OCPSettings | None = None, first_phase: int = 1, parametric_start: bool = False) -> None:
+                 settings: OCPSettings | None = None) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
         self.settings = settings or OCPSettings()
-        if first_phase not in (1, 2, 3, 4):
-            raise ValueError(f"first_phase must be 1..4, got {first_phase!r}")
-        self.first_phase = first_phase
-        self.parametric_start = parametric_start
-        self.specs = cycle.phase_specs(self.braking, self.params)[first_phase - 1:]
+        self.specs = cycle.phase_specs(self.braking, self.params)
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -220,7 +171,6 @@ class CycleOCP:
 
         self._C, self._B = C, B
         self._interval_fns = [self._interval_function(spec) for spec in self.specs]
-        self._free_start_fns = [self._interval_function(spec, start_constraints=False) for spec in self.specs]
         self.phases = [spec.phase for spec in self.specs]
         xs = ca.DM(X_SCALE)
         us = ca.DM(U_SCALE)
@@ -253,49 +203,26 @@ class CycleOCP:
         smooth = 0
         durations = []
         u_prev = None
-        # Position and height targets: exact offline; for the MPC, elastic (L1 penalty TARGET_WEIGHT on
-        # the miss), so a measured state the targets cannot be met from still gets the closest plan.
-        soft_terms = []
-        decel_excess = []  # MPC: the elastic deceleration row at the measured start (see below)
-        decel_soft = []  # MPC: the margin a plan uses (see DECEL_MARGIN_WEIGHT)
-        soft_margin = st.tighten - st.min_tighten if self.parametric_start else 0.0
-
-        def soft_target(name: str) -> ca.SX:
-            ub = math.inf if self.parametric_start else 0.0
-            e, _ = add_var(f"miss_{name}", 2, np.zeros(2), np.array([ub, ub]))
-            soft_terms.append(e[0] + e[1])
-            return e[0] - e[1]
-
-        if self.parametric_start:
-            X_start = par[4:9]
-            self._index["X"].append(None)
-        else:
-            X_start, off = add_var("X0", 5, np.append(x0, 0.0) / X_SCALE, np.append(x0, 0.0) / X_SCALE)
-            self._index["X"].append(off)
+        X_start, off = add_var("X0", 5, np.append(x0, 0.0) / X_SCALE, np.append(x0, 0.0) / X_SCALE)
+        self._index["X"].append(off)
         x_k = X_start * xs
+        min_dur = cycle.MIN_PHASE_DURATION
         for k, spec in enumerate(self.specs):
             n_int = st.intervals[spec.phase - 1]
-            min_dur = 0.0 if (self.parametric_start and k == 0) else cycle.MIN_PHASE_DURATION
             dur, off = add_var(f"T{spec.phase}", 1, np.array([min_dur]), np.array([30.0]))
             self._index["dur"].append(off)
             durations.append(dur)
             h = dur / n_int
             v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
-            x_lb = np.array([p.omega_min + st.omega_margin, v_lo, p.H_0, 0.0, -2 * p.distance]) / X_SCALE
+            x_lb = np.array([p.omega_min, v_lo, p.H_0, 0.0, -2 * p.distance]) / X_SCALE
             x_ub = np.array([p.omega_max, v_hi, H_stop, 5.0, p.distance]) / X_SCALE
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0]) / U_SCALE
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0]) / U_SCALE
-            # (interval length, collocation function) of the phase. With a parametric start the horizon
-            # opens with an execution interval of exactly one control step (the plant holds the first
-            # control that long), in the current phase, from the measured state; "dur" is the rest.
-            mesh = [(h, self._interval_fns[k])] * n_int
-            if self.parametric_start and k == 0:
-                mesh = [(st.exec_interval, self._free_start_fns[k])] + mesh
-                durations.append(st.exec_interval)
+            fn = self._interval_fns[k]
             self._index["dur_copies"].append([off])
             dur_prev = dur
-            for j, (h, fn) in enumerate(mesh):
+            for j in range(n_int):
                 if j > 0:
                     # Each interval carries its own copy of the phase duration, chained by equalities:
                     # the KKT system stays banded (a shared duration would be a dense column per phase).
@@ -306,37 +233,25 @@ class CycleOCP:
                 U, off = add_var(f"U{spec.phase}_{j}", 3, u_lb, u_ub)
                 self._index["U"].append(off)
                 u = U * us
-                if u_prev is not None and not self.parametric_start:  # eq. (33): squared rates of U_mf, U_ab
+                if u_prev is not None:  # eq. (33): squared rates of U_mf, U_ab
                     du = (U[:2] - u_prev[:2])
                     smooth += ca.sumsqr(du) / h
                 u_prev = U
                 XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
                 self._index["XC"].append(off)
-                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[9], par[10], par[11])
+                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h)
                 add_con(defects, 0.0, 0.0)
-                n_rows = int(path.numel()) // (d + 1)
-                if fn is self._free_start_fns[k]:
-                    # The deceleration the plant shows at the measured state under the first control: a
-                    # brake can always meet the limit there, the converter's drag (a function of the state)
-                    # may not, so this one row is elastic (an L1 penalty like the targets' miss).
-                    excess, _ = add_var("decel_at_start", 1, np.zeros(1), np.array([math.inf]))
-                    decel_excess.append(excess)
-                    path = path + ca.vertcat(ca.DM.zeros(n_rows - 1), excess, ca.DM.zeros(n_rows * d))
-                if soft_margin > 0.0:
-                    soft, _ = add_var("decel_soft", d + 1, np.zeros(d + 1), np.full(d + 1, soft_margin))
-                    decel_soft.append(soft)
-                    path = path + ca.vertcat(*[ca.vertcat(ca.DM.zeros(n_rows - 1), soft[c]) for c in range(d + 1)])
                 add_con(path, path_lb, path_ub)
                 fuel_total += fuel
                 x_k = XC[5 * (d - 1):] * xs
             # boundary conditions at the end of the phase
             if spec.phase == 2:  # the reversing point
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con((x_k[4] + p.distance) / p.distance - soft_target("reversing point"), 0.0, 0.0)
+                add_con((x_k[4] + p.distance) / p.distance, 0.0, 0.0)
             if spec.phase == 4:  # end: standing at the truck, bucket up and still, U_ab = 0, engine steady
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con(x_k[4] / p.distance - soft_target("end position"), 0.0, 0.0)
-                add_con((x_k[2] - p.H_T) / p.H_T - soft_target("end height"), 0.0, 0.0)
+                add_con(x_k[4] / p.distance, 0.0, 0.0)
+                add_con((x_k[2] - p.H_T) / p.H_T, 0.0, 0.0)
                 add_con(x_k[3], 0.0, 0.0)
                 add_con(U[1], 0.0, 0.0)
                 d_om = derivatives(x_k[0], x_k[1], x_k[2], x_k[3], u[0], u[1], u[2], spec.gear, spec.direction, p)[0]
@@ -344,12 +259,8 @@ class CycleOCP:
         T = sum(durations)
         self._g_T_index = sum(int(x.numel()) for x in g)
         add_con(T, 0.0, math.inf)  # bounds set per solve for a fixed cycle time
-        slack, self._slack_index = add_var("slack", 1, np.array([0.0]), np.array([0.0 if not self.parametric_start else math.inf]))
-        self._g_deadline_index = self._g_T_index + 1
-        add_con(T - slack, -math.inf, math.inf)  # MPC deadline: remaining time, bounds set per solve
         fuel_g = fuel_total * 1000.0
-        J = (par[0] * fuel_g + par[1] * T + par[2] * smooth + par[3] * slack + TARGET_WEIGHT * sum(soft_terms) + DECEL_EXCESS_WEIGHT * sum(decel_excess)
-             + DECEL_MARGIN_WEIGHT * sum(ca.sum1(e) for e in decel_soft))
+        J = par[0] * fuel_g + par[1] * T + par[2] * smooth
 
         z = ca.vertcat(*w)
         self.n_var = int(z.numel())
@@ -359,7 +270,7 @@ class CycleOCP:
         self._nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
         self._solver = self._make_solver()
 
-    def _interval_function(self, spec: cycle.PhaseSpec, start_constraints: bool = True) -> ca.Function:
+    def _interval_function(self, spec: cycle.PhaseSpec) -> ca.Function:
         """Collocation of one mesh interval of a phase: (x_start, X_colloc, u, h) -> (defects, fuel kg, path).
 
         Built once per phase as an SX function, so the NLP inlines it instead of re-tracing the model.
@@ -369,32 +280,22 @@ class CycleOCP:
         xc = ca.SX.sym("xc", 5 * d)
         u = ca.SX.sym("u", 3)
         h = ca.SX.sym("h")
-        # The MPC's estimate of the plant (see estimated_derivatives); offline gain = lift_gain = 1, offset = 0.
-        offset, gain, lift_gain = ca.SX.sym("offset"), ca.SX.sym("gain"), ca.SX.sym("lift_gain")
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
         for c in range(d + 1):
             x = pts[c]
-            d_om, d_v, d_h, d_vb, m_dot = estimated_derivatives(x, u, spec.gear, spec.direction, p, offset, gain, lift_gain)
+            d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
             rows = self._path_expressions(x, u, d_v, spec.direction)
-            if c == 0:
-                if not start_constraints:
-                    # A measured start state is what it is: its lift speed against the pump limit is not
-                    # the control's to change. In their place, the pump limit as the machine applies it
-                    # to a held step: the bucket speed at the step's end within the limit at its start
-                    # (a plan counting on more lift power than the pump delivers mispredicts the engine).
-                    held = [x[3] + u[1] * h - v_lim for v_lim in lift.max_lift_speed_pieces(x[2], x[0], p)]
-                    rows = ca.vertcat(rows[:3], *held, rows[5:])
-                path.append(rows)  # the deceleration row stays, elastic (see _build)
-                continue
             path.append(rows)
+            if c == 0:
+                continue
             xp = sum(self._C[r, c] * pts[r] for r in range(d + 1))
             defects.append((h * ca.vertcat(d_om, d_v, d_h, d_vb, x[1]) - xp) / ca.DM(X_SCALE))
             fuel += self._B[c] * m_dot * h
-        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, offset, gain, lift_gain],
+        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h],
                            [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
     def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
@@ -410,7 +311,7 @@ class CycleOCP:
 
     def _path_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         d = self.settings.degree
-        lb = np.array([-math.inf] * 3 + [-math.inf] * 2 + [-math.inf, -(1.0 - self.settings.tighten)])
+        lb = np.array([-math.inf] * 3 + [-math.inf] * 2 + [-math.inf, -1.0])
         ub = np.array([0.0] * 3 + [0.0] * 2 + [1.0, math.inf])
         return np.tile(lb, d + 1), np.tile(ub, d + 1)
 
@@ -444,8 +345,7 @@ class CycleOCP:
         ctrl_phase = phase[:-1] if len(phase) == len(t) else phase
         d = self.settings.degree
         ui = xci = 0
-        if self._index["X"][0] is not None:
-            z[self._index["X"][0]:self._index["X"][0] + 5] = full[0] / X_SCALE
+        z[self._index["X"][0]:self._index["X"][0] + 5] = full[0] / X_SCALE
         for k, ph in enumerate(self.phases):
             idx = np.flatnonzero(phase == ph)
             cmask = np.flatnonzero(ctrl_phase == ph)
@@ -461,15 +361,6 @@ class CycleOCP:
                 seg_t = (t[lo:hi + 1] - t[lo]) / dur
                 seg_x = full[lo:hi + 1]
                 ctrl = controls
-            if self.parametric_start and k == 0:  # the execution interval: the trajectory's first step
-                ex = self.settings.exec_interval
-                z[self._index["U"][ui]:self._index["U"][ui] + 3] = controls[0] / U_SCALE
-                ui += 1
-                for c in range(d):
-                    xv = np.array([np.interp(t[0] + self.tau[c + 1] * ex, t, full[:, m]) for m in range(5)])
-                    z[self._index["XC"][xci] + 5 * c:self._index["XC"][xci] + 5 * c + 5] = xv / X_SCALE
-                xci += 1
-                dur = max(dur - ex, 0.0)
             z[self._index["dur_copies"][k]] = dur
             n_int = self.settings.intervals[ph - 1]
             for j in range(n_int):
@@ -535,25 +426,19 @@ class CycleOCP:
                    "smoothing": history}
 
     # ------------------------------------------------------------------ unpack
-    def unpack(self, z: np.ndarray, x_start: np.ndarray | None = None) -> dict[str, Any]:
+    def unpack(self, z: np.ndarray) -> dict[str, Any]:
         """Mesh-point trajectory from a scaled decision vector: t, states, position, controls, phase.
 
-        ``x_start`` ([omega, V, H, V_b, s]) is needed with a parametric start. ``phase[i]`` is the
-        phase of the interval that starts at sample i; the last sample closes phase 4.
+        ``phase[i]`` is the phase of the interval that starts at sample i; the last sample closes phase 4.
         """
         d = self.settings.degree
         durs = [float(z[i]) for i in self._index["dur"]]
-        if self._index["X"][0] is not None:
-            x_start = z[self._index["X"][0]:self._index["X"][0] + 5] * X_SCALE
-        elif x_start is None:
-            raise ValueError("unpack needs x_start for an NLP with a parametric start")
+        x_start = z[self._index["X"][0]:self._index["X"][0] + 5] * X_SCALE
         ts, xs, us, phase = [0.0], [np.asarray(x_start, dtype=float)], [], []
         t0, ui, xci = 0.0, 0, 0
         for k, ph in enumerate(self.phases):
             n_int = self.settings.intervals[ph - 1]
             steps = [durs[k] / n_int] * n_int
-            if self.parametric_start and k == 0:
-                steps = [self.settings.exec_interval] + steps
             for h in steps:
                 us.append(z[self._index["U"][ui]:self._index["U"][ui] + 3] * U_SCALE)
                 ui += 1

@@ -130,3 +130,48 @@ def verify_result(result: Any, params: LoaderParams | dict | None = None, max_su
             "fuel_g_simulated": float(open_loop["fuel_g"]),
         },
     }
+
+
+def within_step_excess(states: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: str,
+                       params: LoaderParams | dict | None = None, dt: float = 0.1, n: int = 20) -> float:
+    """The largest relative excess over the deceleration limit anywhere within the control steps of a
+    run (0 = none): each step integrated again from its state under its control with ``n`` RK4 substeps.
+
+    The environment checks the limit at each substep start only; with TC braking the converter's drag
+    can rise in between. ``phase[k]`` is the phase after step k - 1 (a run's samples, as ``run_episode``
+    returns them); the step that reaches the reversing point ran in phase 2, up to where the simulator
+    cuts it (its linear estimate of the crossing; with the drag rising, a little before the continuous
+    motion would stop).
+    """
+    from wl_env import cycle
+    from wl_env.model import derivatives
+
+    p = resolve(params)
+    gear, direction, _ = cycle.phase_tables(braking, p)
+    X, U, ph = np.asarray(states, dtype=float), np.asarray(controls, dtype=float), np.asarray(phase)
+    limit, worst = p.decel_max * p.g, 0.0
+    for k in range(len(U)):
+        reversing = ph[k] == 2 and ph[k + 1] == 3
+        q = 2 if reversing else int(ph[k + 1])
+
+        def f(y: np.ndarray, u: np.ndarray = U[k], g: float = float(gear[q]), d: float = float(direction[q])) -> np.ndarray:
+            return np.array(derivatives(y[0], y[1], y[2], y[3], u[0], u[1], u[2], g, d, p)[:4])
+
+        def rk4(y: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+            k1 = f(y)
+            k2 = f(y + 0.5 * h * k1)
+            k3 = f(y + 0.5 * h * k2)
+            return y + h / 6.0 * (k1 + 2.0 * (k2 + k3) + f(y + h * k3)), k1
+
+        x, d, span = X[k].copy(), float(direction[q]), dt
+        if reversing:  # the simulator's cut: v0 / (v0 - v1) of its own full step
+            v0, v1 = d * x[1], d * rk4(x, dt)[0][1]
+            span = dt * v0 / (v0 - v1) if v0 > 0.0 > v1 else dt
+        for _ in range(n):
+            x_next, k1 = rk4(x, span / n)
+            if d * x[1] > 1e-3:  # moving (a standing machine's forces are held by stiction)
+                worst = max(worst, (-d * k1[1] - limit) / limit)
+            x = x_next
+        if d * x[1] > 1e-3:
+            worst = max(worst, (-d * f(x)[1] - limit) / limit)
+    return max(worst, 0.0)

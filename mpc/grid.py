@@ -1,0 +1,519 @@
+"""The cycle on the environment's control grid: the plant's own discrete-time model, in CasADi.
+
+``WheelLoader-v0`` holds each control for one control step (``dt``, 0.1 s) and integrates it with
+``substeps`` classical RK4 steps, after saturating it to what the machine can do; a substep in which the
+speed crosses zero is cut at the crossing (:class:`wl_env.simulator.Simulator`). This module writes that
+step in CasADi, on :func:`estimated_derivatives` (the model, corrected by the MPC's estimate of the
+plant), so that a plan made with it is what the environment does, step for step:
+
+* a *full step* holds the controls over ``substeps`` RK4 substeps. What the simulator would saturate
+  becomes a constraint at each substep start, where the simulator applies it (torque curve, governor,
+  pump flow, boom end stop, relief pressure; no lowering: a bound), and so do the driver's limits
+  (deceleration, speed, engine speed). Where the environment's checks are coarse the plan is stricter,
+  as eq. (31) holds in continuous time: the deceleration also at the RK4 stages, the torque curve and
+  the pump flow also at the step's end (see :func:`_substep_rows`, :func:`_end_rows`);
+* a *stop step* ends phase 2 or phase 4: its last substep crosses V = 0, is cut at the crossing (at the
+  simulator's linear estimate v0 / (v0 - v1) of its time) and runs the rest in phase 3 (the reversing
+  point) or standing (the end of the cycle).
+
+:class:`GridNLP` chains such steps over the phases still ahead: a multiple-shooting NLP with a whole
+number of steps per phase (the *schedule*). The schedule fixes the cycle time, so the NLP minimizes fuel;
+the choice of schedule (:mod:`mpc.mpc`) trades time. Each phase has a fixed number of slots; a schedule
+uses the last ``n`` of them and the slots before are idle (zero-length steps that carry the state
+through), so one built NLP serves every schedule that fits, and the plan one step later is the same
+vector with one more idle slot.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from wl_env import cycle
+from wl_env.model import derivatives
+from wl_env.params import LoaderParams, resolve
+from wl_env.physics import engine, lift
+
+N_X = 5  # grid state [omega (rad/s), V (m/s), H (m), V_b (m/s), s (m)]
+X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])
+U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf (mg), U_ab (m/s^2), U_b (N m)
+N_EST = 3  # the plant estimate: [accel offset (m/s^2), accel gain, lift gain], see estimated_derivatives
+NOMINAL_ESTIMATE = np.array([0.0, 1.0, 1.0])
+TARGET_WEIGHT = 1.0e4  # objective (g) per unit of relative target miss: 15 g per cm of distance
+# Deceleration, per unit of relative excess: over the limit itself (practically hard: 1 % costs as much as
+# 6.6 m of target miss), and into the margin a plan keeps below it (robustness: a plan uses it only where
+# the full margin would cost it a target or a step: 1 % at one step costs 10 g).
+DECEL_EXCESS_WEIGHT = 1.0e6
+DECEL_MARGIN_WEIGHT = 1.0e3
+MIN_STOP_SPEED = 1e-3  # m/s: a stop step starts moving (the crossing's time is v0 / (v0 - v1))
+# m/s: the speed a stop step would reach past the crossing if the simulator did not cut it. A plan that
+# rides v1 = 0 stops at the step's very end, and a plant a hair slower does not stop within the step.
+STOP_OVERSHOOT = 2e-3
+
+
+def estimated_derivatives(x: Any, u: Any, gear: Any, direction: Any, p: LoaderParams,
+                          offset: Any = 0.0, gain: Any = 1.0, lift_gain: Any = 1.0) -> tuple[Any, ...]:
+    """The model's derivatives (:func:`wl_env.model.derivatives`) as the MPC estimates the plant.
+
+    dV/dt = gain * model + d * offset (gain: model mass / plant mass; offset: an acceleration along the
+    travel direction d, e.g. a rolling-resistance error), and the lift draws lift_gain times the model's
+    power from the engine (its power is proportional to the payload, eq. (10)). Floats or CasADi symbols.
+    """
+    d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], gear, direction, p)
+    d_v = gain * d_v + direction * offset
+    d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
+    return d_om, d_v, d_h, d_vb, m_dot
+
+
+def _rhs(x: Any, u: Any, gear: float, d: float, p: LoaderParams, est: Any, held: bool) -> tuple[Any, Any]:
+    d_om, d_v, d_h, d_vb, m_dot = estimated_derivatives(x, u, gear, d, p, est[0], est[1], est[2])
+    return ca.vertcat(d_om, 0.0 if held else d_v, d_h, d_vb, x[1]), m_dot
+
+
+def _rk4(x: Any, u: Any, gear: float, d: float, p: LoaderParams, est: Any, h: Any,
+         held: bool = False) -> tuple[Any, Any, list]:
+    """One classical RK4 step, as the simulator takes it: (end state, fuel (kg), the four stage derivatives)."""
+    k1, f1 = _rhs(x, u, gear, d, p, est, held)
+    k2, f2 = _rhs(x + 0.5 * h * k1, u, gear, d, p, est, held)
+    k3, f3 = _rhs(x + 0.5 * h * k2, u, gear, d, p, est, held)
+    k4, f4 = _rhs(x + h * k3, u, gear, d, p, est, held)
+    return x + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4), h / 6.0 * (f1 + 2.0 * (f2 + f3) + f4), [k1, k2, k3, k4]
+
+
+def _substep_rows(x: Any, u: Any, stages: list, h: Any, d: float, p: LoaderParams,
+                  end_stop: bool) -> tuple[list, list, list]:
+    """What the simulator saturates at a substep start, and the deceleration limit at ``stages``.
+
+    The environment checks the deceleration at each substep start only; with a gear engaged the plan
+    holds it at the RK4 stages too (start, midpoint, end). With TC braking the converter's drag rises
+    within a step: a plan checked at the start only exceeds 0.18 g by up to 22 % in between (measured on
+    a minimum-time cycle). In neutral the deceleration is the brake's and the rolling resistance's, the
+    same all along. The bucket's no-lowering limit needs no row: V_b is linear within a step and >= 0
+    at both ends (bounds). Every row is written so that h = 0 (an idle slot) leaves it finite.
+    """
+    omega, H, V_b = x[0], x[2], x[3]
+    t_ice = engine.engine_torque(omega, u[0], p)
+    v_end = V_b + u[1] * h  # the bucket speed the substep ends with
+    rows = [(t_ice - line) / 1000.0 for line in engine.torque_limit_lines(omega, p)]  # torque curve
+    rows.append((omega + h * stages[0][0] - p.omega_max) / 100.0)  # governor: omega_max at most, within the substep
+    rows += [v_end - v_lim for v_lim in lift.max_lift_speed_pieces(H, omega, p)]  # pump flow
+    if end_stop:
+        rows.append(H + h * v_end - lift.max_bucket_height(p))  # boom end stop
+    rows.append(lift.cylinder_pressure(H, u[1], p) / p.P_cyl_max)  # relief valve
+    n = len(rows)
+    rows += [d * k[1] / (p.decel_max * p.g) for k in stages]  # deceleration limit (the last rows)
+    lb = [-math.inf] * n + [-1.0] * len(stages)  # (a plan's margins: per solve, GridNLP.arguments)
+    ub = [0.0] * (n - 1) + [1.0] + [math.inf] * len(stages)
+    return rows, lb, ub
+
+
+def _end_rows(x1: Any, u: Any, p: LoaderParams) -> tuple[list, list, list]:
+    """The torque curve and the pump flow at a substep's end, the control still held (eq. (31)).
+
+    The simulator saturates both at the substep start only: as the engine slows within a step, the
+    bucket keeps a speed the pump no longer delivers (measured: 32 % over V_lift,max on a TC cycle
+    planned without these rows), and the engine a torque above its curve. The plan does not count on it.
+    """
+    t_ice = engine.engine_torque(x1[0], u[0], p)
+    rows = [(t_ice - line) / 1000.0 for line in engine.torque_limit_lines(x1[0], p)]
+    rows += [x1[3] - v_lim for v_lim in lift.max_lift_speed_pieces(x1[2], x1[0], p)]
+    return rows, [-math.inf] * 5, [0.0] * 5
+
+
+@dataclass(frozen=True)
+class StepFunction:
+    """A CasADi function (x0, u, h, est) -> (x1, rows, fuel kg, s at the stop) and its rows' bounds."""
+
+    fn: ca.Function
+    lb: np.ndarray
+    ub: np.ndarray
+    decel: tuple[int, ...]  # its rows of the deceleration limit
+
+    @property
+    def n_rows(self) -> int:
+        return len(self.lb)
+
+
+class StepModel:
+    """The control step of each phase as the environment takes it (see the module doc)."""
+
+    def __init__(self, braking: str, params: LoaderParams | dict | None = None, dt: float = 0.1, substeps: int = 1,
+                 omega_margin: float = 0.0) -> None:
+        if not (isinstance(substeps, int) and substeps >= 1):
+            raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
+        if not (math.isfinite(omega_margin) and omega_margin >= 0.0):
+            raise ValueError(f"omega_margin must be >= 0 rad/s, got {omega_margin!r}")
+        self.braking = cycle.check_braking(braking)
+        self.params = resolve(params)
+        self.substeps, self.omega_margin = substeps, float(omega_margin)
+        p = self.params
+        # The boom's end stop can act only if a bucket lifting at the pump's limit reaches it within a
+        # substep from H_T (the plan never goes above H_T: the bucket is not lowered and ends there).
+        v_pump = max(float(lift.max_lift_speed(H, p.omega_max, p)) for H in np.linspace(p.H_0, lift.max_bucket_height(p), 50))
+        self.end_stop = p.H_T + v_pump * dt / substeps >= lift.max_bucket_height(p)
+        self.specs = {s.phase: s for s in cycle.phase_specs(braking, self.params)}
+        self.full = {ph: self._step(ph, stop=False) for ph in (1, 2, 3, 4)}
+        self.stop = {ph: self._step(ph, stop=True) for ph in (2, 4)}
+
+    def _step(self, phase: int, stop: bool) -> StepFunction:
+        """A full step, or a stop step (its last substep crosses V = 0; rows besides the full step's: the
+        step starts moving, the crossing lies within the substep and, at the reversing point, the drive
+        pushes forward, as the simulator needs to let the machine go on in phase 3)."""
+        p, spec = self.params, self.specs[phase]
+        d = spec.direction
+        x0, u, h, est = ca.SX.sym("x0", N_X), ca.SX.sym("u", 3), ca.SX.sym("h"), ca.SX.sym("est", N_EST)
+        hs = h / self.substeps
+        x, fuel, rows, lb, ub = x0, 0.0, [], [], []
+        geared = spec.gear != 0.0
+
+        def rows_at(x: Any, stages: list) -> tuple[list, list, list]:
+            return _substep_rows(x, u, [stages[0], stages[2], stages[3]] if geared else stages[:1], hs, d, p,
+                                 self.end_stop)
+
+        decel_all: list[int] = []
+
+        def add(r: list, lo: list, hi: list, n_decel: int = 0) -> None:
+            decel_all.extend(range(len(rows) + len(r) - n_decel, len(rows) + len(r)))
+            rows.extend(r)
+            lb.extend(lo)
+            ub.extend(hi)
+
+        n_stages = 3 if geared else 1
+        for j in range(self.substeps):
+            x1, f, stages = _rk4(x, u, spec.gear, d, p, est, hs)
+            if stop and j == self.substeps - 1:
+                break  # the crossing substep: its rows below, on the part up to the crossing
+            add(*rows_at(x, stages), n_decel=n_stages)
+            add(*_end_rows(x1, u, p))
+            fuel += f
+            if j < self.substeps - 1:  # inside the step: the checks the step's end state has as bounds
+                add([d * x1[1] / p.V_max, (x1[0] - p.omega_min) / 100.0], [0.0, self.omega_margin / 100.0],
+                    [1.0, math.inf])
+            x = x1
+        s_stop = x[4]
+        if stop:
+            v0, v1 = d * x[1], d * x1[1]
+            frac = v0 / (v0 - v1)
+            x_cut, f_cut, stages = _rk4(x, u, spec.gear, d, p, est, frac * hs)
+            add(*rows_at(x, stages), n_decel=n_stages)  # (first: the deceleration rows where a full step has them)
+            add(*_end_rows(x_cut, u, p))
+            add([v0, v1 / p.V_max], [MIN_STOP_SPEED, -math.inf], [math.inf, -STOP_OVERSHOOT / p.V_max])
+            if geared:  # the deceleration at the stop itself: the converter's drag peaks at standstill (phi = 0)
+                k_stop = _rhs(ca.vertcat(x_cut[0], 0.0, x_cut[2:]), u, spec.gear, d, p, est, False)[0]
+                add([d * k_stop[1] / (p.decel_max * p.g)], [-1.0], [math.inf], n_decel=1)
+            x_cut = ca.vertcat(x_cut[0], 0.0, x_cut[2:])
+            s_stop = x_cut[4]
+            if phase == 2:  # the rest of the substep in phase 3: its gear, no brakes
+                nxt = self.specs[3]
+                x, f_rest, stages = _rk4(x_cut, ca.vertcat(u[0], u[1], 0.0), nxt.gear, nxt.direction, p, est,
+                                         (1.0 - frac) * hs)
+                add([nxt.direction * stages[0][1]], [0.0], [math.inf])
+            else:  # the rest standing: the brakes and the rolling resistance hold it (stiction)
+                x, f_rest, _ = _rk4(x_cut, u, spec.gear, d, p, est, (1.0 - frac) * hs, held=True)
+            add(*_end_rows(x, u, p))
+            fuel += f_cut + f_rest
+        name = f"{'stop' if stop else 'full'}_step_{phase}"
+        return StepFunction(ca.Function(name, [x0, u, h, est], [x, ca.vertcat(*rows), fuel, s_stop]),
+                            np.array(lb, dtype=float), np.array(ub, dtype=float), tuple(decel_all))
+
+
+@dataclass(frozen=True)
+class Slot:
+    """One step of a :class:`GridNLP`: its phase and kind, and where its variables and rows are."""
+
+    phase: int
+    kind: str  # "full" or "stop"
+    u: int  # offset of the control (3) in z; the end state (N_X), the excess and the margin used (1 each) follow
+    g: int  # offset of the rows in g; the N_X shooting equalities come just before
+
+    @property
+    def x(self) -> int:
+        return self.u + 3
+
+    @property
+    def ex(self) -> int:
+        return self.u + 3 + N_X
+
+    @property
+    def em(self) -> int:
+        return self.u + 4 + N_X
+
+
+class GridNLP:
+    """Multiple-shooting NLP over the phases from ``first_phase`` on, ``slots[phase]`` full steps each,
+    and the stop steps of phases 2 and 4 (built once; a schedule is chosen per solve, :meth:`arguments`).
+
+    ``symbolic``: "SX" inlines the step functions (an NLP that evaluates fast, ~1-2 s to build with its
+    solver), "MX" calls them (builds in ~0.1 s, evaluates ~2x slower): the same variables and rows.
+
+    Parameters: the start state (scaled), the plant estimate, one step length per slot (dt, or 0 when
+    idle). Per slot the decision vector holds the control (scaled), the end state (scaled), an elastic
+    excess over the deceleration limit and the part of the margin below it the plan uses (bounded by the
+    margin, set per solve). Elastic, because a brake can always hold the limit and the converter's drag
+    cannot always (it follows the engine speed at the shift, and a plant heavier than the model, found
+    out late, leaves it too high): a plan with the least excess beats no plan. Objective: fuel (g) plus
+    the elastic misses of the reversing point, the end position and the end height, the excesses and the
+    margin used, each priced above any fuel (TARGET_WEIGHT, DECEL_EXCESS_WEIGHT, DECEL_MARGIN_WEIGHT).
+    """
+
+    def __init__(self, model: StepModel, first_phase: int, slots: dict[int, int], symbolic: str = "SX") -> None:
+        if symbolic not in ("SX", "MX"):
+            raise ValueError(f"symbolic must be 'SX' (fast to evaluate) or 'MX' (fast to build), got {symbolic!r}")
+        self.symbolic = getattr(ca, symbolic)
+        if first_phase not in (1, 2, 3, 4):
+            raise ValueError(f"first_phase must be 1..4, got {first_phase!r}")
+        self.model = model
+        self.first_phase = first_phase
+        self.phases = tuple(range(first_phase, 5))
+        self.slots_per_phase = {ph: int(slots[ph]) for ph in self.phases}
+        if any(n < 1 for n in self.slots_per_phase.values()):
+            raise ValueError(f"every phase needs at least one slot, got {self.slots_per_phase}")
+        self._build()
+
+    def _build(self) -> None:
+        m, p = self.model, self.model.params
+        xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
+        kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
+        kinds = sorted(kinds + [(ph, "stop") for ph in self.phases if ph in (2, 4)], key=lambda k: (k[0], k[1] == "stop"))
+        sym = self.symbolic
+        par = sym.sym("par", N_X + N_EST + len(kinds))
+        x_prev = par[:N_X] * xs
+        est = par[N_X:N_X + N_EST]
+        hs = par[N_X + N_EST:]
+        w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
+        size = {"w": 0, "g": 0}
+
+        def var(n: int, lo: Any, hi: Any) -> tuple[Any, int]:
+            v = sym.sym("w", n)
+            w.append(v)
+            lbw.append(np.broadcast_to(lo, (n,)).astype(float))
+            ubw.append(np.broadcast_to(hi, (n,)).astype(float))
+            size["w"] += n
+            return v, size["w"] - n
+
+        def con(e: Any, lo: Any, hi: Any) -> int:
+            n = int(e.numel())
+            g.append(e)
+            lbg.append(np.broadcast_to(lo, (n,)).astype(float))
+            ubg.append(np.broadcast_to(hi, (n,)).astype(float))
+            size["g"] += n
+            return size["g"] - n
+
+        misses, excess, margins, fuel = [], [], [], 0.0
+        self._miss_index: dict[str, int] = {}
+
+        def elastic(name: str) -> Any:  # a target's signed miss, penalized in L1
+            e, off = var(2, 0.0, math.inf)
+            self._miss_index[name] = off
+            misses.append(e[0] + e[1])
+            return e[0] - e[1]
+
+        slots: list[Slot] = []
+        for ph, kind in kinds:
+            spec = m.specs[ph]
+            v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
+            if kind == "stop" and ph == 2:
+                v_lo, v_hi = 0.0, p.V_max  # the rest of the step runs in phase 3
+            # Bounds only where a row does not hold the state already (a bound costs IPOPT a multiplier):
+            # the bucket rises monotonically to H_T (no lowering), the pump rows cap its speed.
+            x_lb = np.array([p.omega_min + m.omega_margin, v_lo, -math.inf, 0.0, -math.inf])
+            x_ub = np.array([p.omega_max, v_hi, math.inf, math.inf, math.inf])
+            ab_lo, ab_hi = p.U_ab_bounds
+            u_lb = np.array([0.0, ab_lo, 0.0])
+            u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0])
+            step = m.full[ph] if kind == "full" else m.stop[ph]
+            U, u_off = var(3, u_lb / U_SCALE, u_ub / U_SCALE)
+            X, _ = var(N_X, x_lb / X_SCALE, x_ub / X_SCALE)
+            ex, _ = var(1, 0.0, math.inf)
+            em, _ = var(1, 0.0, 0.0)  # (its upper bound, the margin, is set per solve)
+            u = U * us
+            x_end, rows, fuel_k, s_stop = step.fn(x_prev, u, hs[len(slots)], est)
+            con((x_end - X * xs) / xs, 0.0, 0.0)
+            sel = np.zeros(step.n_rows)
+            sel[list(step.decel)] = 1.0
+            g_off = con(rows + ca.DM(sel) * (ex + em), step.lb, step.ub)
+            slots.append(Slot(ph, kind, u_off, g_off))
+            excess.append(ex)
+            margins.append(em)
+            fuel += fuel_k
+            x_prev = X * xs
+            if kind == "stop" and ph == 2:  # the reversing point
+                con((s_stop + p.distance) / p.distance - elastic("reversing point"), 0.0, 0.0)
+            if kind == "stop" and ph == 4:  # the end: at the truck, bucket at H_T and still, the machine at rest
+                con(s_stop / p.distance - elastic("end position"), 0.0, 0.0)
+                con((x_prev[2] - p.H_T) / p.H_T - elastic("end height"), 0.0, 0.0)
+                con(x_prev[3], 0.0, 0.0)
+                # at rest (as the benchmark's end): the engine holds its speed with the last injection
+                d_om = estimated_derivatives(x_prev, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
+                                             est[0], est[1], est[2])[0]
+                con(d_om / 100.0, 0.0, 0.0)
+        fuel_g = 1000.0 * fuel
+        J = (fuel_g + TARGET_WEIGHT * ca.sum1(ca.vertcat(*misses)) + DECEL_EXCESS_WEIGHT * ca.sum1(ca.vertcat(*excess))
+             + DECEL_MARGIN_WEIGHT * ca.sum1(ca.vertcat(*margins)))
+        self.slots = slots
+        self.n_var, self.n_con = size["w"], size["g"]
+        self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
+        self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
+        z = ca.vertcat(*w)
+        self.nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
+        self.fuel_g = ca.Function("fuel_g", [z, par], [fuel_g])
+
+    # ------------------------------------------------------------------ per solve
+    def arguments(self, counts: dict[int, int], x_start: np.ndarray, est: np.ndarray, dt: float,
+                  tighten: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
+        """Parameters and bounds for a schedule: ``counts[phase]`` full steps in each phase, besides the
+        stop steps. The idle slots before the first active step carry the measured start (fixed: IPOPT
+        drops them); those of later phases carry the state of the phase before. ``tighten``: the margin
+        (fraction of the deceleration limit) the plan keeps in its first step and in the later ones;
+        the plan may use it at DECEL_MARGIN_WEIGHT."""
+        active = self.active_slots(counts)
+        par = np.zeros(N_X + N_EST + len(self.slots))
+        par[:N_X] = np.asarray(x_start, dtype=float) / X_SCALE
+        par[N_X:N_X + N_EST] = est
+        par[N_X + N_EST + active] = dt
+        lbw, ubw, lbg, ubg = self.lbw.copy(), self.ubw.copy(), self.lbg.copy(), self.ubg.copy()
+        idle = np.ones(len(self.slots), dtype=bool)
+        idle[active] = False
+        for k in np.flatnonzero(idle):
+            s = self.slots[k]
+            lbw[s.u:s.u + 3] = ubw[s.u:s.u + 3] = 0.0
+            lbg[s.g:s.g + self._rows(s)] = -math.inf
+            ubg[s.g:s.g + self._rows(s)] = math.inf
+            if k < active[0]:  # before the first active step: the measured start, fixed
+                lbw[s.x:s.x + N_X] = ubw[s.x:s.x + N_X] = par[:N_X]
+                lbg[s.g - N_X:s.g] = -math.inf
+                ubg[s.g - N_X:s.g] = math.inf
+        for k in np.flatnonzero(idle):
+            lbw[self.slots[k].ex] = ubw[self.slots[k].ex] = 0.0
+        for i, k in enumerate(active):
+            s, margin = self.slots[k], tighten[0] if i == 0 else tighten[1]
+            lbg[s.g + np.array(self._step_of(s).decel)] = -(1.0 - margin)
+            ubw[s.em] = margin
+        return {"p": par, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
+
+    def _step_of(self, s: Slot) -> StepFunction:
+        return self.model.full[s.phase] if s.kind == "full" else self.model.stop[s.phase]
+
+    def _rows(self, s: Slot) -> int:
+        return self._step_of(s).n_rows
+
+    def active_slots(self, counts: dict[int, int]) -> np.ndarray:
+        """Indices of the slots a schedule uses, in order (the last ``counts[phase]`` full slots of each
+        phase and the stop slots)."""
+        out, k = [], 0
+        for ph in self.phases:
+            n, n_slots = int(counts.get(ph, 0)), self.slots_per_phase[ph]
+            if not 0 <= n <= n_slots:
+                raise ValueError(f"phase {ph}: {n} steps do not fit its {n_slots} slots")
+            out.extend(range(k + n_slots - n, k + n_slots))
+            k += n_slots
+            if ph in (2, 4):
+                out.append(k)
+                k += 1
+        return np.array(out, dtype=int)
+
+    def segment_offsets(self, phase: int) -> tuple[int, int]:
+        """(z offset, g offset) where the slots of ``phase`` begin: an NLP from ``phase`` on is the tail."""
+        for s in self.slots:
+            if s.phase == phase:
+                return s.u, s.g - N_X
+        raise ValueError(f"phase {phase} is not in this NLP (phases {self.phases})")
+
+    def excess(self, z: np.ndarray) -> float:
+        """The largest relative excess over the deceleration limit a solution plans (0: none)."""
+        return float(max(z[s.ex] for s in self.slots))
+
+    def misses(self, z: np.ndarray) -> dict[str, float]:
+        """The signed relative target misses of a solution."""
+        return {name: float(z[i] - z[i + 1]) for name, i in self._miss_index.items()}
+
+    def plan(self, z: np.ndarray, counts: dict[int, int], x_start: np.ndarray, dt: float) -> dict[str, np.ndarray]:
+        """The active steps of a solution: per step its phase, kind, control and end state."""
+        active = self.active_slots(counts)
+        sl = [self.slots[k] for k in active]
+        return {
+            "t": dt * np.arange(len(sl) + 1),
+            "phase": np.array([s.phase for s in sl]),
+            "stop": np.array([s.kind == "stop" for s in sl]),
+            "controls": np.array([z[s.u:s.u + 3] * U_SCALE for s in sl]),
+            "states": np.vstack([np.asarray(x_start, dtype=float)[:N_X]] + [z[s.x:s.x + N_X] * X_SCALE for s in sl]),
+        }
+
+    def resample(self, z: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray, counts: dict[int, int],
+                 new_counts: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A solution for ``counts`` moved to ``new_counts``: each phase whose step count changes gets its
+        steps (variables and row multipliers) at phase-normalized times, so a schedule move starts from a
+        stretched plan rather than from a jump where a step went or came."""
+        z, lam_x, lam_g = np.array(z, dtype=float), np.array(lam_x, dtype=float), np.array(lam_g, dtype=float)
+        old, new = self.active_slots(counts), self.active_slots(new_counts)
+        n_w = 3 + N_X + 2
+        for ph in self.phases:
+            ko = [k for k in old if self.slots[k].phase == ph and self.slots[k].kind == "full"]
+            kn = [k for k in new if self.slots[k].phase == ph and self.slots[k].kind == "full"]
+            if len(ko) == len(kn) or not ko or not kn:
+                continue
+            n_g = N_X + self._rows(self.slots[ko[0]])
+            for vec, width, starts in ((z, n_w, lambda k: self.slots[k].u), (lam_x, n_w, lambda k: self.slots[k].u),
+                                       (lam_g, n_g, lambda k: self.slots[k].g - N_X)):
+                rows = np.array([vec[starts(k):starts(k) + width] for k in ko])
+                for k, r in zip(kn, _interp_rows(rows, len(kn)), strict=True):
+                    vec[starts(k):starts(k) + width] = r
+        # the idle slots before a phase's first step carry the state it starts from
+        active = set(new.tolist())
+        for ph in self.phases[1:]:
+            ks = [k for k, s in enumerate(self.slots) if s.phase == ph]
+            before = self.slots[ks[0] - 1]
+            for k in ks:
+                if k in active:
+                    break
+                z[self.slots[k].x:self.slots[k].x + N_X] = z[before.x:before.x + N_X]
+        return z, lam_x, lam_g
+
+    def sensitivities(self, lam_p: np.ndarray, counts: dict[int, int], dt: float) -> dict[int, float]:
+        """First-order change of the optimal objective per step added to each phase.
+
+        One more step stretches each of a phase's m steps by dt / m: dJ = (dt / m) * sum of dJ/dh over
+        them, from the parametric sensitivities of the step lengths (CasADi's ``lam_p`` is minus dJ/dp).
+        """
+        active = self.active_slots(counts)
+        dJ_dh = -np.asarray(lam_p, dtype=float).ravel()[N_X + N_EST:]
+        out = {}
+        for ph in self.phases:
+            ks = [k for k in active if self.slots[k].phase == ph]
+            out[ph] = dt / len(ks) * float(dJ_dh[ks].sum()) if ks else math.nan
+        return out
+
+
+def apportion(durations: dict[int, float], n_steps: int, dt: float) -> dict[int, int]:
+    """Whole steps per phase closest to continuous phase durations, ``n_steps`` in all (largest
+    remainders), each phase at least one step; returned as full-step counts (without the stop steps)."""
+    phases = sorted(durations)
+    want = np.array([max(durations[ph], 0.0) / dt for ph in phases])
+    if n_steps < len(phases):
+        raise ValueError(f"{n_steps} steps cannot hold {len(phases)} phases (at least one step each)")
+    want = want * (n_steps / want.sum()) if want.sum() > 0 else np.full(len(phases), n_steps / len(phases))
+    steps = np.maximum(np.floor(want).astype(int), 1)
+    while steps.sum() > n_steps:
+        steps[np.argmax(np.where(steps > 1, steps - want, -np.inf))] -= 1
+    while steps.sum() < n_steps:
+        steps[np.argmax(want - steps)] += 1
+    return {ph: int(n) - (1 if ph in (2, 4) else 0) for ph, n in zip(phases, steps, strict=True)}
+
+
+def steps_of(counts: dict[int, int]) -> int:
+    """Control steps a schedule takes (the stop steps included)."""
+    return sum(counts.values()) + sum(1 for ph in counts if ph in (2, 4))
+
+
+def _interp_rows(values: np.ndarray, n_new: int) -> np.ndarray:
+    """Rows of ``values`` (one per step) resampled to n_new steps at phase-normalized times."""
+    n_old = len(values)
+    if n_old == n_new or n_old == 0:
+        return values.copy()
+    s_old = (np.arange(n_old) + 1.0) / n_old
+    s_new = (np.arange(n_new) + 1.0) / n_new
+    return np.column_stack([np.interp(s_new, s_old, values[:, c]) for c in range(values.shape[1])])
