@@ -91,6 +91,14 @@ def test_closed_loop_cycle_near_the_optimum(braking, mode):
         assert r["fuel_g"] <= 1.03 * solve_ocp(braking, "fuel_at_time", T=r["T"], verify=False).fuel_g
 
 
+def test_weighted_mode_trades_fuel_for_time():
+    """w_fuel = 0.5 weighs 1 g against 0.1 s x 0.5: the cycle lands between the fastest and a slow one."""
+    r, _ = closed_loop("service", "weighted", w_fuel=0.5)
+    assert r["success"] and r["max_violation"] == 0.0
+    assert 8.5 <= r["T"] <= 10.5  # measured 9.0 s, 67.0 g (min time 8.2 s / 85.5 g; 11 s: 54.7 g)
+    assert r["fuel_g"] <= 1.03 * solve_ocp("service", "fuel_at_time", T=r["T"], verify=False).fuel_g
+
+
 def test_plans_predict_the_plant_step_by_step():
     """Without model error a plan is what the environment does: each step's measurement is the plan's
     prediction, to the solver's tolerance (a plan 'solved to acceptable level' keeps defects of ~1e-5
