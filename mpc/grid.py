@@ -202,11 +202,11 @@ class StepModel:
             add(*rows_at(x, stages), n_decel=n_stages)  # (first: the deceleration rows where a full step has them)
             add(*_end_rows(x_cut, u, p))
             add([v0, v1 / p.V_max], [MIN_STOP_SPEED, -math.inf], [math.inf, -STOP_OVERSHOOT / p.V_max])
-            if geared:  # the deceleration at the stop itself: the converter's drag peaks at standstill (phi = 0)
-                k_stop = _rhs(ca.vertcat(x_cut[0], 0.0, x_cut[2:]), u, spec.gear, d, p, est, False)[0]
-                add([d * k_stop[1] / (p.decel_max * p.g)], [-1.0], [math.inf], n_decel=1)
             x_cut = ca.vertcat(x_cut[0], 0.0, x_cut[2:])
             s_stop = x_cut[4]
+            if geared:  # the deceleration at the stop itself: the converter's drag peaks at standstill (phi = 0)
+                k_stop = _rhs(x_cut, u, spec.gear, d, p, est, False)[0]
+                add([d * k_stop[1] / (p.decel_max * p.g)], [-1.0], [math.inf], n_decel=1)
             if phase == 2:  # the rest of the substep in phase 3: its gear, no brakes
                 nxt = self.specs[3]
                 x, f_rest, stages = _rk4(x_cut, ca.vertcat(u[0], u[1], 0.0), nxt.gear, nxt.direction, p, est,
@@ -219,6 +219,9 @@ class StepModel:
         name = f"{'stop' if stop else 'full'}_step_{phase}"
         return StepFunction(ca.Function(name, [x0, u, h, est], [x, ca.vertcat(*rows), fuel, s_stop]),
                             np.array(lb, dtype=float), np.array(ub, dtype=float), tuple(decel_all))
+
+
+SLOT_VARS = 3 + N_X + 2  # a slot's decision variables: control, end state, excess, margin used
 
 
 @dataclass(frozen=True)
@@ -450,14 +453,13 @@ class GridNLP:
         stretched plan rather than from a jump where a step went or came."""
         z, lam_x, lam_g = np.array(z, dtype=float), np.array(lam_x, dtype=float), np.array(lam_g, dtype=float)
         old, new = self.active_slots(counts), self.active_slots(new_counts)
-        n_w = 3 + N_X + 2
         for ph in self.phases:
             ko = [k for k in old if self.slots[k].phase == ph and self.slots[k].kind == "full"]
             kn = [k for k in new if self.slots[k].phase == ph and self.slots[k].kind == "full"]
             if len(ko) == len(kn) or not ko or not kn:
                 continue
             n_g = N_X + self._rows(self.slots[ko[0]])
-            for vec, width, starts in ((z, n_w, lambda k: self.slots[k].u), (lam_x, n_w, lambda k: self.slots[k].u),
+            for vec, width, starts in ((z, SLOT_VARS, lambda k: self.slots[k].u), (lam_x, SLOT_VARS, lambda k: self.slots[k].u),
                                        (lam_g, n_g, lambda k: self.slots[k].g - N_X)):
                 rows = np.array([vec[starts(k):starts(k) + width] for k in ko])
                 for k, r in zip(kn, _interp_rows(rows, len(kn)), strict=True):

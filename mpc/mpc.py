@@ -27,14 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from mpc.grid import (
-    MIN_STOP_SPEED,
-    GridNLP,
-    StepModel,
-    apportion,
-    estimated_derivatives,
-    steps_of,
-)
+from mpc.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
@@ -488,8 +481,6 @@ class MPCController:
 
     def _guess(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray) -> np.ndarray:
         """A decision vector from the continuous optimum: each phase's steps at phase-normalized times."""
-        from mpc.grid import N_X, U_SCALE, X_SCALE
-
         nlp = self._nlp(phase)
         rt, rph = np.asarray(ref.t), np.asarray(ref.phase)
         rx = np.column_stack([np.asarray(ref.states), np.asarray(ref.position)])
@@ -641,24 +632,12 @@ class MPCController:
             self._theta = np.clip(self._theta, THETA_MIN, THETA_MAX)
 
     def _predict(self, x0: np.ndarray, phase: int, u: tuple, lift_gain: float, accel: np.ndarray) -> tuple[float, float]:
-        """(omega, V) one control step after x0 under the effective controls u: the model (one RK4 step,
-        as the simulator's), its lift drawing lift_gain times the model's power from the engine, its
-        dV/dt = accel[0] * model + d * accel[1]."""
-        p = self.params
-        gear, direction, _ = cycle.phase_tables(self.braking, p)
-        gear, direction = float(gear[phase]), float(direction[phase])
-
-        def f(y: np.ndarray) -> np.ndarray:
-            return np.array(estimated_derivatives(y, u, gear, direction, p, accel[1], accel[0], lift_gain)[:4])
-
-        h = self.dt
-        y = np.asarray(x0[:4], dtype=float)
-        k1 = f(y)
-        k2 = f(y + 0.5 * h * k1)
-        k3 = f(y + 0.5 * h * k2)
-        k4 = f(y + h * k3)
-        y1 = y + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
-        return float(y1[0]), float(y1[1])
+        """(omega, V) one control step after x0 under the effective controls u, by the plan's own step
+        (:class:`mpc.grid.StepModel`) with the lift drawing lift_gain times the model's power from the
+        engine and dV/dt = accel[0] * model + d * accel[1]."""
+        x1 = self.model.full[phase].fn(np.asarray(x0, dtype=float)[:5], np.asarray(u, dtype=float), self.dt,
+                                       np.array([accel[1], accel[0], lift_gain]))[0]
+        return float(x1[0]), float(x1[1])
 
     # ------------------------------------------------------------------ helpers
     def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:

@@ -143,35 +143,22 @@ def within_step_excess(states: np.ndarray, controls: np.ndarray, phase: np.ndarr
     cuts it (its linear estimate of the crossing; with the drag rising, a little before the continuous
     motion would stop).
     """
-    from wl_env import cycle
-    from wl_env.model import derivatives
-
     p = resolve(params)
-    gear, direction, _ = cycle.phase_tables(braking, p)
+    sim = Simulator(p, braking)
     X, U, ph = np.asarray(states, dtype=float), np.asarray(controls, dtype=float), np.asarray(phase)
     limit, worst = p.decel_max * p.g, 0.0
     for k in range(len(U)):
         reversing = ph[k] == 2 and ph[k + 1] == 3
-        q = 2 if reversing else int(ph[k + 1])
-
-        def f(y: np.ndarray, u: np.ndarray = U[k], g: float = float(gear[q]), d: float = float(direction[q])) -> np.ndarray:
-            return np.array(derivatives(y[0], y[1], y[2], y[3], u[0], u[1], u[2], g, d, p)[:4])
-
-        def rk4(y: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-            k1 = f(y)
-            k2 = f(y + 0.5 * h * k1)
-            k3 = f(y + 0.5 * h * k2)
-            return y + h / 6.0 * (k1 + 2.0 * (k2 + k3) + f(y + h * k3)), k1
-
-        x, d, span = X[k].copy(), float(direction[q]), dt
+        gear, d, _ = sim.phase_constants(2 if reversing else int(ph[k + 1]))
+        u = tuple(float(v) for v in U[k])
+        y = (*(float(v) for v in X[k]), 0.0, 0.0)
+        span = dt
         if reversing:  # the simulator's cut: v0 / (v0 - v1) of its own full step
-            v0, v1 = d * x[1], d * rk4(x, dt)[0][1]
+            v0, v1 = d * y[1], d * sim.rk4(y, u, gear, d, dt)[0][1]
             span = dt * v0 / (v0 - v1) if v0 > 0.0 > v1 else dt
-        for _ in range(n):
-            x_next, k1 = rk4(x, span / n)
-            if d * x[1] > 1e-3:  # moving (a standing machine's forces are held by stiction)
-                worst = max(worst, (-d * k1[1] - limit) / limit)
-            x = x_next
-        if d * x[1] > 1e-3:
-            worst = max(worst, (-d * f(x)[1] - limit) / limit)
+        for _ in range(n + 1):  # the accelerations at the n substep starts and at the end
+            y_next, accel = sim.rk4(y, u, gear, d, span / n)
+            if d * y[1] > 1e-3:  # moving (a standing machine's forces are held by stiction)
+                worst = max(worst, (-d * accel - limit) / limit)
+            y = y_next
     return max(worst, 0.0)
