@@ -5,7 +5,7 @@
 * :func:`evaluate_controller` - episodes through :func:`wl_env.rollout.run_episode`: the nominal start
   (episode 0, the one the optimum is computed for) and perturbed starts (episodes 1..N-1, seeded
   ``seed + i``); per episode and aggregated: success (cycle completed, end targets met), cycle time,
-  fuel, constraint violation, and the score of :func:`mpc.scoring.score_run` (time gap to the minimum
+  fuel, constraint violation, and the score of :func:`mpc.benchmark.scoring.score_run` (time gap to the minimum
   cycle time, fuel gap to the Pareto fuel at the same cycle time).
 """
 
@@ -56,7 +56,7 @@ def load_controller(spec: str, braking: str, model: str | None = None) -> Contro
 
         return OperatorPolicy(braking)
     if spec == "mpc":
-        from mpc.mpc import MPCController
+        from mpc.controller.mpc import MPCController
 
         return MPCController(braking)
     if ":" not in spec:
@@ -180,7 +180,7 @@ def evaluate_controller(
 
     Episode 0 starts at the nominal state (init_noise 0), episodes 1..N-1 perturbed by ``init_noise``,
     each reset with seed ``seed + i``: the same call gives the same result. The Pareto front (``front``,
-    else :func:`mpc.pareto.pareto_front` from ``cache``) is loaded once, when the first episode completes.
+    else :func:`mpc.benchmark.pareto.pareto_front` from ``cache``) is loaded once, when the first episode completes.
     ``trajectories`` keeps each episode's t, states, controls and phase. Values that do not exist (the
     gaps of an unfinished cycle, the mean time of no completed cycle) are None.
     """
@@ -213,12 +213,12 @@ def evaluate_controller(
             }
             if score and ep["completed"]:
                 if front is None:
-                    from mpc.pareto import pareto_front
+                    from mpc.benchmark.pareto import pareto_front
 
                     # Solved (minutes) unless cached: say so, a silent wait looks like a hang.
                     front = pareto_front(braking, params=kwargs.get("params"), cache=cache,
                                          progress=lambda m: say("  [optimum] " + m))
-                from mpc.scoring import score_run
+                from mpc.benchmark.scoring import score_run
 
                 s = score_run(rec["T"], rec["fuel_g"], braking, success=rec["success"],
                               max_violation=rec["max_violation"], params=kwargs.get("params"), front=front, cache=cache)

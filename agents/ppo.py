@@ -239,10 +239,10 @@ def rollout(act: Any, braking: str, n_episodes: int = 1, init_noise: float = 0.0
 
 
 def score(T: float, fuel_g: float, braking: str, front: Any = None) -> tuple[float, float]:
-    """(time gap, fuel gap) against the optimum by :func:`mpc.scoring.score_run`, except that cycles slower
+    """(time gap, fuel gap) against the optimum by :func:`mpc.benchmark.scoring.score_run`, except that cycles slower
     than the fuel-optimal one are compared with the minimum fuel: no OCP is solved on demand while training."""
-    from mpc.pareto import pareto_front
-    from mpc.scoring import score_run
+    from mpc.benchmark.pareto import pareto_front
+    from mpc.benchmark.scoring import score_run
 
     front = front or pareto_front(braking)
     if T >= front.T_fuel_opt:
@@ -303,7 +303,7 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
         def _on_training_start(self) -> None:
             if cfg.score:
                 try:
-                    from mpc.pareto import pareto_front
+                    from mpc.benchmark.pareto import pareto_front
 
                     self.front = pareto_front(cfg.braking)
                 except Exception as e:  # noqa: BLE001
@@ -586,7 +586,7 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
                   init_noise: float = 1.0, extra: dict[str, Any] | None = None, front: Any = None) -> dict[str, Any]:
     """Copy a run's final policy to ``out_dir/<name>.zip`` + ``<name>_vecnormalize.pkl`` and write
     ``<name>.json`` (config, commands, steps, wall time and a fresh deterministic evaluation, scored
-    against ``front`` or else :func:`mpc.pareto.pareto_front`)."""
+    against ``front`` or else :func:`mpc.benchmark.pareto.pareto_front`)."""
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     final = run_dir / "final"
     summary = json.loads((final / "summary.json").read_text())
@@ -598,7 +598,7 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
     policy = load_policy(out_dir / f"{name}.zip")
     if front is None:
         try:
-            from mpc.pareto import pareto_front
+            from mpc.benchmark.pareto import pareto_front
 
             front = pareto_front(cfg.braking)
         except Exception as e:  # noqa: BLE001

@@ -21,8 +21,8 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.evaluate import default_policy_path, evaluate_controller, load_controller  # noqa: E402
-from mpc.ocp import write_json_atomic  # noqa: E402
-from mpc.pareto import pareto_fronts  # noqa: E402
+from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
+from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
 
 
 def pct(v: float | None) -> str:

@@ -11,7 +11,7 @@ For each braking alternative:
     the 0.1 s control interval (target: median below it; aim 20 ms).
 
 Every row also reports the deceleration's largest excess *within* the steps (the environment checks each
-step's start only; :func:`mpc.verify.within_step_excess`).
+step's start only; :func:`mpc.benchmark.verify.within_step_excess`).
 
 Usage::
 
@@ -31,11 +31,11 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mpc.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
-from mpc.ocp import write_json_atomic  # noqa: E402
-from mpc.pareto import pareto_fronts  # noqa: E402
-from mpc.scoring import score_run  # noqa: E402
-from mpc.verify import within_step_excess  # noqa: E402
+from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
+from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
+from mpc.benchmark.scoring import score_run  # noqa: E402
+from mpc.benchmark.verify import within_step_excess  # noqa: E402
+from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 
 MISMATCH = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload scale, rolling-resistance scale)
@@ -54,7 +54,7 @@ def closed_loop(braking: str, config: MPCConfig, front: Any, plant: Any = None) 
                                                     plant or DEFAULT_PARAMS),
            "solve_time": r["solve_time"], "solve_times_s": r["solve_times_s"], "wall_s": wall,
            "steps_with_schedule_move": sum(1 for n in ctrl.step_solves[1:] if n > 1), "fallbacks": ctrl.fallbacks}
-    if r["completed"] and plant is None:  # the gaps every controller gets (mpc.scoring)
+    if r["completed"] and plant is None:  # the gaps every controller gets (mpc.benchmark.scoring)
         s = score_run(r["T"], r["fuel_g"], braking, front=front)
         row.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap, fuel_opt_g=s.fuel_opt_g)
     return row

@@ -26,9 +26,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mpc import ocp as ocp_module  # noqa: E402
-from mpc.ocp import CycleOCP, OCPError, OCPSettings, solve_ocp, template_guess, write_json_atomic  # noqa: E402
-from mpc.pareto import pareto_front, pareto_fronts  # noqa: E402
+from mpc.benchmark import ocp as ocp_module  # noqa: E402
+from mpc.benchmark.ocp import CycleOCP, OCPError, OCPSettings, solve_ocp, template_guess, write_json_atomic  # noqa: E402
+from mpc.benchmark.pareto import pareto_front, pareto_fronts  # noqa: E402
 
 BRAKINGS = ("service", "tc")
 SOLVERS = {"ipopt/mumps (default)": OCPSettings(), "ipopt/spral": OCPSettings(linear_solver="spral"),

@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--title", default=None)
     ap.add_argument("--no-front", action="store_true", help="do not draw the optimum's references")
     ap.add_argument("--front", default=None, metavar="JSON",
-                    help="a saved Pareto front (ParetoFront.save) instead of mpc.pareto.pareto_front(braking)")
+                    help="a saved Pareto front (ParetoFront.save) instead of mpc.benchmark.pareto.pareto_front(braking)")
     args = ap.parse_args(argv)
     src = Path(args.source)
     csv_path = src / "eval.csv" if src.is_dir() else src
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     front = None
     if not args.no_front:
         try:
-            from mpc.pareto import ParetoFront, pareto_front
+            from mpc.benchmark.pareto import ParetoFront, pareto_front
 
             front = ParetoFront.load(args.front) if args.front else pareto_front(braking)
         except Exception as e:  # noqa: BLE001

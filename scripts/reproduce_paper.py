@@ -4,7 +4,7 @@
     python scripts/reproduce_paper.py                      # writes docs/paper/{fig6..fig9.png, table.md, results.json}
     python scripts/reproduce_paper.py --out /tmp/paper --cache /tmp/wlcache --points 8
 
-The optima come from the Pareto cache of :func:`mpc.pareto.pareto_front` (``min_time.json``,
+The optima come from the Pareto cache of :func:`mpc.benchmark.pareto.pareto_front` (``min_time.json``,
 ``min_fuel.json`` and the front's points, per braking alternative); the two fuel-optimal 10 s cycles of
 Fig. 9 are cached beside it (``<cache>/paper/``). A second run only reads the cache and redraws.
 
@@ -43,8 +43,8 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
-from mpc.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed  # noqa: E402
-from mpc.pareto import ParetoFront, cache_dir, front_folder, pareto_front, pchip  # noqa: E402
+from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed  # noqa: E402
+from mpc.benchmark.pareto import ParetoFront, cache_dir, front_folder, pareto_front, pchip  # noqa: E402
 from wl_env.atomic_io import atomic_path  # noqa: E402
 from wl_env.cycle import BRAKING_MODES, phase_specs  # noqa: E402
 from wl_env.model import outputs  # noqa: E402
@@ -1029,7 +1029,7 @@ def remarks(res: dict) -> list[str]:
     if any(imp.values()):
         items = [f"{b} T = {q['T_s']:.3f} s: {q['pareto_cache_g']:.3f} → {q['polished_g']:.3f} g "
                  f"({fmt_pct(q['change_pct'])})" for b, qs in imp.items() for q in qs]
-        out.append("Some points of the cached Pareto fronts (`mpc.pareto.pareto_front`, continued from neighbour to "
+        out.append("Some points of the cached Pareto fronts (`mpc.benchmark.pareto.pareto_front`, continued from neighbour to "
                    "neighbour) are local optima: re-solved from the OCP's template multi-start they come out leaner "
                    "(" + "; ".join(items) + "). The fronts above and in Fig. 8 use the leaner points; the Pareto "
                    "cache is left as it is.")

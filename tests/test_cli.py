@@ -2,7 +2,7 @@
 one-line user errors and every subcommand's --help.
 
 Scoring needs a Pareto front; solving one takes minutes, so the tests write a synthetic front where
-:func:`mpc.pareto.pareto_front` looks for it (``--cache tmp_path``).
+:func:`mpc.benchmark.pareto.pareto_front` looks for it (``--cache tmp_path``).
 """
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import wl_cli
+import wl.cli
+import wl.report
 import wl_env  # noqa: F401
-import wl_report
 from agents.evaluate import load_controller, summarize
 from agents.operator import OperatorPolicy
-from mpc.ocp import OCPResult
-from mpc.pareto import ParetoFront, front_folder
+from mpc.benchmark.ocp import OCPResult
+from mpc.benchmark.pareto import ParetoFront, front_folder
 from wl_env.controller import Controller
 from wl_env.params import resolve
 from wl_env.rollout import run_episode
@@ -51,7 +51,7 @@ def cache(tmp_path: Path) -> Path:
 
 
 def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    code = wl_cli.main([str(a) for a in argv])
+    code = wl.cli.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -238,9 +238,9 @@ def test_train_script_is_the_same_command_line(capsys):
 # ------------------------------------------------------------------------------------------ report
 def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsys):
     out = tmp_path / "results"
-    results = wl_report.collect(out, cache=str(cache),
+    results = wl.report.collect(out, cache=str(cache),
                                 controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
-    wl_report.render(results, out)
+    wl.report.render(results, out)
     first = (out / "leaderboard.md").read_text()
     rows = {(r["controller"], r["braking"]): r for r in results["rows"]}
     assert rows[("optimum (min time)", "tc")]["T"] == 7.0
@@ -275,7 +275,7 @@ def _broken(results: dict, what: str) -> dict:
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
     if what != "missing":
-        results = wl_report.collect(out, cache=str(cache), brakings=("service",),
+        results = wl.report.collect(out, cache=str(cache), brakings=("service",),
                                     controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
         text = "{\"rows\": [" if what == "garbled" else json.dumps(_broken(results, what))
         (out / "results.json").write_text(text)
@@ -325,5 +325,5 @@ def test_help_of_every_subcommand(capsys, command):
 
 
 def test_every_subcommand_is_tested():
-    sub = next(a for a in wl_cli.build_parser()._actions if a.dest == "command")
+    sub = next(a for a in wl.cli.build_parser()._actions if a.dest == "command")
     assert sorted(sub.choices) == sorted(SUBCOMMANDS)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import wl_env  # noqa: F401  (registers the env)
-from mpc.grid import NOMINAL_ESTIMATE, StepModel, apportion, estimated_derivatives, steps_of
-from mpc.mpc import MPCConfig, MPCController, run_closed_loop
-from mpc.ocp import solve_ocp
-from mpc.verify import within_step_excess
+from mpc.benchmark.ocp import solve_ocp
+from mpc.benchmark.verify import within_step_excess
+from mpc.controller.grid import NOMINAL_ESTIMATE, StepModel, apportion, estimated_derivatives, steps_of
+from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from wl_env.params import DEFAULT_PARAMS as P
 from wl_env.simulator import Simulator
 

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from mpc.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
-from mpc.pareto import ParetoFront, pchip
-from mpc.scoring import score_run
+from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
+from mpc.benchmark.pareto import ParetoFront, pchip
+from mpc.benchmark.scoring import score_run
 from wl_env.params import DEFAULT_PARAMS
 
 BRAKINGS = ["service", "tc"]

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.ocp import solve_ocp
-from mpc.pareto import ParetoFront
+from mpc.benchmark.ocp import solve_ocp
+from mpc.benchmark.pareto import ParetoFront
 from wl_env.params import DEFAULT_PARAMS
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "reproduce_paper.py"

@@ -141,7 +141,7 @@ class OCPResult:
 class CycleOCP:
     """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused),
     from Table II's initial state in phase 1. (The MPC plans on the environment's own grid instead,
-    :mod:`mpc.grid`.)"""
+    :mod:`mpc.controller.grid`.)"""
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
                  settings: OCPSettings | None = None) -> None:
@@ -620,7 +620,7 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
         result = _result(ocp, z, info, objective, T, w_fuel, p, records)
         if not verify:
             return result
-        from mpc.verify import verify_result
+        from mpc.benchmark.verify import verify_result
 
         result.verification = verify_result(result, p)
         result.verification["passed"] = records[i]["verified"] = verification_passed(result.verification)

@@ -40,7 +40,7 @@ def _progress(msg: str) -> None:
 
 
 def _ocp_cmd(args: argparse.Namespace) -> int:
-    from mpc.ocp import OCPSettings, solve_ocp
+    from mpc.benchmark.ocp import OCPSettings, solve_ocp
 
     objective = {"time": "time", "fuel": "fuel", "weighted": "weighted"}[args.objective]
     if args.time is not None:
@@ -63,7 +63,7 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
 
 
 def _pareto_cmd(args: argparse.Namespace) -> int:
-    from mpc.pareto import pareto_fronts
+    from mpc.benchmark.pareto import pareto_fronts
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,8 +78,8 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
 
 
 def _mpc_cmd(args: argparse.Namespace) -> int:
-    from mpc.mpc import MPCConfig, run_closed_loop
-    from mpc.ocp import write_json_atomic
+    from mpc.benchmark.ocp import write_json_atomic
+    from mpc.controller.mpc import MPCConfig, run_closed_loop
 
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time)
@@ -107,7 +107,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
 def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import evaluate_controller, load_controller, summary_line
-    from mpc.ocp import write_json_atomic
+    from mpc.benchmark.ocp import write_json_atomic
 
     controller = load_controller(args.controller, args.braking, args.model)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
@@ -127,7 +127,7 @@ def _train_cmd(args: argparse.Namespace) -> int:
 
 
 def _run_cmd(args: argparse.Namespace) -> int:
-    from wl_report import run_all
+    from wl.report import run_all
 
     run_all(args.out, cache=args.cache)
     print((Path(args.out) / "leaderboard.md").read_text())
@@ -135,7 +135,7 @@ def _run_cmd(args: argparse.Namespace) -> int:
 
 
 def _report_cmd(args: argparse.Namespace) -> int:
-    from wl_report import load_results, render
+    from wl.report import load_results, render
 
     results = load_results(args.results)
     out = Path(args.out or args.results)

@@ -33,7 +33,7 @@ def _say(msg: str) -> None:
 def controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
     """(name, factory) of the controllers the report compares; PPO only where a policy is shipped."""
     from agents.evaluate import default_policy_path, load_controller
-    from mpc.mpc import MPCConfig, MPCController
+    from mpc.controller.mpc import MPCConfig, MPCController
 
     out: list[tuple[str, Callable[[], Any]]] = [
         ("operator", lambda: load_controller("operator", braking)),
@@ -55,8 +55,8 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     same evaluation as ``wl evaluate``. Returns what was saved.
     """
     from agents.evaluate import evaluate_controller
-    from mpc.ocp import OCPResult, write_json_atomic
-    from mpc.pareto import front_folder, pareto_fronts
+    from mpc.benchmark.ocp import OCPResult, write_json_atomic
+    from mpc.benchmark.pareto import front_folder, pareto_fronts
 
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -164,7 +164,7 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mpc.pareto import ParetoFront
+    from mpc.benchmark.pareto import ParetoFront
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

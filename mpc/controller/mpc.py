@@ -1,14 +1,14 @@
 """Shrinking-horizon MPC that drives ``WheelLoader-v0`` through the cycle, on the environment's own grid.
 
 At every control step the controller reads the state from the observation and solves the rest of the
-cycle as the environment will run it (:mod:`mpc.grid`: the plant's RK4 step, its saturations and its
+cycle as the environment will run it (:mod:`mpc.controller.grid`: the plant's RK4 step, its saturations and its
 cut at V = 0, the driver's limits where the environment checks them), from the measured state, with the
 plant as its model-error estimate has it. It applies the plan's first control and requests the gear
 change when the plan's next step belongs to the next phase. Without model error the plan is what
 happens, so the closed loop is the optimum on the grid.
 
 The cycle time is the *schedule*: whole steps per phase. The first step plans it (rounded from the
-continuous optimum of :mod:`mpc.ocp`, then improved by moves of single steps between phases); later
+continuous optimum of :mod:`mpc.benchmark.ocp`, then improved by moves of single steps between phases); later
 steps keep it, and try the move that the parametric sensitivities of the step lengths predict to pay
 (one extra solve, at most, per step). The mode decides what pays: the fewest steps (minimum time),
 the least fuel in the steps until the target time (target time), or fuel and time weighed.
@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from mpc.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
+from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
@@ -459,7 +459,7 @@ class MPCController:
         return _REFERENCES[key]
 
     def _solve_reference(self):
-        from mpc.ocp import OCPError, OCPSettings, solve_ocp
+        from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp
 
         cfg, b, p = self.config, self.braking, self.params
         settings = OCPSettings(intervals=REFERENCE_MESH, smoothing=(0.0,))
@@ -633,7 +633,7 @@ class MPCController:
 
     def _predict(self, x0: np.ndarray, phase: int, u: tuple, lift_gain: float, accel: np.ndarray) -> tuple[float, float]:
         """(omega, V) one control step after x0 under the effective controls u, by the plan's own step
-        (:class:`mpc.grid.StepModel`) with the lift drawing lift_gain times the model's power from the
+        (:class:`mpc.controller.grid.StepModel`) with the lift drawing lift_gain times the model's power from the
         engine and dV/dt = accel[0] * model + d * accel[1]."""
         x1 = self.model.full[phase].fn(np.asarray(x0, dtype=float)[:5], np.asarray(u, dtype=float), self.dt,
                                        np.array([accel[1], accel[0], lift_gain]))[0]
@@ -715,7 +715,7 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
         "plant_params": plant.to_dict() if plant is not model else None,
     }
     if score and ep["completed"]:
-        from mpc.scoring import score_run
+        from mpc.benchmark.scoring import score_run
 
         s = score_run(ep["T"], ep["fuel_g"], braking, success=ep["success"], max_violation=ep["max_excess"],
                       params=model)

@@ -18,7 +18,7 @@ plant), so that a plan made with it is what the environment does, step for step:
 
 :class:`GridNLP` chains such steps over the phases still ahead: a multiple-shooting NLP with a whole
 number of steps per phase (the *schedule*). The schedule fixes the cycle time, so the NLP minimizes fuel;
-the choice of schedule (:mod:`mpc.mpc`) trades time. Each phase has a fixed number of slots; a schedule
+the choice of schedule (:mod:`mpc.controller.mpc`) trades time. Each phase has a fixed number of slots; a schedule
 uses the last ``n`` of them and the slots before are idle (zero-length steps that carry the state
 through), so one built NLP serves every schedule that fits, and the plan one step later is the same
 vector with one more idle slot.

@@ -11,7 +11,7 @@ import os
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from mpc.pareto import ParetoFront, optimal_fuel_at, pareto_front
+from mpc.benchmark.pareto import ParetoFront, optimal_fuel_at, pareto_front
 from wl_env.params import LoaderParams
 
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from mpc.ocp import (
+from mpc.benchmark.ocp import (
     OCPError,
     OCPResult,
     OCPSettings,
@@ -119,7 +119,7 @@ def _key(braking: str, p: LoaderParams, n_points: int) -> str:
 def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
                  cache: str | os.PathLike | None = None) -> Path:
     """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
-    and one ``T_<cycle time>.json`` per point (each an :class:`mpc.ocp.OCPResult`)."""
+    and one ``T_<cycle time>.json`` per point (each an :class:`mpc.benchmark.ocp.OCPResult`)."""
     return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), n_points)
 
 

@@ -1,0 +1,1 @@
+"""The receding-horizon MPC that drives the environment, on the environment's own control grid."""

@@ -1,0 +1,5 @@
+import sys
+
+from wl.cli import main
+
+sys.exit(main())
