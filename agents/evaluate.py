@@ -1,4 +1,4 @@
-"""A controller in ``WheelLoader-v0`` scored against the optimal control benchmark (``wl evaluate``, ``wl run``).
+"""A controller in ``WheelLoader-v1`` scored against the optimal control benchmark (``wl evaluate``, ``wl run``).
 
 * :func:`load_controller` - ``"ppo"``, ``"operator"``, ``"mpc"`` or a user's ``"module:Class"`` /
   ``"path/to/file.py:Class"`` as a :class:`wl_env.controller.Controller`.
@@ -186,15 +186,15 @@ def evaluate_controller(
     """
     import gymnasium as gym
 
-    import wl_env  # noqa: F401  (registers WheelLoader-v0)
+    import wl_env  # noqa: F401  (registers WheelLoader-v1)
     from wl_env.rollout import run_episode
 
     cycle.check_braking(braking)
     check_settings(episodes, init_noise, seed)
     say = progress or (lambda msg: None)
     kwargs = {**(env_kwargs or {}), "braking": braking}
-    nominal_env = gym.make("WheelLoader-v0", **{**kwargs, "init_noise": 0.0})
-    perturbed_env = gym.make("WheelLoader-v0", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
+    nominal_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": 0.0})
+    perturbed_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
     H_T = nominal_env.unwrapped.params.H_T
     records: list[dict[str, Any]] = []
     try:

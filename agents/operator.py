@@ -19,7 +19,7 @@ from wl_env.params import LoaderParams, resolve
 
 
 class OperatorPolicy:
-    """Rule-based driver for ``WheelLoader-v0`` (acts on single observations or batches).
+    """Rule-based driver for ``WheelLoader-v1`` (acts on single observations or batches).
 
     ``decel_margin`` is the fraction of the 0.18 g deceleration limit the driver plans with;
     ``lift_off_time`` (s) is how long before the braking point a TC-braking driver lifts off the throttle.

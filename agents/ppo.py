@@ -1,4 +1,4 @@
-"""PPO agents for ``WheelLoader-v0`` (stable-baselines3), the logic behind ``wl train`` and ``scripts/train_ppo.py``.
+"""PPO agents for ``WheelLoader-v1`` (stable-baselines3), the logic behind ``wl train`` and ``scripts/train_ppo.py``.
 
 * :class:`PPOConfig` - every option of a run (environment, reward, PPO hyperparameters, logging); it
   lives in :mod:`agents.ppo_config` (importable without torch) and the command line in :mod:`agents.train_cli`.
@@ -40,7 +40,7 @@ import torch as th
 from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-import wl_env  # noqa: F401  (registers WheelLoader-v0)
+import wl_env  # noqa: F401  (registers WheelLoader-v1)
 from agents.ppo_config import PPOConfig
 from agents.sb3_vec import make_sb3_vec_env
 from wl_env import atomic_io
@@ -205,11 +205,11 @@ def load_policy(path: str | os.PathLike, device: str = "cpu") -> PPOPolicy:
 # ---------------------------------------------------------------------------------------------- evaluation
 def rollout(act: Any, braking: str, n_episodes: int = 1, init_noise: float = 0.0, seed: int = 0,
             env_kwargs: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """Run ``n_episodes`` single ``WheelLoader-v0`` episodes in lockstep (episode i seeded ``seed + i``)
+    """Run ``n_episodes`` single ``WheelLoader-v1`` episodes in lockstep (episode i seeded ``seed + i``)
     with a batched ``act(obs_batch) -> actions``; returns per episode the final info's numbers."""
     kwargs = dict(env_kwargs or {})
     kwargs["braking"] = braking
-    envs = [gym.make("WheelLoader-v0", init_noise=init_noise, **kwargs) for _ in range(n_episodes)]
+    envs = [gym.make("WheelLoader-v1", init_noise=init_noise, **kwargs) for _ in range(n_episodes)]
     obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
     returns = np.zeros(n_episodes)
     results: list[dict[str, Any] | None] = [None] * n_episodes

@@ -103,7 +103,7 @@ class PPOConfig:
         return Path(self.log_dir) / self.name
 
     def env_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``WheelLoader-v0`` (single or vector) for this run, without init_noise."""
+        """Keyword arguments of ``WheelLoader-v1`` (single or vector) for this run, without init_noise."""
         return {"braking": self.braking, "max_time": self.max_time, "reward": dict(self.reward),
                 "w_fuel": self.w_fuel, "w_time": self.w_time}
 

@@ -1,8 +1,8 @@
-"""Throughput of WheelLoader-v0 against Gymnasium's Pendulum-v1, measured in one run.
+"""Throughput of WheelLoader-v1 against Gymnasium's Pendulum-v1, measured in one run.
 
-(a) single environment: ``step`` calls per second of ``gym.make("WheelLoader-v0")`` (braking "service"
+(a) single environment: ``step`` calls per second of ``gym.make("WheelLoader-v1")`` (braking "service"
     and "tc") and of ``gym.make("Pendulum-v1")``;
-(b) vector environment: env-steps per second of ``gymnasium.make_vec("WheelLoader-v0", num_envs=N,
+(b) vector environment: env-steps per second of ``gymnasium.make_vec("WheelLoader-v1", num_envs=N,
     vectorization_mode="vector_entry_point")`` for N = 1, 64, 1024, each compared with Pendulum-v1's
     single-env rate.
 
@@ -34,9 +34,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import wl_env  # noqa: F401  (registers WheelLoader-v0)
+import wl_env  # noqa: F401  (registers WheelLoader-v1)
 
-TARGET_SINGLE_RATIO = 0.5  # single WheelLoader-v0 >= 0.5 x Pendulum-v1's step rate
+TARGET_SINGLE_RATIO = 0.5  # single WheelLoader-v1 >= 0.5 x Pendulum-v1's step rate
 TARGET_VECTOR_RATE = 500_000.0  # env-steps/s of the vector env at N = 1024
 TARGET_VECTOR_N = 1024
 NOISY_SPREAD = 0.10  # (max - min) / median above this -> warn that the machine was noisy
@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     # ---- configurations: name -> (callable timing one round, env-steps per round)
     singles = {
         "Pendulum-v1": gym.make("Pendulum-v1"),
-        "WheelLoader-v0 (service)": gym.make("WheelLoader-v0", braking="service"),
-        "WheelLoader-v0 (tc)": gym.make("WheelLoader-v0", braking="tc"),
+        "WheelLoader-v1 (service)": gym.make("WheelLoader-v1", braking="service"),
+        "WheelLoader-v1 (tc)": gym.make("WheelLoader-v1", braking="tc"),
     }
     runs: dict[str, tuple[Any, int]] = {}
     for name, env in singles.items():
@@ -113,10 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         runs[name] = (lambda env=env, acts=acts: time_single(env, acts, args.seed), args.single_steps)
     vectors = {}
     for n in args.num_envs:
-        venv = gym.make_vec("WheelLoader-v0", num_envs=n, vectorization_mode="vector_entry_point")
+        venv = gym.make_vec("WheelLoader-v1", num_envs=n, vectorization_mode="vector_entry_point")
         steps = min(500, max(50, args.vector_env_steps // n))  # N = 1 is slow per env-step
         acts = rng.uniform(-1.0, 1.0, (steps, n, 4)).astype(np.float32)
-        name = f"WheelLoader-v0 vector N={n}"
+        name = f"WheelLoader-v1 vector N={n}"
         vectors[name] = venv
         runs[name] = (lambda venv=venv, acts=acts: time_vector(venv, acts, args.seed), steps * n)
 
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
             by_name[n]["wall"]["ratio_to_pendulum"] >= TARGET_SINGLE_RATIO for n in singles if n != ref
         ),
     }
-    vec = f"WheelLoader-v0 vector N={TARGET_VECTOR_N}"
+    vec = f"WheelLoader-v1 vector N={TARGET_VECTOR_N}"
     if vec in by_name:
         checks[f"vector N={TARGET_VECTOR_N} >= {TARGET_VECTOR_RATE:,.0f} env-steps/s"] = (
             by_name[vec]["wall"]["median_env_steps_per_s"] >= TARGET_VECTOR_RATE

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Render one short loading cycle of ``WheelLoader-v0`` to an animated GIF (or MP4).
+"""Render one short loading cycle of ``WheelLoader-v1`` to an animated GIF (or MP4).
 
     python scripts/render_cycle.py --braking service --out cycle.gif
     python scripts/render_cycle.py --braking tc --out cycle_tc.mp4 --fps 20   # needs imageio-ffmpeg

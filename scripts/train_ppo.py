@@ -1,4 +1,4 @@
-"""Train a PPO policy for WheelLoader-v0 (stable-baselines3 on the native vector env); the same as ``wl train``.
+"""Train a PPO policy for WheelLoader-v1 (stable-baselines3 on the native vector env); the same as ``wl train``.
 
 Every option is a field of ``agents.ppo.PPOConfig`` and a command-line flag of the same name
 (``--reward KEY=VALUE ...`` overrides single RewardConfig fields; ``--curriculum-start`` without values

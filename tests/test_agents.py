@@ -36,7 +36,7 @@ def test_adapter_matches_dummy_vec_env(braking, max_time):
     n, seed = 5, 7
     kw = dict(braking=braking, init_noise=1.0, max_time=max_time)
     ours = make_sb3_vec_env(n, seed=seed, **kw)
-    ref = DummyVecEnv([lambda: gym.make("WheelLoader-v0", **kw) for _ in range(n)])
+    ref = DummyVecEnv([lambda: gym.make("WheelLoader-v1", **kw) for _ in range(n)])
     ref.seed(seed)
     obs_a, obs_b = ours.reset(), ref.reset()
     np.testing.assert_array_equal(obs_a, obs_b)
@@ -161,10 +161,10 @@ def test_shipped_policy_completes_the_cycle(braking):
     meta = json.loads((POLICIES / f"ppo_{braking}.json").read_text())
     assert meta["braking"] == braking
     policy = load_policy(path)
-    env = gym.make("WheelLoader-v0", braking=braking)
+    env = gym.make("WheelLoader-v1", braking=braking)
     result = run_episode(env, policy)
     assert result["completed"], result
-    env = gym.make("WheelLoader-v0", braking=braking, init_noise=1.0)
+    env = gym.make("WheelLoader-v1", braking=braking, init_noise=1.0)
     assert run_episode(env, policy, seed=123)["completed"]
 
 

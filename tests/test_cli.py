@@ -83,7 +83,7 @@ def test_evaluate_operator_nominal_then_perturbed_and_scored(tmp_path, cache, ca
     assert [(e["episode"], e["seed"], e["init_noise"]) for e in eps] == [(0, 5, 0.0), (1, 6, 1.0)]
     # episode 0 is the nominal cycle, episode 1 the perturbed start of seed 6: the same as rolled by hand
     for e, noise in zip(eps, (0.0, 1.0), strict=True):
-        ref = run_episode(gym.make("WheelLoader-v0", braking="service", init_noise=noise), OperatorPolicy("service"),
+        ref = run_episode(gym.make("WheelLoader-v1", braking="service", init_noise=noise), OperatorPolicy("service"),
                           seed=e["seed"])
         assert (e["T"], e["fuel_g"], e["completed"], e["success"]) == (ref["T"], ref["fuel_g"], ref["completed"],
                                                                       ref["success"])
@@ -157,8 +157,8 @@ def test_evaluate_user_controller_from_a_file(tmp_path, cache, capsys):
     assert calls.count("act") == sum(round(e["T"] / 0.1) for e in eps)
     # its actions drove the episodes: the nominal one equals a rollout of the class, not the operator's
     ctrl = load_controller(f"{module}:GentleDriver", "tc")
-    ref = run_episode(gym.make("WheelLoader-v0", braking="tc"), ctrl, seed=0)
-    op = run_episode(gym.make("WheelLoader-v0", braking="tc"), OperatorPolicy("tc"), seed=0)
+    ref = run_episode(gym.make("WheelLoader-v1", braking="tc"), ctrl, seed=0)
+    op = run_episode(gym.make("WheelLoader-v1", braking="tc"), OperatorPolicy("tc"), seed=0)
     assert (eps[0]["T"], eps[0]["fuel_g"]) == (ref["T"], ref["fuel_g"])
     assert eps[0]["T"] > op["T"] and eps[0]["fuel_g"] != op["fuel_g"]
     _check_scores([e for e in eps if e["completed"]], "tc")

@@ -1,4 +1,4 @@
-"""WheelLoader-v0: Gymnasium API, determinism, the vector env, robustness, bad input."""
+"""WheelLoader-v1: Gymnasium API, determinism, the vector env, robustness, bad input."""
 
 import math
 
@@ -16,7 +16,7 @@ BRAKINGS = ["service", "tc"]
 
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_gymnasium_check_env(braking):
-    gym_check_env(gym.make("WheelLoader-v0", braking=braking).unwrapped, skip_render_check=True)
+    gym_check_env(gym.make("WheelLoader-v1", braking=braking).unwrapped, skip_render_check=True)
 
 
 @pytest.mark.parametrize("braking", BRAKINGS)
@@ -27,14 +27,14 @@ def test_sb3_check_env(braking):
 
 
 def test_registered_with_version_and_spec():
-    spec = gym.spec("WheelLoader-v0")
-    assert spec.version == 0 and spec.vector_entry_point is not None
+    spec = gym.spec("WheelLoader-v1")
+    assert spec.version == 1 and spec.vector_entry_point is not None
 
 
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_deterministic_under_a_seed(braking):
     def rollout(seed):
-        env = gym.make("WheelLoader-v0", braking=braking, init_noise=0.5)
+        env = gym.make("WheelLoader-v1", braking=braking, init_noise=0.5)
         obs, _ = env.reset(seed=seed)
         rng = np.random.default_rng(seed)
         out = [obs]
@@ -52,8 +52,8 @@ def test_deterministic_under_a_seed(braking):
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_vector_env_equals_single_envs(braking):
     n = 6
-    venv = gym.make_vec("WheelLoader-v0", num_envs=n, vectorization_mode="vector_entry_point", braking=braking, init_noise=0.3)
-    envs = [gym.make("WheelLoader-v0", braking=braking, init_noise=0.3) for _ in range(n)]
+    venv = gym.make_vec("WheelLoader-v1", num_envs=n, vectorization_mode="vector_entry_point", braking=braking, init_noise=0.3)
+    envs = [gym.make("WheelLoader-v1", braking=braking, init_noise=0.3) for _ in range(n)]
     ov, _ = venv.reset(seed=11)
     singles = [e.reset(seed=11 + i)[0] for i, e in enumerate(envs)]
     np.testing.assert_array_equal(ov, np.stack(singles))
@@ -79,7 +79,7 @@ def test_vector_env_equals_single_envs(braking):
 
 
 def test_many_random_steps_stay_finite():
-    venv = gym.make_vec("WheelLoader-v0", num_envs=200, vectorization_mode="vector_entry_point", braking="tc", init_noise=1.0)
+    venv = gym.make_vec("WheelLoader-v1", num_envs=200, vectorization_mode="vector_entry_point", braking="tc", init_noise=1.0)
     venv.reset(seed=0)
     rng = np.random.default_rng(0)
     for _ in range(500):  # 10^5 env steps of uniformly random actions, both ends of every range
@@ -91,17 +91,17 @@ def test_many_random_steps_stay_finite():
 
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_operator_completes_the_cycle(braking):
-    env = gym.make("WheelLoader-v0", braking=braking)
+    env = gym.make("WheelLoader-v1", braking=braking)
     r = run_episode(env, OperatorPolicy(braking), seed=0)
     # the end targets met (5 cm, 2 cm) within the driver's limits: a baseline, not a rule-breaker
     assert r["completed"] and r["success"] and not r["stalled"]
     assert abs(r["final_H"] - 5.0) < 0.02 and r["max_excess"] == 0.0
-    env = gym.make("WheelLoader-v0", braking=braking, init_noise=1.0)
+    env = gym.make("WheelLoader-v1", braking=braking, init_noise=1.0)
     assert all(run_episode(env, OperatorPolicy(braking), seed=s)["success"] for s in (1, 2, 3))
 
 
 def test_info_reports_limits_each_step():
-    env = gym.make("WheelLoader-v0")
+    env = gym.make("WheelLoader-v1")
     env.reset(seed=0)
     _, _, _, _, info = env.step(np.array([1, 1, -1, -1], dtype=np.float32))
     for key in ("t", "fuel_g", "phase", "gear", "tc_mode", "phi", "saturations", "violations", "controls"):
@@ -111,7 +111,7 @@ def test_info_reports_limits_each_step():
 
 
 def test_stall_ends_the_episode_as_failure():
-    env = gym.make("WheelLoader-v0", braking="tc")
+    env = gym.make("WheelLoader-v1", braking="tc")
     env.reset(seed=0)
     # no fuel while lifting hard: the engine speed falls below omega_min
     for _ in range(200):
@@ -125,7 +125,7 @@ def test_reward_weights_trace_fuel_and_time():
     a = np.array([1, 0.2, -1, -1], dtype=np.float32)
     rewards = {}
     for w in (0.0, 1.0):
-        env = gym.make("WheelLoader-v0", w_fuel=w, w_time=1 - w, reward={"shaping": 0.0})
+        env = gym.make("WheelLoader-v1", w_fuel=w, w_time=1 - w, reward={"shaping": 0.0})
         env.reset(seed=0)
         rewards[w] = env.step(a)[1]
     assert rewards[0.0] == pytest.approx(-0.1 / 12.0)  # time only: dt / time_ref
@@ -141,7 +141,7 @@ def test_reward_weights_trace_fuel_and_time():
     ],
 )
 def test_bad_actions_raise(action, match):
-    env = gym.make("WheelLoader-v0").unwrapped
+    env = gym.make("WheelLoader-v1").unwrapped
     env.reset(seed=0)
     with pytest.raises(ValueError, match=match):
         env.step(np.array(action, dtype=np.float32))
@@ -149,18 +149,18 @@ def test_bad_actions_raise(action, match):
 
 def test_bad_configuration_raises():
     with pytest.raises(ValueError, match="braking"):
-        gym.make("WheelLoader-v0", braking="engine")
+        gym.make("WheelLoader-v1", braking="engine")
     with pytest.raises(ValueError, match="M_load"):
-        gym.make("WheelLoader-v0", params={"M_load": -5})
+        gym.make("WheelLoader-v1", params={"M_load": -5})
     with pytest.raises(ValueError, match="unknown LoaderParams"):
-        gym.make("WheelLoader-v0", params={"payload": 5})
+        gym.make("WheelLoader-v1", params={"payload": 5})
     with pytest.raises(ValueError, match="dt"):
-        gym.make("WheelLoader-v0", dt=0.0)
+        gym.make("WheelLoader-v1", dt=0.0)
     with pytest.raises(ValueError, match="w_fuel"):
-        gym.make("WheelLoader-v0", w_fuel=float("nan"))
+        gym.make("WheelLoader-v1", w_fuel=float("nan"))
     with pytest.raises(ValueError, match="num_envs"):
-        gym.make_vec("WheelLoader-v0", num_envs=0, vectorization_mode="vector_entry_point")
-    venv = gym.make_vec("WheelLoader-v0", num_envs=2, vectorization_mode="vector_entry_point")
+        gym.make_vec("WheelLoader-v1", num_envs=0, vectorization_mode="vector_entry_point")
+    venv = gym.make_vec("WheelLoader-v1", num_envs=2, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
     with pytest.raises(ValueError, match="finite"):
         venv.step(np.full((2, 4), math.nan, dtype=np.float32))

@@ -34,7 +34,7 @@ def random_states(rng, n):
 @pytest.mark.parametrize("braking", ["service", "tc"])
 def test_flattened_simulator_equals_the_traced_code(braking):
     sim = Simulator(P, braking)
-    controls, rk4 = sim._flattened()
+    controls, advance, _ = sim._flattened()
     rng = np.random.default_rng(0)
     for y in random_states(rng, 300):
         phase = int(rng.integers(1, 5))
@@ -43,7 +43,7 @@ def test_flattened_simulator_equals_the_traced_code(braking):
         h = float(rng.choice([0.1, 0.05, 0.013]))
         u = controls(y, gear, brake, *cmd, h)
         assert same(u, sim._controls(y, gear, brake, *cmd, h))
-        assert same(rk4(y, u[:3], gear, d, h), sim._rk4(y, u[:3], gear, d, h))
+        assert same(advance(y, u[:3], gear, d, h), sim._advance(y, u[:3], gear, d, h))
 
 
 @pytest.mark.parametrize("substeps", [1, 3])
@@ -56,11 +56,13 @@ def test_flattened_step_equals_the_traced_code(braking, substeps):
         phase = int(rng.integers(1, 5))
         t, rev_err = float(rng.uniform(0, 40)), float(rng.choice([math.nan, rng.uniform(-1, 1)]))
         action = tuple(float(v) for v in rng.uniform(-1, 1, 4))
-        flat = core._flatten_step()[0](y, phase, t, rev_err, 0.1, action)
+        through, cut_at_stop = (f(y, phase, t, rev_err, 0.1, action) for f in core._flatten_step()[:2])
         reference = core._step(y, phase, t, rev_err, 0.1, action)
-        if flat is None:  # the guard: a substep reached V = 0 and is cut there by the original code
+        assert through is None or cut_at_stop is None  # each speculates on the other branch
+        if through is None:  # the guard: a substep reached V = 0 and is cut there
             cut += 1
-        else:
+        flat = through if through is not None else cut_at_stop
+        if flat is not None:
             assert same(flat, reference)
         assert same(core.step(y, phase, t, rev_err, 0.1, action), reference)
     assert cut > 0  # the fallback was exercised
@@ -120,6 +122,35 @@ def test_python_branches_are_refused_unless_speculating():
 
     with pytest.raises(TypeError, match="ops.where"):
         flatten(branchy, "x")
-    guarded = flatten(branchy, "x", speculate=True)  # traced along x > 0.0 being false
+    guarded = flatten(branchy, "x", speculate=False)  # traced along x > 0.0 being false
     assert guarded(-2.0) == 2.0 and guarded(3.0) is None
+    taken = flatten(branchy, "x", speculate=True)  # ... and along it being true
+    assert taken(3.0) == 3.0 and taken(-2.0) is None
     assert isinstance(Sym.OPS.fmin(1.0, 2.0), float)  # constants are folded at trace time
+
+
+def test_cache_key_changes_with_every_configuration_attribute():
+    """The flattened code's cache key is derived from everything the step reads: changing any attribute of
+    the stepper, its simulator or its codec (even one added later) gives another key and other code."""
+    from wl_env.physics.flatten import config_key
+
+    core = CycleStepper(P, "service", 0.1, 1, 40.0, RewardConfig())
+    base = config_key(core)
+    owners = [core, core.sim, core.codec]
+    n_checked = 0
+    for owner in owners:
+        for name, value in list(vars(owner).items()):
+            if name == "_flat" or not isinstance(value, (int, float)) or isinstance(value, bool):
+                continue
+            object.__setattr__(owner, name, value * 1.5 + 0.25)
+            assert config_key(core) != base, f"{type(owner).__name__}.{name} is not in the key"
+            object.__setattr__(owner, name, value)
+            n_checked += 1
+    core.sim.new_attribute = 1.0  # an attribute a later change adds to the step
+    assert config_key(core) != base
+    del core.sim.new_attribute
+    assert config_key(core) == base and n_checked >= 4
+    # parameters and reward weights are in it too: other values, other generated code
+    other = CycleStepper(P.replace(M_load=9000.0), "service", 0.1, 1, 40.0, RewardConfig())
+    assert config_key(other) != base
+    assert core._flatten_step()[0] is not other._flatten_step()[0]

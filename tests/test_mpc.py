@@ -103,7 +103,7 @@ def test_plans_predict_the_plant_step_by_step():
     """Without model error a plan is what the environment does: each step's measurement is the plan's
     prediction, to the solver's tolerance (a plan 'solved to acceptable level' keeps defects of ~1e-5
     of the state's scale) and the float32 of the observation."""
-    env = gym.make("WheelLoader-v0", braking="tc")
+    env = gym.make("WheelLoader-v1", braking="tc")
     ctrl = MPCController("tc", config=MPCConfig(mode="target_time", target_time=11.0))
     obs, _ = env.reset(seed=0)
     errors = []
@@ -129,7 +129,7 @@ def test_tc_braking_holds_the_deceleration_limit_within_the_steps():
 
 
 def test_fallback_applies_the_shifted_plan_on_a_forced_failure():
-    env = gym.make("WheelLoader-v0", braking="service")
+    env = gym.make("WheelLoader-v1", braking="service")
     ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0))
     obs, _ = env.reset(seed=0)
     flagged = 0
@@ -149,7 +149,7 @@ def test_fallback_applies_the_shifted_plan_on_a_forced_failure():
 
 
 def test_time_budget_overrun_falls_back_without_crashing():
-    env = gym.make("WheelLoader-v0", braking="service")
+    env = gym.make("WheelLoader-v1", braking="service")
     ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0, time_budget=1e-4))
     obs, _ = env.reset(seed=0)
     for _ in range(15):
@@ -230,7 +230,7 @@ def test_bad_configuration_raises():
 
 def test_impossible_target_time_is_a_clear_error():
     ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=6.0))
-    env = gym.make("WheelLoader-v0", braking="service")
+    env = gym.make("WheelLoader-v1", braking="service")
     obs, _ = env.reset(seed=0)
     with pytest.raises(ValueError, match=r"target_time 6 s is impossible: the minimum cycle time .* is 8\.\d+ s"):
         ctrl.act(obs)

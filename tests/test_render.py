@@ -102,7 +102,7 @@ def test_each_env_has_its_own_figure_and_custom_sizes():
 
 @pytest.mark.parametrize("braking", ["service", "tc"])
 def test_check_env_with_render_check(braking):
-    env = gym.make("WheelLoader-v0", braking=braking, render_mode="rgb_array")
+    env = gym.make("WheelLoader-v1", braking=braking, render_mode="rgb_array")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # "human" is checked too; no display here
         gym_check_env(env.unwrapped)  # skip_render_check=False: rgb_array and human
@@ -203,7 +203,7 @@ def test_record_video_wrapper(tmp_path):
     pytest.importorskip("moviepy")
     from gymnasium.wrappers import RecordVideo
 
-    env = RecordVideo(gym.make("WheelLoader-v0", render_mode="rgb_array"), str(tmp_path), disable_logger=True)
+    env = RecordVideo(gym.make("WheelLoader-v1", render_mode="rgb_array"), str(tmp_path), disable_logger=True)
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.action_space.sample())

@@ -225,7 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_mpc_cmd)
 
     p = sub.add_parser("evaluate", help="run a controller for some episodes and score it against the optimum",
-                       description="Run a controller in WheelLoader-v0 and score it against the optimal control "
+                       description="Run a controller in WheelLoader-v1 and score it against the optimal control "
                        "benchmark. Episode 0 starts at the nominal state (the one the optimum is computed for), "
                        "episodes 1..N-1 perturbed by --init-noise, episode i seeded SEED + i. Per episode and "
                        "aggregated: success (cycle completed, end targets met), cycle time, fuel, constraint "
@@ -250,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     from agents.train_cli import add_train_args
 
     p = sub.add_parser("train", help="train a PPO policy (stable-baselines3 on the native vector env)",
-                       description="Train a PPO policy for WheelLoader-v0; every field of agents.ppo.PPOConfig is a "
+                       description="Train a PPO policy for WheelLoader-v1; every field of agents.ppo.PPOConfig is a "
                        "flag. A run lives in <log-dir>/<run-name>/ (config.json, tb/, eval.csv, checkpoints/, "
                        "final/); --resume continues it from its newest checkpoint, --export PATH ships the final "
                        "policy as PATH.zip + PATH_vecnormalize.pkl + PATH.json.")

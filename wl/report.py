@@ -171,7 +171,7 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     brakings, rows, fronts = results["brakings"], results["rows"], results["fronts"]
     written = []
     # ---- leaderboard
-    lines = ["# Leaderboard", "", "Cycle time and fuel of each controller in `WheelLoader-v0`, scored against the "
+    lines = ["# Leaderboard", "", "Cycle time and fuel of each controller in `WheelLoader-v1`, scored against the "
              "optimal control benchmark: time gap to the minimum cycle time, fuel gap to the minimum fuel at the "
              "same cycle time (the Pareto front). Violation: largest relative excess over the deceleration and "
              "speed limits. Success: cycle completed with the reversing point and the end within 5 cm and the "

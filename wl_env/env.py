@@ -1,4 +1,4 @@
-"""``WheelLoader-v0``: a wheel loader driving the short loading cycle."""
+"""``WheelLoader-v1``: a wheel loader driving the short loading cycle."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
-from wl_env.episode import OBS_HIGH, OBS_LOW, CycleStepper, RewardConfig
+from wl_env.codec import OBS_HIGH, OBS_LOW
+from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
-from wl_env.physics import torque_converter
 
 
 def _clip_unit(v: float) -> float:
@@ -68,7 +68,7 @@ class WheelLoaderEnv(gym.Env):
 
     ## Observation Space
 
-    ``Box((12,), float32)``, normalized:
+    ``Box((12,), float32)``, normalized (:class:`wl_env.codec.Codec` encodes and decodes it by name):
 
     | Num | Observation                          | Min  | Max |
     |-----|--------------------------------------|------|-----|
@@ -78,14 +78,16 @@ class WheelLoaderEnv(gym.Env):
     | 3   | bucket speed V_b (m/s)               | 0    | 2   |
     | 4   | position s / 6.6 m (start = 0)       | -2.5 | 1.5 |
     | 5   | distance to the leg's end / 6.6 m    | -1.5 | 2.5 |
-    | 6   | elapsed time / max_time              | 0    | 1.5 |
+    | 6   | elapsed time / 40 s                  | 0    | 1.5 |
     | 7   | fuel used (kg)                       | 0    | 5   |
     | 8-11| phase one-hot (1, 2, 3, 4)           | 0    | 1   |
 
     ## Rewards
 
     Each step: ``-(w_fuel * fuel_g / fuel_ref_g + w_time * dt / time_ref)``, minus ``violation`` times
-    the time-integrated relative excess over the driver's limits (deceleration 0.18 g, speed V_max),
+    the time-integrated relative excess over the limits of eq. (31) (deceleration 0.18 g and speed V_max
+    at every RK4 stage and substep end; torque curve, pump flow and relief pressure at each substep's end
+    under the held control; :mod:`wl_env.limits`, reported per limit in ``info["violations"]``),
     plus a potential-based progress term (``shaping``). Once: minus ``target_distance`` per metre of
     error at the reversing point (s = -6.6 m) and at the end (s = 0), minus ``target_height`` per metre of
     bucket-height error at the end, minus ``failure`` for a stall or leaving the site. See
@@ -103,6 +105,15 @@ class WheelLoaderEnv(gym.Env):
     | terminated | cycle completed: phase 4, V = 0 and the bucket still (``info["is_success"]`` if the reversing point, the end position (5 cm) and the height (2 cm) are met) |
     | terminated | failure: engine stall (omega < omega_min) or off the site (s < -13.2 m or s > 6.6 m) |
     | truncated  | elapsed time >= ``max_time`` (default 40 s)                                |
+
+    ``step()`` after the episode has ended raises ``RuntimeError``: call ``reset()``.
+
+    ## Version History
+
+    * v1: every limit checked within the step (at the RK4 stages and the substep's end, where the
+      benchmark checks it), elapsed time observed as t / 40 s (not t / max_time), a stalled engine stops
+      at omega = 0, ``step()`` after the end raises.
+    * v0: the limits at substep starts only (a controller could exceed 0.18 g unseen between two).
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
@@ -131,7 +142,9 @@ class WheelLoaderEnv(gym.Env):
         self.core = CycleStepper(self.params, braking, dt, substeps, max_time, make_reward_config(reward, w_fuel, w_time))
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+        self.codec = self.core.codec
         self._gears = self.core.sim._tables_py[0]
+        self._done = False
         self._renderer = None
         self._y: tuple = ()
         self._phase = 1
@@ -152,6 +165,8 @@ class WheelLoaderEnv(gym.Env):
             H += float(du[1]) * self.init_noise * 0.1
         self._y = (float(omega), 0.0, float(H), 0.0, 0.0, 0.0)
         self._phase, self._t, self._rev_err, self._violation = 1, 0.0, math.nan, 0.0
+        self._done = False
+        self._features = self.codec.encode_observation(self._y, self._phase, self._t)
         if self.render_mode == "human":
             self.render()
         return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0}
@@ -159,6 +174,8 @@ class WheelLoaderEnv(gym.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         if not self._y:
             raise RuntimeError("call reset() before step()")
+        if self._done:
+            raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (4,):
             raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
@@ -169,41 +186,34 @@ class WheelLoaderEnv(gym.Env):
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
+        self._features = r["obs"]
+        terminated, truncated = bool(r["terminated"]), bool(r["truncated"])
+        self._done = terminated or truncated
         if self.render_mode == "human":
             self.render()
-        return self._obs(), float(r["reward"]), bool(r["terminated"]), bool(r["truncated"]), self._info(r)
+        return self._obs(), float(r["reward"]), terminated, truncated, self._info(r)
 
     def _obs(self) -> np.ndarray:
-        obs = np.array(self.core.observation(self._y, self._phase, self._t), dtype=np.float32)
+        obs = np.array(self._features, dtype=np.float32)  # (the step computed them, in its flattened code)
         return obs.clip(OBS_LOW, OBS_HIGH, out=obs)  # = np.clip(obs, ...) without its Python layers
 
     def _info(self, r: dict) -> dict[str, Any]:
-        p, y, phase = self.params, self._y, self._phase
-        gear = self._gears[phase]
-        phi = torque_converter.speed_ratio(y[1], y[0], gear, p)
-        controls = r["u"]
-        u_mf, u_ab = controls[0], controls[1]
-        u_cmd, u_mf_torque, u_ab_pressure = r["u_cmd"], r["u_mf_torque"], r["u_ab_pressure"]
-        cmd_mf = min(max(u_cmd[0], 0.0), p.U_mf_max)
-        lo, hi = p.U_ab_bounds
-        cmd_ab = min(max(u_cmd[1], lo), hi)
+        y, excess = self._y, r["excess_by_limit"]
         return {
             "t": self._t,
             "fuel_g": y[5] * 1000.0,
-            "phase": phase,
-            "gear": gear,
-            "tc_mode": torque_converter.operating_mode(phi) if gear != 0 else 0,
-            "phi": phi,
+            "phase": self._phase,
+            "gear": r["gear"],
+            "tc_mode": r["tc_mode"],
+            "phi": r["phi"],
             "state": y[:4],
             "s": y[4],
-            "controls": controls,
-            "saturations": {
-                "torque_limit": cmd_mf > u_mf_torque + 1e-9,
-                "governor": u_mf < min(cmd_mf, u_mf_torque) - 1e-9,
-                "relief_pressure": cmd_ab > u_ab_pressure + 1e-9,
-                "pump_flow": u_ab < min(cmd_ab, u_ab_pressure) - 1e-9,
-            },
-            "violations": {"excess": r["excess"], "max_excess": self._violation},
+            "controls": r["u"],
+            "saturations": r["saturations"],
+            # per limit (wl_env.limits.ENV_NAMES), its largest relative excess within this step; "excess" the
+            # largest of them, "max_excess" the largest so far in the episode
+            "violations": {"deceleration": excess["deceleration"], "speed": excess["speed"],
+                           "excess": r["excess"], "max_excess": self._violation},
             "reversing_error": None if math.isnan(self._rev_err) else self._rev_err,  # m, None until reached
             "is_success": bool(r["success"]),
             "completed": bool(r["completed"]),

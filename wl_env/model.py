@@ -43,6 +43,20 @@ def derivatives(
     return d_omega, d_v, V_b, U_ab, engine.fuel_mass_rate(omega, U_mf, p)
 
 
+def estimated_derivatives(x: Any, u: Any, gear: Any, direction: Any, p: LoaderParams,
+                          offset: Any = 0.0, gain: Any = 1.0, lift_gain: Any = 1.0) -> tuple[Any, Any, Any, Any, Any]:
+    """:func:`derivatives` as a model-error estimate has the plant (the MPC's model of it).
+
+    dV/dt = gain * model + d * offset (gain: model mass / plant mass; offset: an acceleration along the
+    travel direction d, e.g. a rolling-resistance error), and the lift draws lift_gain times the model's
+    power from the engine (its power is proportional to the payload, eq. (10)).
+    """
+    d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], gear, direction, p)
+    d_v = gain * d_v + direction * offset
+    d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
+    return d_om, d_v, d_h, d_vb, m_dot
+
+
 def dynamics(x: Any, u: Any, gear: float, direction: float, params: LoaderParams | dict | None = None) -> Any:
     """x' = f(x, u) for the given gear and travel direction.
 

@@ -1,4 +1,4 @@
-"""Side-view rendering of ``WheelLoader-v0``: RGB frames (matplotlib, Agg) and a window for ``"human"``.
+"""Side-view rendering of ``WheelLoader-v1``: RGB frames (matplotlib, Agg) and a window for ``"human"``.
 
 ``render_frame(env)`` draws the loader at its position ``s`` on the track between the reversing point
 (s = -6.6 m) and the pile/truck (s = 0), with the boom and bucket at the bucket height H, and a panel
@@ -205,7 +205,7 @@ class _Scene:
         ax.add_patch(self.bucket)
         self._bucket_xy = np.array(_BUCKET, dtype=float)
         self._load_xy = np.array(_BUCKET_LOAD, dtype=float)
-        ax.text(x_min + 0.25, y_max - 0.2, f"WheelLoader-v0  short loading cycle  ({_BRAKING_TEXT[env.braking]})",
+        ax.text(x_min + 0.25, y_max - 0.2, f"WheelLoader-v1  short loading cycle  ({_BRAKING_TEXT[env.braking]})",
                 ha="left", va="top", fontsize=8, color="#333333", zorder=20)
         dynamic += self.spokes + [self.cylinder, self.boom_edge, self.boom, self.pivot, self.load, self.bucket]
 
@@ -411,7 +411,7 @@ def show(frame: np.ndarray, handle: tuple[Any, Any] | None = None, *, fps: float
         fig = plt.figure(figsize=(w / _DPI, h / _DPI), dpi=_DPI)
         plt.ion()
         if fig.canvas.manager is not None:
-            fig.canvas.manager.set_window_title("WheelLoader-v0")
+            fig.canvas.manager.set_window_title("WheelLoader-v1")
         ax = fig.add_axes((0, 0, 1, 1))
         ax.set_axis_off()
         image = ax.imshow(frame, interpolation="nearest")

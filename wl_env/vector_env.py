@@ -1,6 +1,6 @@
-"""Native vectorized ``WheelLoader-v0``: N loaders stepped together as numpy arrays.
+"""Native vectorized ``WheelLoader-v1``: N loaders stepped together as numpy arrays.
 
-Built by ``gymnasium.make_vec("WheelLoader-v0", num_envs=N, vectorization_mode="vector_entry_point")``.
+Built by ``gymnasium.make_vec("WheelLoader-v1", num_envs=N, vectorization_mode="vector_entry_point")``.
 It runs the same :class:`~wl_env.episode.CycleStepper` as the single environment on arrays of shape
 (N,), so loader i follows exactly the trajectory of a single ``WheelLoaderEnv`` seeded with ``seed + i``.
 Finished loaders are reset on the next call to ``step`` (Gymnasium's next-step autoreset).
@@ -17,8 +17,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from wl_env import cycle
+from wl_env.codec import OBS_HIGH, OBS_LOW
 from wl_env.env import make_reward_config
-from wl_env.episode import OBS_HIGH, OBS_LOW, CycleStepper, RewardConfig
+from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
 
 
@@ -44,7 +45,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if render_mode is not None:
-            raise ValueError("the vector WheelLoader-v0 does not render; use the single environment")
+            raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
         if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
@@ -132,11 +133,12 @@ class WheelLoaderVectorEnv(VectorEnv):
             "phase": self._phase.copy(),
             "is_success": success,
             "reversing_error": self._rev_err.copy(),
+            "violation": np.asarray(r["excess"], dtype=np.float64),
         }
         return self._obs(), reward, terminated, truncated, infos
 
     def _obs(self) -> np.ndarray:
-        cols = self.core.observation(self._y, self._phase, self._t)
+        cols = self.core.codec.encode_observation(self._y, self._phase, self._t)  # (after the autoresets)
         obs = np.stack([np.broadcast_to(c, (self.num_envs,)) for c in cols], axis=1).astype(np.float32)
         return np.clip(obs, OBS_LOW, OBS_HIGH)
 

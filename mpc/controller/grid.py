@@ -1,6 +1,6 @@
 """The cycle on the environment's control grid: the plant's own discrete-time model, in CasADi.
 
-``WheelLoader-v0`` holds each control for one control step (``dt``, 0.1 s) and integrates it with
+``WheelLoader-v1`` holds each control for one control step (``dt``, 0.1 s) and integrates it with
 ``substeps`` classical RK4 steps, after saturating it to what the machine can do; a substep in which the
 speed crosses zero is cut at the crossing (:class:`wl_env.simulator.Simulator`). This module writes that
 step in CasADi, on :func:`estimated_derivatives` (the model, corrected by the MPC's estimate of the

@@ -1,4 +1,4 @@
-"""Shrinking-horizon MPC that drives ``WheelLoader-v0`` through the cycle, on the environment's own grid.
+"""Shrinking-horizon MPC that drives ``WheelLoader-v1`` through the cycle, on the environment's own grid.
 
 At every control step the controller reads the state from the observation and solves the rest of the
 cycle as the environment will run it (:mod:`mpc.controller.grid`: the plant's RK4 step, its saturations and its
@@ -143,7 +143,7 @@ REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first 
 
 
 class MPCController:
-    """Shrinking-horizon MPC for ``WheelLoader-v0`` (controller protocol: ``reset()``, ``act(obs)``).
+    """Shrinking-horizon MPC for ``WheelLoader-v1`` (controller protocol: ``reset()``, ``act(obs)``).
 
     ``dt`` and ``substeps`` must be the environment's (``run_closed_loop`` reads them from it).
     """
@@ -204,11 +204,11 @@ class MPCController:
         return np.clip(np.nan_to_num(a, nan=-1.0), -1.0, 1.0).astype(np.float32)
 
     def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
-        """[omega, V, H, V_b, s], elapsed time and phase from a WheelLoader-v0 observation."""
+        """[omega, V, H, V_b, s], elapsed time and phase from a WheelLoader-v1 observation."""
         p = self.params
         o = np.asarray(obs, dtype=np.float64)
         if o.shape != (12,) or not np.isfinite(o).all():
-            raise ValueError(f"obs must be a finite WheelLoader-v0 observation of shape (12,), got {o!r}")
+            raise ValueError(f"obs must be a finite WheelLoader-v1 observation of shape (12,), got {o!r}")
         x = np.array([o[0] * p.omega_max, o[1] * p.V_max, o[2] * p.H_T, o[3], o[4] * p.distance])
         return x, float(o[6] * self.config.max_time), int(np.argmax(o[8:12])) + 1
 
@@ -687,7 +687,7 @@ class MPCController:
 def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
                     score: bool = True, seed: int = 0, controller: MPCController | None = None) -> dict[str, Any]:
-    """One cycle of ``WheelLoader-v0`` under the MPC; returns the trajectory, the result and its score.
+    """One cycle of ``WheelLoader-v1`` under the MPC; returns the trajectory, the result and its score.
 
     ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
     they differ in a model-mismatch study. ``controller`` (default: built from ``config``) lets a caller
@@ -701,7 +701,7 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
     config = config or MPCConfig()
     model = resolve(params)
     plant = resolve(plant_params) if plant_params is not None else model
-    env = gym.make("WheelLoader-v0", braking=braking, params=plant, max_time=config.max_time)
+    env = gym.make("WheelLoader-v1", braking=braking, params=plant, max_time=config.max_time)
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps)
     ep = run_episode(env, ctrl, seed=seed)

@@ -40,6 +40,7 @@ FLOAT_OPS = SimpleNamespace(
     fmax=max,
     where=_float_where,
     clip=_float_clip,
+    isnan=math.isnan,
 )
 
 NUMPY_OPS = SimpleNamespace(
@@ -49,6 +50,7 @@ NUMPY_OPS = SimpleNamespace(
     fmax=np.maximum,
     where=np.where,
     clip=np.clip,
+    isnan=np.isnan,
 )
 
 if ca is not None:
@@ -59,6 +61,7 @@ if ca is not None:
         fmax=ca.fmax,
         where=lambda c, a, b: ca.if_else(c, a, b),
         clip=lambda x, lo, hi: ca.fmin(ca.fmax(x, lo), hi),
+        isnan=lambda x: x != x,
     )
 
 

@@ -14,18 +14,22 @@ deterministic and never kept in extended precision by Python.)
 
 Straight-line code flattens as it is (the physics uses ``ops.where``, which evaluates both branches, as
 numpy and CasADi need anyway). A Python ``if`` on a traced value raises ``TypeError`` at trace time,
-unless ``speculate=True``: then the trace follows the branch for a false value and the generated code
-checks it (a guard) and returns ``None`` when it is true, so that the caller runs the original code. The
-cycle's step uses this for the rare substep that is cut where the vehicle speed crosses zero.
+unless ``speculate`` is True or False: then the trace follows that branch of every such ``if`` and the
+generated code checks it (a guard), returning ``None`` where a value takes the other branch, so that the
+caller runs the original code. The cycle's step is flattened twice this way: for substeps that run
+through, and for the substep that is cut where the vehicle speed crosses zero.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import linecache
 import math
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from wl_env.physics.backend import FLOAT_OPS, Traced
 
@@ -36,7 +40,7 @@ _MAX_NESTING = 40  # inlined expressions deeper than this are stored (Python's p
 class _Tape:
     """The recorded program: operations ``(target, format, operands, lazy operand indices)``."""
 
-    def __init__(self, speculate: bool) -> None:
+    def __init__(self, speculate: bool | None) -> None:
         self.speculate = speculate
         self.ops: list[tuple[str | None, str, tuple[str, ...], tuple[int, ...]]] = []
         self.namespace: dict[str, Any] = {"_sqrt": math.sqrt}
@@ -53,7 +57,8 @@ class _Tape:
         return self._known[key]
 
     def guard(self, cond: Sym) -> None:
-        self.ops.append((None, "if {0}: return None", (cond.name,), ()))
+        fmt = "if not ({0}): return None" if self.speculate else "if {0}: return None"
+        self.ops.append((None, fmt, (cond.name,), ()))
 
     def ref(self, value: Any) -> str:
         """Source text of an operand: a symbol's name, a literal, or a bound constant."""
@@ -68,15 +73,24 @@ class _Tape:
         return self._bound[id(value)]
 
     def source(self, returned: set[str]) -> list[str]:
-        """The body's lines, values used once (and not in a lazy branch) inlined where they are used."""
+        """The body's lines, values used once (and not in a lazy branch) inlined where they are used;
+        operations whose values reach neither the result nor a guard are left out."""
+        live = set(returned)
+        kept = []
+        for op in reversed(self.ops):  # backwards: an operation is live if a live one (or a guard) uses it
+            target, _, args, _ = op
+            if target is None or target in live:
+                live.update(args)
+                kept.append(op)
+        ops = kept[::-1]
         uses = dict.fromkeys(returned, 2)  # returned values stay variables
-        for _, fmt, args, lazy in self.ops:
+        for _, fmt, args, lazy in ops:
             for i, a in enumerate(args):
                 weight = 2 if i in lazy else fmt.count(f"{{{i}}}")  # lazy: never inline
                 uses[a] = uses.get(a, 0) + weight
         pending: dict[str, tuple[str, int]] = {}  # inlinable name -> (expression, nesting depth)
         lines = []
-        for target, fmt, args, _ in self.ops:
+        for target, fmt, args, _ in ops:
             depth = 1 + max((pending[a][1] for a in args if a in pending), default=0)
             text = fmt.format(*(f"({pending.pop(a)[0]})" if a in pending else a for a in args))
             if target is not None and uses.get(target) == 1 and depth < _MAX_NESTING:
@@ -130,10 +144,10 @@ class Sym(Traced):
         return self.tape.emit("abs({0})", self)
 
     def __bool__(self) -> bool:
-        if not self.tape.speculate:
+        if self.tape.speculate is None:
             raise TypeError("a Python branch on a traced value cannot be flattened; use ops.where")
-        self.tape.guard(self)  # the trace takes the false branch; the generated code checks it
-        return False
+        self.tape.guard(self)  # the trace takes the speculated branch; the generated code checks it
+        return self.tape.speculate
 
 
 def take(table: tuple, index: Sym) -> Sym:
@@ -169,7 +183,32 @@ def _clip(x: Any, lo: Any, hi: Any) -> Any:
     return _tape_of(x, lo, hi).emit("{1} if {0} < {1} else ({2} if {0} > {2} else {0})", x, lo, hi, lazy=(0, 1, 2))
 
 
-Sym.OPS = type(FLOAT_OPS)(name="trace", sqrt=_sqrt, fmin=_fmin, fmax=_fmax, where=_where, clip=_clip)
+def _isnan(x: Any) -> Any:
+    return x.tape.emit("{0} != {0}", x) if isinstance(x, Sym) else math.isnan(x)
+
+
+Sym.OPS = type(FLOAT_OPS)(name="trace", sqrt=_sqrt, fmin=_fmin, fmax=_fmax, where=_where, clip=_clip, isnan=_isnan)
+
+
+def config_key(obj: Any) -> str:
+    """A key for everything an object's traced methods can read: its type and, recursively, the values of
+    its attributes (``_flat``, the generated code itself, apart). Derived, not listed by hand, so an
+    attribute added to a step cannot share stale code between two configurations."""
+
+    def walk(v: Any) -> Any:
+        if dataclasses.is_dataclass(v) and not isinstance(v, type):
+            return repr(v)
+        if isinstance(v, np.ndarray):
+            return ("ndarray", str(v.dtype), v.shape, repr(v.tolist()))
+        if isinstance(v, (tuple, list)):
+            return (type(v).__name__, *map(walk, v))
+        if isinstance(v, dict):
+            return ("dict", *((repr(k), walk(x)) for k, x in v.items()))
+        if hasattr(v, "__dict__") and not callable(v):
+            return (type(v).__qualname__, *((k, walk(x)) for k, x in sorted(vars(v).items()) if k != "_flat"))
+        return repr(v)  # numbers (repr tells -0.0 from 0.0, which == does not), strings, None
+
+    return repr(walk(obj))
 
 
 _CACHE: dict[str, Callable] = {}
@@ -178,7 +217,7 @@ CACHE_SIZE = 64  # flattened functions kept for reuse (each new configuration ad
 
 def flatten_cached(key: str, fn: Callable, *inputs: str | tuple[str, int], **options: Any) -> Callable:
     """:func:`flatten`, shared between equal configurations: ``key`` must identify everything the trace
-    of ``fn`` reads (use reprs: they tell -0.0 from 0.0, which ``==`` does not)."""
+    of ``fn`` reads (:func:`config_key` of the object whose method ``fn`` is)."""
     if key not in _CACHE:
         if len(_CACHE) >= CACHE_SIZE:
             del _CACHE[next(iter(_CACHE))]
@@ -186,12 +225,13 @@ def flatten_cached(key: str, fn: Callable, *inputs: str | tuple[str, int], **opt
     return _CACHE[key]
 
 
-def flatten(fn: Callable, *inputs: str | tuple[str, int], name: str = "flat", speculate: bool = False) -> Callable:
+def flatten(fn: Callable, *inputs: str | tuple[str, int], name: str = "flat", speculate: bool | None = None) -> Callable:
     """Compile ``fn`` for floats into straight-line code with the same results.
 
     ``inputs`` describe fn's positional arguments: a name (one number) or ``(name, n)`` (a sequence of
     which items 0..n-1 are used). The result takes the same arguments; tuples, lists and dicts in fn's
-    return value keep their structure. With ``speculate`` it returns ``None`` where a guard fails (see the
+    return value keep their structure. With ``speculate`` (the branch every Python ``if`` on a traced value
+takes) it returns ``None`` where a guard fails (see the
     module doc). The generated source is in the function's ``__source__``.
     """
     tape = _Tape(speculate)
