@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from wl_env import cycle
+from wl_env.codec import Codec
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 
@@ -26,7 +27,7 @@ class OperatorPolicy:
     """
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 max_time: float = 40.0, decel_margin: float = 0.85, lift_accel: float = 1.5,
+                 decel_margin: float = 0.85, lift_accel: float = 1.5,
                  lift_off_time: float = 1.2, dt: float = 0.1) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = p = resolve(params)
@@ -34,7 +35,6 @@ class OperatorPolicy:
             raise ValueError(f"decel_margin must lie in [0.1, 1], got {decel_margin}")
         if not 0.0 <= lift_off_time <= 5.0:
             raise ValueError(f"lift_off_time must lie in [0, 5] s, got {lift_off_time}")
-        self.max_time = max_time
         self.dt = dt
         self.a_limit = p.decel_max * p.g
         self.a_plan = decel_margin * self.a_limit  # m/s^2 the driver brakes with
@@ -42,6 +42,7 @@ class OperatorPolicy:
         self.lift_off_time = lift_off_time
         self._ab_lo, self._ab_hi = p.U_ab_bounds
         self._specs = cycle.phase_specs(braking, p)
+        self.codec = Codec(p)
 
     def reset(self) -> None:  # stateless; present for the controller protocol
         pass
@@ -51,9 +52,8 @@ class OperatorPolicy:
         if obs.ndim == 2:
             return np.stack([self.act(o) for o in obs])
         p = self.params
-        omega, V, H, V_b = obs[0] * p.omega_max, obs[1] * p.V_max, obs[2] * p.H_T, obs[3]
-        to_go = obs[5] * p.distance
-        phase = int(np.argmax(obs[8:12])) + 1
+        o = self.codec.decode_observation(obs)
+        omega, V, H, V_b, to_go, phase = o.engine_speed, o.vehicle_speed, o.bucket_height, o.bucket_speed, o.distance_to_go, o.phase
         speed = abs(V)
         stop_dist = speed * speed / (2.0 * self.a_plan)
 
@@ -79,12 +79,7 @@ class OperatorPolicy:
         h_left = max(p.H_T - H - V_b * self.dt, 0.0)
         v_stop = np.sqrt(2.0 * 0.8 * -self._ab_lo * h_left)
         u_ab = min(max((v_stop - V_b) / self.dt, self._ab_lo), min(self.lift_accel, self._ab_hi))
-        return np.array([
-            2.0 * fuel / p.U_mf_max - 1.0,
-            2.0 * (u_ab - self._ab_lo) / (self._ab_hi - self._ab_lo) - 1.0,
-            2.0 * brake / p.U_b_max - 1.0,
-            1.0 if shift else -1.0,
-        ], dtype=np.float32)
+        return self.codec.encode_action(fuel, u_ab, brake, shift)
 
     def _tc_decel(self, omega: float, V: float, H: float, V_b: float) -> float:
         """Deceleration (m/s^2) of the reversing machine in forward gear at engine speed omega."""

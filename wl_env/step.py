@@ -112,7 +112,7 @@ def rhs(y: State, u: Any, gear: Any, d: Any, p: LoaderParams, est: Any = None, h
     if est is None:
         d_omega, d_v, d_h, d_vb, fuel = derivatives(*x, u_mf, u_ab, u[2], gear, d, p)
     else:
-        d_omega, d_v, d_h, d_vb, fuel = estimated_derivatives(x, (u_mf, u_ab, u[2]), gear, d, p, *est)
+        d_omega, d_v, d_h, d_vb, fuel = estimated_derivatives(x, (u_mf, u_ab, u[2]), gear, d, p, est[0], est[1], est[2])
     return d_omega, d_v * (1.0 - held), d_h, d_vb, y[1], fuel
 
 
@@ -152,8 +152,8 @@ def crossing_fraction(y0: State, y1: State, d: Any) -> Any:
 
 
 def cut_substep(y0: State, y1: State, u: Any, gear: Any, d: Any, h: Any, p: LoaderParams,
-                rest_gear: Any, rest_d: Any, rest_brake: Any, est: Any = None,
-                rest_held: Any = None) -> tuple[State, State, list[Stage], list[Stage], Any]:
+                rest_gear: Any, rest_d: Any, rest_brake: Any, est: Any = None, rest_held: Any = None,
+                saturate: bool = True) -> tuple[State, State, list[Stage], list[Stage], Any]:
     """A substep from y0 whose full RK4 step y1 crosses V = 0: stop exactly at V = 0 (at the crossing
     fraction of the substep), then finish the substep in the gear, direction and brake permission that
     follow (phase 3 at the reversing point; the same phase, standing, at the end of the cycle).
@@ -161,10 +161,10 @@ def cut_substep(y0: State, y1: State, u: Any, gear: Any, d: Any, h: Any, p: Load
     Returns (end state, state at the stop, stages up to the stop, stages of the rest, rest's ``held``).
     """
     frac = crossing_fraction(y0, y1, d)
-    ys, stop_stages, _ = rk4(y0, u, gear, d, frac * h, p, est, held=0.0)  # moving: d V > 0 before the stop
+    ys, stop_stages, _ = rk4(y0, u, gear, d, frac * h, p, est, 0.0, saturate)  # moving: d V > 0 before the stop
     ys = (ys[0], 0.0 * ys[1], ys[2], ys[3], ys[4], ys[5])
     rest, rest_stages, held = rk4(ys, (u[0], u[1], u[2] * rest_brake), rest_gear, rest_d, (1.0 - frac) * h, p,
-                                  est, held=rest_held)
+                                  est, rest_held, saturate)
     return rest, ys, stop_stages, rest_stages, held
 
 

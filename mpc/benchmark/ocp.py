@@ -24,11 +24,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from wl_env import cycle
+from wl_env import cycle, limits
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
-from wl_env.physics import engine, lift
+from wl_env.physics import lift
 
 OBJECTIVES = ("time", "fuel", "weighted", "fuel_at_time")
 LINEAR_SOLVERS = ("mumps", "spral")  # IPOPT's linear solvers in CasADi's wheels (HSL's need a licensed library)
@@ -298,22 +298,17 @@ class CycleOCP:
         return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h],
                            [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
+    # eq. (31) at the collocation points (:mod:`wl_env.limits`); speed and engine speed are state bounds
+    PATH_LIMITS = ("torque", "lift_speed", "cylinder_pressure", "deceleration")
+
     def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
-        """Eq. (31) path constraints, scaled; bounds in :meth:`_path_bounds`."""
-        p = self.params
-        omega, H, V_b = x[0], x[2], x[3]
-        t_ice = engine.engine_torque(omega, u[0], p)
-        rows = [(t_ice - line) / 1000.0 for line in engine.torque_limit_lines(omega, p)]
-        rows += [V_b - v_lim for v_lim in lift.max_lift_speed_pieces(H, omega, p)]
-        rows.append(lift.cylinder_pressure(H, u[1], p) / p.P_cyl_max)
-        rows.append(dirn * d_v / (p.decel_max * p.g))
-        return ca.vertcat(*rows)
+        """The path constraints' residuals (<= 0)."""
+        rows = limits.residuals(x, u, d_v, dirn, self.params, names=self.PATH_LIMITS)
+        return ca.vertcat(*(r for name in self.PATH_LIMITS for r in rows[name]))
 
     def _path_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        d = self.settings.degree
-        lb = np.array([-math.inf] * 3 + [-math.inf] * 2 + [-math.inf, -1.0])
-        ub = np.array([0.0] * 3 + [0.0] * 2 + [1.0, math.inf])
-        return np.tile(lb, d + 1), np.tile(ub, d + 1)
+        n = (self.settings.degree + 1) * 7  # 3 torque lines, 2 pump pieces, pressure, deceleration per point
+        return np.full(n, -math.inf), np.zeros(n)
 
     def _make_solver(self) -> ca.Function:
         st = self.settings

@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.model import outputs
+from wl_env import cycle, limits
+from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
 from wl_env.simulator import Simulator
 
@@ -31,7 +32,8 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
     """Apply (t, controls, phase) through the simulator; returns the samples and the reversing point.
 
     With ``planned_speed`` (omega at each t) the injection gets ``speed_gain * (omega_plan - omega)``
-    added (engine-speed feedback); without it the replay is open loop.
+    added (engine-speed feedback); without it the replay is open loop. ``excess``: the largest relative
+    excess over each driver's limit within the substeps, as the environment checks them.
     """
     p = resolve(params)
     speed_gain = ENGINE_SPEED_GAIN if speed_gain is None else speed_gain
@@ -40,6 +42,7 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
     ph = 1
     s_rev = math.nan
     rows = [y]
+    excess = dict.fromkeys(limits.ENV_NAMES, 0.0)
     phases = []  # phases[i]: the phase interval i starts in (the OCPResult convention)
     applied = []
     for i in range(len(t) - 1):
@@ -57,44 +60,33 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
             if m == 0:
                 applied.append(u[:3])  # what the machine applied at the interval start
             ph_before = ph
-            y, ph, sr, _ = sim.substep(y, ph, u[:3], h)
-            if sr == sr:
+            y, ph, sr, ex = sim.substep(y, ph, u[:3], h)
+            excess = limits.worst(excess, ex)
+            if not math.isnan(sr):
                 s_rev = sr
-        if ph_before <= 2 and int(phase[i + 1]) >= 3 and s_rev != s_rev:
+        if ph_before <= 2 and int(phase[i + 1]) >= 3 and math.isnan(s_rev):
             s_rev = y[4]  # the OCP's reversing point: phase 2 ends here in the plan
         rows.append(y)
     phases.append(ph)
     arr = np.array(rows)
     return {"t": np.asarray(t), "states": arr[:, :4], "position": arr[:, 4], "fuel_g": arr[-1, 5] * 1000.0,
-            "s_rev": s_rev, "phase": np.array(phases), "applied": np.array(applied)}
+            "s_rev": s_rev, "phase": np.array(phases), "applied": np.array(applied), "excess": excess}
 
 
 def constraint_violations(states: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: str,
                           params: LoaderParams | dict | None = None) -> dict[str, float]:
-    """Largest relative violation of each constraint of eq. (31) over the samples (0 = satisfied).
-
-    Checked at the start of each interval with that interval's control.
-    """
-    from wl_env.cycle import phase_specs
-
+    """Largest relative excess over each limit of eq. (31) (:mod:`wl_env.limits`) at the samples, each
+    with the control of the interval it starts (0 = satisfied)."""
     p = resolve(params)
-    specs = phase_specs(braking, p)
-    worst = {"torque": 0.0, "lift_speed": 0.0, "pressure": 0.0, "decel": 0.0, "speed": 0.0, "omega": 0.0,
-             "direction": 0.0}
+    specs = cycle.phase_specs(braking, p)
+    worst = dict.fromkeys(limits.NAMES, 0.0)
     for i in range(len(controls)):
         spec = specs[int(phase[i]) - 1]
-        out = outputs(states[i], controls[i], spec.gear, spec.direction, p)
-        omega, V, H, V_b = states[i]
-        worst["torque"] = max(worst["torque"], float((out["T_ice"] - out["T_ice_max"]) / out["T_ice_max"]))
-        worst["lift_speed"] = max(worst["lift_speed"], float((V_b - out["V_lift_max"]) / out["V_lift_max"]))
-        worst["pressure"] = max(worst["pressure"], float((out["P_cyl"] - p.P_cyl_max) / p.P_cyl_max))
-        decel_lim = p.decel_max * p.g
-        worst["decel"] = max(worst["decel"], float((-spec.direction * out["dVdt"] - decel_lim) / decel_lim))
-        worst["speed"] = max(worst["speed"], float((abs(V) - p.V_max) / p.V_max))
-        worst["direction"] = max(worst["direction"], float(-spec.direction * V / p.V_max))
-        worst["omega"] = max(worst["omega"], float((p.omega_min - omega) / p.omega_min),
-                             float((omega - p.omega_max) / p.omega_max))
-    return {k: max(v, 0.0) for k, v in worst.items()}
+        x, u = states[i], controls[i]
+        dv_dt = derivatives(*x[:4], *u, spec.gear, spec.direction, p)[1]
+        rows = limits.residuals(x, u, dv_dt, spec.direction, p)
+        worst = {k: max(worst[k], float(limits.excess(rows[k]))) for k in worst}
+    return worst
 
 
 def verify_result(result: Any, params: LoaderParams | dict | None = None, max_substep: float = 0.005) -> dict[str, Any]:
@@ -109,6 +101,7 @@ def verify_result(result: Any, params: LoaderParams | dict | None = None, max_su
     final = sim["states"][-1]
     viol_ocp = constraint_violations(np.asarray(result.states), controls, phase, result.braking, p)
     viol_sim = constraint_violations(sim["states"], sim["applied"], sim["phase"], result.braking, p)
+    viol_sim = {k: max(v, sim["excess"].get(k, 0.0)) for k, v in viol_sim.items()}  # within the substeps too
     return {
         "reversing_error_m": float(sim["s_rev"] + p.distance) if sim["s_rev"] == sim["s_rev"] else float("nan"),
         "final_position_error_m": float(sim["position"][-1]),
@@ -130,35 +123,3 @@ def verify_result(result: Any, params: LoaderParams | dict | None = None, max_su
             "fuel_g_simulated": float(open_loop["fuel_g"]),
         },
     }
-
-
-def within_step_excess(states: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: str,
-                       params: LoaderParams | dict | None = None, dt: float = 0.1, n: int = 20) -> float:
-    """The largest relative excess over the deceleration limit anywhere within the control steps of a
-    run (0 = none): each step integrated again from its state under its control with ``n`` RK4 substeps.
-
-    The environment checks the limit at each substep start only; with TC braking the converter's drag
-    can rise in between. ``phase[k]`` is the phase after step k - 1 (a run's samples, as ``run_episode``
-    returns them); the step that reaches the reversing point ran in phase 2, up to where the simulator
-    cuts it (its linear estimate of the crossing; with the drag rising, a little before the continuous
-    motion would stop).
-    """
-    p = resolve(params)
-    sim = Simulator(p, braking)
-    X, U, ph = np.asarray(states, dtype=float), np.asarray(controls, dtype=float), np.asarray(phase)
-    limit, worst = p.decel_max * p.g, 0.0
-    for k in range(len(U)):
-        reversing = ph[k] == 2 and ph[k + 1] == 3
-        gear, d, _ = sim.phase_constants(2 if reversing else int(ph[k + 1]))
-        u = tuple(float(v) for v in U[k])
-        y = (*(float(v) for v in X[k]), 0.0, 0.0)
-        span = dt
-        if reversing:  # the simulator's cut: v0 / (v0 - v1) of its own full step
-            v0, v1 = d * y[1], d * sim.rk4(y, u, gear, d, dt)[0][1]
-            span = dt * v0 / (v0 - v1) if v0 > 0.0 > v1 else dt
-        for _ in range(n + 1):  # the accelerations at the n substep starts and at the end
-            y_next, accel = sim.rk4(y, u, gear, d, span / n)
-            if d * y[1] > 1e-3:  # moving (a standing machine's forces are held by stiction)
-                worst = max(worst, (-d * accel - limit) / limit)
-            y = y_next
-    return max(worst, 0.0)

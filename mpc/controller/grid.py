@@ -2,19 +2,21 @@
 
 ``WheelLoader-v1`` holds each control for one control step (``dt``, 0.1 s) and integrates it with
 ``substeps`` classical RK4 steps, after saturating it to what the machine can do; a substep in which the
-speed crosses zero is cut at the crossing (:class:`wl_env.simulator.Simulator`). This module writes that
-step in CasADi, on :func:`estimated_derivatives` (the model, corrected by the MPC's estimate of the
-plant), so that a plan made with it is what the environment does, step for step:
+speed crosses zero is cut at the crossing. This module composes the environment's own step functions
+(:mod:`wl_env.step`: the RK4 step, the cut, the saturations in constraint form) on CasADi symbols, with
+the model corrected by the MPC's estimate of the plant (:func:`wl_env.model.estimated_derivatives`), so
+that a plan made with it is what the environment does, step for step:
 
-* a *full step* holds the controls over ``substeps`` RK4 substeps. What the simulator would saturate
-  becomes a constraint at each substep start, where the simulator applies it (torque curve, governor,
-  pump flow, boom end stop, relief pressure; no lowering: a bound), and so do the driver's limits
-  (deceleration, speed, engine speed). Where the environment's checks are coarse the plan is stricter,
-  as eq. (31) holds in continuous time: the deceleration also at the RK4 stages, the torque curve and
-  the pump flow also at the step's end (see :func:`_substep_rows`, :func:`_end_rows`);
-* a *stop step* ends phase 2 or phase 4: its last substep crosses V = 0, is cut at the crossing (at the
-  simulator's linear estimate v0 / (v0 - v1) of its time) and runs the rest in phase 3 (the reversing
-  point) or standing (the end of the cycle).
+* a *full step* holds the controls over ``substeps`` RK4 substeps. What the machine would saturate
+  becomes a constraint (:func:`wl_env.step.saturation_residuals`) at each substep start, where the
+  controls are applied, and the torque curve and the pump flow also at the substep's end (the machine
+  saturates them within the step too: a plan stays clear of that, and its NLP smooth). The driver's
+  limits (:mod:`wl_env.limits`) are rows where the environment checks them: the deceleration at every
+  RK4 stage and at the substep's end (with a gear engaged; in neutral it is the same all along). The
+  speed limit needs no row: V_max is the speed at omega_max without converter slip, out of reach;
+* a *stop step* ends phase 2 or phase 4: its last substep crosses V = 0, is cut at the crossing
+  (:func:`wl_env.step.cut_substep`) and runs the rest in phase 3 (the reversing point) or standing
+  (the end of the cycle).
 
 :class:`GridNLP` chains such steps over the phases still ahead: a multiple-shooting NLP with a whole
 number of steps per phase (the *schedule*). The schedule fixes the cycle time, so the NLP minimizes fuel;
@@ -33,10 +35,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from wl_env import cycle
-from wl_env.model import derivatives
+from wl_env import cycle, limits, step
+from wl_env.model import estimated_derivatives
 from wl_env.params import LoaderParams, resolve
-from wl_env.physics import engine, lift
+from wl_env.physics import lift
+from wl_env.step import State
 
 N_X = 5  # grid state [omega (rad/s), V (m/s), H (m), V_b (m/s), s (m)]
 X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])
@@ -55,73 +58,13 @@ MIN_STOP_SPEED = 1e-3  # m/s: a stop step starts moving (the crossing's time is 
 STOP_OVERSHOOT = 2e-3
 
 
-def estimated_derivatives(x: Any, u: Any, gear: Any, direction: Any, p: LoaderParams,
-                          offset: Any = 0.0, gain: Any = 1.0, lift_gain: Any = 1.0) -> tuple[Any, ...]:
-    """The model's derivatives (:func:`wl_env.model.derivatives`) as the MPC estimates the plant.
-
-    dV/dt = gain * model + d * offset (gain: model mass / plant mass; offset: an acceleration along the
-    travel direction d, e.g. a rolling-resistance error), and the lift draws lift_gain times the model's
-    power from the engine (its power is proportional to the payload, eq. (10)). Floats or CasADi symbols.
-    """
-    d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], gear, direction, p)
-    d_v = gain * d_v + direction * offset
-    d_om = d_om - (lift_gain - 1.0) * lift.lift_power(x[3], u[1], p) / (x[0] * p.J_ice)
-    return d_om, d_v, d_h, d_vb, m_dot
+def _state(x: Any) -> State:
+    """The grid state as the step's state tuple, its fuel counted from 0."""
+    return (x[0], x[1], x[2], x[3], x[4], 0.0)
 
 
-def _rhs(x: Any, u: Any, gear: float, d: float, p: LoaderParams, est: Any, held: bool) -> tuple[Any, Any]:
-    d_om, d_v, d_h, d_vb, m_dot = estimated_derivatives(x, u, gear, d, p, est[0], est[1], est[2])
-    return ca.vertcat(d_om, 0.0 if held else d_v, d_h, d_vb, x[1]), m_dot
-
-
-def _rk4(x: Any, u: Any, gear: float, d: float, p: LoaderParams, est: Any, h: Any,
-         held: bool = False) -> tuple[Any, Any, list]:
-    """One classical RK4 step, as the simulator takes it: (end state, fuel (kg), the four stage derivatives)."""
-    k1, f1 = _rhs(x, u, gear, d, p, est, held)
-    k2, f2 = _rhs(x + 0.5 * h * k1, u, gear, d, p, est, held)
-    k3, f3 = _rhs(x + 0.5 * h * k2, u, gear, d, p, est, held)
-    k4, f4 = _rhs(x + h * k3, u, gear, d, p, est, held)
-    return x + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4), h / 6.0 * (f1 + 2.0 * (f2 + f3) + f4), [k1, k2, k3, k4]
-
-
-def _substep_rows(x: Any, u: Any, stages: list, h: Any, d: float, p: LoaderParams,
-                  end_stop: bool) -> tuple[list, list, list]:
-    """What the simulator saturates at a substep start, and the deceleration limit at ``stages``.
-
-    The environment checks the deceleration at each substep start only; with a gear engaged the plan
-    holds it at the RK4 stages too (start, midpoint, end). With TC braking the converter's drag rises
-    within a step: a plan checked at the start only exceeds 0.18 g by up to 22 % in between (measured on
-    a minimum-time cycle). In neutral the deceleration is the brake's and the rolling resistance's, the
-    same all along. The bucket's no-lowering limit needs no row: V_b is linear within a step and >= 0
-    at both ends (bounds). Every row is written so that h = 0 (an idle slot) leaves it finite.
-    """
-    omega, H, V_b = x[0], x[2], x[3]
-    t_ice = engine.engine_torque(omega, u[0], p)
-    v_end = V_b + u[1] * h  # the bucket speed the substep ends with
-    rows = [(t_ice - line) / 1000.0 for line in engine.torque_limit_lines(omega, p)]  # torque curve
-    rows.append((omega + h * stages[0][0] - p.omega_max) / 100.0)  # governor: omega_max at most, within the substep
-    rows += [v_end - v_lim for v_lim in lift.max_lift_speed_pieces(H, omega, p)]  # pump flow
-    if end_stop:
-        rows.append(H + h * v_end - lift.max_bucket_height(p))  # boom end stop
-    rows.append(lift.cylinder_pressure(H, u[1], p) / p.P_cyl_max)  # relief valve
-    n = len(rows)
-    rows += [d * k[1] / (p.decel_max * p.g) for k in stages]  # deceleration limit (the last rows)
-    lb = [-math.inf] * n + [-1.0] * len(stages)  # (a plan's margins: per solve, GridNLP.arguments)
-    ub = [0.0] * (n - 1) + [1.0] + [math.inf] * len(stages)
-    return rows, lb, ub
-
-
-def _end_rows(x1: Any, u: Any, p: LoaderParams) -> tuple[list, list, list]:
-    """The torque curve and the pump flow at a substep's end, the control still held (eq. (31)).
-
-    The simulator saturates both at the substep start only: as the engine slows within a step, the
-    bucket keeps a speed the pump no longer delivers (measured: 32 % over V_lift,max on a TC cycle
-    planned without these rows), and the engine a torque above its curve. The plan does not count on it.
-    """
-    t_ice = engine.engine_torque(x1[0], u[0], p)
-    rows = [(t_ice - line) / 1000.0 for line in engine.torque_limit_lines(x1[0], p)]
-    rows += [x1[3] - v_lim for v_lim in lift.max_lift_speed_pieces(x1[2], x1[0], p)]
-    return rows, [-math.inf] * 5, [0.0] * 5
+def _vector(y: State) -> Any:
+    return ca.vertcat(y[0], y[1], y[2], y[3], y[4])
 
 
 @dataclass(frozen=True)
@@ -162,62 +105,81 @@ class StepModel:
     def _step(self, phase: int, stop: bool) -> StepFunction:
         """A full step, or a stop step (its last substep crosses V = 0; rows besides the full step's: the
         step starts moving, the crossing lies within the substep and, at the reversing point, the drive
-        pushes forward, as the simulator needs to let the machine go on in phase 3)."""
+        pushes forward, as the simulator needs to let the machine go on in phase 3).
+
+        Rows are residuals (<= 0 holds; the deceleration's bounds are set per solve, see
+        :meth:`GridNLP.arguments`), written so that h = 0 (an idle slot) leaves them finite."""
         p, spec = self.params, self.specs[phase]
-        d = spec.direction
+        d, gear = spec.direction, spec.gear
         x0, u, h, est = ca.SX.sym("x0", N_X), ca.SX.sym("u", 3), ca.SX.sym("h"), ca.SX.sym("est", N_EST)
         hs = h / self.substeps
-        x, fuel, rows, lb, ub = x0, 0.0, [], [], []
-        geared = spec.gear != 0.0
-
-        def rows_at(x: Any, stages: list) -> tuple[list, list, list]:
-            return _substep_rows(x, u, [stages[0], stages[2], stages[3]] if geared else stages[:1], hs, d, p,
-                                 self.end_stop)
-
+        y, fuel, rows, lb, ub = _state(x0), 0.0, [], [], []
         decel_all: list[int] = []
+        # With a gear engaged the converter's drag changes within a step (TC braking: it rises as the
+        # machine slows): the deceleration at every RK4 stage and at the end, as the environment checks
+        # it. In neutral it is the brake's and the rolling resistance's, the same all along.
+        geared = gear != 0.0
 
-        def add(r: list, lo: list, hi: list, n_decel: int = 0) -> None:
-            decel_all.extend(range(len(rows) + len(r) - n_decel, len(rows) + len(r)))
+        def add(r: list, lo: float = -math.inf, hi: float = 0.0, decel: bool = False) -> None:
+            if decel:
+                decel_all.extend(range(len(rows), len(rows) + len(r)))
             rows.extend(r)
-            lb.extend(lo)
-            ub.extend(hi)
+            lb.extend([lo] * len(r))
+            ub.extend([hi] * len(r))
 
-        n_stages = 3 if geared else 1
+        def start_rows(y: State, stages: list) -> None:  # what the machine saturates where u is applied
+            for r in step.saturation_residuals(y, u, stages[0][1][0], hs, p, self.end_stop).values():
+                add(r)
+
+        def decel_rows(stages: list, end: State, end_held: float = 0.0) -> None:
+            points = stages if not geared else step.driver_limit_points(
+                stages, end, step.rhs(end, u, gear, d, p, est, end_held, saturate=False))
+            add([r for _, k in (points if geared else stages[:1]) for r in limits.deceleration(k[1], d, p)], decel=True)
+
+        def end_rows(y: State) -> None:  # the torque curve and the pump flow at a substep's end, u still held
+            add(limits.torque(y[0], u[0], p) + limits.lift_speed(y[2], y[0], y[3], p))
+
+        def stage_rows(stages: list) -> None:
+            # The machine saturates at every RK4 stage (wl_env.step.rhs); the plan keeps clear of it there
+            # (the stages' points are not on the trajectory: a plan held at its ends only is clipped, by
+            # 0.2-0.6 % of the torque curve, between them).
+            for x, _ in stages[1:]:
+                add(limits.torque(x[0], u[0], p) + limits.lift_speed(x[2], x[0], x[3], p)
+                    + limits.cylinder_pressure(x[2], u[1], p))
+
         for j in range(self.substeps):
-            x1, f, stages = _rk4(x, u, spec.gear, d, p, est, hs)
+            y1, stages, _ = step.rk4(y, u, gear, d, hs, p, est, held=0.0, saturate=False)
             if stop and j == self.substeps - 1:
                 break  # the crossing substep: its rows below, on the part up to the crossing
-            add(*rows_at(x, stages), n_decel=n_stages)
-            add(*_end_rows(x1, u, p))
-            fuel += f
+            start_rows(y, stages)
+            stage_rows(stages)
+            decel_rows(stages, y1)
+            end_rows(y1)
+            fuel += y1[5]
             if j < self.substeps - 1:  # inside the step: the checks the step's end state has as bounds
-                add([d * x1[1] / p.V_max, (x1[0] - p.omega_min) / 100.0], [0.0, self.omega_margin / 100.0],
-                    [1.0, math.inf])
-            x = x1
-        s_stop = x[4]
+                add(limits.direction(y1[1], d, p) + limits.speed(y1[1], d, p))
+                add(limits.engine_speed(y1[0], p)[:1], hi=-self.omega_margin / p.omega_min)
+            y = (*y1[:5], 0.0)
+        s_stop = y[4]
         if stop:
-            v0, v1 = d * x[1], d * x1[1]
-            frac = v0 / (v0 - v1)
-            x_cut, f_cut, stages = _rk4(x, u, spec.gear, d, p, est, frac * hs)
-            add(*rows_at(x, stages), n_decel=n_stages)  # (first: the deceleration rows where a full step has them)
-            add(*_end_rows(x_cut, u, p))
-            add([v0, v1 / p.V_max], [MIN_STOP_SPEED, -math.inf], [math.inf, -STOP_OVERSHOOT / p.V_max])
-            x_cut = ca.vertcat(x_cut[0], 0.0, x_cut[2:])
-            s_stop = x_cut[4]
-            if geared:  # the deceleration at the stop itself: the converter's drag peaks at standstill (phi = 0)
-                k_stop = _rhs(x_cut, u, spec.gear, d, p, est, False)[0]
-                add([d * k_stop[1] / (p.decel_max * p.g)], [-1.0], [math.inf], n_decel=1)
-            if phase == 2:  # the rest of the substep in phase 3: its gear, no brakes
-                nxt = self.specs[3]
-                x, f_rest, stages = _rk4(x_cut, ca.vertcat(u[0], u[1], 0.0), nxt.gear, nxt.direction, p, est,
-                                         (1.0 - frac) * hs)
-                add([nxt.direction * stages[0][1]], [0.0], [math.inf])
-            else:  # the rest standing: the brakes and the rolling resistance hold it (stiction)
-                x, f_rest, _ = _rk4(x_cut, u, spec.gear, d, p, est, (1.0 - frac) * hs, held=True)
-            add(*_end_rows(x, u, p))
-            fuel += f_cut + f_rest
+            nxt = self.specs[3] if phase == 2 else spec  # the rest: phase 3's gear and no brakes, or standing
+            rest_held = 0.0 if phase == 2 else 1.0  # (standing: the brakes and the rolling resistance hold it)
+            y_end, y_stop, stop_stages, rest_stages, _ = step.cut_substep(
+                y, y1, u, gear, d, hs, p, nxt.gear, nxt.direction, 1.0 if nxt.brake_allowed else 0.0, est,
+                rest_held=rest_held, saturate=False)
+            start_rows(y, stop_stages)
+            stage_rows(stop_stages)
+            stage_rows(rest_stages)
+            decel_rows(stop_stages, y_stop)  # at the stop the converter's drag peaks (phi = 0)
+            end_rows(y_stop)
+            add([d * y[1]], lo=MIN_STOP_SPEED, hi=math.inf)  # the step starts moving (m/s)
+            add([d * y1[1] / p.V_max], hi=-STOP_OVERSHOOT / p.V_max)  # ... and crosses V = 0 within it
+            if phase == 2:  # the drive pushes forward at the reversing point
+                add([nxt.direction * rest_stages[0][1][1]], lo=0.0, hi=math.inf)
+            end_rows(y_end)
+            s_stop, fuel, y = y_stop[4], fuel + y_stop[5] + (y_end[5] - y_stop[5]), y_end
         name = f"{'stop' if stop else 'full'}_step_{phase}"
-        return StepFunction(ca.Function(name, [x0, u, h, est], [x, ca.vertcat(*rows), fuel, s_stop]),
+        return StepFunction(ca.Function(name, [x0, u, h, est], [_vector(y), ca.vertcat(*rows), fuel, s_stop]),
                             np.array(lb, dtype=float), np.array(ub, dtype=float), tuple(decel_all))
 
 
@@ -338,7 +300,7 @@ class GridNLP:
             con((x_end - X * xs) / xs, 0.0, 0.0)
             sel = np.zeros(step.n_rows)
             sel[list(step.decel)] = 1.0
-            g_off = con(rows + ca.DM(sel) * (ex + em), step.lb, step.ub)
+            g_off = con(rows - ca.DM(sel) * (ex + em), step.lb, step.ub)  # (the deceleration's: elastic)
             slots.append(Slot(ph, kind, u_off, g_off))
             excess.append(ex)
             margins.append(em)
@@ -352,7 +314,7 @@ class GridNLP:
                 con(x_prev[3], 0.0, 0.0)
                 # at rest (as the benchmark's end): the engine holds its speed with the last injection
                 d_om = estimated_derivatives(x_prev, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
-                                             est[0], est[1], est[2])[0]
+                                             est[0], est[1], est[2])[0]  # (at omega >= omega_min: no floor)
                 con(d_om / 100.0, 0.0, 0.0)
         fuel_g = 1000.0 * fuel
         J = (fuel_g + TARGET_WEIGHT * ca.sum1(ca.vertcat(*misses)) + DECEL_EXCESS_WEIGHT * ca.sum1(ca.vertcat(*excess))
@@ -394,7 +356,7 @@ class GridNLP:
             lbw[self.slots[k].ex] = ubw[self.slots[k].ex] = 0.0
         for i, k in enumerate(active):
             s, margin = self.slots[k], tighten[0] if i == 0 else tighten[1]
-            lbg[s.g + np.array(self._step_of(s).decel)] = -(1.0 - margin)
+            ubg[s.g + np.array(self._step_of(s).decel)] = -margin
             ubw[s.em] = margin
         return {"p": par, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
 

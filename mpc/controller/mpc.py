@@ -29,6 +29,7 @@ import numpy as np
 
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
 from wl_env import cycle
+from wl_env.codec import Codec
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import engine, lift
 
@@ -83,7 +84,6 @@ class MPCConfig:
     tighten: float = 0.005
     omega_margin: float = 1.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
     spare_steps: int = 3  # slots per phase beyond the first schedule's steps (room for schedule moves)
-    max_time: float = 40.0  # the env's max_time (to read the elapsed time from the observation)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -156,6 +156,7 @@ class MPCController:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
         self.dt, self.substeps = float(dt), int(substeps)
+        self.codec = Codec(self.params)
         key = (self.braking, self.params.fingerprint(), self.dt, self.substeps, self.config.omega_margin)
         if key not in _MODELS:
             _MODELS[key] = StepModel(self.braking, self.params, self.dt, self.substeps, self.config.omega_margin)
@@ -197,20 +198,14 @@ class MPCController:
 
     def action(self, u: np.ndarray, shift: bool) -> np.ndarray:
         """The env's normalized action for the control [U_mf, U_ab, U_b] and a shift request."""
-        p = self.params
-        lo, hi = p.U_ab_bounds
-        a = np.array([2.0 * u[0] / p.U_mf_max - 1.0, 2.0 * (u[1] - lo) / (hi - lo) - 1.0,
-                      2.0 * u[2] / p.U_b_max - 1.0, 1.0 if shift else -1.0])
-        return np.clip(np.nan_to_num(a, nan=-1.0), -1.0, 1.0).astype(np.float32)
+        return self.codec.encode_action(float(u[0]), float(u[1]), float(u[2]), shift)
 
     def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
-        """[omega, V, H, V_b, s], elapsed time and phase from a WheelLoader-v1 observation."""
-        p = self.params
-        o = np.asarray(obs, dtype=np.float64)
-        if o.shape != (12,) or not np.isfinite(o).all():
-            raise ValueError(f"obs must be a finite WheelLoader-v1 observation of shape (12,), got {o!r}")
-        x = np.array([o[0] * p.omega_max, o[1] * p.V_max, o[2] * p.H_T, o[3], o[4] * p.distance])
-        return x, float(o[6] * self.config.max_time), int(np.argmax(o[8:12])) + 1
+        """[omega, V, H, V_b, s], elapsed time and phase from an observation (:class:`wl_env.codec.Codec`)."""
+        o = self.codec.decode_observation(obs)
+        if np.ndim(o.time) != 0:
+            raise ValueError(f"the MPC acts on one observation of shape (12,), got shape {np.shape(obs)}")
+        return o.state, o.time, o.phase
 
     # ------------------------------------------------------------------ one step
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
@@ -433,6 +428,13 @@ class MPCController:
         self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
         for q in range(phase, 5):  # build them all now, not in the middle of the cycle
             self._solver(self._nlp(q), warm=True)
+        sol = self._search_schedule(phase, counts, ref, x, k)
+        if not sol.ok:
+            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
+        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+
+    def _search_schedule(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray, k: int) -> Solve:
+        """The first plan from the rounded schedule, then single-step moves while they pay."""
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
         for _ in range(SEARCH_SOLVES):
@@ -446,9 +448,7 @@ class MPCController:
                 sol, failed = alt, set()
             else:
                 failed.add(move)
-        if not sol.ok:
-            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
-        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+        return sol
 
     def reference(self):
         """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""
@@ -701,7 +701,7 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
     config = config or MPCConfig()
     model = resolve(params)
     plant = resolve(plant_params) if plant_params is not None else model
-    env = gym.make("WheelLoader-v1", braking=braking, params=plant, max_time=config.max_time)
+    env = gym.make("WheelLoader-v1", braking=braking, params=plant)
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps)
     ep = run_episode(env, ctrl, seed=seed)
