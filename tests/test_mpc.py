@@ -9,7 +9,9 @@ import pytest
 
 import wl_env  # noqa: F401  (registers the env)
 from mpc.benchmark.ocp import solve_ocp
-from mpc.controller.grid import NOMINAL_ESTIMATE, StepModel, apportion, steps_of
+from mpc.controller.grid import NOMINAL_ESTIMATE, StepModel
+from mpc.controller.schedule import apportion, steps_of
+from mpc.controller.solver import IpoptSolver, SolverResult
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from wl_env.model import estimated_derivatives
 from wl_env.params import DEFAULT_PARAMS as P
@@ -128,14 +130,27 @@ def test_tc_braking_holds_the_deceleration_limit_within_the_steps():
     assert r["max_violation"] == 0.0
 
 
+class FailingSolver(IpoptSolver):
+    """IPOPT, except that every solve of the steps in ``failing`` fails (an injected solver)."""
+
+    def __init__(self, failing: set[int]) -> None:
+        super().__init__()
+        self.failing, self.step = failing, -1
+
+    def solve(self, *args, **kwargs) -> SolverResult:
+        if self.step in self.failing:
+            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
+        return super().solve(*args, **kwargs)
+
+
 def test_fallback_applies_the_shifted_plan_on_a_forced_failure():
     env = gym.make("WheelLoader-v1", braking="service")
-    ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0))
+    solver = FailingSolver({10, 11, 12, 30})
+    ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0), solver=solver)
     obs, _ = env.reset(seed=0)
     flagged = 0
     for k in range(200):
-        if k in (10, 11, 12, 30):
-            ctrl._force_failure = True
+        solver.step = k
         a = ctrl.act(obs)
         assert np.isfinite(a).all() and a.shape == (4,)
         if ctrl.last_info["fallback"]:
@@ -169,10 +184,10 @@ def test_model_mismatch_case_completes(braking, payload, rolling):
     assert r["max_violation"] == 0.0
     # the estimates: gain = model mass / plant mass, offset = the rolling-resistance error (m/s^2),
     # lift gain = plant payload / model payload
-    gain, offset = ctrl._theta
+    gain, offset = ctrl.estimator.theta
     assert gain == pytest.approx(P.M_tot / plant.M_tot, abs=0.01)
     assert offset == pytest.approx((P.F_roll - plant.F_roll) / plant.M_tot, abs=0.03)
-    assert ctrl._lift_gain == pytest.approx(payload, abs=0.03)
+    assert ctrl.estimator.lift_gain == pytest.approx(payload, abs=0.03)
 
 
 def test_schedule_sensitivities_predict_a_stretched_phase():

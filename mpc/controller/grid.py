@@ -452,27 +452,6 @@ class GridNLP:
         return out
 
 
-def apportion(durations: dict[int, float], n_steps: int, dt: float) -> dict[int, int]:
-    """Whole steps per phase closest to continuous phase durations, ``n_steps`` in all (largest
-    remainders), each phase at least one step; returned as full-step counts (without the stop steps)."""
-    phases = sorted(durations)
-    want = np.array([max(durations[ph], 0.0) / dt for ph in phases])
-    if n_steps < len(phases):
-        raise ValueError(f"{n_steps} steps cannot hold {len(phases)} phases (at least one step each)")
-    want = want * (n_steps / want.sum()) if want.sum() > 0 else np.full(len(phases), n_steps / len(phases))
-    steps = np.maximum(np.floor(want).astype(int), 1)
-    while steps.sum() > n_steps:
-        steps[np.argmax(np.where(steps > 1, steps - want, -np.inf))] -= 1
-    while steps.sum() < n_steps:
-        steps[np.argmax(want - steps)] += 1
-    return {ph: int(n) - (1 if ph in (2, 4) else 0) for ph, n in zip(phases, steps, strict=True)}
-
-
-def steps_of(counts: dict[int, int]) -> int:
-    """Control steps a schedule takes (the stop steps included)."""
-    return sum(counts.values()) + sum(1 for ph in counts if ph in (2, 4))
-
-
 def _interp_rows(values: np.ndarray, n_new: int) -> np.ndarray:
     """Rows of ``values`` (one per step) resampled to n_new steps at phase-normalized times."""
     n_old = len(values)

@@ -1,67 +1,62 @@
 """Shrinking-horizon MPC that drives ``WheelLoader-v1`` through the cycle, on the environment's own grid.
 
-At every control step the controller reads the state from the observation and solves the rest of the
-cycle as the environment will run it (:mod:`mpc.controller.grid`: the plant's RK4 step, its saturations and its
-cut at V = 0, the driver's limits where the environment checks them), from the measured state, with the
-plant as its model-error estimate has it. It applies the plan's first control and requests the gear
-change when the plan's next step belongs to the next phase. Without model error the plan is what
-happens, so the closed loop is the optimum on the grid.
+At every control step the controller reads the state from the observation (:class:`wl_env.codec.Codec`)
+and solves the rest of the cycle as the environment will run it (:mod:`mpc.controller.grid`: the plant's
+RK4 step, its saturations and its cut at V = 0, the driver's limits where the environment checks them),
+from the measured state, with the plant as its model-error estimate has it. It applies the plan's first
+control and requests the gear change when the plan's next step belongs to the next phase. Without model
+error the plan is what happens, so the closed loop is the optimum on the grid.
 
-The cycle time is the *schedule*: whole steps per phase. The first step plans it (rounded from the
-continuous optimum of :mod:`mpc.benchmark.ocp`, then improved by moves of single steps between phases); later
-steps keep it, and try the move that the parametric sensitivities of the step lengths predict to pay
-(one extra solve, at most, per step). The mode decides what pays: the fewest steps (minimum time),
-the least fuel in the steps until the target time (target time), or fuel and time weighed.
+It is composed of small parts, each in its module:
 
-The NLPs (one per first phase) are built once and reused; each solve is warm-started from the
-previous one (primal and dual; the plan one step later is the same vector). A failed or over-budget
-solve applies the previous plan's next step and says so in ``last_info``.
+* :mod:`~mpc.controller.estimator`: the model-error estimate (recursive least squares on the one-step
+  prediction errors);
+* :mod:`~mpc.controller.schedule`: the whole steps per phase (the cycle time) and the search over them;
+* :mod:`~mpc.controller.solver`: the grid NLPs and IPOPT on them, built once per process; injectable;
+* :mod:`~mpc.controller.terminal`: the law for a machine standing at the truck.
+
+The first step plans the cycle: the schedule rounded from the continuous optimum of
+:mod:`mpc.benchmark.ocp`, then improved by moves of single steps between phases. Later steps keep it,
+and try the move that the parametric sensitivities of the step lengths predict to pay (one extra solve,
+at most, per step). Each solve is warm-started from the previous one (primal and dual; the plan one step
+later is the same vector). A failed or over-budget solve applies the previous plan's next step and says
+so in ``last_info``.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
+from mpc.controller.estimator import ModelErrorEstimator
+from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP
+from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
+from mpc.controller.solver import GridSolver, IpoptSolver, Solve, grid_nlp, step_model, timed_solve
+from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.params import LoaderParams, resolve
-from wl_env.physics import engine, lift
+from wl_env.physics import lift
 
-MODES = ("time", "target_time", "weighted")
-FUEL_REF_G, TIME_REF = 100.0, 10.0  # the weighted mode's normalization (as the OCP's weighted objective)
-# A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
-MISS_TOL = 1e-3
-EXCESS_TOL = 1e-4  # ... and no planned deceleration exceeds the limit by more than this (relative)
-# Objective (g) per step in minimum-time mode and per step late in target-time mode: a step outweighs
-# any fuel, not a target miss (MISS_TOL decides that first).
-STEP_PRICE = 1.0e3
 # g: the least predicted improvement worth a solve, when the first step plans the cycle and during it
 # (a schedule move takes 10-30 iterations, 0.2-0.5 s: during the cycle only for a clear gain)
 MIN_GAIN = 0.05
 MIN_GAIN_ONLINE = 0.2
 SEARCH_SOLVES = 12  # solves the first step may spend on the schedule
 SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's search
-RETRY_AFTER = 10  # steps before a move that did not pay is tried again (twice as many after each failure)
 SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared between nearby schedules)
-# Model-error estimate [gain, offset m/s^2] (see MPCController._estimate_model_error): prior, its spread
-# (a payload or mass error of ~20 %, a rolling-resistance error of ~0.3 m/s^2), bounds, forgetting.
-THETA_PRIOR = np.array([1.0, 0.0])
-THETA_PRIOR_STD = np.array([0.2, 0.3])
-THETA_MIN, THETA_MAX = np.array([0.5, -1.0]), np.array([1.5, 1.0])
-RLS_FORGETTING = 0.98
-ACCEL_NOISE_STD = 0.01  # m/s^2: how well one step of the model predicts the measured acceleration
-# Lift-load gain (plant payload / model payload, as the lift's power drawn from the engine shows it):
-# prior, spread, bounds, and how well one step of the model predicts the engine's acceleration.
-LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD = 1.0, 0.2
-LIFT_GAIN_MIN, LIFT_GAIN_MAX = 0.5, 1.5
-ENGINE_ACCEL_NOISE_STD = 1.0  # rad/s^2
-PREDICTION_ERROR_DECAY = 0.9  # per step, of the moving mean square of the one-step prediction error
+# The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
+# engine-speed error (see MPCController._later_margin): per rad/s of RMS error, and at most.
+# Measured on the TC cycle, payload x1.2 and rolling resistance x1.3: 0.08 missed the reversing
+# point by 9.9 cm, 0.16 met it (and every other corner); a nominal plant keeps MPCConfig.tighten.
+MARGIN_PER_RAD_S = 0.16
+MAX_MARGIN = 0.03
+REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
+_REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
 
 
 @dataclass(frozen=True)
@@ -103,53 +98,16 @@ class MPCConfig:
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
 
 
-@dataclass
-class Solve:
-    """One NLP solve: the schedule it was for and what came of it."""
-
-    counts: dict[int, int]
-    first_phase: int
-    ok: bool
-    status: str
-    J: float = math.inf  # the NLP objective: fuel (g) plus the target and deceleration penalties
-    fuel_g: float = math.nan
-    misses: dict[str, float] = field(default_factory=dict)
-    excess: float = 0.0  # the largest relative excess over the deceleration limit the plan has
-    z: np.ndarray | None = None
-    lam_x: np.ndarray | None = None
-    lam_g: np.ndarray | None = None
-    lam_p: np.ndarray | None = None
-    iterations: int = 0
-    wall: float = 0.0
-
-    @property
-    def feasible(self) -> bool:
-        return self.ok and all(abs(v) <= MISS_TOL for v in self.misses.values()) and self.excess <= EXCESS_TOL
-
-
-# Built NLPs and their solvers, shared by the controllers of a process (building takes a second or two).
-_NLPS: dict[tuple, GridNLP] = {}
-_SOLVERS: dict[tuple, Any] = {}
-_MODELS: dict[tuple, StepModel] = {}
-_REFERENCES: dict[tuple, Any] = {}
-# The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
-# engine-speed error (see MPCController._later_margin): per rad/s of RMS error, and at most.
-# Measured on the TC cycle, payload x1.2 and rolling resistance x1.3: 0.08 missed the reversing
-# point by 9.9 cm, 0.16 met it (and every other corner); a nominal plant keeps MPCConfig.tighten.
-MARGIN_PER_RAD_S = 0.16
-MAX_MARGIN = 0.03
-
-REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
-
-
 class MPCController:
     """Shrinking-horizon MPC for ``WheelLoader-v1`` (controller protocol: ``reset()``, ``act(obs)``).
 
     ``dt`` and ``substeps`` must be the environment's (``run_closed_loop`` reads them from it).
+    ``solver``: any :class:`~mpc.controller.solver.GridSolver` (default: IPOPT with the config's budgets).
     """
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
-                 config: MPCConfig | None = None, dt: float = 0.1, substeps: int = 1) -> None:
+                 config: MPCConfig | None = None, dt: float = 0.1, substeps: int = 1,
+                 solver: GridSolver | None = None) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
         self.config = config or MPCConfig()
@@ -157,12 +115,10 @@ class MPCController:
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
         self.dt, self.substeps = float(dt), int(substeps)
         self.codec = Codec(self.params)
-        key = (self.braking, self.params.fingerprint(), self.dt, self.substeps, self.config.omega_margin)
-        if key not in _MODELS:
-            _MODELS[key] = StepModel(self.braking, self.params, self.dt, self.substeps, self.config.omega_margin)
-        self.model = _MODELS[key]
-        self._sim = None
-        self._force_failure = False  # test hook: the solves of the next step count as failed
+        self.model = step_model(self.braking, self.params, self.dt, self.substeps, float(self.config.omega_margin))
+        self.solver = solver or IpoptSolver(self.config.max_iter, self.config.time_budget)
+        self.estimator = ModelErrorEstimator(self.model, self.dt)
+        self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
         self.reset()
 
     # ------------------------------------------------------------------ protocol
@@ -172,13 +128,8 @@ class MPCController:
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
         self._last: tuple | None = None  # (state, phase, control) of the previous step
-        self._tried: dict[tuple, tuple[int, int]] = {}  # schedule move -> (step it last failed to pay, failures)
-        self._last_failure = -10**9  # the step a schedule move last failed to pay
-        self._failures = 0  # schedule moves in a row that did not pay (each doubles the wait for the next)
-        self._theta = THETA_PRIOR.copy()
-        self._theta_cov = np.diag(THETA_PRIOR_STD**2)
-        self._lift_gain, self._lift_gain_var = LIFT_GAIN_PRIOR, LIFT_GAIN_PRIOR_STD**2
-        self._omega_err2 = 0.0  # moving mean square of the plans' one-step engine-speed error (rad/s)^2
+        self.estimator.reset()
+        self.schedule.reset()
         self.solve_times: list[float] = []
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.fallbacks = 0
@@ -187,12 +138,14 @@ class MPCController:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
-        self._estimate_model_error(x, phase)
+        if self._last is not None:
+            self.estimator.update(*self._last, x, phase)
         self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
         self._last = (x, phase + 1 if shift else phase, u)
-        info["accel_gain"], info["accel_offset"] = float(self._theta[0]), float(self._theta[1])
-        info["lift_gain"] = float(self._lift_gain)
+        theta = self.estimator.theta
+        info["accel_gain"], info["accel_offset"] = float(theta[0]), float(theta[1])
+        info["lift_gain"] = float(self.estimator.lift_gain)
         self.last_info = info
         return self.action(u, shift)
 
@@ -237,7 +190,6 @@ class MPCController:
                 if extra is not None:
                     solves.append(extra)
             solve_time = sum(s.wall for s in solves)
-        self._force_failure = False  # (the test hook fails every solve of one step)
         if ok:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
@@ -248,7 +200,7 @@ class MPCController:
         self.step_solves.append(len(solves))
         info = {"solve_time": solve_time, "status": "; ".join(s.status for s in solves), "fallback": not ok,
                 "over_budget": over_budget, "solves": len(solves), "iterations": sum(s.iterations for s in solves),
-                "schedule": dict(self._counts), "planned_T_remaining": self._planned_remaining()}
+                "schedule": dict(self._counts), "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
         return u, shift, info
 
     def _over_budget(self, t0: float, fraction: float = 1.0) -> bool:
@@ -257,8 +209,7 @@ class MPCController:
 
     # ------------------------------------------------------------------ the plan
     def _make_plan(self, sol: Solve, x: np.ndarray, k: int) -> dict[str, Any]:
-        nlp = self._nlp(sol.first_phase)
-        plan = nlp.plan(sol.z, sol.counts, x, self.dt)
+        plan = self._nlp(sol.first_phase).plan(sol.z, sol.counts, x, self.dt)
         plan["k_made"] = k
         return plan
 
@@ -284,9 +235,6 @@ class MPCController:
         shift = phase in (1, 3) and step_phase > phase
         return u, shift
 
-    def _planned_remaining(self) -> float:
-        return float(steps_of(self._counts) * self.dt) if self._counts else math.nan
-
     def _enter_phase(self, phase: int) -> None:
         """The plant is in ``phase``: drop what the schedule had left of the phases before (the plant
         ended them early) and cut the warm starts to the NLP from ``phase`` on (it is the tail)."""
@@ -303,81 +251,9 @@ class MPCController:
                      lam_g=sol.lam_g[go:], lam_p=None)
 
     # ------------------------------------------------------------------ schedule
-    def _cost(self, sol: Solve, k: int) -> tuple:
-        """How a mode ranks a solved schedule: targets met first, then steps and fuel as the mode weighs them."""
-        if not sol.ok:
-            return (2, math.inf)
-        if not sol.feasible:
-            return (1, sol.J)
-        return (0, self._scalar_cost(sol.J, steps_of(sol.counts), k))
-
-    def _scalar_cost(self, J: float, n_steps: int, k: int) -> float:
-        cfg = self.config
-        if cfg.mode == "time":
-            return J + STEP_PRICE * n_steps
-        if cfg.mode == "target_time":
-            return J + STEP_PRICE * max(k + n_steps - self._n_target, 0)
-        if cfg.w_fuel == 0.0:
-            return J + STEP_PRICE * n_steps
-        # weighted: grams of fuel per step of time at the mode's exchange rate
-        return J + (1.0 - cfg.w_fuel) / TIME_REF * self.dt / (cfg.w_fuel / FUEL_REF_G) * n_steps
-
-    def _moves(self, sol: Solve, phase: int, k: int) -> list[tuple[float, tuple]]:
-        """Schedule moves of one step, with the change the sensitivities predict, best first.
-
-        A move (i, j) takes a step from phase i and gives it to phase j; i or j None adds or removes one.
-        Phases 1 and 3 keep a step until they are under way (each phase lasts >= 0.1 s), and a phase in
-        its last step keeps its end (the plan shifts now; one step more at a time runs away past the
-        reversing point when the targets are out of reach). The prediction is the mode's cost while the
-        schedule meets the targets, else the objective alone (the misses first, whatever the steps).
-        """
-        nlp = self._nlp(sol.first_phase)
-        sens = nlp.sensitivities(sol.lam_p, sol.counts, self.dt)
-        counts, n = sol.counts, steps_of(sol.counts)
-        base = self._scalar_cost(sol.J, n, k)
-        phases = list(counts)
-
-        def removable(q: int) -> bool:
-            return counts[q] > (0 if q in (2, 4) or q == phase else 1)
-
-        def fits(q: int) -> bool:
-            return counts[q] < nlp.slots_per_phase[q] and not (q == phase and q in (1, 3) and counts[q] == 0)
-
-        out = []
-        for i in [None, *phases]:
-            for j in [None, *phases]:
-                if i == j or (i is not None and not removable(i)) or (j is not None and not fits(j)):
-                    continue
-                dJ = (sens[j] if j is not None else 0.0) - (sens[i] if i is not None else 0.0)
-                dn = (j is not None) - (i is not None)
-                out.append((self._scalar_cost(sol.J + dJ, n + dn, k) - base if sol.feasible else dJ, (i, j)))
-        return sorted(out)
-
-    def _moved(self, counts: dict[int, int], move: tuple) -> dict[int, int]:
-        c = dict(counts)
-        i, j = move
-        if i is not None:
-            c[i] -= 1
-        if j is not None:
-            c[j] += 1
-        return c
-
-    def _candidate(self, sol: Solve, phase: int, k: int, failed: set, removals: bool = True,
-                   min_gain: float = MIN_GAIN) -> tuple | None:
-        """The move to try: the best predicted one not tried in vain (``failed``, or within RETRY_AFTER
-        steps); while the targets are missed, the one predicted to cut the misses most, never a removal."""
-        for gain, move in self._moves(sol, phase, k):
-            last, failures = self._tried.get(move, (-10**9, 0))
-            if move in failed or k - last < RETRY_AFTER * 2 ** max(failures - 1, 0):
-                continue
-            if move[1] is None and (not removals or not sol.feasible):
-                continue
-            return move if gain < -min_gain else None
-        return None
-
     def _try_move(self, sol: Solve, move: tuple, phase: int, x: np.ndarray) -> Solve:
         """Solve a schedule move, warm-started from ``sol`` stretched onto the new schedule."""
-        counts = self._moved(sol.counts, move)
+        counts = moved(sol.counts, move)
         nlp = self._nlp(sol.first_phase)
         z, lam_x, lam_g = nlp.resample(sol.z, sol.lam_x, sol.lam_g, sol.counts, counts)
         warm = Solve(counts=counts, first_phase=sol.first_phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
@@ -387,27 +263,23 @@ class MPCController:
         """One step's schedule move: solve the predicted best one and keep it if it ranks better.
 
         Steps are dropped where the mode prices time (minimum time, weighted) or the cycle runs late
-        (target time), and added in any mode when the targets are missed. A move that did not pay waits
-        RETRY_AFTER steps, twice as long after each such move in a row (a schedule too short fails
-        slowly: 0.2-0.6 s), so a nominal cycle tries 3-4.
+        (target time), and added in any mode when the targets are missed; a move that did not pay waits
+        (:meth:`~mpc.controller.schedule.ScheduleSearch.waiting`).
         """
-        if not budget_left or self._sol.lam_p is None:
+        sched = self.schedule
+        if not budget_left or self._sol.lam_p is None or (self._sol.feasible and sched.waiting(k)):
             return None
-        if self._sol.feasible and k - self._last_failure < RETRY_AFTER * 2 ** max(self._failures - 1, 0):
-            return None
-        late = self.config.mode == "target_time" and k + steps_of(self._sol.counts) > self._n_target
-        move = self._candidate(self._sol, phase, k, failed=set(), removals=self.config.mode != "target_time" or late,
-                               min_gain=MIN_GAIN_ONLINE)
+        removals = self.config.mode != "target_time" or sched.late(self._sol, k)
+        move = sched.candidate(self._sol, self._nlp(self._sol.first_phase), phase, k, failed=set(),
+                               removals=removals, min_gain=MIN_GAIN_ONLINE)
         if move is None:
             return None
         alt = self._try_move(self._sol, move, phase, x)
-        if self._cost(alt, k) < self._cost(self._sol, k):
+        paid = sched.cost(alt, k) < sched.cost(self._sol, k)
+        if paid:
             self._sol = alt
             self._counts = dict(alt.counts)
-            self._failures = 0
-        else:
-            self._tried[move] = (k, self._tried.get(move, (0, 0))[1] + 1)
-            self._last_failure, self._failures = k, self._failures + 1
+        sched.record(move, k, paid)
         return alt
 
     def _plan_cycle(self, x: np.ndarray, phase: int, k: int) -> None:
@@ -419,36 +291,31 @@ class MPCController:
         if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
             durations = {q: d for q, d in durations.items() if q >= phase}
         if cfg.mode == "target_time":
-            self._n_target = int(math.floor(cfg.target_time / self.dt + 1e-6))
-            n = max(self._n_target - k, len(durations))
+            self.schedule.target_steps = int(math.floor(cfg.target_time / self.dt + 1e-6))
+            n = max(self.schedule.target_steps - k, len(durations))
         else:
-            self._n_target = 0
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
         counts = apportion(durations, n, self.dt)
         self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
         for q in range(phase, 5):  # build them all now, not in the middle of the cycle
-            self._solver(self._nlp(q), warm=True)
-        sol = self._search_schedule(phase, counts, ref, x, k)
-        if not sol.ok:
-            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
-        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
-
-    def _search_schedule(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray, k: int) -> Solve:
-        """The first plan from the rounded schedule, then single-step moves while they pay."""
+            self.solver.prepare(self._nlp(q))
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
         for _ in range(SEARCH_SOLVES):
             # a step fewer that did not hold the targets will not from another phase either
             removals = sum(1 for m in failed if m[1] is None) < 1
-            move = self._candidate(sol, phase, k, failed, removals=removals) if sol.ok else None
+            move = (self.schedule.candidate(sol, self._nlp(sol.first_phase), phase, k, failed, removals, MIN_GAIN)
+                    if sol.ok else None)
             if move is None or len(failed) >= SEARCH_FAILURES:
                 break
             alt = self._try_move(sol, move, phase, x)
-            if self._cost(alt, k) < self._cost(sol, k):
+            if self.schedule.cost(alt, k) < self.schedule.cost(sol, k):
                 sol, failed = alt, set()
             else:
                 failed.add(move)
-        return sol
+        if not sol.ok:
+            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
+        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
 
     def reference(self):
         """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""
@@ -505,139 +372,37 @@ class MPCController:
 
     # ------------------------------------------------------------------ NLP solves
     def _nlp(self, first_phase: int, symbolic: str = "SX") -> GridNLP:
-        slots = {q: self._slots[q] for q in range(first_phase, 5)}
-        key = (id(self.model), first_phase, tuple(sorted(slots.items())), symbolic)
-        if key not in _NLPS:
-            _NLPS[key] = GridNLP(self.model, first_phase, slots, symbolic)
-        return _NLPS[key]
-
-    def _solver(self, nlp: GridNLP, warm: bool) -> Any:
-        import casadi as ca
-
-        cfg = self.config
-        key = (id(nlp), warm, cfg.max_iter, cfg.time_budget)
-        if key not in _SOLVERS:
-            opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
-                    "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
-                    "ipopt.max_iter": cfg.max_iter if warm else 500}
-            if warm:
-                opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
-                             "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
-                             "ipopt.warm_start_slack_bound_push": 1e-6})
-                if cfg.time_budget is not None:
-                    opts["ipopt.max_wall_time"] = cfg.time_budget
-            _SOLVERS[key] = ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
-        return _SOLVERS[key]
-
-    def _estimate(self) -> np.ndarray:
-        return np.array([self._theta[1], self._theta[0], self._lift_gain])
+        return grid_nlp(self.model, first_phase, tuple((q, self._slots[q]) for q in range(first_phase, 5)), symbolic)
 
     def _solve(self, first_phase: int, counts: dict[int, int], x: np.ndarray, warm: Solve | None,
                guess: np.ndarray | None = None) -> Solve:
         """Solve the schedule ``counts`` from state x (no side effects but timing)."""
-        t0 = time.perf_counter()
-        out = Solve(counts=dict(counts), first_phase=first_phase, ok=False, status="not solved")
+        nlp = self._nlp(first_phase)
         try:
-            if self._force_failure:
-                raise RuntimeError("forced failure (test hook)")
-            nlp = self._nlp(first_phase)
-            args = nlp.arguments(counts, x, self._estimate(), self.dt, tighten=(self.config.tighten, self._later_margin()))
-            if warm is not None and warm.first_phase == first_phase and warm.z is not None:
-                solver = self._solver(nlp, warm=True)
-                sol = solver(x0=np.clip(warm.z, args["lbx"], args["ubx"]), lam_x0=warm.lam_x, lam_g0=warm.lam_g, **args)
-            else:  # a cold solve (the first of a cycle): on the MX twin, which builds in a tenth of the time
-                z0 = guess if guess is not None else (nlp.lbw + nlp.ubw) / 2
-                solver = self._solver(self._nlp(first_phase, "MX"), warm=False)
-                sol = solver(x0=np.clip(z0, args["lbx"], args["ubx"]), **args)
-            stats = solver.stats()
-            out.status = str(stats.get("return_status", "unknown"))
-            out.iterations = int(stats.get("iter_count", 0))
-            out.ok = bool(stats.get("success")) or out.status == "Solved_To_Acceptable_Level"
-            out.z = np.array(sol["x"]).ravel()
-            out.lam_x, out.lam_g = np.array(sol["lam_x"]).ravel(), np.array(sol["lam_g"]).ravel()
-            out.lam_p = np.array(sol["lam_p"]).ravel()
-            out.J = float(sol["f"])
-            out.fuel_g = float(nlp.fuel_g(out.z, args["p"]))
-            out.misses = nlp.misses(out.z)
-            out.excess = nlp.excess(out.z)
-            if not np.isfinite(out.z).all():
-                out.ok, out.status = False, out.status + " (non-finite iterate)"
-        except (RuntimeError, ValueError) as exc:
-            out.status = f"error: {exc}"
-        out.wall = time.perf_counter() - t0
-        return out
+            args = nlp.arguments(counts, x, self.estimator.estimate, self.dt,
+                                 tighten=(self.config.tighten, self._later_margin()))
+        except ValueError as exc:  # a schedule that does not fit the slots
+            return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
+        if warm is not None and warm.first_phase == first_phase and warm.z is not None:
+            return timed_solve(self.solver, nlp, counts, first_phase, args, warm.z, warm)
+        # a cold solve (the first of a cycle): on the MX twin (the same variables and rows), which builds
+        # in a tenth of the time
+        z0 = guess if guess is not None else (nlp.lbw + nlp.ubw) / 2
+        return timed_solve(self.solver, self._nlp(first_phase, "MX"), counts, first_phase, args, z0)
 
     def _track_prediction_error(self, x: np.ndarray, t: float) -> None:
-        """How far the last plan's next state was off the measurement in engine speed (moving RMS)."""
+        """How far the last plan's next state was off the measurement in engine speed."""
         plan, k = self._plan, int(round(t / self.dt))
         if plan is None or k - plan["k_made"] != 1 or len(plan["states"]) < 2:
             return
-        e = float(x[0] - plan["states"][1][0])
-        self._omega_err2 = PREDICTION_ERROR_DECAY * self._omega_err2 + (1.0 - PREDICTION_ERROR_DECAY) * e * e
+        self.estimator.track_prediction(float(x[0]), float(plan["states"][1][0]))
 
     def _later_margin(self) -> float:
         """The margin below the deceleration limit the plan keeps after its first step: the configured
         one, and more as the plans mispredict the engine speed. With TC braking the converter's drag at
         the shift follows the engine speed, which a fuel cut sets about a second before, with no way to
         slow the engine further: the errors of that second add up (1.6 % of the limit per rad/s)."""
-        return min(self.config.tighten + MARGIN_PER_RAD_S * math.sqrt(self._omega_err2), MAX_MARGIN)
-
-    # ------------------------------------------------------------------ model-error estimate
-    def _estimate_model_error(self, x: np.ndarray, phase: int) -> None:
-        """Adaptive MPC: fit the plant's deviation from the model by recursive least squares over the
-        steps so far, from the one-step prediction error of the previous step.
-
-        * dV/dt = gain * (model's dV/dt) + d * offset: a payload error scales the acceleration of every
-          force (gain = model mass / plant mass); a rolling-resistance error is an acceleration against
-          the travel direction (offset). Phase 1 varies the model's acceleration enough to tell them
-          apart, so the braking phases start with the plant's deceleration per unit of brake or converter
-          torque, not the nominal one. Steps that stop, reverse or change phase say nothing about it.
-        * The lift's power drawn from the engine is proportional to the payload (eq. (10)), so a payload
-          error also shows in the engine's acceleration: d omega/dt = model - (lift_gain - 1) P_lift /
-          (omega J_ice). With TC braking the engine speed at the shift sets the converter's drag, so a
-          plan must predict it to the rad/s.
-        """
-        if self._last is None:
-            return
-        x0, ph0, u = self._last
-        if ph0 != phase:
-            return
-        if self._sim is None:
-            from wl_env.simulator import Simulator
-
-            self._sim = Simulator(self.params, self.braking)
-        p, dt = self.params, self.dt
-        y = (float(x0[0]), float(x0[1]), float(x0[2]), float(x0[3]), 0.0, 0.0)
-        ue = self._sim.effective_controls(y, ph0, float(u[0]), float(u[1]), float(u[2]), dt)[:3]
-        if max(x0[0], x[0]) < 0.99 * p.omega_max:  # at the governor's cap the fuel, not the load, sets omega
-            # the predicted omega is (nearly) linear in the gain: omega(g) = omega(1) + (g - 1) r dt
-            omega1, _ = self._predict(x0, ph0, ue, 1.0, self._theta)
-            r = (omega1 - self._predict(x0, ph0, ue, 0.0, self._theta)[0]) / dt
-            residual = (x[0] - omega1) / dt  # measured minus modelled d omega/dt
-            var = self._lift_gain_var
-            k = var * r / (RLS_FORGETTING * ENGINE_ACCEL_NOISE_STD**2 + r * var * r)
-            self._lift_gain += k * (residual - (self._lift_gain - 1.0) * r)
-            self._lift_gain_var = (var - k * r * var) / RLS_FORGETTING
-            self._lift_gain = min(max(self._lift_gain, LIFT_GAIN_MIN), LIFT_GAIN_MAX)
-        if abs(x0[1]) >= 0.2 and abs(x[1]) >= 0.2:
-            # the model's mean dV/dt over the step, its engine speed as the lift-load estimate has it
-            _, v1 = self._predict(x0, ph0, ue, self._lift_gain, THETA_PRIOR)
-            d = -1.0 if ph0 <= 2 else 1.0
-            regressor = np.array([(v1 - x0[1]) / dt, d])
-            measured = (x[1] - x0[1]) / dt
-            P = self._theta_cov
-            k = P @ regressor / (RLS_FORGETTING * ACCEL_NOISE_STD**2 + regressor @ P @ regressor)
-            self._theta = self._theta + k * (measured - regressor @ self._theta)
-            self._theta_cov = (P - np.outer(k, regressor @ P)) / RLS_FORGETTING
-            self._theta = np.clip(self._theta, THETA_MIN, THETA_MAX)
-
-    def _predict(self, x0: np.ndarray, phase: int, u: tuple, lift_gain: float, accel: np.ndarray) -> tuple[float, float]:
-        """(omega, V) one control step after x0 under the effective controls u, by the plan's own step
-        (:class:`mpc.controller.grid.StepModel`) with the lift drawing lift_gain times the model's power from the
-        engine and dV/dt = accel[0] * model + d * accel[1]."""
-        x1 = self.model.full[phase].fn(np.asarray(x0, dtype=float)[:5], np.asarray(u, dtype=float), self.dt,
-                                       np.array([accel[1], accel[0], lift_gain]))[0]
-        return float(x1[0]), float(x1[1])
+        return min(self.config.tighten + MARGIN_PER_RAD_S * self.estimator.omega_error_rms, MAX_MARGIN)
 
     # ------------------------------------------------------------------ helpers
     def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:
@@ -653,29 +418,8 @@ class MPCController:
         return x
 
     def _terminal(self, x: np.ndarray | None) -> np.ndarray:
-        """The machine standing at the truck: brake, bring the bucket to H_T and hold it (a plan needs a
-        moving machine for its stop step; this serves a plant that stopped before the plan said)."""
-        p = self.params
-        gain, offset = self._theta
-        # the brake torque that decelerates at the limit with rolling resistance helping, in the plant as estimated
-        a_stop = (1.0 - self.config.tighten) * p.decel_max * p.g + offset
-        u_b = min(max((a_stop * p.M_tot / gain - p.F_roll) * p.r_w, 0.0), p.U_b_max)
-        if x is None:
-            return np.array([0.0, p.U_ab_bounds[0], u_b])
-        omega, _, H, V_b = x[0], x[1], x[2], x[3]
-        lo, hi = p.U_ab_bounds
-        # Approach H_T on the speed that stops there with 80 % of the lowest deceleration; a bucket
-        # already too fast for that brakes with what stops it exactly at H_T (as much as it can).
-        gap = p.H_T - H
-        v_ref = math.copysign(math.sqrt(2.0 * 0.8 * -lo * abs(gap)), gap)
-        u_ab = min(max((max(v_ref, 0.0) - V_b) / self.dt, lo), hi)
-        if V_b > 0.0:
-            decel_to_stop = V_b**2 / (2.0 * gap) if gap > 0.0 else math.inf
-            if decel_to_stop > 0.8 * -lo:
-                u_ab = max(-decel_to_stop, lo)
-        load = self._lift_gain * lift.lift_power(max(V_b, 0.0), u_ab, p) / max(omega, 1.0)
-        u_mf = (engine.friction_torque(omega, p) + load) / p.T_ig_per_mg  # hold the engine speed
-        return np.array([min(max(u_mf, 0.0), p.U_mf_max), u_ab, u_b])
+        return terminal_control(x, self.params, self.estimator.theta, self.estimator.lift_gain, self.config.tighten,
+                                self.dt)
 
     def stats(self) -> dict[str, float]:
         """Per-step solve times (s; the first step's planning apart) and the fallback count."""

@@ -1,0 +1,148 @@
+"""The MPC's solver: the grid NLPs, built once per model and slot layout, and IPOPT on them.
+
+Built models, NLPs and IPOPT instances are shared by every controller of a process (building one takes a
+second or two), through ``functools.lru_cache`` on their defining arguments. The controller takes any
+object with :meth:`IpoptSolver.solve`'s signature, so a test can inject a failing or slow solver.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import casadi as ca
+import numpy as np
+
+from mpc.controller.grid import GridNLP, StepModel
+from wl_env.params import LoaderParams
+
+# A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
+MISS_TOL = 1e-3
+EXCESS_TOL = 1e-4  # ... and no planned deceleration exceeds the limit by more than this (relative)
+
+
+@dataclass
+class Solve:
+    """One NLP solve: the schedule it was for and what came of it."""
+
+    counts: dict[int, int]
+    first_phase: int
+    ok: bool
+    status: str
+    J: float = math.inf  # the NLP objective: fuel (g) plus the target and deceleration penalties
+    fuel_g: float = math.nan
+    misses: dict[str, float] = field(default_factory=dict)
+    excess: float = 0.0  # the largest relative excess over the deceleration limit the plan has
+    z: np.ndarray | None = None
+    lam_x: np.ndarray | None = None
+    lam_g: np.ndarray | None = None
+    lam_p: np.ndarray | None = None
+    iterations: int = 0
+    wall: float = 0.0
+
+    @property
+    def feasible(self) -> bool:
+        return self.ok and all(abs(v) <= MISS_TOL for v in self.misses.values()) and self.excess <= EXCESS_TOL
+
+
+@dataclass(frozen=True)
+class SolverResult:
+    """What a solver returns for one NLP solve (z, lam_x, lam_g, lam_p None where it failed to produce them)."""
+
+    ok: bool
+    status: str
+    iterations: int
+    z: np.ndarray | None = None
+    lam_x: np.ndarray | None = None
+    lam_g: np.ndarray | None = None
+    lam_p: np.ndarray | None = None
+    f: float = math.inf
+
+
+class GridSolver(Protocol):
+    def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
+              lam_g0: np.ndarray | None = None) -> SolverResult: ...
+
+    def prepare(self, nlp: GridNLP) -> None: ...
+
+
+@functools.lru_cache(maxsize=16)
+def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, omega_margin: float) -> StepModel:
+    return StepModel(braking, params, dt, substeps, omega_margin)
+
+
+@functools.lru_cache(maxsize=64)
+def grid_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], symbolic: str = "SX") -> GridNLP:
+    """The NLP of a model from ``first_phase`` on with ``slots`` ((phase, slots), ...)."""
+    return GridNLP(model, first_phase, dict(slots), symbolic)
+
+
+@functools.lru_cache(maxsize=64)
+def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
+    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
+            "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
+            "ipopt.max_iter": max_iter}
+    if warm:
+        opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
+                     "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
+                     "ipopt.warm_start_slack_bound_push": 1e-6})
+        if max_wall_time is not None:
+            opts["ipopt.max_wall_time"] = max_wall_time
+    return ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
+
+
+class IpoptSolver:
+    """IPOPT on a grid NLP: warm-started solves at ``max_iter`` iterations and ``time_budget`` seconds of
+    wall time at most; a cold solve (no multipliers given) at up to 500 iterations."""
+
+    COLD_MAX_ITER = 500
+
+    def __init__(self, max_iter: int = 100, time_budget: float | None = None) -> None:
+        self.max_iter, self.time_budget = max_iter, time_budget
+
+    def _function(self, nlp: GridNLP, warm: bool) -> ca.Function:
+        return _ipopt(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None)
+
+    def prepare(self, nlp: GridNLP) -> None:
+        """Build the warm solver of an NLP now (not in the middle of a cycle)."""
+        self._function(nlp, warm=True)
+
+    def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
+              lam_g0: np.ndarray | None = None) -> SolverResult:
+        warm = lam_x0 is not None and lam_g0 is not None
+        fn = self._function(nlp, warm)
+        extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
+        sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
+        stats = fn.stats()
+        status = str(stats.get("return_status", "unknown"))
+        z = np.array(sol["x"]).ravel()
+        ok = (bool(stats.get("success")) or status == "Solved_To_Acceptable_Level") and bool(np.isfinite(z).all())
+        if not np.isfinite(z).all():
+            status += " (non-finite iterate)"
+        return SolverResult(ok=ok, status=status, iterations=int(stats.get("iter_count", 0)), z=z,
+                            lam_x=np.array(sol["lam_x"]).ravel(), lam_g=np.array(sol["lam_g"]).ravel(),
+                            lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
+
+
+def timed_solve(solver: GridSolver, nlp: GridNLP, counts: dict[int, int], first_phase: int, args: dict[str, Any],
+                x0: np.ndarray, warm: Solve | None = None) -> Solve:
+    """A :class:`Solve` of ``nlp`` for the schedule ``counts`` (warm-started from ``warm``'s multipliers if
+    given): the solver's result with the plan's fuel, target misses and deceleration excess, and its wall
+    time. A solver error is a failed solve with its message as the status, never an exception."""
+    t0 = time.perf_counter()
+    out = Solve(counts=dict(counts), first_phase=first_phase, ok=False, status="not solved")
+    try:
+        r = solver.solve(nlp, args, x0, *((warm.lam_x, warm.lam_g) if warm is not None else ()))
+        out.ok, out.status, out.iterations = r.ok, r.status, r.iterations
+        if r.z is not None:
+            out.z, out.lam_x, out.lam_g, out.lam_p, out.J = r.z, r.lam_x, r.lam_g, r.lam_p, r.f
+            out.fuel_g = float(nlp.fuel_g(r.z, args["p"]))
+            out.misses = nlp.misses(r.z)
+            out.excess = nlp.excess(r.z)
+    except (RuntimeError, ValueError) as exc:
+        out.ok, out.status = False, f"error: {exc}"
+    out.wall = time.perf_counter() - t0
+    return out
