@@ -31,15 +31,17 @@ POLICY_DIR = Path(__file__).resolve().parent / "policies"
 
 
 def default_policy_path(braking: str) -> Path:
-    """The shipped PPO policy of a braking alternative."""
-    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.zip"
+    """The weights file of the shipped PPO policy of a braking alternative (with its ``_vecnormalize.npz``
+    and ``.json`` beside it, :mod:`agents.policy_files`)."""
+    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.safetensors"
 
 
 # ---------------------------------------------------------------------------------------------- loading
-def load_controller(spec: str, braking: str, model: str | None = None) -> Controller:
+def load_controller(spec: str, braking: str, model: str | None = None, *, trust_pickle: bool = False) -> Controller:
     """The controller named by ``spec`` for ``braking``.
 
-    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>.zip``), ``"operator"``
+    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``; a pickle-free policy,
+    or with ``trust_pickle`` a stable-baselines3 zip you trust, see :func:`agents.ppo.load_policy`), ``"operator"``
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
     that argument (and ``model=`` if a model is given), else without arguments; the result needs an
@@ -48,7 +50,9 @@ def load_controller(spec: str, braking: str, model: str | None = None) -> Contro
     cycle.check_braking(braking)
     spec = spec.strip()
     if spec == "ppo":
-        return _load_ppo(braking, model)
+        return _load_ppo(braking, model, trust_pickle)
+    if trust_pickle:
+        raise ValueError(f"--trust-pickle is for --controller ppo (the policy file it loads), not {spec!r}")
     if spec in ("operator", "mpc") and model is not None:
         raise ValueError(f"--model is for learned controllers (ppo, module:Class), not {spec!r}")
     if spec == "operator":
@@ -65,15 +69,14 @@ def load_controller(spec: str, braking: str, model: str | None = None) -> Contro
     return _load_user_controller(spec, braking, model)
 
 
-def _load_ppo(braking: str, model: str | None) -> Controller:
+def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Controller:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking)
-    if not path.exists():
-        hint = "" if model is not None else f" (train one with `wl train --braking {braking} --export PATH`, " \
-                                            "then pass --model PATH.zip)"
-        raise FileNotFoundError(f"no PPO policy at {path}{hint}")
+    if model is None and not path.exists():
+        raise FileNotFoundError(f"no PPO policy at {path} (train one with `wl train --braking {braking} --export PATH`, "
+                                "then pass --model PATH)")
     from agents.ppo import load_policy
 
-    policy = load_policy(path)
+    policy = load_policy(path, trust_pickle=trust_pickle)
     if policy.braking not in (None, braking):
         # Allowed (a cross-evaluation is a legitimate experiment), but usually a mix-up.
         print(f"warning: the policy {path} was trained with {policy.braking} braking, evaluated with {braking}",

@@ -85,7 +85,8 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
     add_dataclass_args(parser, PPOConfig)
     parser.add_argument("--resume", action="store_true", help="continue the run from its newest checkpoint")
     parser.add_argument("--export", metavar="PATH", default=None,
-                        help="after training, ship the policy as PATH.zip, PATH_vecnormalize.pkl, PATH.json")
+                        help="after training, ship the policy pickle-free as PATH.safetensors, PATH_vecnormalize.npz, "
+                        "PATH.json")
     parser.add_argument("--export-episodes", type=int, default=100, help="evaluation episodes of --export")
 
 

@@ -14,9 +14,9 @@ turns the curriculum off)::
 A run lives in ``runs/<run-name>/`` (config.json, tb/, eval.csv, checkpoints/, final/). Checkpoints
 (model + optimizer, VecNormalize statistics, progress) are written atomically every
 ``--checkpoint-freq`` steps; ``--resume`` continues from the newest one with the run's saved config,
-so an interrupted run ends with the same step budget and appended logs. ``--export PATH`` copies the
-final policy to ``PATH.zip`` + ``PATH_vecnormalize.pkl`` and writes ``PATH.json`` (command, seed,
-steps, wall time, a fresh deterministic evaluation).
+so an interrupted run ends with the same step budget and appended logs. ``--export PATH`` ships the
+final policy pickle-free as ``PATH.safetensors`` + ``PATH_vecnormalize.npz`` + ``PATH.json`` (network,
+command, seed, steps, wall time, a fresh deterministic evaluation).
 """
 
 from __future__ import annotations

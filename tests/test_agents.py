@@ -16,6 +16,7 @@ from agents.operator import OperatorPolicy, run_episode
 from agents.ppo import (
     PPOConfig,
     build_model,
+    export_policy,
     latest_checkpoint,
     load_policy,
     make_env,
@@ -95,7 +96,8 @@ def test_short_training_checkpoints_and_saves(tmp_path):
     summary = train(cfg, command="pytest")
     run = cfg.run_dir
     assert summary["num_timesteps"] >= cfg.total_timesteps
-    for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv"):
+    for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv",
+              "final/policy.safetensors", "final/policy_vecnormalize.npz", "final/policy.json"):
         assert (run / f).exists(), f
     assert list((run / "tb").glob("PPO_1/events.*"))
     ckpt = latest_checkpoint(run)
@@ -133,12 +135,39 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path):
     obs = env.get_original_obs()
     obs = np.concatenate([obs, np.random.default_rng(1).uniform(-1, 1, obs.shape).astype(np.float32)])
     expected = model.predict(env.normalize_obs(obs), deterministic=True)[0]
-    folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking})
-    policy = load_policy(folder)
+    folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking}, export=True)
+    policy = load_policy(folder)  # the pickle-free policy.* in the folder
+    assert policy.braking == cfg.braking
     np.testing.assert_array_equal(policy.act(obs), expected)
     single = model.predict(env.normalize_obs(obs[:1])[0], deterministic=True)[0]
     np.testing.assert_array_equal(policy.act(obs[0]), single)  # one observation, shape (12,)
-    np.testing.assert_array_equal(load_policy(folder / "model.zip").act(obs), expected)
+    np.testing.assert_array_equal(load_policy(folder / "model.zip", trust_pickle=True).act(obs), expected)
+
+
+def test_export_is_pickle_free_and_acts_like_the_run(tmp_path):
+    cfg = _tiny(tmp_path, total_timesteps=1024, eval_freq=10**6, checkpoint_freq=10**6)
+    train(cfg)
+    meta = export_policy(cfg.run_dir, tmp_path / "shipped", "mine", n_episodes=1, score=False)
+    assert sorted(p.name for p in (tmp_path / "shipped").iterdir()) == [
+        "mine.json", "mine.safetensors", "mine_vecnormalize.npz"]
+    assert meta["format"] == "wl-ppo-policy" and meta["network"]["net_arch"] == {"pi": [16, 16], "vf": [16, 16]}
+    assert meta["braking"] == "service" and meta["config"]["total_timesteps"] == 1024
+    obs = np.random.default_rng(3).uniform(0.0, 1.0, (32, 12)).astype(np.float32)
+    run = load_policy(cfg.run_dir / "final" / "model.zip", trust_pickle=True)
+    np.testing.assert_array_equal(load_policy(tmp_path / "shipped" / "mine").act(obs), run.act(obs))
+    np.testing.assert_array_equal(load_policy(cfg.run_dir).act(obs), run.act(obs))  # a run dir: its final/policy.*
+
+
+def test_bounded_mean_policy_is_rebuilt_from_its_metadata(tmp_path):
+    cfg = _tiny(tmp_path, bounded_mean=True)
+    env = make_env(cfg)
+    env.reset()
+    model = build_model(cfg, env, tmp_path / "tb")
+    folder = save_model_files(model, env, tmp_path / "saved", {"braking": "service"}, export=True)
+    policy = load_policy(folder)
+    assert type(policy.network).__name__ == "BoundedMeanPolicy" and policy.network.mean_bound == 1.1
+    obs = np.random.default_rng(2).uniform(0.0, 1.0, (32, 12)).astype(np.float32)
+    np.testing.assert_array_equal(policy.act(obs), model.predict(env.normalize_obs(obs), deterministic=True)[0])
 
 
 def test_reward_curriculum_ramps_to_the_run_values():
@@ -155,9 +184,10 @@ def test_reward_curriculum_ramps_to_the_run_values():
 # ------------------------------------------------------------------------------------------ shipped
 @pytest.mark.parametrize("braking", ["service", "tc"])
 def test_shipped_policy_completes_the_cycle(braking):
-    path = POLICIES / f"ppo_{braking}.zip"
+    path = POLICIES / f"ppo_{braking}.safetensors"
     assert path.exists() and path.stat().st_size < 2_000_000
-    assert (POLICIES / f"ppo_{braking}_vecnormalize.pkl").exists()
+    assert (POLICIES / f"ppo_{braking}_vecnormalize.npz").exists()
+    assert not list(POLICIES.glob("*.zip")) and not list(POLICIES.glob("*.pkl"))  # nothing shipped unpickles
     meta = json.loads((POLICIES / f"ppo_{braking}.json").read_text())
     assert meta["braking"] == braking
     policy = load_policy(path)
@@ -168,9 +198,11 @@ def test_shipped_policy_completes_the_cycle(braking):
     assert run_episode(env, policy, seed=123)["completed"]
 
 
-def test_shipped_policy_without_pickle_uses_the_json_normalization(tmp_path):
-    for suffix in (".zip", ".json"):
-        (tmp_path / f"ppo_tc{suffix}").write_bytes((POLICIES / f"ppo_tc{suffix}").read_bytes())
-    obs = np.random.default_rng(0).uniform(0.0, 1.0, (8, 12)).astype(np.float32)
-    np.testing.assert_allclose(load_policy(tmp_path / "ppo_tc.zip").act(obs), load_policy(POLICIES / "ppo_tc.zip").act(obs),
-                               atol=1e-6)
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_shipped_policy_acts_as_before_its_conversion(braking):
+    """The pickle-free shipped policy gives exactly the actions the stable-baselines3 zip gave before the
+    conversion (recorded with the old loader on 100 uniform and 100 on-trajectory observations)."""
+    ref = np.load(Path(__file__).parent / "data" / "shipped_policy_actions.npz", allow_pickle=False)
+    obs, expected = ref[f"obs_{braking}"], ref[f"actions_{braking}"]
+    assert obs.shape == (200, 12) and 0.2 < np.mean(np.abs(expected) < 1.0)  # not only saturated actions
+    np.testing.assert_array_equal(load_policy(POLICIES / f"ppo_{braking}").act(obs), expected)

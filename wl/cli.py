@@ -109,7 +109,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import evaluate_controller, load_controller, summary_line
     from mpc.benchmark.ocp import write_json_atomic
 
-    controller = load_controller(args.controller, args.braking, args.model)
+    controller = load_controller(args.controller, args.braking, args.model, trust_pickle=args.trust_pickle)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
     _progress(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
     r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
@@ -235,8 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a built-in controller, or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
     p.add_argument("--braking", choices=["service", "tc"], default="service")
-    p.add_argument("--model", metavar="PATH", help="ppo: the policy zip (default agents/policies/ppo_<braking>.zip); "
-                   "module:Class: passed as model=")
+    p.add_argument("--model", metavar="PATH", help="ppo: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
+                   "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>); module:Class: passed "
+                   "as model=")
+    p.add_argument("--trust-pickle", action="store_true", help="ppo: also load a stable-baselines3 .zip (+ .pkl), "
+                   "which unpickles and can run code: for trusted input only, e.g. your own training runs")
     p.add_argument("--episodes", type=_positive_int, default=10, metavar="N", help="episodes (default 10)")
     p.add_argument("--init-noise", type=_unit_float, default=1.0, metavar="X",
                    help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0)")
@@ -253,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Train a PPO policy for WheelLoader-v0; every field of agents.ppo.PPOConfig is a "
                        "flag. A run lives in <log-dir>/<run-name>/ (config.json, tb/, eval.csv, checkpoints/, "
                        "final/); --resume continues it from its newest checkpoint, --export PATH ships the final "
-                       "policy as PATH.zip + PATH_vecnormalize.pkl + PATH.json.")
+                       "policy pickle-free as PATH.safetensors + PATH_vecnormalize.npz + PATH.json.")
     add_train_args(p)
     p.set_defaults(func=_train_cmd)
 
