@@ -29,9 +29,10 @@ def _run(capsys, *argv) -> tuple[int, str, str]:
 
 
 def _one_error_line(err: str) -> str:
+    """The error line that ends stderr (after any progress lines), with no traceback."""
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("wl: error:"), err
-    return lines[0]
+    assert "Traceback" not in err and [line for line in lines if line.startswith("wl: error:")] == lines[-1:], err
+    return lines[-1]
 
 
 class _WritesMarker:
@@ -269,3 +270,157 @@ def test_broken_trusted_files_are_one_line_naming_the_file(own_run, capsys, tmp_
     code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", zip_path, "--trust-pickle",
                         "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
     assert code == 2 and str(bad) in _one_error_line(err)
+
+
+# ------------------------------------------------------------------------------------------ controllers
+BAD_CONTROLLERS = '''
+import sys, time
+import numpy as np
+from agents.operator import OperatorPolicy
+
+
+class _Base:
+    fail_at = (0, 3)  # (episode, step)
+
+    def __init__(self, braking="service"):
+        self.inner, self.episode, self.step = OperatorPolicy(braking), -1, 0
+
+    def reset(self):
+        self.episode, self.step = self.episode + 1, 0
+
+    def act(self, obs):
+        action = self.inner.act(obs)
+        if (self.episode, self.step) == self.fail_at:
+            action = self.bad(action)
+        self.step += 1
+        return action
+
+
+class Raises(_Base):
+    def bad(self, action):
+        return 1 / 0
+
+class ReturnsDict(_Base):
+    def bad(self, action):
+        return {"fuel": 1.0}
+
+class WrongShape(_Base):
+    def bad(self, action):
+        return action[:3]
+
+class Strings(_Base):
+    def bad(self, action):
+        return ["1", "0", "0", "0"]
+
+class Ragged(_Base):
+    def bad(self, action):
+        return [[1.0], [1.0, 2.0]]
+
+class NaNSecondEpisode(_Base):
+    fail_at = (1, 5)
+    def bad(self, action):
+        return np.array([np.nan, 0, 0, 0])
+
+class Exits(_Base):
+    def bad(self, action):
+        sys.exit(0)
+
+class ExitsOnCreation:
+    def __init__(self):
+        sys.exit(0)
+
+class ResetRaises(_Base):
+    def reset(self):
+        raise KeyError("plan")
+
+class Sleeps(_Base):
+    def bad(self, action):
+        try:
+            time.sleep(30)
+        except Exception:  # a broad handler must not swallow the timeout
+            pass
+        return action
+
+class Spins(_Base):
+    def bad(self, action):
+        while True:
+            pass
+
+class Outer:
+    class Inner(_Base):
+        pass
+'''
+
+
+@pytest.fixture
+def bad_module(tmp_path: Path) -> Path:
+    path = tmp_path / "bad_controllers.py"
+    path.write_text(BAD_CONTROLLERS)
+    return path
+
+
+@pytest.mark.parametrize("cls, where, needle", [
+    ("Raises", "episode 0, step 3", "ZeroDivisionError"),
+    ("ReturnsDict", "episode 0, step 3", "returned {'fuel': 1.0} (dict), not 4 numbers"),
+    ("WrongShape", "episode 0, step 3", "shape (3,), expected (4,)"),
+    ("Strings", "episode 0, step 3", "not 4 numbers"),
+    ("Ragged", "episode 0, step 3", "not 4 numbers"),
+    ("NaNSecondEpisode", "episode 1, step 5", "non-finite action [nan, 0.0, 0.0, 0.0]"),
+    ("Exits", "episode 0, step 3", "sys.exit(0)"),
+    ("ResetRaises", "episode 0, step 0", "reset() failed"),
+])
+def test_misbehaving_controller_is_one_line_naming_it_the_episode_and_step(tmp_path, capsys, bad_module, cls, where,
+                                                                            needle):
+    spec = f"{bad_module}:{cls}"
+    out = tmp_path / "e.json"
+    code, _, err = _run(capsys, "evaluate", "--controller", spec, "--episodes", 2, "--no-score", "--out", out)
+    line = _one_error_line(err)
+    assert code == 2 and f"controller {spec}" in line and where in line and needle in line
+    assert not out.exists()
+
+
+def test_controller_exiting_on_creation_is_an_error(tmp_path, capsys, bad_module):
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{bad_module}:ExitsOnCreation", "--no-score",
+                        "--out", tmp_path / "e.json")
+    assert code == 2 and "sys.exit(0)" in _one_error_line(err) and not (tmp_path / "e.json").exists()
+
+
+@pytest.mark.parametrize("cls", ["Sleeps", "Spins"])
+def test_act_timeout_interrupts_a_hanging_act(tmp_path, capsys, bad_module, cls):
+    import signal
+    import time
+
+    before = signal.getsignal(signal.SIGALRM)
+    t0 = time.monotonic()
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{bad_module}:{cls}", "--act-timeout", 0.3,
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert time.monotonic() - t0 < 10.0
+    line = _one_error_line(err)
+    assert code == 2 and "within the act timeout of 0.3 s" in line and "episode 0, step 3" in line
+    assert signal.getsignal(signal.SIGALRM) == before  # the handler is restored
+
+
+def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
+    from agents.evaluate import evaluate_controller
+    from agents.operator import OperatorPolicy
+
+    plain = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=2, score=False)
+    timed = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=2, score=False, act_timeout=5.0)
+    assert plain == timed and plain["summary"]["completion_rate"] == 1.0
+    code, out, err = _run(capsys, "evaluate", "--help")
+    assert "--act-timeout" in out and "default: off" in " ".join(out.split())
+    for bad in ("-1", "nan", "0"):
+        code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--act-timeout", bad, "--no-score",
+                            "--out", tmp_path / "e.json")
+        assert code == 2 and "--act-timeout" in _one_error_line(err) and not (tmp_path / "e.json").exists()
+
+
+def test_user_classes_resolve_by_dotted_name(bad_module):
+    from agents.evaluate import load_controller
+
+    assert type(load_controller(f"{bad_module}:Outer.Inner", "tc")).__name__ == "Inner"
+    assert load_controller("agents.operator:OperatorPolicy", "tc").braking == "tc"
+    with pytest.raises(ValueError, match="defines no 'Nope'"):
+        load_controller(f"{bad_module}:Nope", "tc")
+    with pytest.raises(ValueError, match="cannot import no_such_module_xyz"):
+        load_controller("no_such_module_xyz:Driver", "tc")

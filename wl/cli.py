@@ -113,7 +113,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
     _progress(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
     r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
-                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress)
+                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress,
+                            name=args.controller, act_timeout=args.act_timeout)
     r = {"controller": args.controller, "model": args.model, **r}
     write_json_atomic(args.out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
@@ -162,6 +163,13 @@ def _unit_float(text: str) -> float:
     value = _number(text, float)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = _number(text, float)
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text}")
     return value
 
 
@@ -247,6 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts (default $WL_CACHE_DIR or "
                    "~/.cache/wheel-loader-gym); a front not cached there is solved first (minutes)")
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
+    p.add_argument("--act-timeout", type=_seconds, metavar="SECONDS", help="fail if one act() call takes longer "
+                   "(default: off, no limit; a SIGALRM timer: it interrupts Python code, not a hung C call)")
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
     p.set_defaults(func=_evaluate_cmd)
 
