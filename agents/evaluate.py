@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import inspect
+import logging
 import math
 import os
 import pkgutil
@@ -29,6 +30,8 @@ import numpy as np
 
 from wl_env import cycle
 from wl_env.controller import Controller
+
+log = logging.getLogger(__name__)
 
 BUILTIN_CONTROLLERS = ("ppo", "operator", "mpc")
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
@@ -83,8 +86,7 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Co
     policy = load_policy(path, trust_pickle=trust_pickle)
     if policy.braking not in (None, braking):
         # Allowed (a cross-evaluation is a legitimate experiment), but usually a mix-up.
-        print(f"warning: the policy {path} was trained with {policy.braking} braking, evaluated with {braking}",
-              file=sys.stderr)
+        log.warning("the policy %s was trained with %s braking, evaluated with %s", path, policy.braking, braking)
     return policy
 
 

@@ -31,11 +31,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import math
 import os
 import pickle
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -63,6 +63,8 @@ from agents.ppo_config import PPOConfig
 from agents.sb3_vec import make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.atomic_io import write_atomic
+
+log = logging.getLogger(__name__)
 
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
@@ -362,7 +364,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
         try:
             out["time_gap"], out["fuel_gap"] = score(nominal["T"], nominal["fuel_g"], braking, front)
         except Exception as e:  # noqa: BLE001 - a missing optimum must not stop training
-            print(f"warning: no score ({e})", file=sys.stderr)
+            log.warning("no score (%s)", e)
     if n_episodes > 0:
         eps = rollout(act, braking, n_episodes, init_noise, seed, env_kwargs)
         done = [e for e in eps if e["completed"]]
@@ -402,7 +404,7 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
 
                     self.front = pareto_front(cfg.braking)
                 except Exception as e:  # noqa: BLE001
-                    print(f"warning: no Pareto front, evaluations are not scored ({e})", file=sys.stderr)
+                    log.warning("no Pareto front, evaluations are not scored (%s)", e)
             self._apply_curriculum()
 
         def _on_rollout_start(self) -> None:
@@ -416,8 +418,7 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
         def _on_step(self) -> bool:
             if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
                 if not state.get("timed_out"):
-                    print(f"time limit: {cfg.time_limit:.0f} s of training reached at step {self.num_timesteps}",
-                          file=sys.stderr)
+                    log.info("time limit: %.0f s of training reached at step %d", cfg.time_limit, self.num_timesteps)
                 state["timed_out"] = True
                 return False
             return True
@@ -467,8 +468,8 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
             _append_eval_row(run_dir / "eval.csv", row)
             state["last_eval_row"] = row
             self.last_eval = self.num_timesteps
-            if self.verbose or cfg.progress_bar is False:
-                print(_eval_line(row), flush=True)
+            # shown by the CLI unless a progress bar is drawn (the lines would break it)
+            log.log(logging.INFO if self.verbose or cfg.progress_bar is False else logging.DEBUG, "%s", _eval_line(row))
 
         def _checkpoint(self) -> None:
             step = self.num_timesteps
@@ -632,7 +633,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         cfg.progress_bar = given.progress_bar
         commands = list(meta.get("commands", []))
         if ckpt is None:
-            print(f"resume: no checkpoint in {run_dir}, starting from step 0", file=sys.stderr)
+            log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise FileExistsError(f"{run_dir} already holds a run; pass resume=True (--resume) or another run name")
     if command:
@@ -652,7 +653,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         model.num_timesteps = step
         state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"), last_ckpt=step)
         _truncate_eval_csv(run_dir / "eval.csv", step)
-        print(f"resume: {ckpt.name}, {step} of {cfg.total_timesteps} steps done", file=sys.stderr)
+        log.info("resume: %s, %d of %d steps done", ckpt.name, step, cfg.total_timesteps)
     else:
         step = 0
         (run_dir / "eval.csv").unlink(missing_ok=True)
@@ -699,7 +700,7 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
 
             front = pareto_front(cfg.braking)
         except Exception as e:  # noqa: BLE001
-            print(f"warning: no Pareto front, the evaluation is not scored ({e})", file=sys.stderr)
+            log.warning("no Pareto front, the evaluation is not scored (%s)", e)
     ev = evaluate(policy.act, cfg.braking, n_episodes, init_noise, env_kwargs=cfg.env_kwargs(),
                   with_score=front is not None, front=front)
     if front is not None:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.logs import cli_logging  # noqa: E402
 from agents.train_cli import add_train_args, run_train  # noqa: E402
 
 PROG = "python scripts/train_ppo.py"
@@ -38,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     add_train_args(parser)
     argv = sys.argv[1:] if argv is None else argv
     ns = parser.parse_args(argv)
-    return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
+    with cli_logging():
+        return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import wl_env  # noqa: F401
+from agents.logs import cli_logging
 from agents.operator import OperatorPolicy, run_episode
 from agents.ppo import (
     PPOConfig,
@@ -91,9 +92,12 @@ class _Interrupt(BaseCallback):
         return True
 
 
-def test_short_training_checkpoints_and_saves(tmp_path):
+def test_short_training_checkpoints_and_saves(tmp_path, capsys):
     cfg = _tiny(tmp_path)
-    summary = train(cfg, command="pytest")
+    with cli_logging():  # as the command line shows the progress: logging on stderr, nothing on stdout
+        summary = train(cfg, command="pytest")
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("[eval] step") == 5 and err.splitlines()[0].startswith("[eval] step         0")
     run = cfg.run_dir
     assert summary["num_timesteps"] >= cfg.total_timesteps
     for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv",

@@ -424,3 +424,14 @@ def test_user_classes_resolve_by_dotted_name(bad_module):
         load_controller(f"{bad_module}:Nope", "tc")
     with pytest.raises(ValueError, match="cannot import no_such_module_xyz"):
         load_controller("no_such_module_xyz:Driver", "tc")
+
+
+# ------------------------------------------------------------------------------------------ logging
+def test_warnings_of_the_agents_reach_the_cli_through_logging(tmp_path, capsys, caplog):
+    import logging
+
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", POLICIES / "ppo_tc", "--braking",
+                        "service", "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert code == 0 and "warning: the policy" in err and "trained with tc braking, evaluated with service" in err
+    record = next(r for r in caplog.records if "trained with tc braking" in r.getMessage())
+    assert record.name == "agents.evaluate" and record.levelno == logging.WARNING

@@ -305,8 +305,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from agents.logs import cli_logging  # the agents' progress and warnings (logging) on stderr
+
     try:
-        return int(args.func(args) or 0)
+        with cli_logging():
+            return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, RuntimeError, OSError, json.JSONDecodeError) as exc:
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
