@@ -96,6 +96,11 @@ def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, An
     if export:
         write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", extra)
     write_json_atomic(tmp / "progress.json", extra)
+    return _replace_folder(tmp, folder)
+
+
+def _replace_folder(tmp: Path, folder: Path) -> Path:
+    """Make the complete folder ``tmp`` visible as ``folder`` at once (a rename), replacing an old one."""
     if folder.exists():
         old = folder.parent / f".{folder.name}.old"
         shutil.rmtree(old, ignore_errors=True)
@@ -385,52 +390,27 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
 
 
 # ---------------------------------------------------------------------------------------------- training
-def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
-    from stable_baselines3.common.callbacks import BaseCallback
+def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]) -> tuple[Any, Any]:
+    """The run's callbacks (a ``CallbackList``) and its evaluation (``train`` evaluates once more at the end).
 
-    class RunCallback(BaseCallback):
-        """At the start of each rollout (the model just updated): curriculum, evaluation, checkpoint."""
+    stable-baselines3's own pieces do the scheduling and saving: ``EveryNTimesteps`` triggers the
+    evaluations, ``CheckpointCallback`` (``save_vecnormalize=True``) saves the checkpoints. What SB3 lacks
+    is kept, each said why below.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback, EveryNTimesteps
 
-        def __init__(self) -> None:
-            super().__init__()
-            self.front = None
-            self.last_eval = state["last_eval"]
-            self.last_ckpt = state["last_ckpt"]
-
+    class Curriculum(BaseCallback):
+        # Kept: SB3 has no reward curriculum nor a schedule on the policy's std.
         def _on_training_start(self) -> None:
-            if cfg.score:
-                try:
-                    from mpc.benchmark.pareto import pareto_front
-
-                    self.front = pareto_front(cfg.braking)
-                except Exception as e:  # noqa: BLE001
-                    log.warning("no Pareto front, evaluations are not scored (%s)", e)
-            self._apply_curriculum()
+            self._apply()
 
         def _on_rollout_start(self) -> None:
-            step = self.num_timesteps
-            self._apply_curriculum()
-            if self.last_eval is None or step - self.last_eval >= cfg.eval_freq:
-                self._evaluate()
-            if step - self.last_ckpt >= cfg.checkpoint_freq:
-                self._checkpoint()
+            self._apply()
 
         def _on_step(self) -> bool:
-            if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
-                if not state.get("timed_out"):
-                    log.info("time limit: %.0f s of training reached at step %d", cfg.time_limit, self.num_timesteps)
-                state["timed_out"] = True
-                return False
             return True
 
-        def _on_training_end(self) -> None:
-            if self.last_eval != self.num_timesteps:
-                self._evaluate()
-            if self.last_ckpt != self.num_timesteps:
-                self._checkpoint()
-
-        # ---- pieces
-        def _apply_curriculum(self) -> None:
+        def _apply(self) -> None:
             if cfg.log_std_final is not None and not cfg.use_sde:
                 # Exploration annealing: a noisy policy aims short of targets it cannot undo (the bucket
                 # is never lowered), and the deterministic policy inherits that offset; capping the
@@ -447,8 +427,31 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
             for k in cfg.curriculum_start:
                 self.logger.record(f"curriculum/{k}", getattr(rc, k))
 
-        def _evaluate(self) -> None:
-            vn = _vecnorm_of(self.training_env)
+    class ScoredEvaluation(BaseCallback):
+        # Kept: EvalCallback reports mean returns only; the project's evaluation scores cycle time and fuel
+        # against the optimum and appends them to eval.csv (the learning curve, continued on resume).
+        def __init__(self) -> None:
+            super().__init__()
+            self.front = None
+
+        def _on_training_start(self) -> None:
+            if cfg.score:
+                try:
+                    from mpc.benchmark.pareto import pareto_front
+
+                    self.front = pareto_front(cfg.braking)
+                except Exception as e:  # noqa: BLE001
+                    log.warning("no Pareto front, evaluations are not scored (%s)", e)
+            if state["last_eval"] is None:
+                self.evaluate()  # the untrained policy: step 0 of the learning curve
+
+        def _on_step(self) -> bool:
+            self.evaluate()
+            return True
+
+        def evaluate(self) -> None:
+            step = self.model.num_timesteps
+            vn = _vecnorm_of(self.model.get_env())
 
             def act(obs: np.ndarray) -> np.ndarray:
                 if vn is not None:
@@ -458,35 +461,69 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
             res = evaluate(act, cfg.braking, cfg.eval_episodes, cfg.eval_init_noise, seed=10_000,
                            env_kwargs=cfg.env_kwargs(), with_score=cfg.score and self.front is not None,
                            front=self.front)
-            rc = reward_config(cfg, self.num_timesteps)
-            row = {"step": self.num_timesteps, "wall_time": state["wall_time"] + time.time() - state["t0"],
+            rc = reward_config(cfg, step)
+            row = {"step": step, "wall_time": state["wall_time"] + time.time() - state["t0"],
                    "train_w_time": rc.w_time, "train_w_fuel": rc.w_fuel, "train_target_distance": rc.target_distance,
                    **res}
             for k, v in res.items():
                 if isinstance(v, (int, float)) and v is not None and math.isfinite(v):
-                    self.logger.record(f"eval/{k}", v)
+                    self.model.logger.record(f"eval/{k}", v)
             _append_eval_row(run_dir / "eval.csv", row)
             state["last_eval_row"] = row
-            self.last_eval = self.num_timesteps
+            state["last_eval"] = step
             # shown by the CLI unless a progress bar is drawn (the lines would break it)
             log.log(logging.INFO if self.verbose or cfg.progress_bar is False else logging.DEBUG, "%s", _eval_line(row))
 
-        def _checkpoint(self) -> None:
-            step = self.num_timesteps
-            wall = state["wall_time"] + time.time() - state["t0"]
-            ckpt_root = run_dir / "checkpoints"
-            folder = save_model_files(self.model, _vecnorm_of(self.training_env), ckpt_root / f"step_{step:010d}", {
-                "num_timesteps": step, "total_timesteps": cfg.total_timesteps, "wall_time": wall,
-                "last_eval": self.last_eval, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                "braking": cfg.braking, "seed": cfg.seed,
-            })
-            write_json_atomic(ckpt_root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
-            self.last_ckpt = step
-            old = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())[: -max(1, cfg.keep_checkpoints)]
-            for p in old:
-                shutil.rmtree(p, ignore_errors=True)
+    class RunCheckpoint(CheckpointCallback):
+        # Kept around SB3's saving: its files are written in place, so each checkpoint is staged in a folder
+        # renamed at once (a kill never leaves a half checkpoint) with progress.json for resume (wall time,
+        # last evaluation), and only the newest keep_checkpoints are kept.
+        def __init__(self) -> None:
+            super().__init__(save_freq=max(cfg.checkpoint_freq // cfg.num_envs, 1), save_path=str(run_dir / "checkpoints"),
+                             save_vecnormalize=True)
+            self._staging: Path | None = None
 
-    return RunCallback()
+        def _checkpoint_path(self, checkpoint_type: str = "", extension: str = "") -> str:
+            name = {"": "model", "vecnormalize_": "vecnormalize"}.get(checkpoint_type, checkpoint_type.rstrip("_"))
+            return str(self._staging / f"{name}.{extension}")
+
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq != 0:
+                return True
+            step = self.num_timesteps
+            root = Path(self.save_path)
+            folder = root / f"step_{step:010d}"
+            self._staging = root / f".{folder.name}.tmp"
+            shutil.rmtree(self._staging, ignore_errors=True)
+            self._staging.mkdir(parents=True)
+            super()._on_step()  # SB3 saves model.zip and vecnormalize.pkl (via _checkpoint_path) into the staging
+            write_json_atomic(self._staging / "progress.json", {
+                "num_timesteps": step, "total_timesteps": cfg.total_timesteps,
+                "wall_time": state["wall_time"] + time.time() - state["t0"], "last_eval": state["last_eval"],
+                "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "braking": cfg.braking, "seed": cfg.seed})
+            _replace_folder(self._staging, folder)
+            write_json_atomic(root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
+            complete = sorted(p for p in root.glob("step_*") if (p / "progress.json").exists())
+            broken = [p for p in root.glob("step_*") if p.is_dir() and not (p / "progress.json").exists()]
+            for old in complete[: -max(1, cfg.keep_checkpoints)] + broken + list(root.glob(".step_*.tmp")):
+                shutil.rmtree(old, ignore_errors=True)  # older ones, and what a killed save left
+            return True
+
+    class WallTimeLimit(BaseCallback):
+        # Kept: SB3 stops on reward, episodes or no improvement, not on wall time (summed over resumes).
+        def _on_step(self) -> bool:
+            if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
+                if not state.get("timed_out"):
+                    log.info("time limit: %.0f s of training reached at step %d", cfg.time_limit, self.num_timesteps)
+                state["timed_out"] = True
+                return False
+            return True
+
+    evaluation = ScoredEvaluation()
+    every = EveryNTimesteps(n_steps=cfg.eval_freq, callback=evaluation)
+    every.last_time_trigger = state["last_eval"] or 0  # on resume: the schedule goes on from the checkpoint's
+    # The evaluation runs before the checkpoint of the same step, so that its progress.json records it.
+    return CallbackList([Curriculum(), every, RunCheckpoint(), WallTimeLimit()]), evaluation
 
 
 def _eval_line(row: dict[str, Any]) -> str:
@@ -620,7 +657,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     th.set_num_threads(max(1, cfg.torch_threads))
     run_dir = cfg.run_dir
-    state: dict[str, Any] = {"wall_time": 0.0, "last_eval": None, "last_ckpt": 0, "t0": time.time()}
+    state: dict[str, Any] = {"wall_time": 0.0, "last_eval": None, "t0": time.time()}
     ckpt = latest_checkpoint(run_dir) if resume else None
     commands: list[str] = []
     if resume:
@@ -651,7 +688,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         set_random_seed(cfg.seed + step)
         model = PPO.load(str(ckpt / "model.zip"), env=env, device="cpu", tensorboard_log=str(tb_dir))
         model.num_timesteps = step
-        state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"), last_ckpt=step)
+        state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))
         _truncate_eval_csv(run_dir / "eval.csv", step)
         log.info("resume: %s, %d of %d steps done", ckpt.name, step, cfg.total_timesteps)
     else:
@@ -663,8 +700,11 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     remaining = cfg.total_timesteps - step
     if remaining > 0:
-        model.learn(total_timesteps=remaining, callback=[_callbacks(cfg, run_dir, state), *(callbacks or [])],
+        run_callbacks, evaluation = _callbacks(cfg, run_dir, state)
+        model.learn(total_timesteps=remaining, callback=[run_callbacks, *(callbacks or [])],
                     reset_num_timesteps=ckpt is None, tb_log_name="PPO", progress_bar=cfg.progress_bar)
+        if state["last_eval"] != model.num_timesteps:
+            evaluation.evaluate()  # the final policy is the learning curve's last point
     wall = state["wall_time"] + time.time() - state["t0"]
     final = save_model_files(model, _vecnorm_of(env), run_dir / "final", export=True, extra={
         "num_timesteps": int(model.num_timesteps), "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed,

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -28,7 +32,8 @@ from agents.ppo import (
 )
 from agents.sb3_vec import make_sb3_vec_env
 
-POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
+ROOT = Path(__file__).resolve().parents[1]
+POLICIES = ROOT / "agents" / "policies"
 
 
 # ------------------------------------------------------------------------------------------ adapter
@@ -129,6 +134,40 @@ def test_resume_continues_from_checkpoint(tmp_path):
     assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == summary["num_timesteps"]
     assert [p.name for p in (cfg.run_dir / "tb").iterdir()] == ["PPO_1"]  # logs appended to the same folder
     assert summary["commands"] == ["again"] or summary["commands"][-1] == "again"
+
+
+def test_resume_after_sigkill_continues_from_the_last_complete_checkpoint(tmp_path):
+    """A training process killed with SIGKILL (no cleanup) resumes from its newest complete checkpoint; a
+    half-written checkpoint (the staging folder a kill leaves) is never used."""
+    cfg = _tiny(tmp_path, total_timesteps=16384, eval_freq=4096)
+    script = ("import json, sys\nfrom agents.ppo import PPOConfig, train\n"
+              f"train(PPOConfig.from_dict(json.loads({json.dumps(json.dumps(cfg.to_dict()))})))\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while latest_checkpoint(cfg.run_dir) is None:
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline, "no checkpoint within 120 s"
+            time.sleep(0.05)
+    finally:
+        proc.kill()  # SIGKILL: no handler, no atexit, files as they are
+        proc.wait()
+    assert not (cfg.run_dir / "final").exists()
+    done = json.loads((latest_checkpoint(cfg.run_dir) / "progress.json").read_text())["num_timesteps"]
+    # what a kill in the middle of a save leaves: a staging folder, and a folder without its progress.json
+    root = cfg.run_dir / "checkpoints"
+    for half in (root / ".step_9999999999.tmp", root / "step_9999999999"):
+        half.mkdir(exist_ok=True)
+        (half / "model.zip").write_bytes(b"PK\x03\x04 cut short")
+    (root / "latest.json").unlink()
+    assert latest_checkpoint(cfg.run_dir).name == f"step_{done:010d}"
+    summary = train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True)
+    assert cfg.total_timesteps <= summary["num_timesteps"] < cfg.total_timesteps + 8 * 64
+    steps = [r["step"] for r in read_eval_csv(cfg.run_dir / "eval.csv")]
+    assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == summary["num_timesteps"]
+    left = sorted(p.name for p in root.iterdir())  # the leftovers were cleared with the old checkpoints
+    assert left == ["latest.json", *[f"step_{n:010d}" for n in (15360, 16384)]], left
 
 
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
