@@ -12,34 +12,43 @@
 from __future__ import annotations
 
 import hashlib
-import importlib
 import importlib.util
 import inspect
+import logging
 import math
 import os
+import pkgutil
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
+
 from wl_env import cycle
 from wl_env.controller import Controller
+
+log = logging.getLogger(__name__)
 
 BUILTIN_CONTROLLERS = ("ppo", "operator", "mpc")
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
 
 
 def default_policy_path(braking: str) -> Path:
-    """The shipped PPO policy of a braking alternative."""
-    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.zip"
+    """The weights file of the shipped PPO policy of a braking alternative (with its ``_vecnormalize.npz``
+    and ``.json`` beside it, :mod:`agents.policy_files`)."""
+    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.safetensors"
 
 
 # ---------------------------------------------------------------------------------------------- loading
-def load_controller(spec: str, braking: str, model: str | None = None) -> Controller:
+def load_controller(spec: str, braking: str, model: str | None = None, *, trust_pickle: bool = False) -> Controller:
     """The controller named by ``spec`` for ``braking``.
 
-    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>.zip``), ``"operator"``
+    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``; a pickle-free policy,
+    or with ``trust_pickle`` a stable-baselines3 zip you trust, see :func:`agents.ppo.load_policy`), ``"operator"``
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
     that argument (and ``model=`` if a model is given), else without arguments; the result needs an
@@ -48,7 +57,9 @@ def load_controller(spec: str, braking: str, model: str | None = None) -> Contro
     cycle.check_braking(braking)
     spec = spec.strip()
     if spec == "ppo":
-        return _load_ppo(braking, model)
+        return _load_ppo(braking, model, trust_pickle)
+    if trust_pickle:
+        raise ValueError(f"--trust-pickle is for --controller ppo (the policy file it loads), not {spec!r}")
     if spec in ("operator", "mpc") and model is not None:
         raise ValueError(f"--model is for learned controllers (ppo, module:Class), not {spec!r}")
     if spec == "operator":
@@ -65,31 +76,31 @@ def load_controller(spec: str, braking: str, model: str | None = None) -> Contro
     return _load_user_controller(spec, braking, model)
 
 
-def _load_ppo(braking: str, model: str | None) -> Controller:
+def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Controller:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking)
-    if not path.exists():
-        hint = "" if model is not None else f" (train one with `wl train --braking {braking} --export PATH`, " \
-                                            "then pass --model PATH.zip)"
-        raise FileNotFoundError(f"no PPO policy at {path}{hint}")
+    if model is None and not path.exists():
+        raise FileNotFoundError(f"no PPO policy at {path} (train one with `wl train --braking {braking} --export PATH`, "
+                                "then pass --model PATH)")
     from agents.ppo import load_policy
 
-    policy = load_policy(path)
+    policy = load_policy(path, trust_pickle=trust_pickle)
     if policy.braking not in (None, braking):
         # Allowed (a cross-evaluation is a legitimate experiment), but usually a mix-up.
-        print(f"warning: the policy {path} was trained with {policy.braking} braking, evaluated with {braking}",
-              file=sys.stderr)
+        log.warning("the policy %s was trained with %s braking, evaluated with %s", path, policy.braking, braking)
     return policy
 
 
 def _load_user_controller(spec: str, braking: str, model: str | None) -> Controller:
     target, _, name = spec.rpartition(":")
-    if not target or not name.isidentifier():
+    if not target or not all(part.isidentifier() for part in name.split(".")):
         raise ValueError(f"controller {spec!r}: expected module:Class or path/to/file.py:Class")
     is_file = target.endswith(".py") or "/" in target or os.sep in target
-    module = _import_file(target, spec) if is_file else _import_module(target, spec)
-    factory = getattr(module, name, None)
-    if factory is None:
-        raise ValueError(f"controller {spec!r}: {target} defines no {name!r}")
+    if is_file:
+        # pkgutil.resolve_name imports by module name only: a file is imported here under a unique name first.
+        factory = _resolve(_import_file(target, spec).__name__, name, spec, target)
+    else:
+        _cwd_on_path()
+        factory = _resolve(target, name, spec, target)
     if not callable(factory):
         raise ValueError(f"controller {spec!r}: {name} is not a class or factory")
     kwargs: dict[str, Any] = {}
@@ -101,12 +112,31 @@ def _load_user_controller(spec: str, braking: str, model: str | None) -> Control
         kwargs["model"] = model
     try:
         controller = factory(**kwargs)
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:  # a user's sys.exit() must not end wl evaluate quietly
         raise ValueError(f"controller {spec!r}: {name}({', '.join(f'{k}={v!r}' for k, v in kwargs.items())}) "
-                         f"failed: {type(exc).__name__}: {exc}") from exc
+                         f"failed: {_brief(exc)}") from exc
     if not callable(getattr(controller, "act", None)):
         raise ValueError(f"controller {spec!r}: {name} has no act(obs) method")
     return controller
+
+
+def _resolve(module: str, name: str, spec: str, target: str) -> Any:
+    """``module:name`` by :func:`pkgutil.resolve_name` (imports the module, follows a dotted name)."""
+    try:
+        return pkgutil.resolve_name(f"{module}:{name}")
+    except AttributeError as exc:
+        if module in sys.modules:  # imported; the name is not in it
+            raise ValueError(f"controller {spec!r}: {target} defines no {name!r}") from None
+        raise ValueError(f"controller {spec!r}: cannot import {target}: {_brief(exc)}") from exc
+    except (Exception, SystemExit) as exc:
+        raise ValueError(f"controller {spec!r}: cannot import {target}: {_brief(exc)}") from exc
+
+
+def _brief(exc: BaseException) -> str:
+    if isinstance(exc, SystemExit):
+        return f"it called sys.exit({exc.code!r})"
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:200] + ' ...' if len(text) > 200 else text}"
 
 
 def _accepts(factory: Callable[..., Any], arg: str) -> bool:
@@ -118,15 +148,11 @@ def _accepts(factory: Callable[..., Any], arg: str) -> bool:
                for p in sig.parameters.values())
 
 
-def _import_module(target: str, spec: str) -> ModuleType:
+def _cwd_on_path() -> None:
     # The console script `wl` does not put the working directory on sys.path (python -m would):
     # append it, so a user's module beside them imports, without shadowing installed packages.
     if os.getcwd() not in sys.path and "" not in sys.path:
         sys.path.append(os.getcwd())
-    try:
-        return importlib.import_module(target)
-    except Exception as exc:
-        raise ValueError(f"controller {spec!r}: cannot import {target}: {type(exc).__name__}: {exc}") from exc
 
 
 def _import_file(target: str, spec: str) -> ModuleType:
@@ -145,10 +171,100 @@ def _import_file(target: str, spec: str) -> ModuleType:
         sys.path.append(str(path.parent))  # its sibling imports work as when run as a script
     try:
         module_spec.loader.exec_module(module)
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:
         del sys.modules[name]
-        raise ValueError(f"controller {spec!r}: importing {path} failed: {type(exc).__name__}: {exc}") from exc
+        raise ValueError(f"controller {spec!r}: importing {path} failed: {_brief(exc)}") from exc
     return module
+
+
+# ---------------------------------------------------------------------------------------------- guard
+class ControllerError(RuntimeError):
+    """A controller failed during an episode: it raised, exited, returned a bad action or took too long.
+    The message is one line naming the controller, the episode and the step."""
+
+
+class _ActTimeout(BaseException):
+    """Raised by SIGALRM in a late act(); not an Exception, so the controller's own ``except Exception``
+    does not swallow it."""
+
+
+def _on_alarm(signum: int, frame: Any) -> None:
+    raise _ActTimeout
+
+
+class GuardedController:
+    """``controller`` as :func:`wl_env.rollout.run_episode` drives it, with every call checked: an exception,
+    ``sys.exit()``, an action that is not 4 finite numbers or (with ``act_timeout``) an ``act()`` slower
+    than ``act_timeout`` seconds is a :class:`ControllerError` naming ``name``, the episode and the step.
+
+    The timeout is a SIGALRM timer (``signal.setitimer``) around each ``act()`` on the main thread: it
+    interrupts Python code and sleeps, not a C extension call that never returns to the interpreter.
+    """
+
+    def __init__(self, controller: Controller, name: str, act_timeout: float | None = None) -> None:
+        self.controller, self.name, self.act_timeout = controller, name, act_timeout
+        self.episode, self.step = -1, 0
+
+    def reset(self) -> None:
+        self.episode, self.step = self.episode + 1, 0
+        if hasattr(self.controller, "reset"):
+            self._call("reset()", self.controller.reset, timeout=None)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        out = self._call("act()", self.controller.act, obs, timeout=self.act_timeout)
+        try:
+            raw = np.asarray(out) if isinstance(out, (np.ndarray, list, tuple)) or hasattr(out, "__array__") else None
+        except Exception:  # noqa: BLE001 - ragged lists, tensors that refuse conversion
+            raw = None
+        if raw is None or raw.dtype.kind not in "iuf":
+            self._fail(f"act() returned {_short(out)} ({type(out).__name__}), not 4 numbers [fuel, bucket, brake, shift]")
+        if raw.shape != (4,):
+            self._fail(f"act() returned an action of shape {raw.shape}, expected (4,) [fuel, bucket, brake, shift]")
+        action = raw.astype(np.float64)
+        if not np.all(np.isfinite(action)):
+            self._fail(f"act() returned a non-finite action {action.tolist()}")
+        self.step += 1
+        return action
+
+    def _where(self) -> str:
+        return f"episode {self.episode}, step {self.step}"
+
+    def _fail(self, what: str) -> None:
+        raise ControllerError(f"controller {self.name}: {what} at {self._where()}")
+
+    def _call(self, what: str, fn: Callable[..., Any], *args: Any, timeout: float | None) -> Any:
+        try:
+            if timeout is None:
+                return fn(*args)
+            signal.setitimer(signal.ITIMER_REAL, timeout)
+            try:
+                return fn(*args)
+            finally:
+                signal.setitimer(signal.ITIMER_REAL, 0.0)
+        except _ActTimeout:
+            raise ControllerError(f"controller {self.name}: {what} did not return within the act timeout of "
+                                  f"{timeout:g} s (--act-timeout) at {self._where()}") from None
+        except KeyboardInterrupt:
+            raise
+        except (Exception, SystemExit) as exc:  # SystemExit: a user's sys.exit() must not end wl evaluate quietly
+            raise ControllerError(f"controller {self.name}: {what} failed at {self._where()}: {_brief(exc)}") from exc
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_act_timeout(act_timeout: float | None) -> None:
+    """Raise ValueError unless ``act_timeout`` is None (off) or a finite number of seconds > 0 that can be
+    enforced here (SIGALRM on the main thread)."""
+    if act_timeout is None:
+        return
+    if isinstance(act_timeout, bool) or not isinstance(act_timeout, (int, float)) or not (
+            math.isfinite(act_timeout) and act_timeout > 0):
+        raise ValueError(f"act_timeout (--act-timeout) must be a finite number of seconds > 0, got {act_timeout!r}")
+    if not hasattr(signal, "setitimer") or threading.current_thread() is not threading.main_thread():
+        raise ValueError("act_timeout (--act-timeout) needs SIGALRM, i.e. a POSIX system and the main thread")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
@@ -175,6 +291,8 @@ def evaluate_controller(
     trajectories: bool = False,
     env_kwargs: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
+    name: str | None = None,
+    act_timeout: float | None = None,
 ) -> dict[str, Any]:
     """Run ``episodes`` episodes of ``controller`` and score the completed ones against the optimum.
 
@@ -183,6 +301,10 @@ def evaluate_controller(
     else :func:`mpc.benchmark.pareto.pareto_front` from ``cache``) is loaded once, when the first episode completes.
     ``trajectories`` keeps each episode's t, states, controls and phase. Values that do not exist (the
     gaps of an unfinished cycle, the mean time of no completed cycle) are None.
+
+    The controller runs through :class:`GuardedController`: whatever goes wrong in its code is a
+    :class:`ControllerError` naming it (``name``, default its class), the episode and the step.
+    ``act_timeout`` (seconds, default None: off) fails an ``act()`` call that takes longer.
     """
     import gymnasium as gym
 
@@ -191,16 +313,19 @@ def evaluate_controller(
 
     cycle.check_braking(braking)
     check_settings(episodes, init_noise, seed)
+    check_act_timeout(act_timeout)
+    guarded = GuardedController(controller, name or type(controller).__name__, act_timeout)
     say = progress or (lambda msg: None)
     kwargs = {**(env_kwargs or {}), "braking": braking}
     nominal_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": 0.0})
     perturbed_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
     H_T = nominal_env.unwrapped.params.H_T
     records: list[dict[str, Any]] = []
+    previous_alarm = signal.signal(signal.SIGALRM, _on_alarm) if act_timeout is not None else None
     try:
         for i in range(episodes):
             env = nominal_env if i == 0 else perturbed_env
-            ep = run_episode(env, controller, seed=seed + i)
+            ep = run_episode(env, guarded, seed=seed + i)
             rec: dict[str, Any] = {
                 "episode": i, "seed": seed + i, "init_noise": 0.0 if i == 0 else float(init_noise),
                 "success": bool(ep["success"]), "completed": bool(ep["completed"]),
@@ -228,6 +353,8 @@ def evaluate_controller(
             records.append(rec)
             say(_episode_line(rec))
     finally:
+        if act_timeout is not None:
+            signal.signal(signal.SIGALRM, signal.SIG_DFL if previous_alarm is None else previous_alarm)
         nominal_env.close()
         if perturbed_env is not None:
             perturbed_env.close()

@@ -7,7 +7,9 @@
 * :func:`train` - trains one policy in a run directory, with periodic deterministic evaluations (logged
   to ``eval.csv`` and TensorBoard), atomic checkpoints and ``resume``.
 * :func:`load_policy` - a trained policy as an object with ``act(obs) -> action`` (deterministic, with
-  the saved observation normalization), e.g. for :func:`agents.operator.run_episode`.
+  the saved observation normalization), e.g. for :func:`agents.operator.run_episode`; from the
+  pickle-free files of :mod:`agents.policy_files`, or a stable-baselines3 zip only with ``trust_pickle``.
+* :func:`export_policy` - a run's final policy shipped as pickle-free files with a fresh evaluation.
 * :func:`evaluate` - deterministic episodes in single environments, with the score against the optimum.
 
 Run directory layout (``<log_dir>/<run_name>/``)::
@@ -17,7 +19,11 @@ Run directory layout (``<log_dir>/<run_name>/``)::
     eval.csv                         one row per evaluation (the learning curve)
     checkpoints/latest.json          points at the newest complete checkpoint
     checkpoints/step_<n>/            model.zip, vecnormalize.pkl, progress.json
-    final/                           model.zip, vecnormalize.pkl, summary.json after the last step
+    final/                           model.zip, vecnormalize.pkl, summary.json after the last step, and
+                                     policy.safetensors, policy_vecnormalize.npz, policy.json (pickle-free)
+
+Checkpoints and ``final/model.zip`` are stable-baselines3 zips (pickles): a run's own files, for resuming.
+What is shipped or shared is the pickle-free policy.
 """
 
 from __future__ import annotations
@@ -25,11 +31,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import math
 import os
 import pickle
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -41,10 +47,24 @@ from stable_baselines3.common.distributions import DiagGaussianDistribution, Dis
 from stable_baselines3.common.policies import ActorCriticPolicy
 
 import wl_env  # noqa: F401  (registers WheelLoader-v1)
+from agents.policy_files import (
+    METADATA_SUFFIX,
+    NORMALIZATION_SUFFIX,
+    PICKLE_SUFFIXES,
+    WEIGHTS_SUFFIX,
+    ObsNormalization,
+    PolicyFileError,
+    PolicyFiles,
+    brief,
+    read_policy,
+    write_policy,
+)
 from agents.ppo_config import PPOConfig
 from agents.sb3_vec import make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.atomic_io import write_atomic
+
+log = logging.getLogger(__name__)
 
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
@@ -60,8 +80,12 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_io.write_json_atomic(path, obj, indent=2, nan_as_null=True)
 
 
-def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any]) -> Path:
-    """model.zip + vecnormalize.pkl + progress.json into ``folder``, made visible at once (dir rename)."""
+def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any], export: bool = False) -> Path:
+    """model.zip + vecnormalize.pkl + progress.json into ``folder``, made visible at once (dir rename).
+
+    ``export`` also writes the pickle-free policy (policy.safetensors, policy_vecnormalize.npz, policy.json
+    with ``extra`` as metadata) that :func:`load_policy` and :func:`export_policy` read without trust.
+    """
     folder = Path(folder)
     tmp = folder.parent / f".{folder.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -69,7 +93,14 @@ def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, An
     model.save(tmp / "model.zip")
     if vecnorm is not None:
         vecnorm.save(tmp / "vecnormalize.pkl")
+    if export:
+        write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", extra)
     write_json_atomic(tmp / "progress.json", extra)
+    return _replace_folder(tmp, folder)
+
+
+def _replace_folder(tmp: Path, folder: Path) -> Path:
+    """Make the complete folder ``tmp`` visible as ``folder`` at once (a rename), replacing an old one."""
     if folder.exists():
         old = folder.parent / f".{folder.name}.old"
         shutil.rmtree(old, ignore_errors=True)
@@ -131,75 +162,146 @@ def reward_config(cfg: PPOConfig, step: int | None = None):
 # ---------------------------------------------------------------------------------------------- policy
 class PPOPolicy:
     """A trained PPO policy: ``act(obs)`` returns the deterministic action (mean of the Gaussian, clipped
-    to the action space) for one observation (shape (12,)) or a batch (shape (n, 12))."""
+    to the action space) for one observation (shape (12,)) or a batch (shape (n, 12)).
 
-    def __init__(self, model: Any, obs_rms: Any = None, clip_obs: float = 10.0, epsilon: float = 1e-8,
+    ``network`` is the SB3 ``ActorCriticPolicy`` (torch module), ``normalization`` the VecNormalize
+    observation statistics it was trained with (None: raw observations), ``meta`` the policy's metadata.
+    """
+
+    def __init__(self, network: Any, normalization: ObsNormalization | None = None,
                  meta: dict[str, Any] | None = None) -> None:
-        self.model = model
-        self.obs_rms = obs_rms
-        self.clip_obs = clip_obs
-        self.epsilon = epsilon
+        self.network = network
+        self.normalization = normalization
         self.meta = meta or {}
         self.braking = self.meta.get("braking")
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float32)
-        if self.obs_rms is None:
-            return obs
-        z = (obs - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + self.epsilon)
-        return np.clip(z, -self.clip_obs, self.clip_obs).astype(np.float32)
+        if self.normalization is None:
+            return np.asarray(obs, dtype=np.float32)
+        return self.normalization.apply(obs)
 
     def reset(self) -> None:  # stateless; present for the controller protocol of run_episode
         pass
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+        action, _ = self.network.predict(self.normalize(obs), deterministic=True)
         return np.asarray(action, dtype=np.float32)
 
     __call__ = act
 
 
-def load_policy(path: str | os.PathLike, device: str = "cpu") -> PPOPolicy:
-    """Load a policy saved by :func:`train` or shipped in ``agents/policies/``.
+def load_policy(path: str | os.PathLike, device: str = "cpu", *, trust_pickle: bool = False) -> PPOPolicy:
+    """Load a policy exported by :func:`export_policy` or :func:`train`, or shipped in ``agents/policies/``.
 
-    ``path`` is a model zip (``.../ppo_service.zip`` or ``.../model.zip``), a folder holding
-    ``model.zip`` (a run's ``final/`` or a checkpoint) or a run directory. The VecNormalize statistics
-    are read from ``<stem>_vecnormalize.pkl`` or ``vecnormalize.pkl`` beside the zip, if present (else from
-    the ``obs_normalization`` entry of ``<stem>.json``), and the metadata from
-    ``<stem>.json``/``summary.json``/``progress.json``.
+    ``path`` names a pickle-free policy (:mod:`agents.policy_files`): any of its three files, its stem
+    (``agents/policies/ppo_tc``), a run's ``final/`` folder or a run directory. Nothing in these files
+    is executed; a missing, corrupt or mismatched file is a :class:`PolicyFileError` naming it.
+
+    A stable-baselines3 zip (``model.zip`` of a run or checkpoint, with ``vecnormalize.pkl`` and
+    ``progress.json``/``summary.json`` beside it) is unpickled, which can run code: it is loaded only with
+    ``trust_pickle=True``, for files you trust (your own training runs).
     """
+    p = Path(path).expanduser()
+    stem = _safe_stem(p)
+    if stem is not None:
+        network, normalization, meta = read_policy(stem)
+        _check_spaces(network, PolicyFiles.of(stem).metadata)
+        return PPOPolicy(network, normalization, meta)
+    zip_path = _sb3_zip(p)
+    if not trust_pickle:
+        raise PolicyFileError(
+            f"{zip_path} is a stable-baselines3 zip: loading it unpickles objects, which can run code. Pass "
+            f"--trust-pickle (trust_pickle=True) only for files you trust (e.g. your own training runs), or use "
+            f"the pickle-free export: `wl train --export PATH` or `python -m agents.policy_files {zip_path} OUT "
+            f"--trust-pickle`")
+    return _load_sb3(zip_path, device)
+
+
+def _safe_stem(p: Path) -> Path | None:
+    """The stem of the pickle-free policy ``p`` names, or None if it names a stable-baselines3 zip."""
+    if p.is_dir():
+        for stem in (p / "policy", p / "final" / "policy"):
+            if PolicyFiles.of(stem).weights.exists():
+                return stem
+        return None
+    name = p.name
+    if name.endswith((WEIGHTS_SUFFIX, METADATA_SUFFIX, NORMALIZATION_SUFFIX)):
+        return p
+    if p.with_name(name + WEIGHTS_SUFFIX).exists() or (p.suffix not in PICKLE_SUFFIXES and not p.exists()
+                                                        and p.with_name(name + METADATA_SUFFIX).exists()):
+        return p
+    return None
+
+
+def _sb3_zip(p: Path) -> Path:
+    if p.is_dir():
+        for zip_path in (p / "model.zip", p / "final" / "model.zip"):
+            if zip_path.exists():
+                return zip_path
+        raise FileNotFoundError(f"no policy in {p}: expected policy{WEIGHTS_SUFFIX} (pickle-free) or model.zip, "
+                                f"there or in {p / 'final'}")
+    if p.suffix == ".pkl":  # the normalization pickle named instead of its model
+        stem = p.name[: -len("_vecnormalize.pkl")] if p.name.endswith("_vecnormalize.pkl") else "model"
+        p = p.with_name(stem + ".zip")
+    if p.suffix != ".zip":
+        raise FileNotFoundError(f"no policy at {p}: expected STEM{WEIGHTS_SUFFIX} + STEM{NORMALIZATION_SUFFIX} + "
+                                f"STEM{METADATA_SUFFIX}, or a stable-baselines3 .zip")
+    if not p.exists():
+        raise FileNotFoundError(f"no policy at {p}")
+    return p
+
+
+def _load_sb3(p: Path, device: str) -> PPOPolicy:
+    """A stable-baselines3 zip with its VecNormalize pickle and metadata beside it (unpickles: trusted only)."""
     from stable_baselines3 import PPO
 
-    p = Path(path)
-    if p.is_dir():
-        p = p / "final" / "model.zip" if (p / "final" / "model.zip").exists() else p / "model.zip"
-    if not p.exists():
-        raise FileNotFoundError(f"no policy at {path}")
     stem = p.with_suffix("")
-    candidates = [stem.parent / f"{stem.name}_vecnormalize.pkl", p.parent / "vecnormalize.pkl"]
-    obs_rms, clip_obs, eps = None, 10.0, 1e-8
-    for c in candidates:
-        if c.exists():
-            with open(c, "rb") as f:
-                vn = pickle.load(f)
-            if getattr(vn, "norm_obs", True):
-                obs_rms, clip_obs, eps = vn.obs_rms, float(vn.clip_obs), float(vn.epsilon)
-            break
-    meta: dict[str, Any] = {}
-    for c in (stem.parent / f"{stem.name}.json", p.parent / "summary.json", p.parent / "progress.json"):
-        if c.exists():
-            meta = json.loads(c.read_text())
-            break
-    norm = meta.get("obs_normalization")
-    if obs_rms is None and norm:  # no pickle (e.g. an installed package ships only zip + json)
-        from types import SimpleNamespace
+    norm_files = [stem.parent / f"{stem.name}_vecnormalize.pkl", p.parent / "vecnormalize.pkl"]
+    meta_files = [stem.parent / f"{stem.name}.json", p.parent / "summary.json", p.parent / "progress.json"]
+    meta_path = next((c for c in meta_files if c.exists()), None)
+    if meta_path is None:
+        raise PolicyFileError(f"policy {p} has no metadata: expected one of {', '.join(str(c) for c in meta_files)}")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PolicyFileError(f"policy metadata {meta_path} is unreadable: {brief(exc)}") from None
+    if not isinstance(meta, dict):
+        raise PolicyFileError(f"policy metadata {meta_path} is not a JSON object")
+    config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+    norm_path = next((c for c in norm_files if c.exists()), None)
+    normalization = None
+    if norm_path is not None:
+        try:
+            with open(norm_path, "rb") as f:
+                normalization = ObsNormalization.of_vecnormalize(pickle.load(f))
+        except Exception as exc:  # noqa: BLE001 - truncated or foreign pickles fail in many ways
+            raise PolicyFileError(f"normalization file {norm_path} is unreadable: {brief(exc)}") from None
+    elif isinstance(meta.get("obs_normalization"), dict):  # the JSON copy of older exports
+        n = meta["obs_normalization"]
+        normalization = ObsNormalization(np.asarray(n["mean"], np.float64), np.asarray(n["var"], np.float64),
+                                         float(n["clip_obs"]), float(n["epsilon"]))
+    elif config.get("norm_obs", True):
+        raise PolicyFileError(
+            f"policy {p} has no normalization file: expected {norm_files[0]} or {norm_files[1]} (the VecNormalize "
+            f"statistics it was trained with; without them it acts on wrongly scaled observations)")
+    try:
+        model = PPO.load(str(p), device=device)
+    except Exception as exc:  # noqa: BLE001 - a corrupt zip or policy.pth, as above
+        raise PolicyFileError(f"policy zip {p} is unreadable: {brief(exc)}") from None
+    if "braking" not in meta and "braking" in config:
+        meta["braking"] = config["braking"]
+    _check_spaces(model.policy, p)
+    return PPOPolicy(model.policy, normalization, meta)
 
-        obs_rms = SimpleNamespace(mean=np.asarray(norm["mean"]), var=np.asarray(norm["var"]))
-        clip_obs, eps = float(norm["clip_obs"]), float(norm["epsilon"])
-    model = PPO.load(str(p), device=device)
-    if "braking" not in meta and isinstance(meta.get("config"), dict):
-        meta["braking"] = meta["config"].get("braking")
-    return PPOPolicy(model, obs_rms, clip_obs, eps, meta)
+
+def _check_spaces(network: Any, path: Path) -> None:
+    """The policy must take WheelLoader-v1's observations (12,) and give its actions (4,)."""
+    from wl_env.episode import OBS_LOW
+
+    obs, act = network.observation_space.shape, network.action_space.shape
+    if obs != OBS_LOW.shape or act != (4,):
+        raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
+                              f"{OBS_LOW.shape} and (4,)")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
@@ -267,7 +369,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
         try:
             out["time_gap"], out["fuel_gap"] = score(nominal["T"], nominal["fuel_g"], braking, front)
         except Exception as e:  # noqa: BLE001 - a missing optimum must not stop training
-            print(f"warning: no score ({e})", file=sys.stderr)
+            log.warning("no score (%s)", e)
     if n_episodes > 0:
         eps = rollout(act, braking, n_episodes, init_noise, seed, env_kwargs)
         done = [e for e in eps if e["completed"]]
@@ -288,53 +390,27 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
 
 
 # ---------------------------------------------------------------------------------------------- training
-def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
-    from stable_baselines3.common.callbacks import BaseCallback
+def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]) -> tuple[Any, Any]:
+    """The run's callbacks (a ``CallbackList``) and its evaluation (``train`` evaluates once more at the end).
 
-    class RunCallback(BaseCallback):
-        """At the start of each rollout (the model just updated): curriculum, evaluation, checkpoint."""
+    stable-baselines3's own pieces do the scheduling and saving: ``EveryNTimesteps`` triggers the
+    evaluations, ``CheckpointCallback`` (``save_vecnormalize=True``) saves the checkpoints. What SB3 lacks
+    is kept, each said why below.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback, EveryNTimesteps
 
-        def __init__(self) -> None:
-            super().__init__()
-            self.front = None
-            self.last_eval = state["last_eval"]
-            self.last_ckpt = state["last_ckpt"]
-
+    class Curriculum(BaseCallback):
+        # Kept: SB3 has no reward curriculum nor a schedule on the policy's std.
         def _on_training_start(self) -> None:
-            if cfg.score:
-                try:
-                    from mpc.benchmark.pareto import pareto_front
-
-                    self.front = pareto_front(cfg.braking)
-                except Exception as e:  # noqa: BLE001
-                    print(f"warning: no Pareto front, evaluations are not scored ({e})", file=sys.stderr)
-            self._apply_curriculum()
+            self._apply()
 
         def _on_rollout_start(self) -> None:
-            step = self.num_timesteps
-            self._apply_curriculum()
-            if self.last_eval is None or step - self.last_eval >= cfg.eval_freq:
-                self._evaluate()
-            if step - self.last_ckpt >= cfg.checkpoint_freq:
-                self._checkpoint()
+            self._apply()
 
         def _on_step(self) -> bool:
-            if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
-                if not state.get("timed_out"):
-                    print(f"time limit: {cfg.time_limit:.0f} s of training reached at step {self.num_timesteps}",
-                          file=sys.stderr)
-                state["timed_out"] = True
-                return False
             return True
 
-        def _on_training_end(self) -> None:
-            if self.last_eval != self.num_timesteps:
-                self._evaluate()
-            if self.last_ckpt != self.num_timesteps:
-                self._checkpoint()
-
-        # ---- pieces
-        def _apply_curriculum(self) -> None:
+        def _apply(self) -> None:
             if cfg.log_std_final is not None and not cfg.use_sde:
                 # Exploration annealing: a noisy policy aims short of targets it cannot undo (the bucket
                 # is never lowered), and the deterministic policy inherits that offset; capping the
@@ -351,8 +427,31 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
             for k in cfg.curriculum_start:
                 self.logger.record(f"curriculum/{k}", getattr(rc, k))
 
-        def _evaluate(self) -> None:
-            vn = _vecnorm_of(self.training_env)
+    class ScoredEvaluation(BaseCallback):
+        # Kept: EvalCallback reports mean returns only; the project's evaluation scores cycle time and fuel
+        # against the optimum and appends them to eval.csv (the learning curve, continued on resume).
+        def __init__(self) -> None:
+            super().__init__()
+            self.front = None
+
+        def _on_training_start(self) -> None:
+            if cfg.score:
+                try:
+                    from mpc.benchmark.pareto import pareto_front
+
+                    self.front = pareto_front(cfg.braking)
+                except Exception as e:  # noqa: BLE001
+                    log.warning("no Pareto front, evaluations are not scored (%s)", e)
+            if state["last_eval"] is None:
+                self.evaluate()  # the untrained policy: step 0 of the learning curve
+
+        def _on_step(self) -> bool:
+            self.evaluate()
+            return True
+
+        def evaluate(self) -> None:
+            step = self.model.num_timesteps
+            vn = _vecnorm_of(self.model.get_env())
 
             def act(obs: np.ndarray) -> np.ndarray:
                 if vn is not None:
@@ -362,35 +461,69 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]):
             res = evaluate(act, cfg.braking, cfg.eval_episodes, cfg.eval_init_noise, seed=10_000,
                            env_kwargs=cfg.env_kwargs(), with_score=cfg.score and self.front is not None,
                            front=self.front)
-            rc = reward_config(cfg, self.num_timesteps)
-            row = {"step": self.num_timesteps, "wall_time": state["wall_time"] + time.time() - state["t0"],
+            rc = reward_config(cfg, step)
+            row = {"step": step, "wall_time": state["wall_time"] + time.time() - state["t0"],
                    "train_w_time": rc.w_time, "train_w_fuel": rc.w_fuel, "train_target_distance": rc.target_distance,
                    **res}
             for k, v in res.items():
                 if isinstance(v, (int, float)) and v is not None and math.isfinite(v):
-                    self.logger.record(f"eval/{k}", v)
+                    self.model.logger.record(f"eval/{k}", v)
             _append_eval_row(run_dir / "eval.csv", row)
             state["last_eval_row"] = row
-            self.last_eval = self.num_timesteps
-            if self.verbose or cfg.progress_bar is False:
-                print(_eval_line(row), flush=True)
+            state["last_eval"] = step
+            # shown by the CLI unless a progress bar is drawn (the lines would break it)
+            log.log(logging.INFO if self.verbose or cfg.progress_bar is False else logging.DEBUG, "%s", _eval_line(row))
 
-        def _checkpoint(self) -> None:
+    class RunCheckpoint(CheckpointCallback):
+        # Kept around SB3's saving: its files are written in place, so each checkpoint is staged in a folder
+        # renamed at once (a kill never leaves a half checkpoint) with progress.json for resume (wall time,
+        # last evaluation), and only the newest keep_checkpoints are kept.
+        def __init__(self) -> None:
+            super().__init__(save_freq=max(cfg.checkpoint_freq // cfg.num_envs, 1), save_path=str(run_dir / "checkpoints"),
+                             save_vecnormalize=True)
+            self._staging: Path | None = None
+
+        def _checkpoint_path(self, checkpoint_type: str = "", extension: str = "") -> str:
+            name = {"": "model", "vecnormalize_": "vecnormalize"}.get(checkpoint_type, checkpoint_type.rstrip("_"))
+            return str(self._staging / f"{name}.{extension}")
+
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq != 0:
+                return True
             step = self.num_timesteps
-            wall = state["wall_time"] + time.time() - state["t0"]
-            ckpt_root = run_dir / "checkpoints"
-            folder = save_model_files(self.model, _vecnorm_of(self.training_env), ckpt_root / f"step_{step:010d}", {
-                "num_timesteps": step, "total_timesteps": cfg.total_timesteps, "wall_time": wall,
-                "last_eval": self.last_eval, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                "braking": cfg.braking, "seed": cfg.seed,
-            })
-            write_json_atomic(ckpt_root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
-            self.last_ckpt = step
-            old = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())[: -max(1, cfg.keep_checkpoints)]
-            for p in old:
-                shutil.rmtree(p, ignore_errors=True)
+            root = Path(self.save_path)
+            folder = root / f"step_{step:010d}"
+            self._staging = root / f".{folder.name}.tmp"
+            shutil.rmtree(self._staging, ignore_errors=True)
+            self._staging.mkdir(parents=True)
+            super()._on_step()  # SB3 saves model.zip and vecnormalize.pkl (via _checkpoint_path) into the staging
+            write_json_atomic(self._staging / "progress.json", {
+                "num_timesteps": step, "total_timesteps": cfg.total_timesteps,
+                "wall_time": state["wall_time"] + time.time() - state["t0"], "last_eval": state["last_eval"],
+                "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "braking": cfg.braking, "seed": cfg.seed})
+            _replace_folder(self._staging, folder)
+            write_json_atomic(root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
+            complete = sorted(p for p in root.glob("step_*") if (p / "progress.json").exists())
+            broken = [p for p in root.glob("step_*") if p.is_dir() and not (p / "progress.json").exists()]
+            for old in complete[: -max(1, cfg.keep_checkpoints)] + broken + list(root.glob(".step_*.tmp")):
+                shutil.rmtree(old, ignore_errors=True)  # older ones, and what a killed save left
+            return True
 
-    return RunCallback()
+    class WallTimeLimit(BaseCallback):
+        # Kept: SB3 stops on reward, episodes or no improvement, not on wall time (summed over resumes).
+        def _on_step(self) -> bool:
+            if cfg.time_limit > 0 and state["wall_time"] + time.time() - state["t0"] >= cfg.time_limit:
+                if not state.get("timed_out"):
+                    log.info("time limit: %.0f s of training reached at step %d", cfg.time_limit, self.num_timesteps)
+                state["timed_out"] = True
+                return False
+            return True
+
+    evaluation = ScoredEvaluation()
+    every = EveryNTimesteps(n_steps=cfg.eval_freq, callback=evaluation)
+    every.last_time_trigger = state["last_eval"] or 0  # on resume: the schedule goes on from the checkpoint's
+    # The evaluation runs before the checkpoint of the same step, so that its progress.json records it.
+    return CallbackList([Curriculum(), every, RunCheckpoint(), WallTimeLimit()]), evaluation
 
 
 def _eval_line(row: dict[str, Any]) -> str:
@@ -524,7 +657,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     th.set_num_threads(max(1, cfg.torch_threads))
     run_dir = cfg.run_dir
-    state: dict[str, Any] = {"wall_time": 0.0, "last_eval": None, "last_ckpt": 0, "t0": time.time()}
+    state: dict[str, Any] = {"wall_time": 0.0, "last_eval": None, "t0": time.time()}
     ckpt = latest_checkpoint(run_dir) if resume else None
     commands: list[str] = []
     if resume:
@@ -537,7 +670,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         cfg.progress_bar = given.progress_bar
         commands = list(meta.get("commands", []))
         if ckpt is None:
-            print(f"resume: no checkpoint in {run_dir}, starting from step 0", file=sys.stderr)
+            log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise FileExistsError(f"{run_dir} already holds a run; pass resume=True (--resume) or another run name")
     if command:
@@ -555,9 +688,9 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         set_random_seed(cfg.seed + step)
         model = PPO.load(str(ckpt / "model.zip"), env=env, device="cpu", tensorboard_log=str(tb_dir))
         model.num_timesteps = step
-        state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"), last_ckpt=step)
+        state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))
         _truncate_eval_csv(run_dir / "eval.csv", step)
-        print(f"resume: {ckpt.name}, {step} of {cfg.total_timesteps} steps done", file=sys.stderr)
+        log.info("resume: %s, %d of %d steps done", ckpt.name, step, cfg.total_timesteps)
     else:
         step = 0
         (run_dir / "eval.csv").unlink(missing_ok=True)
@@ -567,10 +700,13 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     remaining = cfg.total_timesteps - step
     if remaining > 0:
-        model.learn(total_timesteps=remaining, callback=[_callbacks(cfg, run_dir, state), *(callbacks or [])],
+        run_callbacks, evaluation = _callbacks(cfg, run_dir, state)
+        model.learn(total_timesteps=remaining, callback=[run_callbacks, *(callbacks or [])],
                     reset_num_timesteps=ckpt is None, tb_log_name="PPO", progress_bar=cfg.progress_bar)
+        if state["last_eval"] != model.num_timesteps:
+            evaluation.evaluate()  # the final policy is the learning curve's last point
     wall = state["wall_time"] + time.time() - state["t0"]
-    final = save_model_files(model, _vecnorm_of(env), run_dir / "final", {
+    final = save_model_files(model, _vecnorm_of(env), run_dir / "final", export=True, extra={
         "num_timesteps": int(model.num_timesteps), "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed,
         "config": cfg.to_dict(), "commands": commands, "last_eval": state.get("last_eval_row"),
         "stopped_by_time_limit": bool(state.get("timed_out")),
@@ -583,35 +719,33 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
 # ---------------------------------------------------------------------------------------------- shipping
 def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: str, n_episodes: int = 100,
-                  init_noise: float = 1.0, extra: dict[str, Any] | None = None, front: Any = None) -> dict[str, Any]:
-    """Copy a run's final policy to ``out_dir/<name>.zip`` + ``<name>_vecnormalize.pkl`` and write
-    ``<name>.json`` (config, commands, steps, wall time and a fresh deterministic evaluation, scored
-    against ``front`` or else :func:`mpc.benchmark.pareto.pareto_front`)."""
+                  init_noise: float = 1.0, extra: dict[str, Any] | None = None, front: Any = None,
+                  *, score: bool = True, trust_pickle: bool = False) -> dict[str, Any]:
+    """Ship a run's final policy as the pickle-free ``out_dir/<name>.safetensors``, ``<name>_vecnormalize.npz``
+    and ``<name>.json`` (network, config, commands, steps, wall time and a fresh deterministic evaluation,
+    scored against ``front`` or else :func:`mpc.benchmark.pareto.pareto_front`; not scored if ``score`` is false).
+
+    The policy is read from the run's ``final/policy.*`` (no pickle); a run from before those files has only
+    ``final/model.zip``, read with ``trust_pickle=True``.
+    """
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     final = run_dir / "final"
     summary = json.loads((final / "summary.json").read_text())
     cfg = PPOConfig.from_dict(summary["config"])
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_atomic(out_dir / f"{name}.zip", (final / "model.zip").read_bytes())
-    if (final / "vecnormalize.pkl").exists():
-        write_atomic(out_dir / f"{name}_vecnormalize.pkl", (final / "vecnormalize.pkl").read_bytes())
-    policy = load_policy(out_dir / f"{name}.zip")
-    if front is None:
+    source = final / "policy" if PolicyFiles.of(final / "policy").weights.exists() else final / "model.zip"
+    policy = load_policy(source, trust_pickle=trust_pickle)
+    if front is None and score:
         try:
             from mpc.benchmark.pareto import pareto_front
 
             front = pareto_front(cfg.braking)
         except Exception as e:  # noqa: BLE001
-            print(f"warning: no Pareto front, the evaluation is not scored ({e})", file=sys.stderr)
+            log.warning("no Pareto front, the evaluation is not scored (%s)", e)
     ev = evaluate(policy.act, cfg.braking, n_episodes, init_noise, env_kwargs=cfg.env_kwargs(),
                   with_score=front is not None, front=front)
     if front is not None:
         ev["optimum"] = {"T_min": front.T_min, "fuel_at_T_g": front.fuel_at(ev["T"]) if front.T_min <= ev["T"]
                          < front.T_fuel_opt else None, "T_fuel_opt": front.T_fuel_opt, "fuel_min_g": front.fuel_min_g}
-    if policy.obs_rms is not None:  # also in the JSON, for installs without the pickle
-        extra = {**(extra or {}), "obs_normalization": {
-            "mean": policy.obs_rms.mean.tolist(), "var": policy.obs_rms.var.tolist(),
-            "clip_obs": policy.clip_obs, "epsilon": policy.epsilon}}
     meta = {
         "name": name, "braking": cfg.braking, "seed": cfg.seed, "num_timesteps": summary["num_timesteps"],
         "training_wall_time_s": round(float(summary["wall_time"]), 1), "commands": summary.get("commands", []),
@@ -620,5 +754,5 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
                        "seed": 10_000, **ev},
         **(extra or {}),
     }
-    write_json_atomic(out_dir / f"{name}.json", meta)
-    return meta
+    files = write_policy(policy.network, policy.normalization, out_dir / name, meta)
+    return json.loads(files.metadata.read_text())

@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import shlex
-import sys
 import types
 import typing
 from collections.abc import Callable
@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from agents.ppo_config import PPOConfig
+
+log = logging.getLogger(__name__)
 
 # options that only name the run: with --resume everything else comes from the run's saved config
 RUN_NAMING = {"braking", "seed", "run_name", "log_dir", "progress_bar"}
@@ -85,7 +87,8 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
     add_dataclass_args(parser, PPOConfig)
     parser.add_argument("--resume", action="store_true", help="continue the run from its newest checkpoint")
     parser.add_argument("--export", metavar="PATH", default=None,
-                        help="after training, ship the policy as PATH.zip, PATH_vecnormalize.pkl, PATH.json")
+                        help="after training, ship the policy pickle-free as PATH.safetensors, PATH_vecnormalize.npz, "
+                        "PATH.json")
     parser.add_argument("--export-episodes", type=int, default=100, help="evaluation episodes of --export")
 
 
@@ -101,13 +104,12 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
     if "reward" in given:  # --reward overrides single fields; the other defaults stay
         cfg.reward = {**PPOConfig().reward, **cfg.reward}
     if ns.resume and set(given) - RUN_NAMING:
-        print("note: --resume uses the run's saved config; options other than the run's name are ignored",
-              file=sys.stderr)
+        log.warning("--resume uses the run's saved config; options other than the run's name are ignored")
     try:
         summary = train(cfg, resume=ns.resume, command=command)
     except KeyboardInterrupt:
-        print(f"\ninterrupted; continue with: {prog} --run-name {shlex.quote(cfg.name)} "
-              f"--log-dir {shlex.quote(cfg.log_dir)} --resume", file=sys.stderr)
+        log.info("\ninterrupted; continue with: %s --run-name %s --log-dir %s --resume", prog, shlex.quote(cfg.name),
+                 shlex.quote(cfg.log_dir))
         return 130
     print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
     if ns.export:

@@ -14,9 +14,9 @@ turns the curriculum off)::
 A run lives in ``runs/<run-name>/`` (config.json, tb/, eval.csv, checkpoints/, final/). Checkpoints
 (model + optimizer, VecNormalize statistics, progress) are written atomically every
 ``--checkpoint-freq`` steps; ``--resume`` continues from the newest one with the run's saved config,
-so an interrupted run ends with the same step budget and appended logs. ``--export PATH`` copies the
-final policy to ``PATH.zip`` + ``PATH_vecnormalize.pkl`` and writes ``PATH.json`` (command, seed,
-steps, wall time, a fresh deterministic evaluation).
+so an interrupted run ends with the same step budget and appended logs. ``--export PATH`` ships the
+final policy pickle-free as ``PATH.safetensors`` + ``PATH_vecnormalize.npz`` + ``PATH.json`` (network,
+command, seed, steps, wall time, a fresh deterministic evaluation).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.logs import cli_logging  # noqa: E402
 from agents.train_cli import add_train_args, run_train  # noqa: E402
 
 PROG = "python scripts/train_ppo.py"
@@ -38,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     add_train_args(parser)
     argv = sys.argv[1:] if argv is None else argv
     ns = parser.parse_args(argv)
-    return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
+    with cli_logging():
+        return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
 
 
 if __name__ == "__main__":

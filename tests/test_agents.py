@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -12,10 +16,12 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import wl_env  # noqa: F401
+from agents.logs import cli_logging
 from agents.operator import OperatorPolicy, run_episode
 from agents.ppo import (
     PPOConfig,
     build_model,
+    export_policy,
     latest_checkpoint,
     load_policy,
     make_env,
@@ -26,7 +32,8 @@ from agents.ppo import (
 )
 from agents.sb3_vec import make_sb3_vec_env
 
-POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
+ROOT = Path(__file__).resolve().parents[1]
+POLICIES = ROOT / "agents" / "policies"
 
 
 # ------------------------------------------------------------------------------------------ adapter
@@ -90,12 +97,16 @@ class _Interrupt(BaseCallback):
         return True
 
 
-def test_short_training_checkpoints_and_saves(tmp_path):
+def test_short_training_checkpoints_and_saves(tmp_path, capsys):
     cfg = _tiny(tmp_path)
-    summary = train(cfg, command="pytest")
+    with cli_logging():  # as the command line shows the progress: logging on stderr, nothing on stdout
+        summary = train(cfg, command="pytest")
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("[eval] step") == 5 and err.splitlines()[0].startswith("[eval] step         0")
     run = cfg.run_dir
     assert summary["num_timesteps"] >= cfg.total_timesteps
-    for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv"):
+    for f in ("final/model.zip", "final/vecnormalize.pkl", "final/summary.json", "config.json", "eval.csv",
+              "final/policy.safetensors", "final/policy_vecnormalize.npz", "final/policy.json"):
         assert (run / f).exists(), f
     assert list((run / "tb").glob("PPO_1/events.*"))
     ckpt = latest_checkpoint(run)
@@ -125,6 +136,40 @@ def test_resume_continues_from_checkpoint(tmp_path):
     assert summary["commands"] == ["again"] or summary["commands"][-1] == "again"
 
 
+def test_resume_after_sigkill_continues_from_the_last_complete_checkpoint(tmp_path):
+    """A training process killed with SIGKILL (no cleanup) resumes from its newest complete checkpoint; a
+    half-written checkpoint (the staging folder a kill leaves) is never used."""
+    cfg = _tiny(tmp_path, total_timesteps=16384, eval_freq=4096)
+    script = ("import json, sys\nfrom agents.ppo import PPOConfig, train\n"
+              f"train(PPOConfig.from_dict(json.loads({json.dumps(json.dumps(cfg.to_dict()))})))\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while latest_checkpoint(cfg.run_dir) is None:
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline, "no checkpoint within 120 s"
+            time.sleep(0.05)
+    finally:
+        proc.kill()  # SIGKILL: no handler, no atexit, files as they are
+        proc.wait()
+    assert not (cfg.run_dir / "final").exists()
+    done = json.loads((latest_checkpoint(cfg.run_dir) / "progress.json").read_text())["num_timesteps"]
+    # what a kill in the middle of a save leaves: a staging folder, and a folder without its progress.json
+    root = cfg.run_dir / "checkpoints"
+    for half in (root / ".step_9999999999.tmp", root / "step_9999999999"):
+        half.mkdir(exist_ok=True)
+        (half / "model.zip").write_bytes(b"PK\x03\x04 cut short")
+    (root / "latest.json").unlink()
+    assert latest_checkpoint(cfg.run_dir).name == f"step_{done:010d}"
+    summary = train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True)
+    assert cfg.total_timesteps <= summary["num_timesteps"] < cfg.total_timesteps + 8 * 64
+    steps = [r["step"] for r in read_eval_csv(cfg.run_dir / "eval.csv")]
+    assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == summary["num_timesteps"]
+    left = sorted(p.name for p in root.iterdir())  # the leftovers were cleared with the old checkpoints
+    assert left == ["latest.json", *[f"step_{n:010d}" for n in (15360, 16384)]], left
+
+
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
     cfg = _tiny(tmp_path)
     env = make_env(cfg)
@@ -133,12 +178,39 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path):
     obs = env.get_original_obs()
     obs = np.concatenate([obs, np.random.default_rng(1).uniform(-1, 1, obs.shape).astype(np.float32)])
     expected = model.predict(env.normalize_obs(obs), deterministic=True)[0]
-    folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking})
-    policy = load_policy(folder)
+    folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking}, export=True)
+    policy = load_policy(folder)  # the pickle-free policy.* in the folder
+    assert policy.braking == cfg.braking
     np.testing.assert_array_equal(policy.act(obs), expected)
     single = model.predict(env.normalize_obs(obs[:1])[0], deterministic=True)[0]
     np.testing.assert_array_equal(policy.act(obs[0]), single)  # one observation, shape (12,)
-    np.testing.assert_array_equal(load_policy(folder / "model.zip").act(obs), expected)
+    np.testing.assert_array_equal(load_policy(folder / "model.zip", trust_pickle=True).act(obs), expected)
+
+
+def test_export_is_pickle_free_and_acts_like_the_run(tmp_path):
+    cfg = _tiny(tmp_path, total_timesteps=1024, eval_freq=10**6, checkpoint_freq=10**6)
+    train(cfg)
+    meta = export_policy(cfg.run_dir, tmp_path / "shipped", "mine", n_episodes=1, score=False)
+    assert sorted(p.name for p in (tmp_path / "shipped").iterdir()) == [
+        "mine.json", "mine.safetensors", "mine_vecnormalize.npz"]
+    assert meta["format"] == "wl-ppo-policy" and meta["network"]["net_arch"] == {"pi": [16, 16], "vf": [16, 16]}
+    assert meta["braking"] == "service" and meta["config"]["total_timesteps"] == 1024
+    obs = np.random.default_rng(3).uniform(0.0, 1.0, (32, 12)).astype(np.float32)
+    run = load_policy(cfg.run_dir / "final" / "model.zip", trust_pickle=True)
+    np.testing.assert_array_equal(load_policy(tmp_path / "shipped" / "mine").act(obs), run.act(obs))
+    np.testing.assert_array_equal(load_policy(cfg.run_dir).act(obs), run.act(obs))  # a run dir: its final/policy.*
+
+
+def test_bounded_mean_policy_is_rebuilt_from_its_metadata(tmp_path):
+    cfg = _tiny(tmp_path, bounded_mean=True)
+    env = make_env(cfg)
+    env.reset()
+    model = build_model(cfg, env, tmp_path / "tb")
+    folder = save_model_files(model, env, tmp_path / "saved", {"braking": "service"}, export=True)
+    policy = load_policy(folder)
+    assert type(policy.network).__name__ == "BoundedMeanPolicy" and policy.network.mean_bound == 1.1
+    obs = np.random.default_rng(2).uniform(0.0, 1.0, (32, 12)).astype(np.float32)
+    np.testing.assert_array_equal(policy.act(obs), model.predict(env.normalize_obs(obs), deterministic=True)[0])
 
 
 def test_reward_curriculum_ramps_to_the_run_values():
@@ -155,9 +227,10 @@ def test_reward_curriculum_ramps_to_the_run_values():
 # ------------------------------------------------------------------------------------------ shipped
 @pytest.mark.parametrize("braking", ["service", "tc"])
 def test_shipped_policy_completes_the_cycle(braking):
-    path = POLICIES / f"ppo_{braking}.zip"
+    path = POLICIES / f"ppo_{braking}.safetensors"
     assert path.exists() and path.stat().st_size < 2_000_000
-    assert (POLICIES / f"ppo_{braking}_vecnormalize.pkl").exists()
+    assert (POLICIES / f"ppo_{braking}_vecnormalize.npz").exists()
+    assert not list(POLICIES.glob("*.zip")) and not list(POLICIES.glob("*.pkl"))  # nothing shipped unpickles
     meta = json.loads((POLICIES / f"ppo_{braking}.json").read_text())
     assert meta["braking"] == braking
     policy = load_policy(path)
@@ -168,9 +241,11 @@ def test_shipped_policy_completes_the_cycle(braking):
     assert run_episode(env, policy, seed=123)["completed"]
 
 
-def test_shipped_policy_without_pickle_uses_the_json_normalization(tmp_path):
-    for suffix in (".zip", ".json"):
-        (tmp_path / f"ppo_tc{suffix}").write_bytes((POLICIES / f"ppo_tc{suffix}").read_bytes())
-    obs = np.random.default_rng(0).uniform(0.0, 1.0, (8, 12)).astype(np.float32)
-    np.testing.assert_allclose(load_policy(tmp_path / "ppo_tc.zip").act(obs), load_policy(POLICIES / "ppo_tc.zip").act(obs),
-                               atol=1e-6)
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_shipped_policy_acts_as_before_its_conversion(braking):
+    """The pickle-free shipped policy gives exactly the actions the stable-baselines3 zip gave before the
+    conversion (recorded with the old loader on 100 uniform and 100 on-trajectory observations)."""
+    ref = np.load(Path(__file__).parent / "data" / "shipped_policy_actions.npz", allow_pickle=False)
+    obs, expected = ref[f"obs_{braking}"], ref[f"actions_{braking}"]
+    assert obs.shape == (200, 12) and 0.2 < np.mean(np.abs(expected) < 1.0)  # not only saturated actions
+    np.testing.assert_array_equal(load_policy(POLICIES / f"ppo_{braking}").act(obs), expected)

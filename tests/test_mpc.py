@@ -10,9 +10,9 @@ import pytest
 import wl_env  # noqa: F401  (registers the env)
 from mpc.benchmark.ocp import solve_ocp
 from mpc.controller.grid import NOMINAL_ESTIMATE, StepModel
+from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from mpc.controller.schedule import apportion, steps_of
 from mpc.controller.solver import IpoptSolver, SolverResult
-from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from wl_env.model import estimated_derivatives
 from wl_env.params import DEFAULT_PARAMS as P
 from wl_env.simulator import Simulator

@@ -1,7 +1,10 @@
 import dataclasses
 import math
+import re
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from wl_env.params import DEFAULT_PARAMS, PROVENANCE, LoaderParams, resolve
 
@@ -54,3 +57,161 @@ def test_variants_and_round_trip():
     assert resolve({"distance": 8.0}).distance == 8.0
     with pytest.raises(ValueError, match="params must be"):
         resolve(42)
+
+
+# ------------------------------------------------------------------------------------------ hostile input
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"c_fr": [NAN, -0.1414, 0.3590]}, "c_fr"),
+        ({"U_ab_bounds": [-INF, 2.5]}, "U_ab_bounds"),
+        ({"T_max_lines": [[8.0, NAN], [2200.0, 0.0], [3855.0, -1.4]]}, "T_max_lines"),
+        ({"M_veh": True}, "M_veh"),  # a bool is not 1 kg
+        ({"n_cyl": 6.5}, "n_cyl"),
+        ({"n_cyl": True}, "n_cyl"),
+        ({"M_veh": "32000"}, "M_veh"),  # was a bare TypeError
+        ({"T_max_lines": 5}, "T_max_lines"),  # was a bare TypeError
+        ({"T_max_lines": [8.0, 2200.0, 3855.0]}, "T_max_lines"),  # wrong nesting
+        ({"T_max_lines": [[8.0, 2.0], [2200.0, 0.0]]}, "T_max_lines"),
+        ({"c_fr": ["0.7", "-0.1", "0.4"]}, "c_fr"),  # numbers as strings were taken by float()
+        ({"U_ab_bounds": [-2.5, 2.5, 1.0]}, "U_ab_bounds"),
+        ({"U_ab_bounds": [1.0, 2.5]}, "U_ab_bounds"),
+        ({"M_veh": 1e300}, "M_veh"),
+        ({"J_ice": 0.0}, "J_ice"),
+        ({"c_r": -0.01}, "c_r"),
+        ({"g": None}, "g"),
+        ({"distance": INF}, "distance"),
+        ({"tc_xi_poly": [1.0] * 6 + [INF]}, "tc_xi_poly"),
+        ({"c_fr": [0.0, 0.0, -1.0]}, "c_fr"),  # negative friction
+        ({"T_max_lines": [[8.0, 2.086], [-10.0, 0.0], [3855.0, -1.4]]}, "T_max_lines"),  # no torque
+        ({"x_c": 3.0}, "x_c"),  # the cylinder cannot lift the boom
+    ],
+)
+def test_hostile_values_are_rejected_naming_the_field(change, field):
+    with pytest.raises(ValueError, match=rf"\b{field}\b"):
+        LoaderParams.from_dict(change)
+
+
+def test_allowed_values_message_gives_the_range():
+    with pytest.raises(ValueError, match=r"M_veh must be a number in \[1000, 300000\] kg, got '32000' \(str\)"):
+        LoaderParams.from_dict({"M_veh": "32000"})
+    with pytest.raises(ValueError, match=r"n_cyl must be an integer in \[1, 24\], got 6\.5"):
+        LoaderParams.from_dict({"n_cyl": 6.5})
+
+
+def test_the_project_variants_and_spellings_are_accepted():
+    for scale in (0.6, 1.0, 1.3, 3.0):  # payload studies (x3: the engine-stall case)
+        assert DEFAULT_PARAMS.variant(payload_scale=scale).M_load == pytest.approx(10000.0 * scale)
+    for c_r in (0.015, 0.03, 0.05):
+        assert DEFAULT_PARAMS.replace(c_r=c_r).c_r == c_r
+    # an int or a numpy number is the same parameter set as the float (same fingerprint, same cache)
+    import numpy as np
+
+    same = LoaderParams.from_dict({"M_veh": 32000, "n_cyl": np.int64(6), "c_fr": np.array([0.7196, -0.1414, 0.3590])})
+    assert same == DEFAULT_PARAMS and same.fingerprint() == DEFAULT_PARAMS.fingerprint()
+    assert type(same.M_veh) is float and type(same.n_cyl) is int and same.c_fr == DEFAULT_PARAMS.c_fr
+
+
+@pytest.mark.parametrize("kw", [{"payload_scale": True}, {"payload_scale": "2"}, {"rolling_scale": NAN},
+                                {"rolling_scale": -1.0}])
+def test_variant_scales_are_checked(kw):
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        DEFAULT_PARAMS.variant(**kw)
+
+
+def test_from_dict_rejects_non_string_keys():
+    with pytest.raises(ValueError, match="field names must be strings"):
+        LoaderParams.from_dict({1: 2.0})
+
+
+@pytest.mark.parametrize("kw, name", [
+    ({"dt": True}, "dt"), ({"dt": NAN}, "dt"), ({"substeps": True}, "substeps"), ({"substeps": 2.0}, "substeps"),
+    ({"max_time": True}, "max_time"), ({"max_time": INF}, "max_time"), ({"init_noise": True}, "init_noise"),
+    ({"w_fuel": True}, "w_fuel"), ({"w_time": "1"}, "w_time"), ({"params": {"c_fr": [NAN, 0, 0]}}, "c_fr"),
+])
+def test_env_arguments_are_checked(kw, name):
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+
+    with pytest.raises(ValueError, match=name):
+        gym.make("WheelLoader-v1", **kw)
+    with pytest.raises(ValueError, match=name):
+        gym.make_vec("WheelLoader-v1", num_envs=2, vectorization_mode="vector_entry_point", **kw)
+
+
+def test_vector_env_num_envs_is_an_integer():
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+
+    for n in (True, 2.0, 0):
+        with pytest.raises(ValueError, match="num_envs"):
+            gym.make_vec("WheelLoader-v1", num_envs=n, vectorization_mode="vector_entry_point")
+
+
+@pytest.mark.parametrize("overrides, field", [('{"M_veh": "32000"}', "M_veh"), ('{"c_fr": [NaN, 0, 0]}', "c_fr"),
+                                              ('{"T_max_lines": 5}', "T_max_lines"), ('{"M_veh": true}', "M_veh")])
+def test_wl_params_set_reports_one_line(capsys, overrides, field):
+    import wl.cli
+
+    assert wl.cli.main(["params", "--set", overrides]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1 and err.startswith("wl: error: LoaderParams." + field)
+
+
+# ------------------------------------------------------------------------------------------ fuzz
+FIELDS = [f.name for f in dataclasses.fields(LoaderParams) if f.init]
+HOSTILE = st.one_of(
+    st.sampled_from([NAN, INF, -INF, True, False, None, "32000", "", [], {}, -1.0, 0.0, 1e300, -1e300, 5, 6.5]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-10**9, 10**9),
+    st.text(max_size=4),
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=8),  # wrong lengths and entries
+    st.lists(st.lists(st.floats(-1e4, 1e4), max_size=3), max_size=4),  # wrong nesting
+)
+
+
+def _perturbed(default, draw):
+    """A value near the default: scaled by 0.5..2 (entry by entry), an int moved by up to 2."""
+    if isinstance(default, tuple):
+        return [_perturbed(v, draw) for v in default]
+    if isinstance(default, int):
+        return default + draw(st.integers(-2, 2))
+    return default * draw(st.floats(0.5, 2.0))
+
+
+@st.composite
+def overrides(draw):
+    names = draw(st.lists(st.sampled_from(FIELDS), min_size=1, max_size=3, unique=True))
+    # two thirds valid perturbations: enough accepted sets to run, each hostile kind still drawn often
+    return {n: _perturbed(getattr(DEFAULT_PARAMS, n), draw) if draw(st.integers(0, 2)) else draw(HOSTILE)
+            for n in names}
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(over=overrides(), seed=st.integers(0, 2**16))
+def test_fuzz_overrides_are_rejected_by_name_or_run_finite(over, seed):
+    """Every override is either rejected with a ValueError naming one of the given fields, or the
+    environment built with it runs (reset and 20 random steps) with finite observations and rewards."""
+    import gymnasium as gym
+    import numpy as np
+
+    import wl_env  # noqa: F401
+
+    try:
+        env = gym.make("WheelLoader-v1", params=over)
+    except ValueError as exc:
+        assert any(re.search(rf"\b{re.escape(n)}\b", str(exc)) for n in over), (over, str(exc))
+        return
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    assert np.all(np.isfinite(obs)), over
+    for _ in range(20):
+        obs, reward, terminated, truncated, _ = env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
+        assert np.all(np.isfinite(obs)) and math.isfinite(reward), over
+        if terminated or truncated:
+            break

@@ -109,11 +109,12 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import evaluate_controller, load_controller, summary_line
     from mpc.benchmark.ocp import write_json_atomic
 
-    controller = load_controller(args.controller, args.braking, args.model)
+    controller = load_controller(args.controller, args.braking, args.model, trust_pickle=args.trust_pickle)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
     _progress(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
     r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
-                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress)
+                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress,
+                            name=args.controller, act_timeout=args.act_timeout)
     r = {"controller": args.controller, "model": args.model, **r}
     write_json_atomic(args.out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
@@ -162,6 +163,13 @@ def _unit_float(text: str) -> float:
     value = _number(text, float)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
+    return value
+
+
+def _seconds(text: str) -> float:
+    value = _number(text, float)
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text}")
     return value
 
 
@@ -235,8 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a built-in controller, or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
     p.add_argument("--braking", choices=["service", "tc"], default="service")
-    p.add_argument("--model", metavar="PATH", help="ppo: the policy zip (default agents/policies/ppo_<braking>.zip); "
-                   "module:Class: passed as model=")
+    p.add_argument("--model", metavar="PATH", help="ppo: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
+                   "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>); module:Class: passed "
+                   "as model=")
+    p.add_argument("--trust-pickle", action="store_true", help="ppo: also load a stable-baselines3 .zip (+ .pkl), "
+                   "which unpickles and can run code: for trusted input only, e.g. your own training runs")
     p.add_argument("--episodes", type=_positive_int, default=10, metavar="N", help="episodes (default 10)")
     p.add_argument("--init-noise", type=_unit_float, default=1.0, metavar="X",
                    help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0)")
@@ -244,6 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts (default $WL_CACHE_DIR or "
                    "~/.cache/wheel-loader-gym); a front not cached there is solved first (minutes)")
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
+    p.add_argument("--act-timeout", type=_seconds, metavar="SECONDS", help="fail if one act() call takes longer "
+                   "(default: off, no limit; a SIGALRM timer: it interrupts Python code, not a hung C call)")
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
     p.set_defaults(func=_evaluate_cmd)
 
@@ -253,7 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Train a PPO policy for WheelLoader-v1; every field of agents.ppo.PPOConfig is a "
                        "flag. A run lives in <log-dir>/<run-name>/ (config.json, tb/, eval.csv, checkpoints/, "
                        "final/); --resume continues it from its newest checkpoint, --export PATH ships the final "
-                       "policy as PATH.zip + PATH_vecnormalize.pkl + PATH.json.")
+                       "policy pickle-free as PATH.safetensors + PATH_vecnormalize.npz + PATH.json.")
     add_train_args(p)
     p.set_defaults(func=_train_cmd)
 
@@ -292,8 +305,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from agents.logs import cli_logging  # the agents' progress and warnings (logging) on stderr
+
     try:
-        return int(args.func(args) or 0)
+        with cli_logging():
+            return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, RuntimeError, OSError, json.JSONDecodeError) as exc:
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
         return 2

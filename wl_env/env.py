@@ -133,7 +133,7 @@ class WheelLoaderEnv(gym.Env):
     ) -> None:
         self.params = resolve(params)
         self.braking = cycle.check_braking(braking)
-        if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+        if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")

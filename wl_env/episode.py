@@ -55,7 +55,7 @@ class RewardConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)):
                 raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {v!r}")
             if v < 0:
                 raise ValueError(f"RewardConfig.{f.name} must be >= 0, got {v!r}")
@@ -81,11 +81,11 @@ class CycleStepper:
         max_time: float,
         reward: RewardConfig,
     ) -> None:
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
+        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
-        if not (isinstance(substeps, int) and 1 <= substeps <= 1000):
+        if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
-        if not (isinstance(max_time, (int, float)) and math.isfinite(max_time) and max_time >= 5 * dt):
+        if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and math.isfinite(max_time) and max_time >= 5 * dt):
             raise ValueError(f"max_time must be a finite number of seconds >= 5 dt, got {max_time!r}")
         self.params = params
         self.braking = cycle.check_braking(braking)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,13 +69,78 @@ PROVENANCE: dict[str, tuple[str, str]] = {
     "distance": ("m", "paper (each way)"),
 }
 
-_POSITIVE = (
-    "g J_ice q_hv n_cyl V_d U_mf_max omega_min omega_max omega_0 tc_phi_hi gear_ratio r_w J_w M_veh "
-    "M_boom I_boom r1 r2 n_lift_cyl r_piston r_rod P_cyl_max D_pump pump_speed_sat U_b_max V_max "
-    "decel_max H_T distance"
-).split()
-_NONNEGATIVE = ("M_load", "c_r", "H_0", "G")
-_EFFICIENCIES = ("eta_ig", "eta_gb", "eta_lift", "eta_vol", "eta_cyl")
+
+@dataclass(frozen=True)
+class _Range:
+    """An allowed interval, printed as in the error messages: [lo, hi], (lo, hi]..."""
+
+    lo: float
+    hi: float
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __contains__(self, v: float) -> bool:
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return above and below
+
+    def __str__(self) -> str:
+        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+
+
+_EFFICIENCY = _Range(0.0, 1.0, lo_open=True)
+# Allowed values of the scalar fields: physical limits with wide margins around the specification's
+# machine (a 32 t loader), so that they reject nonsense (a negative mass, a 1e300 kg loader, an efficiency
+# of 1.2) but not other machines, nor the robustness variants (payload x0.6..x3, rolling 0.015..0.05).
+_REAL_RANGES: dict[str, _Range] = {
+    "g": _Range(1.0, 30.0),
+    "J_ice": _Range(0.5, 100.0),
+    "eta_ig": _EFFICIENCY,
+    "q_hv": _Range(1e7, 1.5e8),
+    "V_d": _Range(1e-3, 0.1),
+    "U_mf_max": _Range(10.0, 2000.0),
+    "omega_min": _Range(10.0, 200.0),
+    "omega_max": _Range(50.0, 500.0),
+    "omega_0": _Range(10.0, 500.0),
+    "tc_phi_hi": _Range(0.5, 3.0),
+    "eta_gb": _EFFICIENCY,
+    "gear_ratio": _Range(1.0, 500.0),
+    "r_w": _Range(0.1, 3.0),
+    "J_w": _Range(1.0, 1e5),
+    "M_veh": _Range(1000.0, 3e5),
+    "M_load": _Range(0.0, 2e5),
+    "c_r": _Range(0.0, 0.5),
+    "eta_lift": _EFFICIENCY,
+    "M_boom": _Range(10.0, 1e5),
+    "I_boom": _Range(1.0, 1e6),
+    "G": _Range(0.0, 10.0),
+    "r1": _Range(0.1, 10.0),
+    "r2": _Range(0.1, 10.0),
+    "x_c": _Range(-10.0, 10.0),
+    "y_c": _Range(-10.0, 10.0),
+    "r_piston": _Range(0.01, 1.0),
+    "r_rod": _Range(0.005, 1.0),
+    "P_cyl_max": _Range(1e6, 1e8),
+    "D_pump": _Range(1e-6, 1e-2),
+    "pump_speed_sat": _Range(1.0, 1000.0),
+    "eta_vol": _EFFICIENCY,
+    "eta_cyl": _EFFICIENCY,
+    "U_b_max": _Range(100.0, 1e7),
+    "V_max": _Range(0.1, 20.0),
+    "decel_max": _Range(0.01, 2.0),
+    "H_0": _Range(0.0, 20.0),
+    "H_T": _Range(0.0, 20.0, lo_open=True),
+    "distance": _Range(0.5, 100.0),
+}
+_INT_RANGES: dict[str, _Range] = {"n_cyl": _Range(1, 24), "n_lift_cyl": _Range(1, 8)}
+# Vector fields: (length, range of each entry). The shapes are what the model's equations index.
+_VECTORS: dict[str, tuple[int, _Range]] = {
+    "c_fr": (3, _Range(-10.0, 10.0)),  # bar/krpm^2, bar/krpm, bar
+    "tc_xi_poly": (7, _Range(-1e5, 1e5)),
+    "tc_kappa_poly": (7, _Range(-1e5, 1e5)),
+    "U_ab_bounds": (2, _Range(-50.0, 50.0)),
+}
+_T_MAX_A, _T_MAX_B = _Range(-1e5, 1e5), _Range(-100.0, 100.0)  # N m, N m/rpm
 
 
 @dataclass(frozen=True)
@@ -135,10 +201,11 @@ class LoaderParams:
     _derived: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        # Accept lists (e.g. from JSON) and store tuples so the instance stays hashable.
-        for name in ("c_fr", "tc_xi_poly", "tc_kappa_poly", "U_ab_bounds"):
-            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
-        object.__setattr__(self, "T_max_lines", tuple(tuple(float(v) for v in line) for line in self.T_max_lines))
+        # Type, shape, finiteness and range of each field first, stored as float/int/tuple: the instance
+        # stays hashable, and its fingerprint does not depend on how a number was spelled (32000 or 32000.0).
+        for f in dataclasses.fields(self):
+            if f.init:
+                object.__setattr__(self, f.name, _coerce(f.name, getattr(self, f.name)))
         self._validate()
         d = self._derived
         d["r"] = self.r1 + self.r2
@@ -185,39 +252,15 @@ class LoaderParams:
         return self.G + self.r
 
     def _validate(self) -> None:
-        for name in _POSITIVE:
-            _check_finite(name, getattr(self, name))
-            if not getattr(self, name) > 0:
-                raise ValueError(f"LoaderParams.{name} must be > 0, got {getattr(self, name)!r}")
-        for name in _NONNEGATIVE:
-            _check_finite(name, getattr(self, name))
-            if getattr(self, name) < 0:
-                raise ValueError(f"LoaderParams.{name} must be >= 0, got {getattr(self, name)!r}")
-        for name in _EFFICIENCIES:
-            v = getattr(self, name)
-            _check_finite(name, v)
-            if not 0.0 < v <= 1.0:
-                raise ValueError(f"LoaderParams.{name} is an efficiency and must lie in (0, 1], got {v!r}")
-        for name in ("x_c", "y_c"):
-            _check_finite(name, getattr(self, name))
-        if len(self.c_fr) != 3:
-            raise ValueError(f"LoaderParams.c_fr needs 3 coefficients (c_fr1..3), got {len(self.c_fr)}")
-        for name in ("tc_xi_poly", "tc_kappa_poly"):
-            poly = getattr(self, name)
-            if len(poly) != 7:
-                raise ValueError(f"LoaderParams.{name} needs 7 coefficients (6th order, highest first), got {len(poly)}")
-            for v in poly:
-                _check_finite(name, v)
-        if len(self.T_max_lines) != 3 or any(len(line) != 2 for line in self.T_max_lines):
-            raise ValueError("LoaderParams.T_max_lines needs three [a, b] pairs (T_ice <= a + b*N_rpm)")
-        lo, hi = self.U_ab_bounds
-        if not (len(self.U_ab_bounds) == 2 and lo < 0.0 < hi):
-            raise ValueError(f"LoaderParams.U_ab_bounds must be (lo, hi) with lo < 0 < hi, got {self.U_ab_bounds}")
+        """The checks between fields (each field's own type and range are checked by :func:`_coerce`)."""
         if not self.omega_min < self.omega_0 < self.omega_max:
             raise ValueError(
                 f"LoaderParams.omega_0 must lie in (omega_min, omega_max) = ({self.omega_min}, {self.omega_max}), "
                 f"got {self.omega_0}"
             )
+        lo, hi = self.U_ab_bounds
+        if not lo < 0.0 < hi:
+            raise ValueError(f"LoaderParams.U_ab_bounds must be (lo, hi) with lo < 0 < hi, got {self.U_ab_bounds}")
         if self.r_rod >= self.r_piston:
             raise ValueError(f"LoaderParams.r_rod must be < r_piston ({self.r_piston}), got {self.r_rod}")
         reach = 0.98 * (self.r1 + self.r2)  # the boom's end stops, wl_env.physics.lift.BOOM_SIN_MAX
@@ -226,6 +269,43 @@ class LoaderParams:
                 f"LoaderParams.H_T must satisfy H_0 < H_T < {self.G + reach:.3f} m (G + 0.98 (r1 + r2), the boom's "
                 f"end stop) and H_0 > {self.G - reach:.3f} m, got H_0={self.H_0}, H_T={self.H_T}"
             )
+        rpm = (self.omega_min * 30.0 / math.pi, self.omega_max * 30.0 / math.pi)
+        # Friction, eq. (7): FMEP = c1 N^2 + c2 N + c3 (N in krpm) is a loss; a negative one is an engine
+        # that makes torque without fuel. A quadratic's minimum on an interval: an end or its vertex.
+        c1, c2, c3 = self.c_fr
+        speeds = [n / 1000.0 for n in rpm]
+        if c1 > 0 and speeds[0] < -c2 / (2 * c1) < speeds[1]:
+            speeds.append(-c2 / (2 * c1))
+        n_low = min(speeds, key=lambda n: (c1 * n + c2) * n + c3)
+        if (c1 * n_low + c2) * n_low + c3 < 0.0:
+            raise ValueError(
+                f"LoaderParams.c_fr gives a negative friction (FMEP = {(c1 * n_low + c2) * n_low + c3:.3g} bar at "
+                f"{1000 * n_low:.0f} rpm); FMEP = c1 N^2 + c2 N + c3 must be >= 0 between omega_min and omega_max, "
+                f"got c_fr={self.c_fr}"
+            )
+        # Torque limit, eq. (31): the lowest line; a minimum of lines is concave, lowest at an end.
+        for n in rpm:
+            limit = min(a + b * n for a, b in self.T_max_lines)
+            if not limit > 0.0:
+                raise ValueError(
+                    f"LoaderParams.T_max_lines gives a torque limit of {limit:.3g} N m at {n:.0f} rpm; min(a + b N) "
+                    f"must be > 0 between omega_min and omega_max, got T_max_lines={self.T_max_lines}"
+                )
+        # Lift geometry, eqs. (11)-(13): the cylinder (frame point x_c, y_c; boom point at r1) must have a
+        # positive moment arm wherever the bucket goes (H_0 up to the end stop), else k(theta2) diverges.
+        r = self.r1 + self.r2
+        s0 = max(-0.98, (self.H_0 - self.G) / r)
+        for i in range(41):
+            s = s0 + (0.98 - s0) * i / 40
+            c = math.sqrt(1.0 - s * s)
+            length = math.hypot(self.r1 * c - self.x_c, self.r1 * s - self.y_c)
+            arm = self.r1 * (self.x_c * s - self.y_c * c) / length if length > 0 else 0.0
+            if not arm > 1e-3 * self.r1:
+                raise ValueError(
+                    f"LoaderParams.x_c, y_c: the lift cylinder from ({self.x_c}, {self.y_c}) to the boom at r1 = "
+                    f"{self.r1} m has no positive moment arm at H = {self.G + s * r:.2f} m; it must lift the boom "
+                    f"for all heights from H_0 to the end stop G + 0.98 (r1 + r2)"
+                )
 
     # ---- variants and serialization ----
     def replace(self, **changes: Any) -> LoaderParams:
@@ -238,10 +318,9 @@ class LoaderParams:
 
     def variant(self, *, payload_scale: float = 1.0, rolling_scale: float = 1.0, **changes: Any) -> LoaderParams:
         """A variant for robustness studies: scale the payload M_load and the rolling coefficient c_r."""
-        if not (math.isfinite(payload_scale) and payload_scale >= 0):
-            raise ValueError(f"payload_scale must be a finite number >= 0, got {payload_scale!r}")
-        if not (math.isfinite(rolling_scale) and rolling_scale >= 0):
-            raise ValueError(f"rolling_scale must be a finite number >= 0, got {rolling_scale!r}")
+        for name, scale in (("payload_scale", payload_scale), ("rolling_scale", rolling_scale)):
+            if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (math.isfinite(scale) and scale >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {scale!r}")
         changes.setdefault("M_load", self.M_load * payload_scale)
         changes.setdefault("c_r", self.c_r * rolling_scale)
         return self.replace(**changes)
@@ -253,6 +332,9 @@ class LoaderParams:
     def from_dict(cls, data: dict[str, Any]) -> LoaderParams:
         if not isinstance(data, dict):
             raise ValueError(f"parameter overrides must be a mapping of field -> value, got {type(data).__name__}")
+        bad = [k for k in data if not isinstance(k, str)]
+        if bad:
+            raise ValueError(f"LoaderParams field names must be strings, got {bad!r}")
         return cls().replace(**data)
 
     def fingerprint(self) -> str:
@@ -263,13 +345,57 @@ class LoaderParams:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _check_finite(name: str, value: Any) -> None:
-    try:
-        ok = math.isfinite(float(value))
-    except (TypeError, ValueError):
-        raise ValueError(f"LoaderParams.{name} must be a number, got {value!r}") from None
-    if not ok:
-        raise ValueError(f"LoaderParams.{name} must be finite, got {value!r}")
+def _unit(name: str) -> str:
+    unit = PROVENANCE.get(name, ("-",))[0]
+    return "" if unit == "-" or len(unit) > 10 else f" {unit}"
+
+
+def _number(name: str, value: Any, allowed: _Range, unit: str = "") -> float:
+    """A finite real number (no bool, no string) within ``allowed``, as a float."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"LoaderParams.{name} must be a number in {allowed}{unit}, got {value!r} "
+                         f"({type(value).__name__})")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"LoaderParams.{name} must be a finite number in {allowed}{unit}, got {value!r}")
+    if v not in allowed:
+        raise ValueError(f"LoaderParams.{name} must lie in {allowed}{unit}, got {value!r}")
+    return v
+
+
+def _sequence(name: str, value: Any, length: int, of: str) -> list[Any]:
+    """A list or tuple (or 1-d array) of exactly ``length`` entries."""
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        value = value.tolist()  # a numpy array
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {value!r} ({type(value).__name__})")
+    if len(value) != length:
+        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {len(value)} entries: {value!r}")
+    return list(value)
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """A field's value checked for type, shape, finiteness and range, as the type the model uses."""
+    if name in _INT_RANGES:
+        allowed = _INT_RANGES[name]
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise ValueError(f"LoaderParams.{name} must be an integer in {allowed}, got {value!r} "
+                             f"({type(value).__name__})")
+        if int(value) not in allowed:
+            raise ValueError(f"LoaderParams.{name} must lie in {allowed}, got {value!r}")
+        return int(value)
+    if name in _VECTORS:
+        length, allowed = _VECTORS[name]
+        entries = _sequence(name, value, length, "numbers")
+        return tuple(_number(f"{name}[{i}]", v, allowed) for i, v in enumerate(entries))
+    if name == "T_max_lines":
+        lines = _sequence(name, value, 3, "[a, b] pairs (T_ice <= a + b*N_rpm)")
+        out = []
+        for i, line in enumerate(lines):
+            a, b = _sequence(f"{name}[{i}]", line, 2, "numbers [a, b] (T_ice <= a + b*N_rpm)")
+            out.append((_number(f"{name}[{i}][0]", a, _T_MAX_A, " N m"), _number(f"{name}[{i}][1]", b, _T_MAX_B, " N m/rpm")))
+        return tuple(out)
+    return _number(name, value, _REAL_RANGES[name], _unit(name))
 
 
 DEFAULT_PARAMS = LoaderParams()

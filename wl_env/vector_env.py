@@ -42,11 +42,11 @@ class WheelLoaderVectorEnv(VectorEnv):
         init_noise: float = 0.0,
         render_mode: str | None = None,
     ) -> None:
-        if not (isinstance(num_envs, int) and num_envs >= 1):
+        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if render_mode is not None:
             raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
-        if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+        if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
         self.params = resolve(params)

@@ -1,0 +1,348 @@
+"""Policy files that load without pickle: the shipped policies (``agents/policies/``) and every export.
+
+A policy ``<stem>`` is three files::
+
+    <stem>.safetensors            the policy network's weights (safetensors: tensors only, never code)
+    <stem>_vecnormalize.npz       the observation normalization: mean, var, clip_obs, epsilon, norm_obs
+                                  (read with ``np.load(allow_pickle=False)``)
+    <stem>.json                   metadata: the network (class, net_arch, activation, mean bound...), the
+                                  observation and action spaces, braking, the PPOConfig, the evaluation,
+                                  and the sha256 of the two other files
+
+Loading rebuilds the torch module from the metadata (only the classes and activations listed here) and
+loads the weights into it: nothing in these files is executed. A stable-baselines3 zip (``model.zip`` +
+``vecnormalize.pkl``) unpickles objects, which can run any code; it is loaded only with
+``trust_pickle=True`` (``wl evaluate --trust-pickle``) and can be converted once to these files::
+
+    python -m agents.policy_files IN.zip OUT_STEM --trust-pickle
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import math
+import sys
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "wl-ppo-policy"
+FORMAT_VERSION = 1
+WEIGHTS_SUFFIX = ".safetensors"
+NORMALIZATION_SUFFIX = "_vecnormalize.npz"
+METADATA_SUFFIX = ".json"
+PICKLE_SUFFIXES = (".zip", ".pkl")
+NORMALIZATION_ENTRIES = ("mean", "var", "clip_obs", "epsilon", "norm_obs")
+
+# The only torch classes a file can name (a name is looked up here, never imported).
+ACTIVATIONS = ("Tanh", "ReLU", "ELU", "LeakyReLU", "SiLU", "GELU", "Sigmoid")
+POLICY_CLASSES = ("ActorCriticPolicy", "BoundedMeanPolicy")
+MAX_LAYER_WIDTH, MAX_LAYERS, MAX_DIM = 4096, 16, 1024
+
+
+class PolicyFileError(ValueError):
+    """A policy file that is missing, unreadable or inconsistent; the message names the file."""
+
+
+@dataclass(frozen=True)
+class PolicyFiles:
+    """The three files of a pickle-free policy."""
+
+    weights: Path
+    normalization: Path
+    metadata: Path
+
+    @classmethod
+    def of(cls, stem: str | Path) -> PolicyFiles:
+        stem = Path(stem)
+        for suffix in (WEIGHTS_SUFFIX, METADATA_SUFFIX):  # the stem of any of its files
+            if stem.name.endswith(suffix):
+                stem = stem.with_name(stem.name[: -len(suffix)])
+        if stem.name.endswith(NORMALIZATION_SUFFIX):
+            stem = stem.with_name(stem.name[: -len(NORMALIZATION_SUFFIX)])
+        return cls(stem.with_name(stem.name + WEIGHTS_SUFFIX), stem.with_name(stem.name + NORMALIZATION_SUFFIX),
+                   stem.with_name(stem.name + METADATA_SUFFIX))
+
+    def missing(self) -> list[Path]:
+        return [p for p in (self.weights, self.normalization, self.metadata) if not p.is_file()]
+
+
+@dataclass(frozen=True)
+class ObsNormalization:
+    """VecNormalize's observation statistics: z = clip((obs - mean) / sqrt(var + epsilon), +-clip_obs)."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    clip_obs: float = 10.0
+    epsilon: float = 1e-8
+
+    def apply(self, obs: np.ndarray) -> np.ndarray:
+        z = (np.asarray(obs, dtype=np.float32) - self.mean) / np.sqrt(self.var + self.epsilon)
+        return np.clip(z, -self.clip_obs, self.clip_obs).astype(np.float32)
+
+    @classmethod
+    def of_vecnormalize(cls, vn: Any) -> ObsNormalization | None:
+        """The statistics of a stable-baselines3 ``VecNormalize`` (None if it does not normalize obs)."""
+        if vn is None or not getattr(vn, "norm_obs", True):
+            return None
+        return cls(np.array(vn.obs_rms.mean, dtype=np.float64), np.array(vn.obs_rms.var, dtype=np.float64),
+                   float(vn.clip_obs), float(vn.epsilon))
+
+
+def brief(exc: BaseException, limit: int = 160) -> str:
+    """An exception as one short line: its type and the start of its message."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:limit] + ' ...' if len(text) > limit else text}"
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------- describe
+def _space(space: Any, what: str) -> dict[str, Any]:
+    from gymnasium import spaces
+
+    if not isinstance(space, spaces.Box) or space.dtype != np.float32:
+        raise ValueError(f"cannot export a policy whose {what} space is {space} (only float32 Box spaces)")
+    return {"shape": list(space.shape), "low": space.low.tolist(), "high": space.high.tolist(), "dtype": "float32"}
+
+
+def describe_network(policy: Any) -> dict[str, Any]:
+    """The constructor arguments of an SB3 ``ActorCriticPolicy`` (or ``BoundedMeanPolicy``) as JSON."""
+    from stable_baselines3.common.torch_layers import FlattenExtractor
+
+    cls = type(policy).__name__
+    if cls not in POLICY_CLASSES:
+        raise ValueError(f"cannot export a {cls}: only {', '.join(POLICY_CLASSES)}")
+    c = policy._get_constructor_parameters()
+    act = c["activation_fn"].__name__
+    if act not in ACTIVATIONS or c["features_extractor_class"] is not FlattenExtractor or c["features_extractor_kwargs"]:
+        raise ValueError(f"cannot export a policy with activation {act} and features extractor "
+                         f"{c['features_extractor_class'].__name__} (supported: {', '.join(ACTIVATIONS)}; FlattenExtractor)")
+    net_arch = c["net_arch"]
+    return {
+        "class": cls, "net_arch": dict(net_arch) if isinstance(net_arch, dict) else list(net_arch),
+        "activation_fn": act, "ortho_init": bool(c["ortho_init"]), "use_sde": bool(c["use_sde"]),
+        "log_std_init": float(c["log_std_init"]), "full_std": bool(c["full_std"] if c["full_std"] is not None else True),
+        "use_expln": bool(c["use_expln"] or False), "squash_output": bool(c["squash_output"] or False),
+        "share_features_extractor": bool(policy.share_features_extractor),
+        "normalize_images": bool(c["normalize_images"]),
+        "mean_bound": float(policy.mean_bound) if cls == "BoundedMeanPolicy" else None,
+        "observation_space": _space(c["observation_space"], "observation"),
+        "action_space": _space(c["action_space"], "action"),
+    }
+
+
+# ---------------------------------------------------------------------------------------------- write
+def write_policy(policy: Any, normalization: ObsNormalization | None, stem: str | Path,
+                 meta: dict[str, Any] | None = None) -> PolicyFiles:
+    """Write ``policy`` (an SB3 ActorCriticPolicy) and its normalization as the three files of ``stem``.
+
+    Each file is written atomically; the metadata last (it holds the others' checksums), so a reader
+    never sees a metadata file whose weights are not complete.
+    """
+    import torch as th
+    from safetensors.torch import save as save_tensors
+
+    from wl_env.atomic_io import write_atomic, write_json_atomic
+
+    files = PolicyFiles.of(stem)
+    network = describe_network(policy)
+    state = {k: v.detach().to("cpu", th.float32).contiguous() for k, v in policy.state_dict().items()}
+    write_atomic(files.weights, save_tensors(state))
+    obs_dim = network["observation_space"]["shape"]
+    norm = normalization or ObsNormalization(np.zeros(obs_dim), np.ones(obs_dim), math.inf, 0.0)
+    buf = io.BytesIO()
+    np.savez(buf, mean=np.asarray(norm.mean, np.float64), var=np.asarray(norm.var, np.float64),
+             clip_obs=np.float64(norm.clip_obs), epsilon=np.float64(norm.epsilon),
+             norm_obs=np.bool_(normalization is not None))
+    write_atomic(files.normalization, buf.getvalue())
+    out = {k: v for k, v in (meta or {}).items() if k not in ("format", "format_version", "network", "files",
+                                                               "obs_normalization")}
+    out.update(format=FORMAT, format_version=FORMAT_VERSION, network=network, files={
+        "weights": {"name": files.weights.name, "sha256": sha256(files.weights)},
+        "normalization": {"name": files.normalization.name, "sha256": sha256(files.normalization)}})
+    write_json_atomic(files.metadata, out, indent=2, nan_as_null=True)
+    return files
+
+
+# ---------------------------------------------------------------------------------------------- read
+def read_metadata(files: PolicyFiles) -> dict[str, Any]:
+    """The metadata, checked: format, network description, checksums of the weights and normalization."""
+    path = files.metadata
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PolicyFileError(f"policy metadata {path} is unreadable: {brief(exc)}") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise PolicyFileError(f"{path} is not policy metadata (no \"format\": \"{FORMAT}\"); a pickle-free policy is "
+                              f"written by `wl train --export` or `python -m agents.policy_files`")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise PolicyFileError(f"{path}: format_version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
+    _check_network(meta.get("network"), path)
+    recorded = meta.get("files")
+    for key, file in (("weights", files.weights), ("normalization", files.normalization)):
+        entry = recorded.get(key) if isinstance(recorded, dict) else None
+        if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
+            raise PolicyFileError(f"{path}: files.{key}.sha256 is missing")
+        if sha256(file) != entry["sha256"]:
+            raise PolicyFileError(f"{file} does not match its metadata {path.name} (sha256 differs): a corrupt or "
+                                  f"mixed-up file")
+    return meta
+
+
+def _check_network(net: Any, path: Path) -> None:
+    def fail(what: str) -> None:
+        raise PolicyFileError(f"{path}: network.{what}")
+
+    if not isinstance(net, dict):
+        fail("is missing")
+    if net.get("class") not in POLICY_CLASSES:
+        fail(f"class must be one of {POLICY_CLASSES}, got {net.get('class')!r}")
+    if net.get("activation_fn") not in ACTIVATIONS:
+        fail(f"activation_fn must be one of {ACTIVATIONS}, got {net.get('activation_fn')!r}")
+    arch = net.get("net_arch")
+    layers = list(arch.values()) if isinstance(arch, dict) and set(arch) <= {"pi", "vf"} else [arch]
+    for widths in layers:
+        if not (isinstance(widths, list) and len(widths) <= MAX_LAYERS
+                and all(type(w) is int and 1 <= w <= MAX_LAYER_WIDTH for w in widths)):
+            fail(f"net_arch must be a list (or {{pi, vf}} lists) of at most {MAX_LAYERS} widths in 1..{MAX_LAYER_WIDTH}, "
+                 f"got {arch!r}")
+    for key in ("ortho_init", "use_sde", "full_std", "use_expln", "squash_output", "share_features_extractor",
+                "normalize_images"):
+        if type(net.get(key)) is not bool:
+            fail(f"{key} must be true or false, got {net.get(key)!r}")
+    if not _finite_number(net.get("log_std_init")):
+        fail(f"log_std_init must be a finite number, got {net.get('log_std_init')!r}")
+    if net["class"] == "BoundedMeanPolicy" and not (_finite_number(net.get("mean_bound")) and net["mean_bound"] > 0):
+        fail(f"mean_bound must be a number > 0, got {net.get('mean_bound')!r}")
+    for key in ("observation_space", "action_space"):
+        space = net.get(key)
+        shape = space.get("shape") if isinstance(space, dict) else None
+        if not (isinstance(shape, list) and len(shape) == 1 and type(shape[0]) is int and 1 <= shape[0] <= MAX_DIM):
+            fail(f"{key}.shape must be [n] with 1 <= n <= {MAX_DIM}, got {shape!r}")
+        for bound in ("low", "high"):
+            values = space.get(bound)
+            if not (isinstance(values, list) and len(values) == shape[0] and all(_finite_number(v) for v in values)):
+                fail(f"{key}.{bound} must be {shape[0]} finite numbers")
+
+
+def _finite_number(v: Any) -> bool:
+    return type(v) in (int, float) and math.isfinite(v)
+
+
+def build_network(net: dict[str, Any]) -> Any:
+    """The torch module a (checked) network description names, with fresh weights."""
+    from gymnasium import spaces
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from torch import nn
+
+    from agents.ppo import BoundedMeanPolicy
+
+    def box(d: dict[str, Any]) -> spaces.Box:
+        return spaces.Box(np.array(d["low"], np.float32), np.array(d["high"], np.float32), dtype=np.float32)
+
+    kwargs: dict[str, Any] = {k: net[k] for k in ("ortho_init", "use_sde", "log_std_init", "full_std", "use_expln",
+                                                 "squash_output", "share_features_extractor", "normalize_images")}
+    kwargs.update(net_arch=net["net_arch"], activation_fn=getattr(nn, net["activation_fn"]))
+    if net["class"] == "BoundedMeanPolicy":
+        cls, kwargs["mean_bound"] = BoundedMeanPolicy, float(net["mean_bound"])
+    else:
+        cls = ActorCriticPolicy
+    policy = cls(box(net["observation_space"]), box(net["action_space"]), lambda _: 0.0, **kwargs)
+    return policy.eval()
+
+
+def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
+    """The statistics of a ``_vecnormalize.npz`` (no pickle), checked; None if the policy does not normalize."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            absent = [k for k in NORMALIZATION_ENTRIES if k not in f.files]
+            if absent:
+                raise PolicyFileError(f"normalization file {path} has no entry {', '.join(map(repr, absent))} "
+                                      f"(needs {', '.join(NORMALIZATION_ENTRIES)})")
+            data = {k: f[k] for k in NORMALIZATION_ENTRIES}
+    except PolicyFileError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # truncated, not an npz, object arrays
+        raise PolicyFileError(f"normalization file {path} is unreadable: {brief(exc)}") from None
+    scalars = {k: data[k] for k in ("clip_obs", "epsilon", "norm_obs")}
+    if any(v.shape != () for v in scalars.values()) or scalars["norm_obs"].dtype != np.bool_ or any(
+            scalars[k].dtype.kind != "f" for k in ("clip_obs", "epsilon")):
+        raise PolicyFileError(f"normalization file {path}: clip_obs and epsilon must be single floats, norm_obs a bool")
+    if not data["norm_obs"]:
+        return None
+    mean, var = data["mean"], data["var"]
+    clip_obs, eps = float(data["clip_obs"]), float(data["epsilon"])
+    if mean.shape != (obs_dim,) or var.shape != (obs_dim,) or mean.dtype.kind != "f" or var.dtype.kind != "f":
+        raise PolicyFileError(f"normalization file {path}: mean and var must be {obs_dim} floats, got shapes "
+                              f"{mean.shape} and {var.shape}")
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
+        raise PolicyFileError(f"normalization file {path}: mean and var must be finite, var >= 0")
+    if not (clip_obs > 0 and eps > 0 and math.isfinite(eps)):
+        raise PolicyFileError(f"normalization file {path}: clip_obs and epsilon must be > 0, got {clip_obs}, {eps}")
+    return ObsNormalization(mean.astype(np.float64), var.astype(np.float64), clip_obs, eps)
+
+
+def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[str, Any]]:
+    """(network, normalization, metadata) of a pickle-free policy; errors name the missing or bad file."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load as load_tensors
+
+    files = PolicyFiles.of(stem)
+    missing = files.missing()
+    if missing:
+        raise PolicyFileError(f"policy {files.weights.with_suffix('')} is incomplete: missing "
+                              f"{', '.join(str(p) for p in missing)} (a policy needs its weights, its normalization "
+                              f"and its metadata; without the normalization it acts on wrongly scaled observations)")
+    meta = read_metadata(files)
+    net = meta["network"]
+    try:
+        state = load_tensors(files.weights.read_bytes())
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
+    network = build_network(net)
+    try:
+        network.load_state_dict(state, strict=True)
+    except RuntimeError as exc:  # missing or unexpected tensors, wrong shapes
+        raise PolicyFileError(f"weights file {files.weights} does not fit the network of {files.metadata.name}: "
+                              f"{' '.join(str(exc).split())}") from None
+    normalization = read_normalization(files.normalization, net["observation_space"]["shape"][0])
+    return network, normalization, meta
+
+
+# ---------------------------------------------------------------------------------------------- convert
+def convert_sb3_policy(zip_path: str | Path, stem: str | Path, *, trust_pickle: bool = False) -> PolicyFiles:
+    """Convert a stable-baselines3 zip (and its VecNormalize pickle and JSON metadata beside it) into the
+    pickle-free files of ``stem``. Reading the zip unpickles: only for files you trust."""
+    from agents.ppo import load_policy
+
+    policy = load_policy(zip_path, trust_pickle=trust_pickle)
+    return write_policy(policy.network, policy.normalization, stem, policy.meta)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m agents.policy_files", description=convert_sb3_policy.__doc__)
+    parser.add_argument("zip", help="the stable-baselines3 model zip (e.g. runs/NAME/final/model.zip)")
+    parser.add_argument("out", help="output stem: writes OUT.safetensors, OUT_vecnormalize.npz, OUT.json")
+    parser.add_argument("--trust-pickle", action="store_true", required=True,
+                        help="required: the zip and its .pkl are unpickled, which can run code (trusted files only)")
+    args = parser.parse_args(argv)
+    try:
+        files = convert_sb3_policy(args.zip, args.out, trust_pickle=args.trust_pickle)
+    except (ValueError, OSError) as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    print(f"{args.zip} -> {files.weights}, {files.normalization}, {files.metadata}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,437 @@
+"""Untrusted policy files and user controllers in ``wl evaluate``: no code runs from a policy file, a missing
+or broken file is one error line naming it, and a misbehaving controller is one error line naming the
+controller, the episode and the step."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import pickle
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import wl.cli
+from agents.policy_files import PolicyFileError
+from agents.ppo import PPOConfig, build_model, load_policy, make_env, save_model_files
+
+POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
+
+
+def _run(capsys, *argv) -> tuple[int, str, str]:
+    code = wl.cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_error_line(err: str) -> str:
+    """The error line that ends stderr (after any progress lines), with no traceback."""
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err and [line for line in lines if line.startswith("wl: error:")] == lines[-1:], err
+    return lines[-1]
+
+
+class _WritesMarker:
+    """Unpickling this object runs code: it writes the marker file."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return exec, (f"open({self.marker!r}, 'w').write('code ran')",)
+
+
+def _evil_pickle(marker: Path) -> bytes:
+    return pickle.dumps(_WritesMarker(marker))
+
+
+def _evil_sb3_zip(path: Path, marker: Path) -> None:
+    """A zip laid out as stable-baselines3 saves one, whose ``data`` entry holds a serialized object (SB3
+    unpickles those with cloudpickle)."""
+    data = {"policy_class": {":type:": "<class 'abc.ABCMeta'>",
+                             ":serialized:": base64.b64encode(_evil_pickle(marker)).decode()}}
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("data", json.dumps(data))
+        z.writestr("_stable_baselines3_version", "2.3.0")
+
+
+@pytest.fixture
+def marker(tmp_path: Path) -> Path:
+    m = tmp_path / "MARKER"
+    pickle.loads(_evil_pickle(m))  # the payload is live: unpickling it does write the marker
+    assert m.read_text() == "code ran"
+    m.unlink()
+    return m
+
+
+def _copy_shipped(dst: Path, braking: str = "tc", parts=(".safetensors", "_vecnormalize.npz", ".json")) -> Path:
+    for part in parts:
+        shutil.copy(POLICIES / f"ppo_{braking}{part}", dst / f"ppo_{braking}{part}")
+    return dst / f"ppo_{braking}"
+
+
+def _reseal(stem: Path, key: str, file: Path) -> None:
+    """Record ``file``'s new sha256 in the metadata, so that a check deeper than the checksum is reached."""
+    meta_path = stem.with_name(stem.name + ".json")
+    meta = json.loads(meta_path.read_text())
+    meta["files"][key]["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
+    meta_path.write_text(json.dumps(meta))
+
+
+@pytest.fixture
+def own_run(tmp_path: Path) -> tuple[Path, object, object]:
+    """A folder as training writes it (model.zip, vecnormalize.pkl, progress.json, policy.*) of an untrained
+    tiny model, with the model and its VecNormalize env."""
+    cfg = PPOConfig(num_envs=2, n_steps=8, batch_size=16, net_arch=(8,), score=False, progress_bar=False,
+                    log_dir=str(tmp_path), run_name="own")
+    env = make_env(cfg)
+    env.reset()
+    model = build_model(cfg, env, tmp_path / "tb")
+    folder = save_model_files(model, env, tmp_path / "own", {"braking": "service", "num_timesteps": 0}, export=True)
+    return folder, model, env
+
+
+# ------------------------------------------------------------------------------------------ no pickle
+@pytest.mark.parametrize("layout", ["zip+pkl", "pkl", "run folder"])
+def test_pickle_files_never_run_code_without_trust(tmp_path, capsys, marker, layout):
+    if layout == "run folder":
+        folder = tmp_path / "run" / "final"
+        folder.mkdir(parents=True)
+        _evil_sb3_zip(folder / "model.zip", marker)
+        (folder / "vecnormalize.pkl").write_bytes(_evil_pickle(marker))
+        (folder / "summary.json").write_text(json.dumps({"braking": "service"}))
+        model = tmp_path / "run"
+    else:
+        _evil_sb3_zip(tmp_path / "evil.zip", marker)
+        (tmp_path / "evil_vecnormalize.pkl").write_bytes(_evil_pickle(marker))
+        (tmp_path / "evil.json").write_text(json.dumps({"braking": "service"}))
+        model = tmp_path / ("evil.zip" if layout == "zip+pkl" else "evil_vecnormalize.pkl")
+    out = tmp_path / "e.json"
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", model, "--episodes", 1, "--no-score",
+                        "--out", out)
+    line = _one_error_line(err)
+    assert code == 2 and "--trust-pickle" in line and "pickle-free" in line and ".zip" in line
+    assert not marker.exists() and not out.exists()
+    with pytest.raises(PolicyFileError, match="trust_pickle=True"):
+        load_policy(model)
+    assert not marker.exists()
+
+
+def test_pickle_in_a_normalization_npz_is_refused(tmp_path, capsys, marker):
+    stem = _copy_shipped(tmp_path)
+    npz = tmp_path / "ppo_tc_vecnormalize.npz"
+    evil = np.empty(1, dtype=object)
+    evil[0] = _WritesMarker(marker)
+    with open(npz, "wb") as f:  # an object array: np.save pickles it
+        np.savez(f, mean=evil, var=np.ones(12), clip_obs=10.0, epsilon=1e-8, norm_obs=True)
+    _reseal(stem, "normalization", npz)
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", stem, "--episodes", 1, "--no-score",
+                        "--out", tmp_path / "e.json")
+    assert code == 2 and str(npz) in _one_error_line(err) and "allow_pickle" in err
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("entries, needle", [
+    ({"mean": np.zeros(12), "var": np.ones(12), "clip_obs": np.ones(3), "epsilon": 1e-8, "norm_obs": True}, "single"),
+    ({"mean": np.zeros(12), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e-8, "norm_obs": "yes"}, "bool"),
+    ({"mean": np.zeros(11), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e-8, "norm_obs": True}, "12 floats"),
+    ({"mean": np.full(12, np.nan), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e-8, "norm_obs": True}, "finite"),
+    ({"mean": np.zeros(12), "var": np.ones(12), "clip_obs": 10.0, "norm_obs": True}, "no entry 'epsilon'"),
+])
+def test_normalization_entries_are_checked(tmp_path, entries, needle):
+    stem = _copy_shipped(tmp_path)
+    npz = tmp_path / "ppo_tc_vecnormalize.npz"
+    np.savez(npz, **entries)
+    _reseal(stem, "normalization", npz)
+    with pytest.raises(PolicyFileError, match=needle):
+        load_policy(stem)
+
+
+@pytest.mark.parametrize("tamper, needle", [
+    ({"class": "os.system"}, "network.class"),
+    ({"activation_fn": "Evil"}, "network.activation_fn"),
+    ({"net_arch": {"pi": [10**9]}}, "network.net_arch"),
+    ({"observation_space": {"shape": [13], "low": [0.0] * 13, "high": [1.0] * 13}}, "does not fit"),
+])
+def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, needle):
+    stem = _copy_shipped(tmp_path)
+    meta_path = tmp_path / "ppo_tc.json"
+    meta = json.loads(meta_path.read_text())
+    meta["network"].update(tamper)
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(PolicyFileError, match=needle):
+        load_policy(stem)
+
+
+def test_trusted_zip_of_an_own_run_loads_with_the_flag(own_run, capsys, tmp_path):
+    folder, model, env = own_run
+    obs = np.random.default_rng(0).uniform(0.0, 1.0, (16, 12)).astype(np.float32)
+    expected = model.predict(env.normalize_obs(obs), deterministic=True)[0]
+    np.testing.assert_array_equal(load_policy(folder / "model.zip", trust_pickle=True).act(obs), expected)
+    np.testing.assert_array_equal(load_policy(folder).act(obs), expected)  # its pickle-free twin, no flag
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", folder / "model.zip", "--trust-pickle",
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert code == 0, err
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--trust-pickle", "--out", tmp_path / "o.json")
+    assert code == 2 and "--trust-pickle is for --controller ppo" in _one_error_line(err)
+
+
+def test_help_says_trust_pickle_is_for_trusted_input(capsys):
+    code, out, _ = _run(capsys, "evaluate", "--help")
+    assert code == 0 and "--trust-pickle" in out and "trusted input only" in " ".join(out.split())
+
+
+# ------------------------------------------------------------------------------------------ companions
+@pytest.mark.parametrize("present, missing", [
+    ((".safetensors",), ("_vecnormalize.npz", ".json")),
+    ((".safetensors", ".json"), ("_vecnormalize.npz",)),
+    ((".safetensors", "_vecnormalize.npz"), (".json",)),
+    ((".json",), (".safetensors", "_vecnormalize.npz")),
+])
+def test_missing_companions_are_named(tmp_path, capsys, present, missing):
+    stem = _copy_shipped(tmp_path, parts=present)
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", stem.with_name(stem.name + present[0]),
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    line = _one_error_line(err)
+    assert code == 2 and "missing" in line
+    for part in missing:
+        assert str(tmp_path / f"ppo_tc{part}") in line
+    assert not (tmp_path / "e.json").exists()
+
+
+def test_trusted_zip_without_its_normalization_or_metadata_is_an_error(own_run):
+    folder, _, _ = own_run
+    (folder / "vecnormalize.pkl").unlink()
+    with pytest.raises(PolicyFileError, match="no normalization file: expected .*vecnormalize.pkl"):
+        load_policy(folder / "model.zip", trust_pickle=True)
+    (folder / "progress.json").unlink()
+    with pytest.raises(PolicyFileError, match="no metadata: expected .*progress.json"):
+        load_policy(folder / "model.zip", trust_pickle=True)
+
+
+# ------------------------------------------------------------------------------------------ broken files
+def _flip_last_bytes(path: Path, n: int = 64) -> None:
+    data = bytearray(path.read_bytes())
+    data[-n:] = bytes(b ^ 0xFF for b in data[-n:])
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", ["weights blob", "weights header", "truncated weights", "truncated npz",
+                                    "garbage json"])
+def test_broken_policy_files_are_one_line_naming_the_file(tmp_path, capsys, damage):
+    stem = _copy_shipped(tmp_path)
+    weights, npz, meta = (tmp_path / f"ppo_tc{p}" for p in (".safetensors", "_vecnormalize.npz", ".json"))
+    if damage == "weights blob":  # the tensors' bytes: only the checksum tells
+        _flip_last_bytes(weights)
+        bad = weights
+    elif damage == "weights header":
+        weights.write_bytes(b"\xff" * 8 + weights.read_bytes()[8:])
+        _reseal(stem, "weights", weights)
+        bad = weights
+    elif damage == "truncated weights":
+        weights.write_bytes(weights.read_bytes()[:1000])
+        _reseal(stem, "weights", weights)
+        bad = weights
+    elif damage == "truncated npz":
+        npz.write_bytes(npz.read_bytes()[:300])
+        _reseal(stem, "normalization", npz)
+        bad = npz
+    else:
+        meta.write_text('{"format": "wl-ppo-pol')
+        bad = meta
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", stem, "--episodes", 1, "--no-score",
+                        "--out", tmp_path / "e.json")
+    assert code == 2 and str(bad) in _one_error_line(err)
+
+
+@pytest.mark.parametrize("damage", ["policy.pth", "truncated pkl", "truncated zip"])
+def test_broken_trusted_files_are_one_line_naming_the_file(own_run, capsys, tmp_path, damage):
+    folder, _, _ = own_run
+    zip_path = folder / "model.zip"
+    if damage == "policy.pth":  # a valid zip whose weights entry is garbage
+        with zipfile.ZipFile(zip_path) as z:
+            entries = {n: z.read(n) for n in z.namelist()}
+        entries["policy.pth"] = b"not a torch file" * 10
+        with zipfile.ZipFile(zip_path, "w") as z:
+            for name, data in entries.items():
+                z.writestr(name, data)
+        bad = zip_path
+    elif damage == "truncated pkl":
+        pkl = folder / "vecnormalize.pkl"
+        pkl.write_bytes(pkl.read_bytes()[:100])
+        bad = pkl
+    else:
+        zip_path.write_bytes(zip_path.read_bytes()[:500])
+        bad = zip_path
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", zip_path, "--trust-pickle",
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert code == 2 and str(bad) in _one_error_line(err)
+
+
+# ------------------------------------------------------------------------------------------ controllers
+BAD_CONTROLLERS = '''
+import sys, time
+import numpy as np
+from agents.operator import OperatorPolicy
+
+
+class _Base:
+    fail_at = (0, 3)  # (episode, step)
+
+    def __init__(self, braking="service"):
+        self.inner, self.episode, self.step = OperatorPolicy(braking), -1, 0
+
+    def reset(self):
+        self.episode, self.step = self.episode + 1, 0
+
+    def act(self, obs):
+        action = self.inner.act(obs)
+        if (self.episode, self.step) == self.fail_at:
+            action = self.bad(action)
+        self.step += 1
+        return action
+
+
+class Raises(_Base):
+    def bad(self, action):
+        return 1 / 0
+
+class ReturnsDict(_Base):
+    def bad(self, action):
+        return {"fuel": 1.0}
+
+class WrongShape(_Base):
+    def bad(self, action):
+        return action[:3]
+
+class Strings(_Base):
+    def bad(self, action):
+        return ["1", "0", "0", "0"]
+
+class Ragged(_Base):
+    def bad(self, action):
+        return [[1.0], [1.0, 2.0]]
+
+class NaNSecondEpisode(_Base):
+    fail_at = (1, 5)
+    def bad(self, action):
+        return np.array([np.nan, 0, 0, 0])
+
+class Exits(_Base):
+    def bad(self, action):
+        sys.exit(0)
+
+class ExitsOnCreation:
+    def __init__(self):
+        sys.exit(0)
+
+class ResetRaises(_Base):
+    def reset(self):
+        raise KeyError("plan")
+
+class Sleeps(_Base):
+    def bad(self, action):
+        try:
+            time.sleep(30)
+        except Exception:  # a broad handler must not swallow the timeout
+            pass
+        return action
+
+class Spins(_Base):
+    def bad(self, action):
+        while True:
+            pass
+
+class Outer:
+    class Inner(_Base):
+        pass
+'''
+
+
+@pytest.fixture
+def bad_module(tmp_path: Path) -> Path:
+    path = tmp_path / "bad_controllers.py"
+    path.write_text(BAD_CONTROLLERS)
+    return path
+
+
+@pytest.mark.parametrize("cls, where, needle", [
+    ("Raises", "episode 0, step 3", "ZeroDivisionError"),
+    ("ReturnsDict", "episode 0, step 3", "returned {'fuel': 1.0} (dict), not 4 numbers"),
+    ("WrongShape", "episode 0, step 3", "shape (3,), expected (4,)"),
+    ("Strings", "episode 0, step 3", "not 4 numbers"),
+    ("Ragged", "episode 0, step 3", "not 4 numbers"),
+    ("NaNSecondEpisode", "episode 1, step 5", "non-finite action [nan, 0.0, 0.0, 0.0]"),
+    ("Exits", "episode 0, step 3", "sys.exit(0)"),
+    ("ResetRaises", "episode 0, step 0", "reset() failed"),
+])
+def test_misbehaving_controller_is_one_line_naming_it_the_episode_and_step(tmp_path, capsys, bad_module, cls, where,
+                                                                            needle):
+    spec = f"{bad_module}:{cls}"
+    out = tmp_path / "e.json"
+    code, _, err = _run(capsys, "evaluate", "--controller", spec, "--episodes", 2, "--no-score", "--out", out)
+    line = _one_error_line(err)
+    assert code == 2 and f"controller {spec}" in line and where in line and needle in line
+    assert not out.exists()
+
+
+def test_controller_exiting_on_creation_is_an_error(tmp_path, capsys, bad_module):
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{bad_module}:ExitsOnCreation", "--no-score",
+                        "--out", tmp_path / "e.json")
+    assert code == 2 and "sys.exit(0)" in _one_error_line(err) and not (tmp_path / "e.json").exists()
+
+
+@pytest.mark.parametrize("cls", ["Sleeps", "Spins"])
+def test_act_timeout_interrupts_a_hanging_act(tmp_path, capsys, bad_module, cls):
+    import signal
+    import time
+
+    before = signal.getsignal(signal.SIGALRM)
+    t0 = time.monotonic()
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{bad_module}:{cls}", "--act-timeout", 0.3,
+                        "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert time.monotonic() - t0 < 10.0
+    line = _one_error_line(err)
+    assert code == 2 and "within the act timeout of 0.3 s" in line and "episode 0, step 3" in line
+    assert signal.getsignal(signal.SIGALRM) == before  # the handler is restored
+
+
+def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
+    from agents.evaluate import evaluate_controller
+    from agents.operator import OperatorPolicy
+
+    plain = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=2, score=False)
+    timed = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=2, score=False, act_timeout=5.0)
+    assert plain == timed and plain["summary"]["completion_rate"] == 1.0
+    code, out, err = _run(capsys, "evaluate", "--help")
+    assert "--act-timeout" in out and "default: off" in " ".join(out.split())
+    for bad in ("-1", "nan", "0"):
+        code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--act-timeout", bad, "--no-score",
+                            "--out", tmp_path / "e.json")
+        assert code == 2 and "--act-timeout" in _one_error_line(err) and not (tmp_path / "e.json").exists()
+
+
+def test_user_classes_resolve_by_dotted_name(bad_module):
+    from agents.evaluate import load_controller
+
+    assert type(load_controller(f"{bad_module}:Outer.Inner", "tc")).__name__ == "Inner"
+    assert load_controller("agents.operator:OperatorPolicy", "tc").braking == "tc"
+    with pytest.raises(ValueError, match="defines no 'Nope'"):
+        load_controller(f"{bad_module}:Nope", "tc")
+    with pytest.raises(ValueError, match="cannot import no_such_module_xyz"):
+        load_controller("no_such_module_xyz:Driver", "tc")
+
+
+# ------------------------------------------------------------------------------------------ logging
+def test_warnings_of_the_agents_reach_the_cli_through_logging(tmp_path, capsys, caplog):
+    import logging
+
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--model", POLICIES / "ppo_tc", "--braking",
+                        "service", "--episodes", 1, "--no-score", "--out", tmp_path / "e.json")
+    assert code == 0 and "warning: the policy" in err and "trained with tc braking, evaluated with service" in err
+    record = next(r for r in caplog.records if "trained with tc braking" in r.getMessage())
+    assert record.name == "agents.evaluate" and record.levelno == logging.WARNING
