@@ -296,7 +296,7 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 def _check_spaces(network: Any, path: Path) -> None:
     """The policy must take WheelLoader-v1's observations (12,) and give its actions (4,)."""
-    from wl_env.episode import OBS_LOW
+    from wl_env.codec import OBS_LOW
 
     obs, act = network.observation_space.shape, network.action_space.shape
     if obs != OBS_LOW.shape or act != (4,):

@@ -215,10 +215,6 @@ class LoaderParams:
         d["T_ig_per_mg"] = self.eta_ig * self.q_hv * self.n_cyl * 1e-6 / (4.0 * math.pi)
         d["T_fric_scale"] = self.V_d * 1e5 / (4.0 * math.pi)
         d["fuel_per_mg_rad"] = 1e-6 * self.n_cyl / (4.0 * math.pi)
-        from wl_env.physics.torque_converter import polynomial_extension  # (physics imports params)
-
-        d["xi_ext"] = polynomial_extension(self.tc_xi_poly, self.tc_phi_hi)
-        d["kappa_ext"] = polynomial_extension(self.tc_kappa_poly, self.tc_phi_hi)
 
     # Read-only accessors for derived constants.
     @property

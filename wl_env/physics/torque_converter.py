@@ -7,6 +7,7 @@ linearly with its end value and slope (C1), so gradients stay continuous for the
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 from wl_env.physics.backend import ops_for
@@ -20,6 +21,7 @@ def speed_ratio(vehicle_speed: Any, engine_speed: Any, gear: Any, p: Any) -> Any
     return (vehicle_speed * (gear / p.r_w)) / engine_speed
 
 
+@functools.lru_cache(maxsize=64)  # a parameter set's constants: computed once, not per call
 def polynomial_extension(poly: tuple[float, ...], phi_hi: float) -> tuple[float, float, float, float]:
     """Value and slope of a polynomial at 0 and at phi_hi, for the linear continuations."""
     n = len(poly) - 1
@@ -37,7 +39,7 @@ def polynomial_extension(poly: tuple[float, ...], phi_hi: float) -> tuple[float,
 def characteristic(phi: Any, poly: tuple[float, ...], phi_hi: float, ext: tuple[float, float, float, float]) -> Any:
     """A TC characteristic curve (N m per krpm^2) with C1 linear continuation outside [0, phi_hi].
 
-    ``ext`` is ``polynomial_extension(poly, phi_hi)`` (the parameters precompute it).
+    ``ext`` is ``polynomial_extension(poly, phi_hi)`` (cached per parameter set).
     """
     ops = ops_for(phi)
     x = ops.clip(phi, 0.0, phi_hi)
@@ -59,18 +61,18 @@ def characteristics(phi: Any, p: Any) -> tuple[Any, Any]:
     for i in range(1, len(xs)):
         a = a * x + xs[i]
         b = b * x + ks[i]
-    xe, ke = p._derived["xi_ext"], p._derived["kappa_ext"]
+    xe, ke = polynomial_extension(p.tc_xi_poly, p.tc_phi_hi), polynomial_extension(p.tc_kappa_poly, p.tc_phi_hi)
     return a + xe[1] * below + xe[3] * above, b + ke[1] * below + ke[3] * above
 
 
 def xi(phi: Any, p: Any) -> Any:
     """Pump-torque characteristic xi(phi), N m/krpm^2."""
-    return characteristic(phi, p.tc_xi_poly, p.tc_phi_hi, p._derived["xi_ext"])
+    return characteristic(phi, p.tc_xi_poly, p.tc_phi_hi, polynomial_extension(p.tc_xi_poly, p.tc_phi_hi))
 
 
 def kappa(phi: Any, p: Any) -> Any:
     """Turbine-torque characteristic kappa(phi), N m/krpm^2."""
-    return characteristic(phi, p.tc_kappa_poly, p.tc_phi_hi, p._derived["kappa_ext"])
+    return characteristic(phi, p.tc_kappa_poly, p.tc_phi_hi, polynomial_extension(p.tc_kappa_poly, p.tc_phi_hi))
 
 
 def pump_torque(phi: Any, engine_speed: Any, p: Any) -> Any:
