@@ -17,6 +17,7 @@ from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
+from wl_env.step import OMEGA_FLOOR
 
 
 class OperatorPolicy:
@@ -54,6 +55,7 @@ class OperatorPolicy:
         p = self.params
         o = self.codec.decode_observation(obs)
         omega, V, H, V_b, to_go, phase = o.engine_speed, o.vehicle_speed, o.bucket_height, o.bucket_speed, o.distance_to_go, o.phase
+        omega = max(omega, OMEGA_FLOOR)  # (a stalled engine reads 0: the model divides by it)
         speed = abs(V)
         stop_dist = speed * speed / (2.0 * self.a_plan)
 

@@ -164,3 +164,46 @@ def test_bad_configuration_raises():
     venv.reset(seed=0)
     with pytest.raises(ValueError, match="finite"):
         venv.step(np.full((2, 4), math.nan, dtype=np.float32))
+
+
+def test_deceleration_between_step_starts_is_reported_and_scored():
+    """A TC-braking sequence that holds 0.18 g exactly at every step start while the converter's drag
+    rises within the steps: v0 of the environment checked substep starts only and saw nothing; v1
+    checks every RK4 stage and the step's end, reports the excess in info and charges it."""
+    from wl_env import step
+    from wl_env.params import DEFAULT_PARAMS as P
+
+    limit = P.decel_max * P.g
+    env = gym.make("WheelLoader-v1", braking="tc").unwrapped
+    free = gym.make("WheelLoader-v1", braking="tc", reward={"violation": 0.0}).unwrapped  # the same, uncharged
+    gear, d, _ = env.core.sim.phase_constants(2)
+
+    def start_decel(y):  # relative to the limit, at a substep start (what v0 checked)
+        return -d * step.rhs(y, (0.0, 0.0, 0.0), gear, d, P)[1] / limit
+
+    for e in (env, free):
+        e.reset(seed=0)
+    for _ in range(16):  # reverse at full throttle
+        for e in (env, free):
+            e.step(np.array([1.0, -1.0, -1.0, -1.0]))
+    riding = 0
+    for k in range(30):
+        y, phase = env._y, env._phase
+        shift = 1.0 if phase == 1 else -1.0
+        lo, hi = -1.0, 1.0  # the throttle that brings the next step's start to the limit, from below
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            r = env.core._step(y, phase, env._t, env._rev_err, env._violation, (mid, -1.0, -1.0, shift))
+            lo, hi = (mid, hi) if start_decel(r["y"]) < 0.9999 else (lo, mid)
+        a = np.array([lo, -1.0, -1.0, shift])
+        at_start = start_decel(y) if phase == 2 else 0.0
+        _, reward, term, trunc, info = env.step(a)
+        _, reward_free, *_ = free.step(a)
+        if info["phase"] != 2:
+            break
+        if k > 0 and at_start <= 1.0:  # held at every step start ...
+            assert info["violations"]["deceleration"] > 1e-3  # ... exceeded within the step, and said so
+            assert info["violations"]["excess"] >= info["violations"]["deceleration"]
+            assert reward < reward_free  # and charged
+            riding += 1
+    assert riding >= 3 and env._violation > 1e-3

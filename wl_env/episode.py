@@ -20,6 +20,7 @@ from wl_env.physics import torque_converter
 from wl_env.physics.backend import ops_for
 from wl_env.physics.flatten import config_key, flatten_cached
 from wl_env.simulator import Simulator
+from wl_env.step import OMEGA_FLOOR
 
 # Tolerances of the end targets (the project's acceptance figures: 5 cm in distance, 2 cm in height).
 DISTANCE_TOL = 0.05  # m
@@ -208,7 +209,7 @@ class CycleStepper:
         u_mf, u_ab, _, u_mf_torque, u_ab_pressure = u_first
         cmd_mf, cmd_ab = ops.clip(u_cmd[0], 0.0, p.U_mf_max), ops.clip(u_cmd[1], *p.U_ab_bounds)
         gear = sim.phase_constants(phase)[0]
-        phi = torque_converter.speed_ratio(y[1], y[0], gear, p)
+        phi = torque_converter.speed_ratio(y[1], ops.fmax(y[0], OMEGA_FLOOR), gear, p)  # (a stalled engine: 0)
         return {
             "y": y, "phase": phase, "t": t, "rev_err": rev_err, "violation": violation,
             "reward": reward, "terminated": terminated, "truncated": truncated,
