@@ -319,24 +319,16 @@ def evaluate_controller(
     kwargs = {**(env_kwargs or {}), "braking": braking}
     nominal_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": 0.0})
     perturbed_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
-    H_T = nominal_env.unwrapped.params.H_T
     records: list[dict[str, Any]] = []
     previous_alarm = signal.signal(signal.SIGALRM, _on_alarm) if act_timeout is not None else None
     try:
         for i in range(episodes):
             env = nominal_env if i == 0 else perturbed_env
-            ep = run_episode(env, guarded, seed=seed + i)
-            rec: dict[str, Any] = {
-                "episode": i, "seed": seed + i, "init_noise": 0.0 if i == 0 else float(init_noise),
-                "success": bool(ep["success"]), "completed": bool(ep["completed"]),
-                "truncated": bool(ep["truncated"]), "stalled": bool(ep["stalled"]),
-                "T": float(ep["T"]), "fuel_g": float(ep["fuel_g"]), "return": float(ep["return"]),
-                "reversing_error": None if ep["reversing_error"] is None else float(ep["reversing_error"]),
-                "end_error": float(ep["final_s"]), "height_error": float(ep["final_H"] - H_T),
-                "max_violation": float(ep["max_excess"]),
-                "time_gap": None, "fuel_gap": None, "fuel_opt_g": None,
-            }
-            if score and ep["completed"]:
+            ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories)
+            rec: dict[str, Any] = {"episode": i, "init_noise": 0.0 if i == 0 else float(init_noise),
+                                   **ep.to_dict(trajectory=trajectories),
+                                   "T_min": None, "time_gap": None, "fuel_opt_g": None, "fuel_gap": None}
+            if score and ep.completed:
                 if front is None:
                     from mpc.benchmark.pareto import pareto_front
 
@@ -345,11 +337,8 @@ def evaluate_controller(
                                          progress=lambda m: say("  [optimum] " + m))
                 from mpc.benchmark.scoring import score_run
 
-                s = score_run(rec["T"], rec["fuel_g"], braking, success=rec["success"],
-                              max_violation=rec["max_violation"], params=kwargs.get("params"), front=front, cache=cache)
-                rec.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap, fuel_opt_g=s.fuel_opt_g)
-            if trajectories:
-                rec.update(t=ep["t"], states=ep["states"], controls=ep["controls"], phase=ep["phase"])
+                s = score_run(ep.T, ep.fuel_g, braking, params=kwargs.get("params"), front=front, cache=cache)
+                rec.update(T_min=s.T_min, time_gap=s.time_gap, fuel_opt_g=s.fuel_opt_g, fuel_gap=s.fuel_gap)
             records.append(rec)
             say(_episode_line(rec))
     finally:

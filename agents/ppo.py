@@ -10,7 +10,8 @@
   the saved observation normalization), e.g. for :func:`agents.operator.run_episode`; from the
   pickle-free files of :mod:`agents.policy_files`, or a stable-baselines3 zip only with ``trust_pickle``.
 * :func:`export_policy` - a run's final policy shipped as pickle-free files with a fresh evaluation.
-* :func:`evaluate` - deterministic episodes in single environments, with the score against the optimum.
+* :func:`evaluate` - the training-time evaluation: deterministic episodes through the project's one
+  evaluation path (:func:`agents.evaluate.evaluate_controller`), as a row of the learning curve.
 
 Run directory layout (``<log_dir>/<run_name>/``)::
 
@@ -40,7 +41,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
-    "time_gap", "fuel_gap", "reversing_error", "end_error", "height_error", "max_violation",
+    "time_gap", "fuel_gap", "reversing_error_m", "final_position_error_m", "final_height_error_m", "max_violation",
     "success_rate", "completion_rate", "mean_return", "mean_T", "mean_fuel_g", "train_w_fuel", "train_w_time",
     "train_target_distance",
 )
@@ -305,87 +305,51 @@ def _check_spaces(network: Any, path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
-def rollout(act: Any, braking: str, n_episodes: int = 1, init_noise: float = 0.0, seed: int = 0,
-            env_kwargs: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """Run ``n_episodes`` single ``WheelLoader-v1`` episodes in lockstep (episode i seeded ``seed + i``)
-    with a batched ``act(obs_batch) -> actions``; returns per episode the final info's numbers."""
-    kwargs = dict(env_kwargs or {})
-    kwargs["braking"] = braking
-    envs = [gym.make("WheelLoader-v1", init_noise=init_noise, **kwargs) for _ in range(n_episodes)]
-    obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
-    returns = np.zeros(n_episodes)
-    results: list[dict[str, Any] | None] = [None] * n_episodes
-    active = list(range(n_episodes))
-    while active:
-        actions = np.asarray(act(obs[active]), dtype=np.float32).reshape(len(active), -1)
-        still = []
-        for a, i in zip(actions, active, strict=True):
-            o, r, term, trunc, info = envs[i].step(a)
-            obs[i] = o
-            returns[i] += r
-            if term or trunc:
-                results[i] = {
-                    "T": info["t"], "fuel_g": info["fuel_g"], "success": info["is_success"],
-                    "completed": info["completed"], "stalled": info["stalled"], "off_site": info["off_site"],
-                    "truncated": bool(trunc), "return": float(returns[i]),
-                    "reversing_error": info["reversing_error"], "end_error": info["s"],
-                    "height_error": info["state"][2] - envs[i].unwrapped.params.H_T,
-                    "max_violation": info["violations"]["max_excess"],
-                }
-            else:
-                still.append(i)
-        active = still
-    for env in envs:
-        env.close()
-    return results  # type: ignore[return-value]
+class _Deterministic:
+    """A batched ``act(obs) -> actions`` as a controller of the protocol (training-time evaluation)."""
 
+    def __init__(self, act: Any) -> None:
+        self._act = act
 
-def score(T: float, fuel_g: float, braking: str, front: Any = None) -> tuple[float, float]:
-    """(time gap, fuel gap) against the optimum by :func:`mpc.benchmark.scoring.score_run`, except that cycles slower
-    than the fuel-optimal one are compared with the minimum fuel: no OCP is solved on demand while training."""
-    from mpc.benchmark.pareto import pareto_front
-    from mpc.benchmark.scoring import score_run
-
-    front = front or pareto_front(braking)
-    if T >= front.T_fuel_opt:
-        return T / front.T_min - 1.0, fuel_g / front.fuel_min_g - 1.0
-    s = score_run(float(T), float(fuel_g), braking, front=front)
-    return s.time_gap, s.fuel_gap
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return np.asarray(self._act(np.asarray(obs, dtype=np.float32)[None]), dtype=np.float32).reshape(-1)
 
 
 def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 1.0, seed: int = 10_000,
              env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None) -> dict[str, Any]:
-    """Deterministic evaluation: the nominal start (init_noise 0, what the optimum is computed for) and
-    ``n_episodes`` perturbed starts. Gaps are relative (0.1 = 10 % above the optimum)."""
-    nominal = rollout(act, braking, 1, 0.0, seed, env_kwargs)[0]
-    out: dict[str, Any] = {
+    """Deterministic evaluation through the one evaluation path (:func:`agents.evaluate.evaluate_controller`):
+    the nominal start (init_noise 0, what the optimum is computed for) and ``n_episodes`` perturbed starts,
+    as one row of the learning curve (:data:`EVAL_FIELDS`): the nominal start's numbers and the perturbed
+    starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
+    from agents.evaluate import evaluate_controller
+
+    res = evaluate_controller(_Deterministic(act), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
+                              score=with_score, front=front, env_kwargs=env_kwargs, name="policy")
+    nominal = res["per_episode"][0]
+    perturbed = res["per_episode"][1:] or res["per_episode"]
+    done = [e for e in perturbed if e["completed"]]
+    scored = [e for e in done if e["time_gap"] is not None]
+
+    def nan(v: Any) -> float:
+        return math.nan if v is None else float(v)
+
+    out = {
         "nominal_success": float(nominal["success"]), "nominal_completed": float(nominal["completed"]),
-        "nominal_return": nominal["return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
-        "reversing_error": nominal["reversing_error"], "end_error": nominal["end_error"],
-        "height_error": nominal["height_error"], "max_violation": nominal["max_violation"],
-        "time_gap": math.nan, "fuel_gap": math.nan,
+        "nominal_return": nominal["episode_return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
+        "time_gap": nan(nominal["time_gap"]), "fuel_gap": nan(nominal["fuel_gap"]),
+        "reversing_error_m": nan(nominal["reversing_error_m"]), "final_position_error_m": nominal["final_position_error_m"],
+        "final_height_error_m": nominal["final_height_error_m"], "max_violation": nominal["max_violation"],
+        "success_rate": float(np.mean([e["success"] for e in perturbed])),
+        "completion_rate": len(done) / len(perturbed),
+        "mean_return": float(np.mean([e["episode_return"] for e in perturbed])),
+        "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
+        "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
     }
-    if with_score and nominal["completed"]:
-        try:
-            out["time_gap"], out["fuel_gap"] = score(nominal["T"], nominal["fuel_g"], braking, front)
-        except Exception as e:  # noqa: BLE001 - a missing optimum must not stop training
-            log.warning("no score (%s)", e)
-    if n_episodes > 0:
-        eps = rollout(act, braking, n_episodes, init_noise, seed, env_kwargs)
-        done = [e for e in eps if e["completed"]]
-        out.update({
-            "success_rate": float(np.mean([e["success"] for e in eps])),
-            "completion_rate": len(done) / len(eps),
-            "mean_return": float(np.mean([e["return"] for e in eps])),
-            "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
-            "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
-        })
-        if with_score and done and not math.isnan(out["time_gap"]):
-            gaps = [score(e["T"], e["fuel_g"], braking, front) for e in done]
-            out["mean_time_gap"] = float(np.mean([g[0] for g in gaps]))
-            out["mean_fuel_gap"] = float(np.mean([g[1] for g in gaps]))
-            out["max_time_gap"] = float(np.max([g[0] for g in gaps]))
-            out["max_fuel_gap"] = float(np.max([g[1] for g in gaps]))
+    if scored:
+        out.update(mean_time_gap=float(np.mean([e["time_gap"] for e in scored])),
+                   mean_fuel_gap=float(np.mean([e["fuel_gap"] for e in scored])),
+                   max_time_gap=float(np.max([e["time_gap"] for e in scored])),
+                   max_fuel_gap=float(np.max([e["fuel_gap"] for e in scored])))
     return out
 
 
@@ -533,7 +497,8 @@ def _eval_line(row: dict[str, Any]) -> str:
 
     return (f"[eval] step {row['step']:>9d}  success {f('success_rate', '.2f')} (nominal {f('nominal_success', '.0f')})"
             f"  T {f('T', '.2f')} s  fuel {f('fuel_g', '.1f')} g  gaps {f('time_gap', '+.3f')}/{f('fuel_gap', '+.3f')}"
-            f"  errors rev {f('reversing_error', '+.3f')} end {f('end_error', '+.3f')} H {f('height_error', '+.3f')}"
+            f"  errors rev {f('reversing_error_m', '+.3f')} end {f('final_position_error_m', '+.3f')} "
+            f"H {f('final_height_error_m', '+.3f')}"
             f"  return {f('nominal_return', '.3f')}")
 
 

@@ -117,11 +117,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"warning: no Pareto front ({e})", file=sys.stderr)
     rows = read_eval_csv(csv_path)
     if front is not None:  # score the rows logged while no front was at hand
-        from agents.ppo import score
+        from mpc.benchmark.scoring import score_run
 
         for r in rows:
             if math.isnan(r.get("time_gap", math.nan)) and r.get("nominal_completed") == 1.0:
-                r["time_gap"], r["fuel_gap"] = score(r["T"], r["fuel_g"], braking, front)
+                s = score_run(r["T"], r["fuel_g"], braking, front=front)
+                r["time_gap"], r["fuel_gap"] = s.time_gap, s.fuel_gap
     title = args.title or f"PPO, {braking} braking: deterministic evaluations during training"
     print(plot(rows, braking, title, Path(args.out), front))
     return 0

@@ -236,9 +236,9 @@ def test_shipped_policy_completes_the_cycle(braking):
     policy = load_policy(path)
     env = gym.make("WheelLoader-v1", braking=braking)
     result = run_episode(env, policy)
-    assert result["completed"], result
+    assert result.completed, result
     env = gym.make("WheelLoader-v1", braking=braking, init_noise=1.0)
-    assert run_episode(env, policy, seed=123)["completed"]
+    assert run_episode(env, policy, seed=123).completed
 
 
 @pytest.mark.parametrize("braking", ["service", "tc"])

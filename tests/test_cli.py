@@ -85,8 +85,7 @@ def test_evaluate_operator_nominal_then_perturbed_and_scored(tmp_path, cache, ca
     for e, noise in zip(eps, (0.0, 1.0), strict=True):
         ref = run_episode(gym.make("WheelLoader-v1", braking="service", init_noise=noise), OperatorPolicy("service"),
                           seed=e["seed"])
-        assert (e["T"], e["fuel_g"], e["completed"], e["success"]) == (ref["T"], ref["fuel_g"], ref["completed"],
-                                                                      ref["success"])
+        assert (e["T"], e["fuel_g"], e["completed"], e["success"]) == (ref.T, ref.fuel_g, ref.completed, ref.success)
     assert eps[0]["fuel_g"] != eps[1]["fuel_g"]  # the perturbation was applied
     assert all(e["completed"] for e in eps)
     _check_scores(eps, "service")
@@ -159,8 +158,8 @@ def test_evaluate_user_controller_from_a_file(tmp_path, cache, capsys):
     ctrl = load_controller(f"{module}:GentleDriver", "tc")
     ref = run_episode(gym.make("WheelLoader-v1", braking="tc"), ctrl, seed=0)
     op = run_episode(gym.make("WheelLoader-v1", braking="tc"), OperatorPolicy("tc"), seed=0)
-    assert (eps[0]["T"], eps[0]["fuel_g"]) == (ref["T"], ref["fuel_g"])
-    assert eps[0]["T"] > op["T"] and eps[0]["fuel_g"] != op["fuel_g"]
+    assert (eps[0]["T"], eps[0]["fuel_g"]) == (ref.T, ref.fuel_g)
+    assert eps[0]["T"] > op.T and eps[0]["fuel_g"] != op.fuel_g
     _check_scores([e for e in eps if e["completed"]], "tc")
     # a class without a braking argument is made without arguments (and needs no reset); modules import by name
     plain = load_controller(f"{module}:NoBraking", "tc")

@@ -94,10 +94,10 @@ def test_operator_completes_the_cycle(braking):
     env = gym.make("WheelLoader-v1", braking=braking)
     r = run_episode(env, OperatorPolicy(braking), seed=0)
     # the end targets met (5 cm, 2 cm) within the driver's limits: a baseline, not a rule-breaker
-    assert r["completed"] and r["success"] and not r["stalled"]
-    assert abs(r["final_H"] - 5.0) < 0.02 and r["max_excess"] == 0.0
+    assert r.completed and r.success and not r.stalled
+    assert abs(r.final_height_error_m) < 0.02 and r.max_violation == 0.0
     env = gym.make("WheelLoader-v1", braking=braking, init_noise=1.0)
-    assert all(run_episode(env, OperatorPolicy(braking), seed=s)["success"] for s in (1, 2, 3))
+    assert all(run_episode(env, OperatorPolicy(braking), seed=s).success for s in (1, 2, 3))
 
 
 def test_info_reports_limits_each_step():

@@ -80,25 +80,25 @@ def closed_loop(braking, mode, **kw):
                                            ("tc", "target_time")])
 def test_closed_loop_cycle_near_the_optimum(braking, mode):
     r, ctrl = closed_loop(braking, mode)
-    assert r["completed"] and r["success"]
-    assert abs(r["reversing_error_m"]) <= 0.05 and abs(r["final_position_error_m"]) <= 0.05
-    assert abs(r["final_height_error_m"]) <= 0.02
-    assert r["max_violation"] == 0.0  # deceleration and speed limits held at every step
-    assert (np.asarray(r["states"])[:, 0] > P.omega_min).all()
-    assert ctrl.fallbacks == 0 and r["solve_time"]["median_s"] < 0.1  # faster than the control interval
+    assert r.episode.completed and r.episode.success
+    assert abs(r.episode.reversing_error_m) <= 0.05 and abs(r.episode.final_position_error_m) <= 0.05
+    assert abs(r.episode.final_height_error_m) <= 0.02
+    assert r.episode.max_violation == 0.0  # deceleration and speed limits held at every step
+    assert (np.asarray(r.episode.trajectory.states)[:, 0] > P.omega_min).all()
+    assert ctrl.fallbacks == 0 and r.solve_time["median_s"] < 0.1  # faster than the control interval
     if mode == "time":  # measured +0.4 % (service), +0.3 % (tc); the environment ends on its 0.1 s grid
-        assert r["T"] <= 1.02 * solve_ocp(braking, "time", verify=False).T
+        assert r.episode.T <= 1.02 * solve_ocp(braking, "time", verify=False).T
     else:  # on time, and within 3 % of the least fuel of any cycle that long (measured +0.1 %, -0.03 %)
-        assert r["T"] <= 11.0 + 1e-9
-        assert r["fuel_g"] <= 1.03 * solve_ocp(braking, "fuel_at_time", T=r["T"], verify=False).fuel_g
+        assert r.episode.T <= 11.0 + 1e-9
+        assert r.episode.fuel_g <= 1.03 * solve_ocp(braking, "fuel_at_time", T=r.episode.T, verify=False).fuel_g
 
 
 def test_weighted_mode_trades_fuel_for_time():
     """w_fuel = 0.5 weighs 1 g against 0.1 s x 0.5: the cycle lands between the fastest and a slow one."""
     r, _ = closed_loop("service", "weighted", w_fuel=0.5)
-    assert r["success"] and r["max_violation"] == 0.0
-    assert 8.5 <= r["T"] <= 10.5  # measured 9.0 s, 67.0 g (min time 8.2 s / 85.5 g; 11 s: 54.7 g)
-    assert r["fuel_g"] <= 1.03 * solve_ocp("service", "fuel_at_time", T=r["T"], verify=False).fuel_g
+    assert r.episode.success and r.episode.max_violation == 0.0
+    assert 8.5 <= r.episode.T <= 10.5  # measured 9.0 s, 67.0 g (min time 8.2 s / 85.5 g; 11 s: 54.7 g)
+    assert r.episode.fuel_g <= 1.03 * solve_ocp("service", "fuel_at_time", T=r.episode.T, verify=False).fuel_g
 
 
 def test_plans_predict_the_plant_step_by_step():
@@ -127,7 +127,7 @@ def test_tc_braking_holds_the_deceleration_limit_within_the_steps():
     exceeded the limit by 22 % in between. The environment checks every RK4 stage and the step's end,
     and so does the plan."""
     r, _ = closed_loop("tc", "time")
-    assert r["max_violation"] == 0.0
+    assert r.episode.max_violation == 0.0
 
 
 class FailingSolver(IpoptSolver):
@@ -179,9 +179,9 @@ def test_model_mismatch_case_completes(braking, payload, rolling):
     plant = P.variant(payload_scale=payload, rolling_scale=rolling)
     ctrl = MPCController(braking)  # the nominal model
     r = run_closed_loop(braking, MPCConfig(mode="time"), plant_params=plant, score=False, controller=ctrl)
-    assert r["completed"] and r["success"]
-    assert abs(r["reversing_error_m"]) <= 0.05
-    assert r["max_violation"] == 0.0
+    assert r.episode.completed and r.episode.success
+    assert abs(r.episode.reversing_error_m) <= 0.05
+    assert r.episode.max_violation == 0.0
     # the estimates: gain = model mass / plant mass, offset = the rolling-resistance error (m/s^2),
     # lift gain = plant payload / model payload
     gain, offset = ctrl.estimator.theta

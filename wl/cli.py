@@ -93,13 +93,14 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
         plant = resolve(_params_from(args)).variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
     _progress(f"MPC ({config.mode}) driving the {args.braking} cycle ...")
-    r = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant, score=not args.no_score)
+    result = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant, score=not args.no_score)
+    r = result.to_dict()
     write_json_atomic(args.out, r)
     st = r["solve_time"]
     line = (f"{args.braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
             f"solve time median {1e3 * st['median_s']:.1f} ms, p95 {1e3 * st['p95_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
             f"{st['fallbacks']} fallbacks")
-    if "score" in r:
+    if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
     print(line + f" -> {args.out}")
     return 0 if r["completed"] else 1

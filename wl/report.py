@@ -84,7 +84,8 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
             rows.append({"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"],
                          "time_gap": ep["time_gap"], "fuel_gap": ep["fuel_gap"], "max_violation": ep["max_violation"],
                          "success": ep["success"], "completed": ep["completed"]})
-            trajectories.append({"controller": name, "braking": b, "t": ep["t"], "states": ep["states"]})
+            traj = ep["trajectory"]
+            trajectories.append({"controller": name, "braking": b, "t": traj["t"], "states": traj["states"]})
     results = {"format": RESULTS_FORMAT, "brakings": list(brakings), "rows": rows, "fronts": fronts,
                "optima": optima, "trajectories": trajectories, "wall_time_s": time.perf_counter() - t_start}
     write_json_atomic(out / RESULTS_FILE, results)

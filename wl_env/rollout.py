@@ -1,30 +1,78 @@
-"""Run a controller (anything with ``act(obs)``, optionally ``reset()``) through one episode."""
+"""Run a controller (anything with ``act(obs)``, optionally ``reset()``) through one episode.
+
+The one rollout of the project: ``wl evaluate``, the training-time evaluation, the MPC's closed loop and
+the report all run episodes here and get an :class:`EpisodeResult`.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict, dataclass
 from typing import Any
 
 
-def run_episode(env: Any, policy: Any, seed: int | None = None) -> dict[str, Any]:
-    """Roll one episode; returns time, fuel, success and the trajectory (t, states, controls, phase)."""
+@dataclass(frozen=True)
+class Trajectory:
+    """An episode's samples: times (s), states [omega, V, H, V_b] after each step (the start first), the
+    applied controls [U_mf, U_ab, U_b] of each step, and the phase after each step (the start first)."""
+
+    t: list[float]
+    states: list[list[float]]
+    controls: list[list[float]]
+    phase: list[int]
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """How one episode ended. Errors are signed, in m; ``max_violation`` is the largest relative excess
+    over the driver's limits (0.01 = 1 % over); ``T`` is the cycle time if it completed, else the time
+    it ran."""
+
+    seed: int | None
+    T: float
+    fuel_g: float
+    success: bool
+    completed: bool
+    truncated: bool
+    stalled: bool
+    off_site: bool
+    episode_return: float
+    reversing_error_m: float | None  # None: the reversing point was never reached
+    final_position_error_m: float
+    final_height_error_m: float
+    max_violation: float
+    trajectory: Trajectory | None = None
+
+    def to_dict(self, trajectory: bool = True) -> dict[str, Any]:
+        d = asdict(self)
+        if not trajectory:
+            d.pop("trajectory")
+        return d
+
+
+def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: bool = True) -> EpisodeResult:
+    """Roll one episode of ``env`` (a ``WheelLoader`` env) under ``controller`` from ``reset(seed=seed)``."""
     obs, info = env.reset(seed=seed)
-    if hasattr(policy, "reset"):
-        policy.reset()
-    ts, states, controls, phases = [0.0], [list(env.unwrapped.state)], [], [1]
-    total, info = 0.0, {}
-    while True:
-        obs, r, term, trunc, info = env.step(policy.act(obs))
-        total += r
-        ts.append(info["t"])
-        states.append(list(info["state"]))
-        controls.append(list(info["controls"]))
-        phases.append(info["phase"])
-        if term or trunc:
-            break
-    return {
-        "T": info["t"], "fuel_g": info["fuel_g"], "success": info["is_success"], "completed": info["completed"],
-        "return": total, "reversing_error": info["reversing_error"], "final_s": info["s"],
-        "final_H": info["state"][2], "max_excess": info["violations"]["max_excess"],
-        "t": ts, "states": states, "controls": controls, "phase": phases, "truncated": bool(trunc),
-        "stalled": info["stalled"], "terminated": bool(term)
-    }
+    if hasattr(controller, "reset"):
+        controller.reset()
+    unwrapped = env.unwrapped
+    ts, states, controls, phases = [0.0], [list(map(float, unwrapped.state))], [], [int(unwrapped.phase)]
+    total, term, trunc = 0.0, False, False
+    while not (term or trunc):
+        obs, r, term, trunc, info = env.step(controller.act(obs))
+        total += float(r)
+        if trajectory:
+            ts.append(float(info["t"]))
+            states.append([float(v) for v in info["state"]])
+            controls.append([float(v) for v in info["controls"]])
+            phases.append(int(info["phase"]))
+    rev = info["reversing_error"]
+    return EpisodeResult(
+        seed=seed, T=float(info["t"]), fuel_g=float(info["fuel_g"]), success=bool(info["is_success"]),
+        completed=bool(info["completed"]), truncated=bool(trunc), stalled=bool(info["stalled"]),
+        off_site=bool(info["off_site"]), episode_return=total,
+        reversing_error_m=None if rev is None or math.isnan(rev) else float(rev),
+        final_position_error_m=float(info["s"]), final_height_error_m=float(info["state"][2] - unwrapped.params.H_T),
+        max_violation=float(info["violations"]["max_excess"]),
+        trajectory=Trajectory(ts, states, controls, phases) if trajectory else None,
+    )

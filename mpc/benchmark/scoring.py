@@ -15,9 +15,10 @@ from mpc.benchmark.pareto import ParetoFront, optimal_fuel_at, pareto_front
 from wl_env.params import LoaderParams
 
 
-@dataclass
+@dataclass(frozen=True)
 class Score:
-    """A cycle's gaps to the optimum. Gaps are relative: 0.05 = 5 % more than the optimum."""
+    """A cycle's gaps to the optimum: its time T (s) against the minimum cycle time T_min, its fuel
+    against the minimum fuel at the same cycle time, fuel_opt_g. Gaps are relative: 0.05 = 5 % above."""
 
     braking: str
     T: float
@@ -26,9 +27,6 @@ class Score:
     time_gap: float
     fuel_opt_g: float
     fuel_gap: float
-    success: bool
-    max_violation: float
-    terminal_errors: dict[str, float]
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -38,14 +36,12 @@ def score_run(
     T: float,
     fuel_g: float,
     braking: str,
-    success: bool = True,
-    max_violation: float = 0.0,
-    terminal_errors: dict[str, float] | None = None,
     params: LoaderParams | dict | None = None,
     front: ParetoFront | None = None,
     cache: str | os.PathLike | None = None,
 ) -> Score:
-    """Score one cycle (its time T in s and fuel in g, as run in the environment)."""
+    """Score one cycle (its time T in s and fuel in g, as run in the environment): the one scoring of the
+    project, for every controller and every evaluation."""
     for name, v in (("T", T), ("fuel_g", fuel_g)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -55,8 +51,5 @@ def score_run(
         fuel_opt = front.fuel_g[0]
     else:
         fuel_opt = optimal_fuel_at(T, braking, params=params, cache=cache, front=front)
-    return Score(
-        braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=front.T_min, time_gap=T / front.T_min - 1.0,
-        fuel_opt_g=float(fuel_opt), fuel_gap=fuel_g / fuel_opt - 1.0, success=bool(success),
-        max_violation=float(max_violation), terminal_errors=dict(terminal_errors or {}),
-    )
+    return Score(braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=front.T_min, time_gap=T / front.T_min - 1.0,
+                 fuel_opt_g=float(fuel_opt), fuel_gap=fuel_g / fuel_opt - 1.0)

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,6 +41,10 @@ from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import lift
+from wl_env.rollout import EpisodeResult
+
+if TYPE_CHECKING:
+    from mpc.benchmark.scoring import Score
 
 # g: the least predicted improvement worth a solve, when the first step plans the cycle and during it
 # (a schedule move takes 10-30 iterations, 0.2-0.5 s: during the cycle only for a clear gain)
@@ -428,14 +432,39 @@ class MPCController:
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks), "planning_s": float(self.planning_time)}
 
 
+@dataclass(frozen=True)
+class ClosedLoopResult:
+    """One cycle of the environment under the MPC: the episode, its score against the plant's own
+    optimum (None if not scored or not completed), and the controller's solve times."""
+
+    braking: str
+    config: MPCConfig
+    episode: EpisodeResult
+    score: Score | None
+    solve_time: dict[str, float]  # MPCController.stats()
+    solve_times_s: list[float]
+    plant_params: dict[str, Any] | None  # the simulated machine where it differs from the model
+
+    def to_dict(self) -> dict[str, Any]:
+        """As written to JSON: the episode's fields at the top level (with its trajectory's t, states,
+        controls and phase), beside the controller's."""
+        ep = self.episode.to_dict(trajectory=False)
+        traj = asdict(self.episode.trajectory) if self.episode.trajectory is not None else {}
+        return {"controller": "mpc", "braking": self.braking, "mode": self.config.mode,
+                "target_time": self.config.target_time, **ep, **traj,
+                "score": self.score.to_dict() if self.score is not None else None,
+                "solve_time": self.solve_time, "solve_times_s": self.solve_times_s, "plant_params": self.plant_params}
+
+
 def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
-                    score: bool = True, seed: int = 0, controller: MPCController | None = None) -> dict[str, Any]:
-    """One cycle of ``WheelLoader-v1`` under the MPC; returns the trajectory, the result and its score.
+                    score: bool = True, seed: int = 0, controller: MPCController | None = None,
+                    cache: str | None = None) -> ClosedLoopResult:
+    """One cycle of ``WheelLoader-v1`` under the MPC, scored against the plant's optimum.
 
     ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
-    they differ in a model-mismatch study. ``controller`` (default: built from ``config``) lets a caller
-    inspect the controller afterwards.
+    they differ in a model-mismatch study, and the score is the plant's (its own Pareto front).
+    ``controller`` (default: built from ``config``) lets a caller inspect the controller afterwards.
     """
     import gymnasium as gym
 
@@ -449,19 +478,10 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps)
     ep = run_episode(env, ctrl, seed=seed)
-    result = {
-        "controller": "mpc", "braking": braking, "mode": config.mode, "target_time": config.target_time,
-        "T": ep["T"], "fuel_g": ep["fuel_g"], "success": ep["success"], "completed": ep["completed"],
-        "reversing_error_m": ep["reversing_error"], "final_position_error_m": ep["final_s"],
-        "final_height_error_m": ep["final_H"] - plant.H_T, "max_violation": ep["max_excess"],
-        "t": ep["t"], "states": ep["states"], "controls": ep["controls"], "phase": ep["phase"],
-        "solve_time": ctrl.stats(), "solve_times_s": list(ctrl.solve_times),
-        "plant_params": plant.to_dict() if plant is not model else None,
-    }
-    if score and ep["completed"]:
+    s = None
+    if score and ep.completed:
         from mpc.benchmark.scoring import score_run
 
-        s = score_run(ep["T"], ep["fuel_g"], braking, success=ep["success"], max_violation=ep["max_excess"],
-                      params=model)
-        result["score"] = s.to_dict()
-    return result
+        s = score_run(ep.T, ep.fuel_g, braking, params=plant, cache=cache)
+    return ClosedLoopResult(braking=braking, config=config, episode=ep, score=s, solve_time=ctrl.stats(),
+                            solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None)
