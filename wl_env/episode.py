@@ -18,7 +18,7 @@ from wl_env.codec import Codec
 from wl_env.params import LoaderParams
 from wl_env.physics import torque_converter
 from wl_env.physics.backend import ops_for
-from wl_env.physics.flatten import config_key, flatten_cached
+from wl_env.physics.flatten import Flattened, config_key, flatten_cached
 from wl_env.simulator import Simulator
 from wl_env.step import OMEGA_FLOOR
 
@@ -65,7 +65,7 @@ class RewardConfig:
                 raise ValueError(f"RewardConfig.{name} must be > 0, got {getattr(self, name)!r}")
 
 
-class CycleStepper:
+class CycleStepper(Flattened):
     """Advances loaders by one control interval of the cycle. State (floats or arrays of shape (N,)):
 
     ``y = (omega, V, H, V_b, s, m_f)``, ``phase`` (1..4), ``t`` (s), ``rev_err`` (signed error of the
@@ -128,15 +128,6 @@ class CycleStepper:
             if r is not None:
                 return r
         return self._step(y, phase, t, rev_err, violation, action)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        # The flattened step bakes in the configuration: assigning any attribute (e.g. a reward
-        # curriculum replacing ``reward``) discards it.
-        object.__setattr__(self, name, value)
-        object.__setattr__(self, "_flat", None)
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_flat": None}  # generated code is rebuilt after unpickling, not pickled
 
     def _flatten_step(self) -> tuple[Any, Any, Any]:
         inputs = (("y", 6), "phase", "t", "rev_err", "violation", ("action", 4))

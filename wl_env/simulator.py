@@ -21,11 +21,11 @@ import numpy as np
 from wl_env import cycle, limits, step
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics.backend import ops_for
-from wl_env.physics.flatten import Sym, config_key, flatten_cached, take
+from wl_env.physics.flatten import Flattened, Sym, config_key, flatten_cached, take
 from wl_env.step import State
 
 
-class Simulator:
+class Simulator(Flattened):
     """Integrates one loader (floats) or a batch (numpy arrays) with the cycle's phase logic."""
 
     def __init__(self, params: LoaderParams | dict | None = None, braking: str = "service") -> None:
@@ -34,14 +34,6 @@ class Simulator:
         gear, direction, brake = cycle.phase_tables(braking, self.params)
         self._tables_np = (gear, direction, brake)
         self._tables_py = (tuple(gear.tolist()), tuple(direction.tolist()), tuple(brake.tolist()))
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        # The flattened code bakes in the attributes' values: assigning any one discards it.
-        object.__setattr__(self, name, value)
-        object.__setattr__(self, "_flat", None)
-
-    def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_flat": None}  # generated code is rebuilt after unpickling, not pickled
 
     def _flattened(self) -> tuple[Any, Any, Any]:
         """``_controls``, ``_advance`` and ``_cut`` flattened to straight-line float code (see ``physics.flatten``): on

@@ -190,6 +190,21 @@ def _isnan(x: Any) -> Any:
 Sym.OPS = type(FLOAT_OPS)(name="trace", sqrt=_sqrt, fmin=_fmin, fmax=_fmax, where=_where, clip=_clip, isnan=_isnan)
 
 
+class Flattened:
+    """Base of objects that keep flattened code of their own methods in ``_flat``: the code bakes in the
+    attributes' values, so assigning any attribute (e.g. a reward curriculum replacing ``reward``)
+    discards it, and it is rebuilt after unpickling rather than pickled."""
+
+    _flat: Any = None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+        object.__setattr__(self, "_flat", None)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_flat": None}
+
+
 def config_key(obj: Any) -> str:
     """A key for everything an object's traced methods can read: its type and, recursively, the values of
     its attributes (``_flat``, the generated code itself, apart). Derived, not listed by hand, so an
