@@ -2,7 +2,10 @@
 
 Every field of :class:`agents.ppo_config.PPOConfig` is a flag of the same name (``--total-timesteps``,
 ``--reward KEY=VALUE ...``), generated from the dataclass so that a new option needs no parser code.
-Building the parser does not import torch; :func:`run_train` does.
+Building the parser does not import torch; :func:`run_train` does. (Kept instead of tyro: the flags are
+``wl train`` subcommand flags of the project's argparse CLI, and ``--reward KEY=VALUE`` and a bare
+``--curriculum-start`` (curriculum off), which users' commands and the shipped policies' recorded
+commands spell, have no tyro spelling.)
 """
 
 from __future__ import annotations
