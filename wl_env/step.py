@@ -103,9 +103,9 @@ def rhs(y: State, u: Any, gear: Any, d: Any, p: LoaderParams, est: Any = None, h
     ops = ops_for(y[0])
     omega = ops.fmax(y[0], OMEGA_FLOOR)
     u_mf, u_ab, v_b = u[0], u[1], y[3]
-    if saturate:
-        u_mf = ops.fmin(u_mf, engine.max_fuel_injection(omega, p))
-        u_ab_pressure, v_lift_max = lift.lift_limits(y[2], omega, p)
+    if saturate:  # (at y[0] itself, as effective_controls: the first stage shares its arithmetic)
+        u_mf = ops.fmin(u_mf, engine.max_fuel_injection(y[0], p))
+        u_ab_pressure, v_lift_max = lift.lift_limits(y[2], y[0], p)
         u_ab = ops.fmin(u_ab, u_ab_pressure)
         v_b = ops.fmin(v_b, v_lift_max)
     x = (omega, y[1], y[2], v_b)
@@ -139,7 +139,7 @@ def rk4(y: State, u: Any, gear: Any, d: Any, h: Any, p: LoaderParams, est: Any =
     h6 = h / 6.0
     out = [y[i] + h6 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i]) for i in range(6)]
     if saturate:  # the bucket ends the step no faster than the pump delivers there
-        out[3] = ops.fmin(out[3], lift.max_lift_speed(out[2], ops.fmax(out[0], OMEGA_FLOOR), p))
+        out[3] = ops.fmin(out[3], lift.lift_limits(out[2], out[0], p)[1])
     if not is_symbolic(out[3]):  # V_b lands on 0 exactly when the bucket stops (rounding; a plan bounds it)
         out[3] = ops.fmax(out[3], 0.0)
     return tuple(out), [(y, k1), (y2, k2), (y3, k3), (y4, k4)], held  # type: ignore[return-value]
