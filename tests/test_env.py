@@ -207,3 +207,32 @@ def test_deceleration_between_step_starts_is_reported_and_scored():
             assert reward < reward_free  # and charged
             riding += 1
     assert riding >= 3 and env._violation > 1e-3
+
+
+def test_step_after_the_end_raises_until_reset():
+    env = gym.make("WheelLoader-v1", braking="service").unwrapped
+    env.reset(seed=0)
+    for _ in range(1000):
+        *_, term, trunc, _ = env.step(np.array([1.0, 0.0, -1.0, 1.0], np.float32))  # shifts at once: done soon
+        if term or trunc:
+            break
+    assert term or trunc
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(env.action_space.sample())  # no more physics, no second failure penalty
+    env.reset(seed=1)
+    env.step(env.action_space.sample())
+
+
+def test_a_stalled_engine_stops_at_zero_and_ends_the_episode():
+    """Payload x3 with no fuel: the engine stalls; its speed is clamped at 0 (it does not turn backwards)
+    and the episode ends as a failure with a finite observation."""
+    from wl_env.params import DEFAULT_PARAMS as P
+
+    env = gym.make("WheelLoader-v1", braking="service", params=P.variant(payload_scale=3.0)).unwrapped
+    obs, _ = env.reset(seed=0)
+    for _ in range(400):
+        obs, r, term, trunc, info = env.step(np.array([-1.0, 1.0, -1.0, -1.0], np.float32))  # lift, no fuel
+        assert env.state[0] >= 0.0 and np.isfinite(obs).all() and obs[0] >= 0.0
+        if term or trunc:
+            break
+    assert term and info["stalled"] and not info["is_success"]
