@@ -79,10 +79,9 @@ def saturation_residuals(y: State, u: Any, omega_rate: Any, h: Any, p: LoaderPar
     rows = {
         "torque": limits.torque(omega, u[0], p),
         "governor": [(omega + h * omega_rate) / p.omega_max - 1.0],
-        "pump_flow": [v_end / v for v in lift.max_lift_speed_pieces(H, omega, p)],
+        "pump_flow": limits.lift_speed(H, omega, v_end, p),  # the speed it ends with, at the start's pump
         "relief_pressure": limits.cylinder_pressure(H, u[1], p),
     }
-    rows["pump_flow"] = [r - 1.0 for r in rows["pump_flow"]]
     if end_stop:
         h_stop = lift.max_bucket_height(p)
         rows["end_stop"] = [(H + h * v_end) / h_stop - 1.0]
