@@ -148,6 +148,16 @@ def _modes_text(m: dict) -> str:
     return ", ".join(parts)
 
 
+def _sign_note(d: float, key: str, tol: float, opposite: str, why: str) -> str:
+    """The note of a statement with a sign: ``opposite`` if d <= 0, "close" within ``tol`` of the paper's
+    ``PAPER[key]``, else larger or smaller followed by ``why``."""
+    if d <= 0:
+        return opposite
+    if abs(d - PAPER[key]) < tol:
+        return "Same sign and close to the paper."
+    return f"Same sign, {'larger' if d > PAPER[key] else 'smaller'}{why}"
+
+
 def statement_rows(res: dict) -> list[dict[str, Any]]:
     """One row per statement: the paper's claim and number, ours, and a sentence where they differ."""
     S, C = res["summary"]["service"], res["summary"]["tc"]
@@ -157,21 +167,18 @@ def statement_rows(res: dict) -> list[dict[str, Any]]:
 
     # 1: cycle time penalty of TC braking, time-optimal
     d = res["dT_time_pct"]
-    if d <= 0:
-        note = "Opposite sign: TC braking is not slower in our model."
-    elif abs(d - PAPER["dT_time_pct"]) < 0.5:
-        note = "Same sign and close to the paper."
-    else:
-        note = (f"Same sign, {'larger' if d > PAPER['dT_time_pct'] else 'smaller'}. Our TC optimum starts braking "
-                f"already at the end of phase 1 (fuel cut, engine {fc['engine_speed_end_phase1_rpm']:.0f} rpm at t1, "
-                f"converter in mode III), reverses at a lower peak speed ({fc['peak_reversing_speed_mps']:.2f} vs "
-                f"{fs['peak_reversing_speed_mps']:.2f} m/s) and spends up to {fc['max_P_trac_phase2_kW']:.0f} kW of "
-                f"engine power on braking in phase 2, so it lifts less before the reversing point "
-                f"({fc['H_at_reversing_point_m']:.2f} vs {fs['H_at_reversing_point_m']:.2f} m): both legs get longer "
-                f"(reversing {fc['reversing_leg_s']:.2f} vs {fs['reversing_leg_s']:.2f} s, forwarding "
-                f"{fc['forwarding_leg_s']:.2f} vs {fs['forwarding_leg_s']:.2f} s). How much depends on ξ and κ "
-                f"outside 0 ≤ φ ≤ 1.5 (continued linearly by the spec) and on the digitized torque lines, so the "
-                f"size differs from the paper's.")
+    note = _sign_note(
+        d, "dT_time_pct", 0.5, "Opposite sign: TC braking is not slower in our model.",
+        f". Our TC optimum starts braking "
+        f"already at the end of phase 1 (fuel cut, engine {fc['engine_speed_end_phase1_rpm']:.0f} rpm at t1, "
+        f"converter in mode III), reverses at a lower peak speed ({fc['peak_reversing_speed_mps']:.2f} vs "
+        f"{fs['peak_reversing_speed_mps']:.2f} m/s) and spends up to {fc['max_P_trac_phase2_kW']:.0f} kW of "
+        f"engine power on braking in phase 2, so it lifts less before the reversing point "
+        f"({fc['H_at_reversing_point_m']:.2f} vs {fs['H_at_reversing_point_m']:.2f} m): both legs get longer "
+        f"(reversing {fc['reversing_leg_s']:.2f} vs {fs['reversing_leg_s']:.2f} s, forwarding "
+        f"{fc['forwarding_leg_s']:.2f} vs {fs['forwarding_leg_s']:.2f} s). How much depends on ξ and κ "
+        f"outside 0 ≤ φ ≤ 1.5 (continued linearly by the spec) and on the digitized torque lines, so the "
+        f"size differs from the paper's.")
     rows.append({"id": "dT_time", "statement": "TC braking lengthens the time-optimal cycle by 1.58 %",
                  "paper": fmt_pct(PAPER["dT_time_pct"]),
                  "ours": f"{fmt_pct(d)} ({S['T_min_s']:.3f} → {C['T_min_s']:.3f} s)", "value": d, "note": note})
@@ -179,15 +186,12 @@ def statement_rows(res: dict) -> list[dict[str, Any]]:
     # 2: cycle time penalty of TC braking, fuel-optimal
     d = res["dT_fuel_pct"]
     rel = 100.0 * S["front_end_slope_g_per_s"] * (PAPER["dT_fuel_pct"] / 100.0) * S["T_fuel_opt_s"] / S["fuel_min_g"]
-    if d <= 0:
-        note = "Opposite sign: the TC fuel-optimal cycle is not longer in our model."
-    elif abs(d - PAPER["dT_fuel_pct"]) < 0.5:
-        note = "Same sign and close to the paper."
-    else:
-        note = (f"Same sign, {'larger' if d > PAPER['dT_fuel_pct'] else 'smaller'}. The fuel minimum is very flat "
-                f"(near it our front falls by only {S['front_end_slope_g_per_s']:.2f} g/s, so 2.8 % more cycle time "
-                f"changes the fuel by about {rel:.2f} %): the time of minimum fuel is ill-determined, and small "
-                f"differences in the engine's low-speed friction and the converter curves move it by percents.")
+    note = _sign_note(
+        d, "dT_fuel_pct", 0.5, "Opposite sign: the TC fuel-optimal cycle is not longer in our model.",
+        f". The fuel minimum is very flat "
+        f"(near it our front falls by only {S['front_end_slope_g_per_s']:.2f} g/s, so 2.8 % more cycle time "
+        f"changes the fuel by about {rel:.2f} %): the time of minimum fuel is ill-determined, and small "
+        f"differences in the engine's low-speed friction and the converter curves move it by percents.")
     rows.append({"id": "dT_fuel", "statement": "TC braking lengthens the fuel-optimal cycle by 2.8 %",
                  "paper": fmt_pct(PAPER["dT_fuel_pct"]),
                  "ours": f"{fmt_pct(d)} ({S['T_fuel_opt_s']:.2f} → {C['T_fuel_opt_s']:.2f} s)", "value": d,
@@ -233,14 +237,11 @@ def statement_rows(res: dict) -> list[dict[str, Any]]:
     # 5: 10 s cycle
     d = res["fuel_10s_tc_extra_pct"]
     df = res["fuel_10s_tc_extra_front_pct"]
-    if d <= 0:
-        note = "Opposite sign: TC braking does not cost fuel in our 10 s cycle."
-    elif abs(d - PAPER["fuel_10s_tc_extra_pct"]) < 1.0:
-        note = "Same sign and close to the paper."
-    else:
-        note = (f"Same sign, {'larger' if d > PAPER['fuel_10s_tc_extra_pct'] else 'smaller'}: 10 s is "
-                f"{FIXED_T / S['T_min_s']:.2f} × our T_min, and the nearer a cycle is to T_min the more TC braking "
-                f"costs (Fig. 8, bottom); the converter's braking power again depends on ξ(φ < 0).")
+    note = _sign_note(
+        d, "fuel_10s_tc_extra_pct", 1.0, "Opposite sign: TC braking does not cost fuel in our 10 s cycle.",
+        f": 10 s is "
+        f"{FIXED_T / S['T_min_s']:.2f} × our T_min, and the nearer a cycle is to T_min the more TC braking "
+        f"costs (Fig. 8, bottom); the converter's braking power again depends on ξ(φ < 0).")
     rows.append({"id": "fuel_10s", "statement": "fuel-optimal 10 s cycle: TC braking uses 2.7 % more fuel",
                  "paper": fmt_pct(PAPER["fuel_10s_tc_extra_pct"]),
                  "ours": f"{fmt_pct(d)} ({S['fuel_at_10s_g']:.2f} → {C['fuel_at_10s_g']:.2f} g); interpolated on "
