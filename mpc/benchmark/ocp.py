@@ -24,6 +24,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from mpc import interrupt
 from wl_env import cycle
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
@@ -413,6 +414,7 @@ class CycleOCP:
             stats = self._solver.stats()
             iterations += int(stats.get("iter_count", 0) or 0)
             status = str(stats.get("return_status", stats.get("success", "unknown")))
+            interrupt.check(status)  # an interrupted solve is no failed start: stop, record nothing
             if not stats.get("success", False) and status not in ("Solved_To_Acceptable_Level",):
                 raise OCPError(
                     f"{self.settings.solver} failed on the {self.braking} {objective} problem"

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from mpc import interrupt
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP, StepModel, apportion, steps_of
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
@@ -551,6 +552,7 @@ class MPCController:
                 sol = solver(x0=np.clip(z0, args["lbx"], args["ubx"]), **args)
             stats = solver.stats()
             out.status = str(stats.get("return_status", "unknown"))
+            interrupt.check(out.status)  # Ctrl-C inside IPOPT stops the run, not just this plan
             out.iterations = int(stats.get("iter_count", 0))
             out.ok = bool(stats.get("success")) or out.status == "Solved_To_Acceptable_Level"
             out.z = np.array(sol["x"]).ravel()
