@@ -44,7 +44,15 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed  # noqa: E402
-from mpc.benchmark.pareto import ParetoFront, cache_dir, front_folder, pareto_front, pchip  # noqa: E402
+from mpc.benchmark.pareto import (  # noqa: E402
+    ParetoFront,
+    cache_dir,
+    cached_result,
+    front_folder,
+    pareto_front,
+    pchip,
+    save_result,
+)
 from wl_env.atomic_io import atomic_path  # noqa: E402
 from wl_env.cycle import BRAKING_MODES, phase_specs  # noqa: E402
 from wl_env.model import outputs  # noqa: E402
@@ -116,14 +124,12 @@ def _jsonable(v: Any) -> Any:
 # The optima (from the Pareto cache where available)
 # ====================================================================================================
 def _load_or_solve(path: Path, solve: Callable[[], OCPResult], what: str) -> OCPResult:
-    if path.exists():
-        try:
-            return OCPResult.load(path)
-        except (ValueError, TypeError) as exc:
-            say(f"{path} unreadable ({exc}); solving {what} again")
+    r = cached_result(path)  # a bad entry is reported, set aside and solved again
+    if r is not None:
+        return r
     say(f"solving {what} (not in the cache)")
     r = solve()
-    r.save(path)
+    save_result(r, path)
     return r
 
 
@@ -138,10 +144,9 @@ def load_alternative(braking: str, n_points: int, params: LoaderParams, cache: s
                             f"the {braking} minimum-fuel cycle")
     solved = []
     for f in sorted(folder.glob("T_*.json")):  # forward and backward continuation solves
-        try:
-            solved.append(OCPResult.load(f))
-        except (ValueError, TypeError):
-            continue
+        r = cached_result(f)
+        if r is not None:
+            solved.append(r)
     points = []
     for T, fuel in zip(front.T, front.fuel_g, strict=True):  # the front's own points: the solve it kept
         same = [r for r in solved if abs(r.T - T) < 1e-6 and abs(r.fuel_g - fuel) <= 1e-9 * fuel]
@@ -155,7 +160,7 @@ def load_alternative(braking: str, n_points: int, params: LoaderParams, cache: s
 
 def paper_cache(cache: str | os.PathLike | None, braking: str, params: LoaderParams) -> Path:
     """Where this script caches the optima it solves itself (beside the Pareto cache)."""
-    return cache_dir(cache) / "paper" / f"{braking}_{params.fingerprint()}"
+    return cache_dir(cache) / "paper" / f"{braking}_{params.fingerprint()}_v2"  # v2: checked entries
 
 
 def _passed(r: OCPResult) -> bool:
@@ -165,11 +170,8 @@ def _passed(r: OCPResult) -> bool:
 
 def _load_cached(path: Path, T: float) -> OCPResult | None:
     """A cached fixed-time optimum, if present, readable and solved for this cycle time."""
-    if not path.exists():
-        return None
-    try:
-        r = OCPResult.load(path)
-    except (ValueError, TypeError):
+    r = cached_result(path)
+    if r is None:
         return None
     return r if abs(r.T - T) <= 1e-6 * max(1.0, T) else None
 
@@ -239,7 +241,7 @@ def polish_front(braking: str, alt: dict, params: LoaderParams, cache: str | os.
                 r = old if old is not None else new
             if r is None:
                 continue
-            r.save(path)
+            save_result(r, path)
         if r.fuel_g < fuel[i] * (1 - 1e-6):
             improved.append({"T_s": T, "pareto_cache_g": fuel[i], "polished_g": r.fuel_g,
                              "change_pct": 100.0 * (r.fuel_g - fuel[i]) / fuel[i], "mesh": list(r.mesh)})
@@ -269,7 +271,7 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
     if r is None:
         raise OCPError(f"no optimum found for the {braking} cycle at T = {T:g} s")
     say(f"[{braking}] fuel at T = {T:g} s: {r.fuel_g:.3f} g{'' if _passed(r) else ' (re-simulation check NOT passed)'}")
-    r.save(path)
+    save_result(r, path)
     return r
 
 
@@ -293,7 +295,7 @@ def lean_time_optimum(braking: str, r_time: OCPResult, params: LoaderParams, cac
     if r is None:
         say(f"[{braking}]   no solution")
         return None
-    r.save(path)
+    save_result(r, path)
     return r
 
 

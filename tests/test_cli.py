@@ -20,7 +20,7 @@ import wl_env  # noqa: F401
 from agents.evaluate import load_controller, summarize
 from agents.operator import OperatorPolicy
 from mpc.benchmark.ocp import OCPResult
-from mpc.benchmark.pareto import ParetoFront, front_folder
+from mpc.benchmark.pareto import ParetoFront, front_folder, save_result
 from wl_env.controller import Controller
 from wl_env.params import resolve
 from wl_env.rollout import run_episode
@@ -45,8 +45,10 @@ def cache(tmp_path: Path) -> Path:
         _front(b).save(folder / "front.json")
         t = np.linspace(0.0, 7.0, 15)
         states = np.column_stack([np.full_like(t, 200.0), np.sin(t), 0.7 + 0.6 * t, np.full_like(t, 0.5)])
-        OCPResult(b, "time", 7.0, 110.0, [2.0, 1.5, 2.0, 1.5], t.tolist(), states.tolist(), [[0.0, 0.0, 0.0]] * 14,
-                  [1] * 15, t.tolist(), "Solve_Succeeded", True, 10, 0.1).save(folder / "min_time.json")
+        r = OCPResult(b, "time", 7.0, 110.0, [2.0, 1.5, 2.0, 1.5], t.tolist(), states.tolist(),
+                      [[0.0, 0.0, 0.0]] * 14, [1] * 15, t.tolist(), "Solve_Succeeded", True, 10, 0.1,
+                      params_fingerprint=resolve(None).fingerprint(), mesh=[20, 12, 20, 12])
+        save_result(r, folder / "min_time.json")  # a checked cache entry, as pareto_front writes it
     return root
 
 
