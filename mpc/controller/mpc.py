@@ -21,6 +21,7 @@ solve applies the previous plan's next step and says so in ``last_info``.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -688,12 +689,14 @@ class MPCController:
 
 def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
-                    score: bool = True, seed: int = 0, controller: MPCController | None = None) -> dict[str, Any]:
+                    score: bool = True, seed: int = 0, controller: MPCController | None = None,
+                    cache: str | os.PathLike | None = None) -> dict[str, Any]:
     """One cycle of ``WheelLoader-v0`` under the MPC; returns the trajectory, the result and its score.
 
     ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
     they differ in a model-mismatch study. ``controller`` (default: built from ``config``) lets a caller
-    inspect the controller afterwards.
+    inspect the controller afterwards. ``cache`` is the folder of the Pareto fronts the score reads
+    (default: :func:`mpc.benchmark.pareto.cache_dir`).
     """
     import gymnasium as gym
 
@@ -720,6 +723,6 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
         from mpc.benchmark.scoring import score_run
 
         s = score_run(ep["T"], ep["fuel_g"], braking, success=ep["success"], max_violation=ep["max_excess"],
-                      params=model)
+                      params=model, cache=cache)
         result["score"] = s.to_dict()
     return result
