@@ -31,6 +31,14 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{message} (see `{self.prog} --help`)")
 
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        ns, extras = super().parse_known_args(args, namespace)
+        # argparse (< 3.12) drops a value of "--" (``--time=--``) and stores [] without calling the type
+        for action in self._actions:
+            if action.nargs is None and action.option_strings and isinstance(getattr(ns, action.dest, None), list):
+                self.error(f"argument {'/'.join(action.option_strings)}: expected one value")
+        return ns, extras
+
 
 def _params_cmd(args: argparse.Namespace) -> int:
     from wl_env.params import PROVENANCE, LoaderParams
