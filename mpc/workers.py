@@ -11,7 +11,8 @@ results by name. A worker
   orphan solving on.
 
 When the parent is interrupted, or a job fails, the other workers get SIGINT, then SIGTERM after
-``grace`` seconds and SIGKILL after one more. Their finished work is already on disk (atomically), so a
+``grace`` seconds (0.5: a worker inside a long CasADi call, e.g. building an NLP, sees the signal only
+when it returns) and SIGKILL after one more. Their finished work is already on disk (atomically), so a
 rerun resumes there; what they were solving is dropped.
 """
 
@@ -42,7 +43,7 @@ class WorkerTraceback(Exception):
 
 
 def run_in_workers(jobs: dict[str, tuple[str, tuple]], log_level: int = logging.WARNING,
-                   grace: float = 1.0) -> dict[str, Any]:
+                   grace: float = 0.5) -> dict[str, Any]:
     """``{name: module:function(*args)}`` with each job in a spawned process; a job's exception (and
     KeyboardInterrupt) is raised here once the other workers are stopped."""
     ctx = multiprocessing.get_context("spawn")  # not fork: the parent may hold threads (torch, BLAS) a fork inherits locked
