@@ -457,3 +457,39 @@ def test_report_files_are_written_atomically(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert (out / "leaderboard.md").read_bytes() == leaderboard
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # the temporaries went with the failures
+
+
+# ---------------------------------------------------------------------------------------------- determinism, resume
+def test_evaluation_is_identical_across_processes(tmp_path):
+    """The same seed gives the same file in two processes (with different hash seeds)."""
+    outs = []
+    for i, hash_seed in enumerate(("1", "2")):
+        out = tmp_path / f"eval_{i}.json"
+        proc = subprocess.run([sys.executable, "-m", "wl", "evaluate", "--controller", "operator", "--braking", "tc",
+                               "--episodes", "3", "--seed", "7", "--no-score", "--out", str(out)],
+                              env={**ENV, "PYTHONHASHSEED": hash_seed}, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        outs.append(json.loads(out.read_text()))
+    assert outs[0] == outs[1]
+
+
+def test_training_resumes_after_sigkill(tmp_path):
+    """kill -9 in the middle of a run, then --resume: the run ends at its step budget from the last
+    checkpoint (written atomically, so a kill during one leaves the previous)."""
+    argv = ["train", "--total-timesteps", "3072", "--num-envs", "4", "--n-steps", "64", "--batch-size", "128",
+            "--n-epochs", "1", "--eval-freq", "100000", "--eval-episodes", "0", "--checkpoint-freq", "512",
+            "--no-score", "--no-progress-bar", "--net-arch", "8", "--log-dir", str(tmp_path), "--run-name", "k"]
+    proc = _wl(argv, tmp_path / "cache", stderr=subprocess.DEVNULL)
+    checkpoints = tmp_path / "k" / "checkpoints"
+    deadline = time.monotonic() + 60
+    while not list(checkpoints.glob("step_*/progress.json")):
+        assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint"
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    assert not (tmp_path / "k" / "final").exists()
+    resumed = subprocess.run([sys.executable, "-m", "wl", *argv[:1], "--run-name", "k", "--log-dir", str(tmp_path),
+                              "--resume", "--no-progress-bar"], env=ENV, capture_output=True, text=True, timeout=180)
+    assert resumed.returncode == 0, resumed.stderr
+    summary = json.loads((tmp_path / "k" / "final" / "summary.json").read_text())
+    assert 3072 <= summary["num_timesteps"] < 3072 + 4 * 64
