@@ -140,6 +140,12 @@ def _child(conn: Any, parent_pid: int, log_level: int, target: str, args: tuple)
             conn.send(("error", RuntimeError(f"the result of {target} cannot be sent back"), traceback.format_exc()))
     finally:
         conn.close()
+        # Reported: end now. The interpreter's teardown with CasADi loaded takes ~0.2 s, which an
+        # interrupted parent would wait for; everything this process wrote is on disk (atomically).
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0 if message[0] == "ok" else 1)
 
 
 def _portable(exc: BaseException) -> BaseException:
