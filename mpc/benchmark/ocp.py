@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -536,7 +537,7 @@ def refined_mesh(durations: list[float], base: tuple[int, ...], max_interval: fl
 
 def check_cycle_time(T: Any, name: str = "T") -> float:
     """``T`` as a fixed cycle time in (0, MAX_CYCLE_TIME] s, else ValueError naming ``name``."""
-    ok = isinstance(T, (int, float)) and not isinstance(T, bool) and math.isfinite(T)
+    ok = isinstance(T, numbers.Real) and not isinstance(T, (bool, np.bool_)) and math.isfinite(T)  # numpy scalars too
     if not (ok and 0 < T <= MAX_CYCLE_TIME):
         raise ValueError(
             f"{name} must be a finite cycle time in (0, {MAX_CYCLE_TIME:g}] s, got {T!r}"
