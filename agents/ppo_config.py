@@ -4,11 +4,83 @@ line (``wl train --help``, ``scripts/train_ppo.py``) is built without importing 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from wl_env import cycle
+
+MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
+
+
+class ConfigError(ValueError):
+    """A PPOConfig field out of its range; ``field`` names it (the command line turns it into ``--field``)."""
+
+    def __init__(self, name: str, requirement: str, value: Any) -> None:
+        super().__init__(f"PPOConfig.{name} must be {requirement}, got {value!r}")
+        self.field, self.requirement, self.value = name, requirement, value
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+# field -> (requirement as said in the error, test); a value is a number only if finite and not a bool
+_RULES: dict[str, tuple[str, Any]] = {
+    "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "num_envs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "log_dir": ("a non-empty folder name", lambda v: isinstance(v, str) and v.strip() != ""),
+    "run_name": ("a name without path separators", lambda v: isinstance(v, str) and "/" not in v and "\\" not in v
+                 and v not in (".", "..")),
+    "time_limit": ("a finite number of seconds >= 0 (0: off)", lambda v: _is_num(v) and v >= 0),
+    "torch_threads": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "progress_bar": ("true or false", lambda v: isinstance(v, bool)),
+    "w_fuel": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "w_time": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "reward": ("a mapping of RewardConfig fields to finite numbers",
+               lambda v: isinstance(v, dict) and all(map(_is_num, v.values()))),
+    "init_noise": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
+    "max_time": ("a finite number of seconds > 0", lambda v: _is_num(v) and v > 0),
+    "curriculum_start": ("a mapping of RewardConfig fields to finite numbers",
+                         lambda v: isinstance(v, dict) and all(map(_is_num, v.values()))),
+    "curriculum_fraction": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
+    "learning_rate": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
+    "lr_schedule": ("'constant' or 'linear'", lambda v: v in ("constant", "linear")),
+    "n_steps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "batch_size": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "n_epochs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "gamma": ("a number in (0, 1]", lambda v: _is_num(v) and 0 < v <= 1),
+    "gae_lambda": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
+    "clip_range": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
+    "ent_coef": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "vf_coef": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "max_grad_norm": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
+    "target_kl": ("none or a finite number > 0", lambda v: v is None or (_is_num(v) and v > 0)),
+    "net_arch": (f"one or more layer widths, integers in [1, {MAX_LAYER_WIDTH}]",
+                 lambda v: len(v) >= 1 and all(_is_int(n) and 1 <= n <= MAX_LAYER_WIDTH for n in v)),
+    "log_std_init": ("a finite number", _is_num),
+    "log_std_final": ("none or a finite number", lambda v: v is None or _is_num(v)),
+    "shift_bias_init": ("a finite number", _is_num),
+    "fuel_bias_init": ("a finite number", _is_num),
+    "bucket_bias_init": ("a finite number", _is_num),
+    "bounded_mean": ("true or false", lambda v: isinstance(v, bool)),
+    "use_sde": ("true or false", lambda v: isinstance(v, bool)),
+    "sde_sample_freq": ("an integer >= -1 (-1: once per rollout)", lambda v: _is_int(v) and v >= -1),
+    "norm_obs": ("true or false", lambda v: isinstance(v, bool)),
+    "norm_reward": ("true or false", lambda v: isinstance(v, bool)),
+    "eval_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "eval_episodes": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "eval_init_noise": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
+    "score": ("true or false", lambda v: isinstance(v, bool)),
+    "checkpoint_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "keep_checkpoints": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+}
 
 
 @dataclass
@@ -80,19 +152,27 @@ class PPOConfig:
     keep_checkpoints: int = field(default=2, metadata={"help": "checkpoints kept on disk"})
 
     def __post_init__(self) -> None:
+        """Every field checked for type and range (ConfigError naming it): a run with nonsense settings
+        fails here, not hours later or silently."""
         cycle.check_braking(self.braking)
-        self.net_arch = tuple(int(n) for n in self.net_arch)
-        self.reward = {str(k): float(v) for k, v in dict(self.reward).items()}
-        self.curriculum_start = {str(k): float(v) for k, v in dict(self.curriculum_start).items()}
+        if isinstance(self.net_arch, (str, bytes)) or not hasattr(self.net_arch, "__iter__"):
+            raise ConfigError("net_arch", _RULES["net_arch"][0], self.net_arch)
+        self.net_arch = tuple(self.net_arch)
+        for name in ("reward", "curriculum_start"):
+            value = getattr(self, name)
+            if not isinstance(value, dict):
+                raise ConfigError(name, _RULES[name][0], value)
+            setattr(self, name, {str(k): v for k, v in value.items()})
+        for name, (requirement, ok) in _RULES.items():
+            if not ok(getattr(self, name)):
+                raise ConfigError(name, requirement, getattr(self, name))
+        self.reward = {k: float(v) for k, v in self.reward.items()}
+        self.curriculum_start = {k: float(v) for k, v in self.curriculum_start.items()}
         from wl_env.episode import RewardConfig
 
         unknown = (set(self.reward) | set(self.curriculum_start)) - set(RewardConfig.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)}")
-        if self.num_envs < 1 or self.n_steps < 1 or self.batch_size < 1:
-            raise ValueError("num_envs, n_steps and batch_size must be >= 1")
-        if self.lr_schedule not in ("constant", "linear"):
-            raise ValueError(f"lr_schedule must be 'constant' or 'linear', got {self.lr_schedule!r}")
 
     @property
     def name(self) -> str:

@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import shlex
 import types
 import typing
@@ -21,7 +22,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from agents.ppo_config import PPOConfig
+from agents.ppo_config import ConfigError, PPOConfig
+from wl_env.atomic_io import check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +84,20 @@ def config_from_args(cls: type, ns: argparse.Namespace) -> tuple[Any, dict[str, 
         v = getattr(ns, f.name, None)
         if v is not None:
             given[f.name] = dict(v) if typing.get_origin(hints[f.name]) is dict else v
-    return cls(**given), given
+    try:
+        return cls(**given), given
+    except ConfigError as exc:  # said as the flag the user typed
+        raise ValueError(f"--{exc.field.replace('_', '-')} must be {exc.requirement}, got {exc.value!r}") from None
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
 
 
 def add_train_args(parser: argparse.ArgumentParser) -> None:
@@ -92,7 +107,10 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export", metavar="PATH", default=None,
                         help="after training, ship the policy pickle-free as PATH.safetensors, PATH_vecnormalize.npz, "
                         "PATH.json")
-    parser.add_argument("--export-episodes", type=int, default=100, help="evaluation episodes of --export")
+    parser.add_argument("--export-episodes", type=_count, default=100, help="evaluation episodes of --export (>= 0)")
+    parser.add_argument("--cache", metavar="DIR", default=None,
+                        help="cache folder of the Pareto front the evaluations are scored against (default "
+                        "$WL_CACHE_DIR or ~/.cache/wheel-loader-gym); a front not cached there is solved first")
 
 
 def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
@@ -101,21 +119,43 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
     ``command`` (the command line) is recorded in the run's config.json; ``prog`` is how the user called
     the trainer, for the hint that continues an interrupted run.
     """
-    from agents.ppo import export_policy, train
-
     cfg, given = config_from_args(PPOConfig, ns)
     if "reward" in given:  # --reward overrides single fields; the other defaults stay
         cfg.reward = {**PPOConfig().reward, **cfg.reward}
+    # output paths checked before the training, not after it
+    check_output_folder(cfg.log_dir, f"--log-dir {cfg.log_dir}")
+    if ns.export:
+        export = Path(ns.export)
+        for suffix in (".safetensors", "_vecnormalize.npz", ".json"):
+            if export.with_name(export.name + suffix).is_dir():
+                raise ValueError(f"--export {ns.export}: {export.name + suffix} is a folder")
+        check_output_folder(export.parent, f"--export {ns.export}")
+    if getattr(ns, "cache", None):
+        check_output_folder(ns.cache, f"--cache {ns.cache}")
     if ns.resume and set(given) - RUN_NAMING:
         log.warning("--resume uses the run's saved config; options other than the run's name are ignored")
+    from agents.ppo import export_policy, train
+    from mpc.benchmark.pareto import CACHE_ENV
+
+    # the trainer reads the front from the default cache (mpc.benchmark.pareto.cache_dir): point it there
+    previous_cache = os.environ.get(CACHE_ENV)
+    if getattr(ns, "cache", None):
+        os.environ[CACHE_ENV] = str(ns.cache)
     try:
-        summary = train(cfg, resume=ns.resume, command=command)
-    except KeyboardInterrupt:
-        log.info("\ninterrupted; continue with: %s --run-name %s --log-dir %s --resume", prog, shlex.quote(cfg.name),
-                 shlex.quote(cfg.log_dir))
-        return 130
-    print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
-    if ns.export:
-        meta = export_policy(cfg.run_dir, Path(ns.export).parent, Path(ns.export).name, n_episodes=ns.export_episodes)
-        print(json.dumps(meta["evaluation"], indent=2, default=str))
-    return 0
+        try:
+            summary = train(cfg, resume=ns.resume, command=command)
+        except KeyboardInterrupt:
+            log.info("\ninterrupted; continue with: %s --run-name %s --log-dir %s --resume", prog,
+                     shlex.quote(cfg.name), shlex.quote(cfg.log_dir))
+            return 130
+        print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
+        if ns.export:
+            meta = export_policy(cfg.run_dir, Path(ns.export).parent, Path(ns.export).name,
+                                 n_episodes=ns.export_episodes)
+            print(json.dumps(meta["evaluation"], indent=2, default=str))
+        return 0
+    finally:
+        if previous_cache is None:
+            os.environ.pop(CACHE_ENV, None)
+        else:
+            os.environ[CACHE_ENV] = previous_cache

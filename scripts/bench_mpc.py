@@ -111,4 +111,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the Pareto sweep's progress, as `wl` shows it
     main()

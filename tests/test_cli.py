@@ -8,11 +8,15 @@ Scoring needs a Pareto front; solving one takes minutes, so the tests write a sy
 from __future__ import annotations
 
 import json
+import math
+import os
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 
 import wl.cli
 import wl.report
@@ -20,7 +24,7 @@ import wl_env  # noqa: F401
 from agents.evaluate import load_controller, summarize
 from agents.operator import OperatorPolicy
 from mpc.benchmark.ocp import OCPResult
-from mpc.benchmark.pareto import ParetoFront, front_folder
+from mpc.benchmark.pareto import ParetoFront, front_folder, save_result
 from wl_env.controller import Controller
 from wl_env.params import resolve
 from wl_env.rollout import run_episode
@@ -45,8 +49,10 @@ def cache(tmp_path: Path) -> Path:
         _front(b).save(folder / "front.json")
         t = np.linspace(0.0, 7.0, 15)
         states = np.column_stack([np.full_like(t, 200.0), np.sin(t), 0.7 + 0.6 * t, np.full_like(t, 0.5)])
-        OCPResult(b, "time", 7.0, 110.0, [2.0, 1.5, 2.0, 1.5], t.tolist(), states.tolist(), [[0.0, 0.0, 0.0]] * 14,
-                  [1] * 15, t.tolist(), "Solve_Succeeded", True, 10, 0.1).save(folder / "min_time.json")
+        r = OCPResult(b, "time", 7.0, 110.0, [2.0, 1.5, 2.0, 1.5], t.tolist(), states.tolist(),
+                      [[0.0, 0.0, 0.0]] * 14, [1] * 15, t.tolist(), "Solve_Succeeded", True, 10, 0.1,
+                      params_fingerprint=resolve(None).fingerprint(), mesh=[20, 12, 20, 12])
+        save_result(r, folder / "min_time.json")  # a checked cache entry, as pareto_front writes it
     return root
 
 
@@ -326,3 +332,193 @@ def test_help_of_every_subcommand(capsys, command):
 def test_every_subcommand_is_tested():
     sub = next(a for a in wl.cli.build_parser()._actions if a.dest == "command")
     assert sorted(sub.choices) == sorted(SUBCOMMANDS)
+
+
+# ------------------------------------------------------------------------------------------ validation before work
+class Reached(Exception):
+    """Raised by the fakes of the expensive work: the command line got past its checks."""
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Every subcommand's expensive work replaced by a fake that records its arguments and raises Reached."""
+    import agents.evaluate
+    import agents.ppo
+    import mpc.benchmark.ocp
+    import mpc.benchmark.pareto
+    import mpc.controller.mpc
+
+    calls: list[tuple[str, tuple, dict]] = []
+
+    def fake(name):
+        def work(*args, **kwargs):
+            calls.append((name, args, kwargs))
+            raise Reached(name)
+        return work
+
+    for module, name, label in [(mpc.benchmark.ocp, "solve_ocp", "ocp"), (mpc.benchmark.pareto, "pareto_fronts", "pareto"),
+                                (mpc.controller.mpc, "run_closed_loop", "mpc"),
+                                (agents.evaluate, "evaluate_controller", "evaluate"), (agents.ppo, "train", "train"),
+                                (wl.report, "run_all", "run")]:
+        monkeypatch.setattr(module, name, fake(label))
+    return calls
+
+
+def _attempt(capsys, argv: list[str]) -> tuple[int | None, str]:
+    """(exit code, stderr) of ``wl ARGV``; exit code None if it reached the (fake) work."""
+    try:
+        code = wl.cli.main(argv)
+    except Reached:
+        code = None
+    return code, capsys.readouterr().err
+
+
+BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
+    (["ocp", "--objective", "fuel", "--time", "0"], "--time", "(0, 60]"),
+    (["ocp", "--objective", "fuel", "--time=-5"], "--time", "(0, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "nan"], "--time", "(0, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "inf"], "--time", "(0, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "100"], "--time", "30 s"),
+    (["ocp", "--objective", "time", "--w-fuel", "0.5"], "--w-fuel", "--objective weighted"),
+    (["ocp", "--objective", "weighted", "--w-fuel", "1.5"], "--w-fuel", "[0, 1]"),
+    (["ocp", "--params", "{not json"], "--params", "JSON"),
+    (["train", "--n-epochs", "0"], "--n-epochs", ">= 1"),
+    (["train", "--total-timesteps", "-5"], "--total-timesteps", ">= 1"),
+    (["train", "--gamma", "2"], "--gamma", "(0, 1]"),
+    (["train", "--net-arch", "0"], "--net-arch", "[1, 4096]"),
+    (["train", "--eval-episodes", "-1"], "--eval-episodes", ">= 0"),
+    (["train", "--curriculum-fraction", "nan"], "--curriculum-fraction", "[0, 1]"),
+    (["train", "--learning-rate", "inf"], "--learning-rate", "> 0"),
+    (["train", "--export-episodes", "-3"], "--export-episodes", ">= 0"),
+    (["mpc", "--target-time", "nan"], "--target-time", "(0, 40)"),
+    (["mpc", "--target-time=-1"], "--target-time", "(0, 40)"),
+    (["mpc", "--w-fuel", "2"], "--w-fuel", "[0, 1]"),
+    (["mpc", "--payload-scale", "inf"], "--payload-scale", "[0, 10]"),
+    (["pareto", "--points", "2"], "--points", "[3, 100]"),
+    (["evaluate", "--controller", "operator", "--seed=-1"], "--seed", ">= 0"),
+]
+
+
+@pytest.mark.parametrize("argv,option,allowed", BAD_INPUT, ids=[" ".join(a[0]) for a in BAD_INPUT])
+def test_bad_input_is_one_line_naming_the_option_and_range(tmp_path, capsys, no_work, argv, option, allowed):
+    out = "--out" in argv or argv[0] == "train"
+    argv = argv + ([] if out else ["--out", str(tmp_path / ("o" if argv[0] == "pareto" else "o.json"))])
+    if argv[0] == "train":
+        argv += ["--log-dir", str(tmp_path / "runs")]
+    code, err = _attempt(capsys, argv)
+    assert code == 2 and not no_work
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("wl: error:"), err
+    assert option in lines[0] and allowed in lines[0], lines[0]
+
+
+def _unwritable(tmp_path: Path) -> Path:
+    """A folder no file can be created in (root writes through permission bits: /proc then)."""
+    if os.geteuid() == 0:
+        return Path("/proc")
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o500)
+    return folder
+
+
+OUTPUTS = {  # how each command names its output, and whether that is a file or a folder
+    "ocp": (["ocp"], "--out", "file"), "mpc": (["mpc", "--no-score"], "--out", "file"),
+    "evaluate": (["evaluate", "--controller", "operator"], "--out", "file"),
+    "train": (["train", "--log-dir", "{tmp}/runs"], "--export", "file"),
+    "pareto": (["pareto"], "--out", "folder"), "run": (["run"], "--out", "folder"),
+}
+
+
+@pytest.mark.parametrize("problem", ["wrong-kind", "under-a-file", "unwritable"])
+@pytest.mark.parametrize("command", sorted(OUTPUTS))
+def test_output_paths_are_checked_before_the_work(tmp_path, capsys, no_work, command, problem):
+    argv, option, kind = OUTPUTS[command]
+    a_file, a_folder = tmp_path / "a_file", tmp_path / "a_folder"
+    a_file.write_text("x")
+    a_folder.mkdir()
+    path = {"wrong-kind": a_folder if kind == "file" else a_file, "under-a-file": a_file / "sub" / "out.json",
+            "unwritable": _unwritable(tmp_path) / "out.json"}[problem]
+    if command == "train" and problem == "wrong-kind":
+        (tmp_path / "policy.zip").mkdir()
+        path = tmp_path / "policy"
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv] + [option, str(path)]
+    code, err = _attempt(capsys, argv)
+    assert code == 2 and not no_work, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("wl: error:") and option in lines[0] and str(path) in lines[0], err
+
+
+def test_mpc_and_train_take_the_pareto_cache(tmp_path, capsys, no_work):
+    cache = tmp_path / "my_cache"
+    code, err = _attempt(capsys, ["mpc", "--cache", str(cache), "--out", str(tmp_path / "m.json")])
+    assert code is None and no_work[-1][2]["cache"] == str(cache), err
+    code, err = _attempt(capsys, ["train", "--cache", str(cache), "--log-dir", str(tmp_path / "runs")])
+    assert code is None and no_work[-1][0] == "train", err
+
+
+def test_train_solves_the_front_in_its_cache_with_progress(tmp_path, capsys, monkeypatch):
+    """Scoring on: the trainer's front comes from --cache, and solving it shows progress lines."""
+    from fakes import fake_solve
+
+    import mpc.benchmark.pareto
+
+    monkeypatch.setattr(mpc.benchmark.pareto, "solve_ocp", fake_solve)
+    cache = tmp_path / "cache"
+    code, out, err = _run(capsys, "train", "--total-timesteps", "512", "--num-envs", "4", "--n-steps", "32",
+                          "--batch-size", "128", "--n-epochs", "1", "--eval-freq", "100000", "--eval-episodes", "1",
+                          "--checkpoint-freq", "100000", "--no-progress-bar", "--log-dir", tmp_path / "runs",
+                          "--run-name", "scored", "--net-arch", "8", "--cache", cache)
+    assert code == 0, err
+    assert "[service] solving the Pareto front" in err and "[service] minimum time" in err
+    assert (front_folder("service", 8, cache=cache) / "front.json").exists()
+    assert os.environ.get("WL_CACHE_DIR") != str(cache)  # restored after the run
+
+
+# ------------------------------------------------------------------------------------------ fuzz
+NUMERIC_OPTIONS = [  # (command before the option, option, the value as it reached the work)
+    (["ocp", "--objective", "fuel"], "--time", lambda args, kw: kw["T"]),
+    (["ocp", "--objective", "weighted"], "--w-fuel", lambda args, kw: kw["w_fuel"]),
+    (["evaluate", "--controller", "operator"], "--episodes", lambda args, kw: kw["episodes"]),
+    (["evaluate", "--controller", "operator"], "--init-noise", lambda args, kw: kw["init_noise"]),
+    (["evaluate", "--controller", "operator"], "--seed", lambda args, kw: kw["seed"]),
+    (["mpc"], "--target-time", lambda args, kw: args[1].target_time),
+    (["mpc"], "--w-fuel", lambda args, kw: args[1].w_fuel),
+    (["mpc"], "--payload-scale", lambda args, kw: (kw["plant_params"] or resolve(None)).M_load),  # None: scale 1
+    (["mpc"], "--rolling-scale", lambda args, kw: (kw["plant_params"] or resolve(None)).c_r),
+    (["pareto"], "--points", lambda args, kw: kw["n_points"]),
+    *[(["train"], "--" + name.replace("_", "-"), lambda args, kw, name=name: getattr(args[0], name))
+      for name in ("total_timesteps", "num_envs", "n_steps", "batch_size", "n_epochs", "gamma", "gae_lambda",
+                   "learning_rate", "clip_range", "ent_coef", "net_arch", "eval_episodes", "eval_freq",
+                   "curriculum_fraction", "init_noise", "max_time", "time_limit", "w_fuel", "seed")],
+]
+
+NUMBER_TEXT = st.one_of(
+    st.integers(-1000, 1000).map(str),
+    st.integers().map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.floats(-2.0, 120.0).map(lambda x: f"{x:g}"),
+    st.sampled_from(["--", "-", "nan", "-nan", "inf", "-inf", "1e309", "-1e309", "-0", "0", "1", "0.5", "", " ", "abc", "1,5",
+                     "0x10", "1_000", "True", "none", "5e-324", "1e-320"]),
+    st.text(alphabet="0123456789.-+eEinfa ", max_size=6),
+)
+
+
+@settings(max_examples=600, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=st.sampled_from(NUMERIC_OPTIONS), text=NUMBER_TEXT)
+def test_fuzz_numeric_options_are_accepted_finite_or_rejected_in_one_line(tmp_path, capsys, no_work, case, text):
+    """Any text for a numeric option either reaches the work as a finite value or is a one-line error that
+    names the option (exit code 2); nothing else (no traceback, no other exit code)."""
+    command, option, reached = case
+    outs = {"train": ["--log-dir", str(tmp_path / "runs")], "pareto": ["--out", str(tmp_path / "fronts")]}
+    argv = [*command, f"{option}={text}", *outs.get(command[0], ["--out", str(tmp_path / "o.json")])]
+    no_work.clear()
+    code, err = _attempt(capsys, argv)
+    event(f"{option} {'accepted' if code is None else 'rejected'}")  # --hypothesis-show-statistics: both happen
+    if code is None:  # accepted
+        value = reached(*no_work[-1][1:])
+        assert all(math.isfinite(v) for v in (value if isinstance(value, tuple) else (value,))), (argv, value)
+    else:
+        lines = err.strip().splitlines()
+        assert code == 2 and not no_work, (argv, code, err)
+        assert len(lines) == 1 and lines[0].startswith("wl: error:") and option in lines[0], (argv, err)

@@ -1,16 +1,27 @@
 """``wl``: the command line of wheel-loader-gym (the top floor: it imports every package, none imports it).
 
 Each subcommand is a small function over the packages; errors a user can fix come out as one line
-``wl: error: ...`` with exit code 2, never as a traceback.
+``wl: error: ...`` with exit code 2, never as a traceback. Every option is checked before any work
+(numbers for type, finiteness and range, output paths for being writable); Ctrl-C stops the work within
+about a second with exit code 130 and writes no result (:mod:`mpc.interrupt`). Progress goes through
+:mod:`logging` to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import math
+import os
 import shlex
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+PACKAGES = ("wl", "mpc", "agents", "wl_env")  # the loggers main() shows at INFO
 
 
 class UsageError(Exception):
@@ -21,11 +32,19 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{message} (see `{self.prog} --help`)")
 
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        ns, extras = super().parse_known_args(args, namespace)
+        # argparse (< 3.12) drops a value of "--" (``--time=--``) and stores [] without calling the type
+        for action in self._actions:
+            if action.nargs is None and action.option_strings and isinstance(getattr(ns, action.dest, None), list):
+                self.error(f"argument {'/'.join(action.option_strings)}: expected one value")
+        return ns, extras
+
 
 def _params_cmd(args: argparse.Namespace) -> int:
     from wl_env.params import PROVENANCE, LoaderParams
 
-    p = LoaderParams.from_dict(json.loads(args.set)) if args.set else LoaderParams()
+    p = LoaderParams.from_dict(_json_option(args.set, "--set")) if args.set else LoaderParams()
     if args.json:
         print(json.dumps(p.to_dict(), indent=1))
         return 0
@@ -35,25 +54,45 @@ def _params_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
-def _progress(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+def _out_file(path: str, option: str = "--out") -> Path:
+    """An output file's path, checked before the work: not a folder, its folder creatable and writable."""
+    from wl_env.atomic_io import check_output_folder
+
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"{option} {path} is a folder; give a file name")
+    check_output_folder(out.parent, f"{option} {path}")
+    return out
+
+
+def _out_dir(path: str, option: str = "--out") -> Path:
+    """An output folder, created and probed for writing before the work."""
+    from wl_env.atomic_io import check_output_folder
+
+    return check_output_folder(path, f"{option} {path}")
 
 
 def _ocp_cmd(args: argparse.Namespace) -> int:
-    from mpc.benchmark.ocp import OCPSettings, solve_ocp
+    from mpc.benchmark.ocp import OCPSettings, check_cycle_time, solve_ocp
+    from mpc.benchmark.pareto import save_result
 
     objective = {"time": "time", "fuel": "fuel", "weighted": "weighted"}[args.objective]
     if args.time is not None:
         if args.objective != "fuel":
             raise ValueError("--time fixes the cycle time of the minimum-fuel problem: use it with --objective fuel")
+        check_cycle_time(args.time, "--time")  # before the work: a positive finite time the OCP can hold
         objective = "fuel_at_time"
+    if args.w_fuel is not None and args.objective != "weighted":
+        raise ValueError(f"--w-fuel is the fuel weight of --objective weighted; with --objective {args.objective} "
+                         "it would be ignored")
     if args.objective == "weighted" and args.w_fuel is None:
         raise ValueError("--objective weighted needs --w-fuel W (0..1, the fuel weight W1; W2 = 1 - W1)")
     params = _params_from(args)
+    out = _out_file(args.out)
     settings = OCPSettings(hessian=args.hessian) if args.hessian else None
-    _progress(f"solving the {args.braking} {objective} OCP ...")
+    log.info(f"solving the {args.braking} {objective} OCP ...")
     r = solve_ocp(args.braking, objective, T=args.time, w_fuel=args.w_fuel, params=params, settings=settings)
-    r.save(args.out)
+    save_result(r, out)
     v = r.verification
     print(f"{args.braking} {objective}: T = {r.T:.3f} s, fuel = {r.fuel_g:.2f} g, phases "
           f"{', '.join(f'{d:.2f}' for d in r.phase_durations)} s, {r.iterations} iterations, {r.wall_time:.2f} s; "
@@ -65,10 +104,12 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
 def _pareto_cmd(args: argparse.Namespace) -> int:
     from mpc.benchmark.pareto import pareto_fronts
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    params = _params_from(args)
+    out = _out_dir(args.out)
+    if args.cache:
+        _out_dir(args.cache, "--cache")
     brakings = ("service", "tc") if args.braking == "both" else (args.braking,)
-    fronts = pareto_fronts(brakings, n_points=args.points, params=_params_from(args), cache=args.cache,
+    fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
     for b, front in fronts.items():
         path = front.save(out / f"pareto_{b}.json")
@@ -78,9 +119,12 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
 
 
 def _mpc_cmd(args: argparse.Namespace) -> int:
-    from mpc.benchmark.ocp import write_json_atomic
     from mpc.controller.mpc import MPCConfig, run_closed_loop
+    from wl_env.atomic_io import write_json_atomic
 
+    out = _out_file(args.out)
+    if args.cache:
+        _out_dir(args.cache, "--cache")
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time)
     elif args.w_fuel is not None:
@@ -92,10 +136,11 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         from wl_env.params import resolve
 
         plant = resolve(_params_from(args)).variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
-    _progress(f"MPC ({config.mode}) driving the {args.braking} cycle ...")
-    result = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant, score=not args.no_score)
+    log.info(f"MPC ({config.mode}) driving the {args.braking} cycle ...")
+    result = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant,
+                             score=not args.no_score, cache=args.cache)
     r = result.to_dict()
-    write_json_atomic(args.out, r)
+    write_json_atomic(out, r)
     st = r["solve_time"]
     line = (f"{args.braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
             f"solve time median {1e3 * st['median_s']:.1f} ms, p95 {1e3 * st['p95_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
@@ -108,16 +153,18 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
 def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import evaluate_controller, load_controller, summary_line
-    from mpc.benchmark.ocp import write_json_atomic
+    from wl_env.atomic_io import write_json_atomic
 
+    out = _out_file(args.out)  # an unwritable --out fails now, not after the episodes
+    if args.cache:
+        _out_dir(args.cache, "--cache")
     controller = load_controller(args.controller, args.braking, args.model, trust_pickle=args.trust_pickle)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)  # an unwritable --out fails now, not after the episodes
-    _progress(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
+    log.info(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
     r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
-                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=_progress,
+                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
                             name=args.controller, act_timeout=args.act_timeout)
     r = {"controller": args.controller, "model": args.model, **r}
-    write_json_atomic(args.out, r)
+    write_json_atomic(out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
     return 0
 
@@ -131,6 +178,9 @@ def _train_cmd(args: argparse.Namespace) -> int:
 def _run_cmd(args: argparse.Namespace) -> int:
     from wl.report import run_all
 
+    _out_dir(args.out)
+    if args.cache:
+        _out_dir(args.cache, "--cache")
     run_all(args.out, cache=args.cache)
     print((Path(args.out) / "leaderboard.md").read_text())
     return 0
@@ -140,17 +190,42 @@ def _report_cmd(args: argparse.Namespace) -> int:
     from wl.report import load_results, render
 
     results = load_results(args.results)
-    out = Path(args.out or args.results)
+    out = _out_dir(args.out or args.results, "--out" if args.out else "--results")
     written = render(results, out)
     print(f"report rebuilt from {Path(args.results) / 'results.json'}: {', '.join(str(p) for p in written)}")
     return 0
 
 
-def _number(text: str, kind: type) -> float:
+def _number(text: str, kind: type) -> Any:
     try:
         return kind(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+
+
+def _int_in(lo: int, hi: int) -> Callable[[str], int]:
+    """An argparse type: an integer in [lo, hi]."""
+    def parse(text: str) -> int:
+        value = _number(text, int)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi}], got {value}")
+        return value
+    return parse
+
+
+def _float_in(lo: float, hi: float, open_lo: bool = False, open_hi: bool = False,
+              unit: str = "") -> Callable[[str], float]:
+    """An argparse type: a finite number in the interval lo..hi (ends open as asked; NaN and inf never pass)."""
+    interval = f"{'(' if open_lo else '['}{lo:g}, {hi:g}{')' if open_hi else ']'}{unit}"
+
+    def parse(text: str) -> float:
+        value = _number(text, float)
+        inside = math.isfinite(value) and (lo < value if open_lo else lo <= value) and (
+            value < hi if open_hi else value <= hi)
+        if not inside:
+            raise argparse.ArgumentTypeError(f"must be a finite number in {interval}, got {text}")
+        return value
+    return parse
 
 
 def _positive_int(text: str) -> int:
@@ -162,7 +237,7 @@ def _positive_int(text: str) -> int:
 
 def _unit_float(text: str) -> float:
     value = _number(text, float)
-    if not 0.0 <= value <= 1.0:
+    if not 0.0 <= value <= 1.0:  # false for NaN too
         raise argparse.ArgumentTypeError(f"must lie in [0, 1], got {text}")
     return value
 
@@ -181,10 +256,17 @@ def _seed(text: str) -> int:
     return value
 
 
+def _json_option(text: str, option: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{option} is not valid JSON ({exc})") from None
+
+
 def _params_from(args: argparse.Namespace):
     from wl_env.params import LoaderParams
 
-    return LoaderParams.from_dict(json.loads(args.params)) if getattr(args, "params", None) else None
+    return LoaderParams.from_dict(_json_option(args.params, "--params")) if getattr(args, "params", None) else None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -204,8 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("ocp", help="solve the cycle's optimal control problem (the benchmark)")
     p.add_argument("--braking", choices=["service", "tc"], default="service")
     p.add_argument("--objective", choices=["time", "fuel", "weighted"], default="time")
-    p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel")
-    p.add_argument("--w-fuel", type=float, metavar="W", help="fuel weight W1 in [0, 1] for --objective weighted")
+    p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel, in (0, 60] "
+                   "(each phase is bounded to 30 s; the fuel-optimal cycle takes about 21.5 s)")
+    p.add_argument("--w-fuel", type=_unit_float, metavar="W", help="fuel weight W1 in [0, 1] for --objective weighted")
     p.add_argument("--hessian", choices=["exact", "limited-memory"], help="IPOPT's Hessian (default exact)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the result")
@@ -213,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("pareto", help="the fuel-time Pareto front (cached)")
     p.add_argument("--braking", choices=["service", "tc", "both"], default="both")
-    p.add_argument("--points", type=int, default=8, help="cycle times on the front (default 8)")
+    p.add_argument("--points", type=_int_in(3, 100), default=8, help="cycle times on the front, 3..100 (default 8)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
     p.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
     p.add_argument("--no-cache", action="store_true", help="solve again even if cached")
@@ -224,11 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--braking", choices=["service", "tc"], default="service")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--min-time", action="store_true", help="minimum cycle time (default)")
-    g.add_argument("--target-time", type=float, metavar="T", help="minimum fuel, finishing by T seconds")
-    g.add_argument("--w-fuel", type=float, metavar="W", help="weighted fuel/time objective, fuel weight W")
+    g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
+                   help="minimum fuel, finishing by T seconds, in (0, 40) (the episode ends at 40 s)")
+    g.add_argument("--w-fuel", type=_unit_float, metavar="W", help="weighted fuel/time objective, fuel weight W in [0, 1]")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")
-    p.add_argument("--payload-scale", type=float, default=1.0, help="plant payload / model payload (mismatch study)")
-    p.add_argument("--rolling-scale", type=float, default=1.0, help="plant rolling resistance / model's")
+    p.add_argument("--payload-scale", type=_float_in(0, 10), default=1.0,
+                   help="plant payload / model payload, in [0, 10] (mismatch study)")
+    p.add_argument("--rolling-scale", type=_float_in(0, 10), default=1.0,
+                   help="plant rolling resistance / model's, in [0, 10]")
+    p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts the score reads (default "
+                   "$WL_CACHE_DIR or ~/.cache/wheel-loader-gym); a front not cached there is solved first")
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
     p.add_argument("--out", required=True, metavar="FILE.json")
     p.set_defaults(func=_mpc_cmd)
@@ -287,7 +375,32 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Log records as plain lines on whatever ``sys.stderr`` is when they are emitted (pytest swaps it)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.setFormatter(logging.Formatter("%(message)s"))
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``wl`` command line ``argv``; returns the exit code (0, 1 for a run that did not complete,
+    2 for a user error, 130 for an interrupt).
+
+    Called as the program (``argv`` None: ``wl``, ``python -m wl``), an interrupt ends the process at once
+    with exit code 130: the outputs are atomic and the workers already stopped, and the interpreter's
+    teardown (0.4 s with torch and CasADi loaded) only delays the exit Ctrl-C asked for. ``wl train``
+    exits normally (its progress bar and TensorBoard writer clean up at exit).
+    """
+    as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     try:
@@ -306,17 +419,41 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    from agents.logs import cli_logging  # the agents' progress and warnings (logging) on stderr
+    code = _run_command(args)
+    if code == 130 and as_program and args.command != "train":
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    return code
 
+
+def _run_command(args: argparse.Namespace) -> int:
+    """``args.func(args)`` with logging to stderr and the interrupt handler in place; the exit code."""
+    from mpc import interrupt
+
+    handler = _StderrHandler()
+    loggers = [logging.getLogger(name) for name in PACKAGES]
+    levels = [lg.level for lg in loggers]
+    logging.getLogger().addHandler(handler)
+    for lg in loggers:
+        lg.setLevel(logging.INFO)
     try:
-        with cli_logging():
-            return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, RuntimeError, OSError, json.JSONDecodeError) as exc:
-        print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("wl: interrupted", file=sys.stderr)
-        return 130
+        with interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
+            try:
+                return int(args.func(args) or 0)
+            except KeyboardInterrupt:
+                print("wl: interrupted", file=sys.stderr)
+                return 130
+            except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
+                if interrupt.interrupted():  # an interrupt a library turned into an error
+                    print("wl: interrupted", file=sys.stderr)
+                    return 130
+                print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
+                return 2
+    finally:
+        logging.getLogger().removeHandler(handler)
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,24 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         raise
 
 
+def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
+    """Create ``folder`` if missing and probe it with a real write (permission bits say nothing for root or
+    a read-only file system), so a bad output path fails before the work, not after it. ValueError
+    starting with ``what`` (e.g. ``"--out results/x.json"``) if it is a file, cannot be created or is
+    not writable."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{what}: {folder} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ValueError(f"{what}: cannot create or write in the folder {folder} ({exc.strerror or exc})") from None
+    return folder
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     """Write ``data`` (text as UTF-8) to ``path`` atomically; returns the path."""
     with atomic_path(path) as tmp:

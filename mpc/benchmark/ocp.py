@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -24,6 +25,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from mpc import interrupt
 from wl_env import cycle, limits
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
@@ -38,6 +40,12 @@ U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
 N_PARAMETERS = 3  # length of the NLP parameter vector, see nlp_parameters()
+# Upper bound of each phase's duration (s). The braking phases 2 and 4 last under a second, so the
+# longest cycle the NLP holds is two driving phases at the bound: 60 s, well past the fuel-optimal
+# cycle (about 21.4 s; slower cycles only burn more fuel). Longer fixed times are rejected up front,
+# not reported as infeasible.
+MAX_PHASE_DURATION = 30.0
+MAX_CYCLE_TIME = 2 * MAX_PHASE_DURATION
 
 
 def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0) -> list[float]:
@@ -209,7 +217,7 @@ class CycleOCP:
         min_dur = cycle.MIN_PHASE_DURATION
         for k, spec in enumerate(self.specs):
             n_int = st.intervals[spec.phase - 1]
-            dur, off = add_var(f"T{spec.phase}", 1, np.array([min_dur]), np.array([30.0]))
+            dur, off = add_var(f"T{spec.phase}", 1, np.array([min_dur]), np.array([MAX_PHASE_DURATION]))
             self._index["dur"].append(off)
             durations.append(dur)
             h = dur / n_int
@@ -226,7 +234,7 @@ class CycleOCP:
                 if j > 0:
                     # Each interval carries its own copy of the phase duration, chained by equalities:
                     # the KKT system stays banded (a shared duration would be a dense column per phase).
-                    dur_j, off = add_var(f"T{spec.phase}_{j}", 1, np.array([min_dur]), np.array([30.0]))
+                    dur_j, off = add_var(f"T{spec.phase}_{j}", 1, np.array([min_dur]), np.array([MAX_PHASE_DURATION]))
                     self._index["dur_copies"][-1].append(off)
                     add_con(dur_j - dur_prev, 0.0, 0.0)
                     dur_prev, h = dur_j, dur_j / n_int
@@ -408,6 +416,7 @@ class CycleOCP:
             stats = self._solver.stats()
             iterations += int(stats.get("iter_count", 0) or 0)
             status = str(stats.get("return_status", stats.get("success", "unknown")))
+            interrupt.check(status)  # an interrupted solve is no failed start: stop, record nothing
             if not stats.get("success", False) and status not in ("Solved_To_Acceptable_Level",):
                 raise OCPError(
                     f"{self.settings.solver} failed on the {self.braking} {objective} problem"
@@ -521,6 +530,18 @@ def refined_mesh(durations: list[float], base: tuple[int, ...], max_interval: fl
     return tuple(max(int(b), int(math.ceil(dur / max_interval))) for dur, b in zip(durations, base, strict=True))  # type: ignore[return-value]
 
 
+def check_cycle_time(T: Any, name: str = "T") -> float:
+    """``T`` as a fixed cycle time in (0, MAX_CYCLE_TIME] s, else ValueError naming ``name``."""
+    ok = isinstance(T, numbers.Real) and not isinstance(T, (bool, np.bool_)) and math.isfinite(T)  # numpy scalars too
+    if not (ok and 0 < T <= MAX_CYCLE_TIME):
+        raise ValueError(
+            f"{name} must be a finite cycle time in (0, {MAX_CYCLE_TIME:g}] s, got {T!r}"
+            + (f": each phase of the OCP is bounded to {MAX_PHASE_DURATION:g} s and the braking phases take "
+               f"under a second, so no longer cycle exists in it (the fuel-optimal cycle takes about 21.5 s)"
+               if ok and T > MAX_CYCLE_TIME else ""))
+    return float(T)
+
+
 def solve_ocp(
     braking: str = "service",
     objective: str = "time",
@@ -546,6 +567,8 @@ def solve_ocp(
     every mesh tried.
     """
     cycle.check_braking(braking)
+    if objective == "fuel_at_time":
+        check_cycle_time(T)
     p = resolve(params)
     settings = settings or OCPSettings()
     result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)

@@ -26,13 +26,21 @@ from pathlib import Path
 from typing import Any
 
 from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed
-from mpc.benchmark.pareto import ParetoFront, cache_dir, front_folder, pareto_front
+from mpc.benchmark.pareto import (
+    CACHE_VERSION,
+    ParetoFront,
+    cache_dir,
+    cached_result,
+    front_folder,
+    pareto_front,
+    save_result,
+)
 from wl_env.params import LoaderParams
 
 log = logging.getLogger(__name__)
 
 LEAN_FACTOR = 1.001  # the leanest "time-optimal" cycle: minimum fuel at 1.001 T_min
-CACHE_SUBDIR = "paper"  # the folder scripts/reproduce_paper.py cached them in: existing caches stay valid
+CACHE_SUBDIR = "optima"  # beside the Pareto fronts' folder
 
 
 @dataclass
@@ -51,7 +59,7 @@ class FrontOptima:
 
 def optima_folder(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> Path:
     """Where the optima of this module are cached: beside the Pareto cache, per alternative and parameters."""
-    return cache_dir(cache) / CACHE_SUBDIR / f"{braking}_{params.fingerprint()}"
+    return cache_dir(cache) / CACHE_SUBDIR / f"{braking}_{params.fingerprint()}_{CACHE_VERSION}"
 
 
 def passed(r: OCPResult) -> bool:
@@ -65,15 +73,10 @@ def _settings(mesh: Sequence[int]) -> OCPSettings:
 
 
 def _cached(path: Path, T: float | None = None) -> OCPResult | None:
-    """The optimum saved at ``path`` if present, readable and (given T) solved for that cycle time."""
-    if not path.exists():
-        return None
-    try:
-        r = OCPResult.load(path)
-    except (ValueError, TypeError) as exc:
-        log.info(f"{path} unreadable ({exc}); solving it again")
-        return None
-    return r if T is None or abs(r.T - T) <= 1e-6 * max(1.0, T) else None
+    """The optimum saved at ``path`` if present and valid (:func:`mpc.benchmark.pareto.cached_result`: a bad
+    entry is reported, set aside and solved again) and, given T, solved for that cycle time."""
+    r = cached_result(path)
+    return r if r is not None and (T is None or abs(r.T - T) <= 1e-6 * max(1.0, T)) else None
 
 
 def _load_or_solve(path: Path, solve: Callable[[], OCPResult], what: str) -> OCPResult:
@@ -81,7 +84,7 @@ def _load_or_solve(path: Path, solve: Callable[[], OCPResult], what: str) -> OCP
     if r is None:
         log.info(f"solving {what} (not in the cache)")
         r = solve()
-        r.save(path)
+        save_result(r, path)
     return r
 
 
@@ -98,10 +101,9 @@ def front_optima(braking: str, n_points: int, params: LoaderParams,
                             f"the {braking} minimum-fuel cycle")
     solved = []
     for f in sorted(folder.glob("T_*.json")):  # forward and backward continuation solves
-        try:
-            solved.append(OCPResult.load(f))
-        except (ValueError, TypeError):
-            continue
+        r = _cached(f)
+        if r is not None:
+            solved.append(r)
     points = []
     for T, fuel in zip(front.T, front.fuel_g, strict=True):  # the front's own points: the solve it kept
         same = [r for r in solved if abs(r.T - T) < 1e-6 and abs(r.fuel_g - fuel) <= 1e-9 * fuel]
@@ -180,7 +182,7 @@ def polish_front(braking: str, alt: FrontOptima, params: LoaderParams,
                 r = old if old is not None else new
             if r is None:
                 continue
-            r.save(path)
+            save_result(r, path)
         if r.fuel_g < fuel[i] * (1 - 1e-6):
             improved.append({"T_s": T, "pareto_cache_g": fuel[i], "polished_g": r.fuel_g,
                              "change_pct": 100.0 * (r.fuel_g - fuel[i]) / fuel[i], "mesh": list(r.mesh)})
@@ -210,7 +212,7 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
         raise OCPError(f"no optimum found for the {braking} cycle at T = {T:g} s")
     log.info(f"[{braking}] fuel at T = {T:g} s: {r.fuel_g:.3f} g"
              + ("" if passed(r) else " (re-simulation check NOT passed)"))
-    r.save(path)
+    save_result(r, path)
     return r
 
 
@@ -234,5 +236,5 @@ def lean_time_optimum(braking: str, r_time: OCPResult, params: LoaderParams, cac
     if r is None:
         log.info(f"[{braking}]   no solution")
         return None
-    r.save(path)
+    save_result(r, path)
     return r

@@ -7,34 +7,44 @@ starts are tried beside it. A second pass continues back from the fuel-optimal e
 that took a worse basin carries it along). The best verified solution of each point is kept. Each
 solve is re-simulated and written to the cache as soon as it is done, so an interrupted sweep resumes
 where it stopped. The cache key is the braking alternative, the parameter fingerprint and the number of
-points. :func:`pareto_fronts` sweeps both braking alternatives in parallel processes.
+points. :func:`pareto_fronts` sweeps both braking alternatives in parallel processes
+(:mod:`mpc.workers`: they stop on Ctrl-C and die with their parent).
+
+Every file of the cache is an entry of :mod:`mpc.benchmark.store`: schema version, checksum, parameter
+fingerprint, checked on load (:func:`check_result`, :func:`check_front`: fields, types, finite numbers,
+a monotone front); a bad one is logged, set aside and solved again. An interrupted solve is never
+cached (:mod:`mpc.interrupt`). Progress goes to this module's logger.
 """
 
 from __future__ import annotations
 
-import json
+import logging
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mpc.benchmark import store
 from mpc.benchmark.ocp import (
+    OBJECTIVES,
     OCPError,
     OCPResult,
     OCPSettings,
     solve_ocp,
-    write_json_atomic,
 )
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
 
+log = logging.getLogger(__name__)
+
 CACHE_ENV = "WL_CACHE_DIR"
+FRONT_KIND, RESULT_KIND = "pareto_front", "ocp_result"  # the kinds of cache entries (mpc.benchmark.store)
 FIRST_POINT_SLACK = 1e-3  # the front starts at T_min * (1 + this): minimum fuel in the fastest cycle
 # Template starts (leg = T/2, these acceleration fractions) beside the neighbour's warm start, at cycle
 # times below MULTI_START_BELOW * T_min. Measured on both alternatives (7 points, templates 0.6/0.7/0.8):
@@ -87,12 +97,137 @@ class ParetoFront:
         return float(pchip(np.asarray(self.T), np.asarray(self.fuel_g), max(T, self.T[0])))
 
     def save(self, path: str | os.PathLike) -> Path:
-        return write_json_atomic(path, self.__dict__)
+        """Write as a checked cache entry (schema, checksum), atomically; ValueError if the front is bad."""
+        return store.write_entry(path, FRONT_KIND, dict(self.__dict__), check_front)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> ParetoFront:
-        data = json.loads(Path(path).read_text())
+    def load(cls, path: str | os.PathLike, fingerprint: str | None = None) -> ParetoFront:
+        """Read a front :meth:`save` wrote; :class:`mpc.benchmark.store.BadEntry` (a ValueError naming the
+        file) if it is not a valid one (solved for the parameters ``fingerprint``, if given)."""
+        return cls._from(store.read_entry(path, FRONT_KIND, check_front, fingerprint))
+
+    @classmethod
+    def _from(cls, data: dict[str, Any]) -> ParetoFront:
         return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+
+
+# ---------------------------------------------------------------------------------------------- entry checks
+def _num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _nums(v: Any, n: int | None = None) -> bool:
+    return isinstance(v, list) and (n is None or len(v) == n) and all(map(_num, v))
+
+
+def _rows(v: Any, n: int, width: int) -> bool:
+    return isinstance(v, list) and len(v) == n and all(_nums(r, width) for r in v)
+
+
+def _fields(d: dict[str, Any], spec: dict[str, Any]) -> str | None:
+    for name, ok in spec.items():
+        if name not in d:
+            return f"missing field {name!r}"
+        if not ok(d[name]):
+            return f"field {name!r} has the wrong type or value ({_short(d[name])})"
+    return None
+
+
+def _short(v: Any) -> str:
+    text = repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _optional_num(v: Any) -> bool:
+    return v is None or _num(v)
+
+
+_RESULT_FIELDS = {
+    "braking": lambda v: v in cycle.BRAKING_MODES, "objective": lambda v: v in OBJECTIVES,
+    "T": lambda v: _num(v) and v > 0, "fuel_g": lambda v: _num(v) and v > 0,
+    "phase_durations": lambda v: _nums(v, 4) and min(v) >= 0, "t": lambda v: _nums(v) and len(v) >= 2,
+    "states": lambda v: isinstance(v, list), "controls": lambda v: isinstance(v, list),
+    "phase": lambda v: isinstance(v, list) and all(_int(k) and 1 <= k <= 4 for k in v),
+    "position": lambda v: isinstance(v, list), "status": lambda v: isinstance(v, str),
+    "success": lambda v: isinstance(v, bool), "iterations": _int, "wall_time": _num, "w_fuel": _optional_num,
+    "target_T": _optional_num, "params_fingerprint": lambda v: isinstance(v, str),
+    "mesh": lambda v: isinstance(v, list) and len(v) == 4 and all(_int(n) and n >= 2 for n in v), "degree": _int,
+    "solver": lambda v: isinstance(v, str), "smoothing": lambda v: isinstance(v, list),
+    "starts": lambda v: isinstance(v, list) and all(isinstance(s, dict) for s in v),
+    "verification": lambda v: isinstance(v, dict),
+}
+
+
+def check_result(d: dict[str, Any]) -> str | None:
+    """What is wrong with an OCP result entry's fields (as :class:`OCPResult`), or None."""
+    problem = _fields(d, _RESULT_FIELDS)
+    if problem:
+        return problem
+    n = len(d["t"])
+    if not (_rows(d["states"], n, 4) and _rows(d["controls"], n - 1, 3) and _nums(d["position"], n)
+            and len(d["phase"]) == n):
+        return f"states, controls, position and phase do not match the {n} sample times"
+    if any(b < a for a, b in pairwise(d["t"])) or any(b < a for a, b in pairwise(d["phase"])):
+        return "the sample times or phases decrease"
+    return None
+
+
+_FRONT_FIELDS = {
+    "braking": lambda v: v in cycle.BRAKING_MODES, "T": lambda v: _nums(v) and len(v) >= 2,
+    "fuel_g": lambda v: _nums(v) and len(v) >= 2 and min(v) > 0, "params_fingerprint": lambda v: isinstance(v, str),
+    "T_min": lambda v: _num(v) and v > 0, "T_fuel_opt": _num, "fuel_min_g": lambda v: _num(v) and v > 0,
+    "mesh": lambda v: isinstance(v, list) and len(v) == 4 and all(_int(n) and n >= 2 for n in v),
+    "wall_time": lambda v: _num(v) and v >= 0,
+    "points": lambda v: isinstance(v, list) and all(isinstance(p, dict) for p in v),
+}
+
+
+def check_front(d: dict[str, Any]) -> str | None:
+    """What is wrong with a Pareto front entry (as :class:`ParetoFront`), or None: fields and types,
+    at least 2 points, cycle times increasing from T_min to T_fuel_opt, fuel not increasing."""
+    problem = _fields(d, _FRONT_FIELDS)
+    if problem:
+        return problem
+    T, fuel = d["T"], d["fuel_g"]
+    if len(T) != len(fuel):
+        return f"{len(T)} cycle times but {len(fuel)} fuels"
+    if any(b <= a for a, b in pairwise(T)):
+        return "the cycle times T do not increase"
+    if any(b > a for a, b in pairwise(fuel)):
+        return "the fuel rises with the cycle time (on a front it falls)"
+    if not (d["T_min"] <= T[0] + 1e-9 and T[-1] <= d["T_fuel_opt"] + 1e-9 and d["fuel_min_g"] <= fuel[-1] + 1e-9):
+        return "T_min, T_fuel_opt or fuel_min_g do not bound the points"
+    return None
+
+
+def save_result(r: OCPResult, path: str | os.PathLike) -> Path:
+    """Write an OCP result as a checked entry (schema, checksum), atomically."""
+    return store.write_entry(path, RESULT_KIND, r.to_dict(), check_result)
+
+
+def load_result(path: str | os.PathLike, fingerprint: str | None = None) -> OCPResult:
+    """An OCP result :func:`save_result` wrote; BadEntry (a ValueError naming the file) if it is not
+    a valid one, FileNotFoundError if there is none."""
+    return _result_from(store.read_entry(path, RESULT_KIND, check_result, fingerprint))
+
+
+def _result_from(data: dict[str, Any]) -> OCPResult:
+    return OCPResult(**{k: v for k, v in data.items() if k in OCPResult.__dataclass_fields__})
+
+
+def cached_result(path: str | os.PathLike, fingerprint: str | None = None, objective: str | None = None) -> OCPResult | None:
+    """The valid cached OCP result at ``path`` (of ``objective``, if given), or None: missing, or bad (then
+    logged and set aside)."""
+    def check(d: dict[str, Any]) -> str | None:
+        return check_result(d) or (f"objective {d['objective']!r}, expected {objective!r}"
+                                   if objective is not None and d["objective"] != objective else None)
+
+    data = store.load_entry(path, RESULT_KIND, check, fingerprint)
+    return None if data is None else _result_from(data)
 
 
 def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
@@ -112,8 +247,13 @@ def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
     return float(h00 * y[k] + h10 * h[k] * m[k] + h01 * y[k + 1] + h11 * h[k] * m[k + 1])
 
 
+# The cached optima's version: v5, checked entries (mpc.benchmark.store), re-simulated by WheelLoader-v1's
+# step (its saturations within the step, its limits at every RK4 stage).
+CACHE_VERSION = "v5"
+
+
 def _key(braking: str, p: LoaderParams, n_points: int) -> str:
-    return f"{braking}_{p.fingerprint()}_n{n_points}_v4"
+    return f"{braking}_{p.fingerprint()}_n{n_points}_{CACHE_VERSION}"
 
 
 def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
@@ -121,6 +261,19 @@ def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | 
     """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
     and one ``T_<cycle time>.json`` per point (each an :class:`mpc.benchmark.ocp.OCPResult`)."""
     return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), n_points)
+
+
+def min_time_result(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
+                    cache: str | os.PathLike | None = None) -> OCPResult:
+    """The minimum-time cycle a front was swept from (its ``min_time.json``), solved again if that entry is
+    missing or bad."""
+    p = resolve(params)
+    path = front_folder(braking, n_points, p, cache) / "min_time.json"
+    r = cached_result(path, p.fingerprint(), "time")
+    if r is None:
+        r = solve_ocp(braking, "time", params=p)
+        save_result(r, path)
+    return r
 
 
 def sweep_mesh(ends: list[OCPResult], max_interval: float) -> tuple[int, int, int, int]:
@@ -148,26 +301,38 @@ def pareto_front(
 ) -> ParetoFront:
     """The Pareto front with ``n_points`` cycle times from the minimum time to the fuel optimum.
 
-    Solved points are cached (one JSON per point plus the front); a cached front is returned at once.
+    Solved points are cached (one entry per point plus the front); a valid cached front is returned at
+    once, a bad one is set aside and rebuilt from the cached points. ``progress`` gets each step (default:
+    this module's logger at INFO).
     """
     cycle.check_braking(braking)
     if not (isinstance(n_points, int) and 3 <= n_points <= 100):
         raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
     p = resolve(params)
-    say = progress or (lambda msg: None)
+    fingerprint = p.fingerprint()
+    say = progress or log.info
     folder = front_folder(braking, n_points, p, cache)
     front_file = folder / "front.json"
-    if use_cache and front_file.exists():
-        return ParetoFront.load(front_file)
+
+    def matches(d: dict[str, Any]) -> str | None:
+        return check_front(d) or (f"a {d['braking']} front, expected {braking}" if d["braking"] != braking else None)
+
+    if use_cache:
+        data = store.load_entry(front_file, FRONT_KIND, matches, fingerprint)
+        if data is not None:
+            return ParetoFront._from(data)
+    say(f"[{braking}] solving the Pareto front ({n_points} points; each solved point is cached in {folder})")
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
 
     def cached_solve(name: str, **kwargs: Any) -> OCPResult:
         path = folder / f"{name}.json"
-        if use_cache and path.exists():
-            return OCPResult.load(path)
-        result = solve_ocp(braking, params=p, **kwargs)
-        result.save(path)
+        if use_cache:
+            cached = cached_result(path, fingerprint, kwargs["objective"])
+            if cached is not None:
+                return cached
+        result = solve_ocp(braking, params=p, **kwargs)  # an interrupt raises KeyboardInterrupt: nothing is saved
+        save_result(result, path)
         return result
 
     say(f"[{braking}] minimum time")
@@ -224,8 +389,15 @@ def pareto_front(
     return front
 
 
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+def _debug(msg: str) -> None:
+    log.debug(msg)
+
+
+def _front_job(braking: str, n_points: int, params: dict[str, Any], cache: str | None, use_cache: bool,
+               progress: bool) -> ParetoFront:
+    """One front in a worker process (:func:`pareto_fronts`); plain arguments, so the worker imports
+    nothing heavy before its interrupt handler is in place."""
+    return pareto_front(braking, n_points, params, cache, use_cache, None if progress else _debug)
 
 
 def pareto_fronts(
@@ -238,25 +410,24 @@ def pareto_fronts(
     workers: int | None = None,
 ) -> dict[str, ParetoFront]:
     """The fronts of several braking alternatives, swept in parallel processes (one per alternative,
-    at most ``workers``, default the CPU count). ``progress`` prints each step to stderr.
+    if ``workers``, default the CPU count, allows more than one). ``progress`` logs each step at INFO
+    (else DEBUG); the workers log to stderr.
 
     The processes are spawned, so they import the caller's main module: a script that calls this needs
-    the usual ``if __name__ == "__main__":`` guard (``wl`` and pytest have it).
+    the usual ``if __name__ == "__main__":`` guard (``wl`` and pytest have it). Ctrl-C or an error in one
+    front stops all of them within about a second (:mod:`mpc.workers`); the points solved so far stay cached.
     """
     for b in brakings:
         cycle.check_braking(b)
     p = resolve(params)
-    say = _stderr if progress else None
     workers = min(len(brakings), workers or os.cpu_count() or 1)
     if workers <= 1:
-        return {b: pareto_front(b, n_points, p, cache, use_cache, say) for b in brakings}
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+        return {b: pareto_front(b, n_points, p, cache, use_cache, None if progress else _debug) for b in brakings}
+    from mpc.workers import run_in_workers
 
-    # spawn, not fork: the parent may hold threads (torch, BLAS) that a forked child would inherit locked
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        jobs = {b: pool.submit(pareto_front, b, n_points, p, cache, use_cache, say) for b in brakings}
-        return {b: job.result() for b, job in jobs.items()}
+    args = (n_points, p.to_dict(), None if cache is None else str(cache), use_cache, progress)
+    return run_in_workers({b: (f"{__name__}:_front_job", (b, *args)) for b in brakings},
+                          log_level=logging.INFO if progress else logging.WARNING)
 
 
 def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | dict | None = None,
@@ -270,10 +441,11 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
         return front.fuel_at(T)
     # Slower than the fuel-optimal cycle: fuel at that T is its own optimum (cached like the front).
     p = resolve(params)
-    path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}" / f"T_{T:.3f}.json"
-    if path.exists():
-        return OCPResult.load(path).fuel_g
+    path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}" / f"T_{T:.3f}.json"
+    cached = cached_result(path, p.fingerprint(), "fuel_at_time")
+    if cached is not None:
+        return cached.fuel_g
     r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,
                   settings=replace(OCPSettings(), intervals=tuple(front.mesh)))
-    r.save(path)
+    save_result(r, path)
     return r.fuel_g

@@ -26,6 +26,7 @@ so in ``last_info``.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
@@ -459,12 +460,13 @@ class ClosedLoopResult:
 def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
                     score: bool = True, seed: int = 0, controller: MPCController | None = None,
-                    cache: str | None = None) -> ClosedLoopResult:
+                    cache: str | os.PathLike | None = None) -> ClosedLoopResult:
     """One cycle of ``WheelLoader-v1`` under the MPC, scored against the plant's optimum.
 
     ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
     they differ in a model-mismatch study, and the score is the plant's (its own Pareto front).
     ``controller`` (default: built from ``config``) lets a caller inspect the controller afterwards.
+    ``cache`` is the folder of the Pareto fronts the score reads (default: :func:`mpc.benchmark.pareto.cache_dir`).
     """
     import gymnasium as gym
 

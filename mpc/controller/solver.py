@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import casadi as ca
 import numpy as np
 
+from mpc import interrupt
 from mpc.controller.grid import GridNLP, StepModel
 from wl_env.params import LoaderParams
 
@@ -118,6 +119,7 @@ class IpoptSolver:
         sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
         stats = fn.stats()
         status = str(stats.get("return_status", "unknown"))
+        interrupt.check(status)  # Ctrl-C inside IPOPT stops the run, not just this plan
         z = np.array(sol["x"]).ravel()
         ok = (bool(stats.get("success")) or status == "Solved_To_Acceptable_Level") and bool(np.isfinite(z).all())
         if not np.isfinite(z).all():

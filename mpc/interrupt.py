@@ -1,0 +1,75 @@
+"""Ctrl-C that stops a solve instead of failing one start of it.
+
+CasADi looks for signals while IPOPT iterates. On SIGINT Python's handler raises KeyboardInterrupt
+inside CasADi, which catches it and returns as an ordinary failed solve (status
+``NonIpopt_Exception_Thrown``); the multi-start then took the interrupt for a start that did not
+converge, went on with the next one and cached the result. Here the interrupt is kept in a
+process-wide flag: the handler :func:`install` puts in place sets it before raising KeyboardInterrupt,
+and :func:`check`, called after every solver call, raises KeyboardInterrupt again when the flag is set
+or the solver reports an abort (also without the handler, for library use).
+
+The command line installs the handler (:func:`handling`); so does every worker process of
+:mod:`mpc.workers`.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+# IPOPT statuses of a solve that was stopped rather than finished: with no intermediate callback and
+# no Python callbacks in these NLPs, only an interrupt produces them.
+ABORT_STATUSES = frozenset({"User_Requested_Stop", "NonIpopt_Exception_Thrown"})
+
+_flag = threading.Event()
+_repeat = True
+
+
+def _handler(signum: int, frame: Any) -> None:
+    first = not _flag.is_set()
+    _flag.set()
+    if first or _repeat:
+        raise KeyboardInterrupt
+
+
+def interrupted() -> bool:
+    """True once SIGINT arrived in this process (since the handler was installed)."""
+    return _flag.is_set()
+
+
+def check(status: str | None = None) -> None:
+    """Raise KeyboardInterrupt if this process was interrupted, or if ``status`` (a solver's return
+    status) says the solve was aborted. Call it after every solver call."""
+    if _flag.is_set():
+        raise KeyboardInterrupt("interrupted")
+    if status in ABORT_STATUSES:
+        raise KeyboardInterrupt(f"the solver was interrupted (status {status})")
+
+
+def install(repeat: bool = True) -> Any:
+    """Put the flag-setting SIGINT handler in place (main thread only; elsewhere a no-op returning None)
+    and clear the flag; returns the previous handler. ``repeat=False`` ignores further SIGINTs once the
+    first one is being handled (worker processes, which get Ctrl-C from the terminal and again from
+    their parent)."""
+    global _repeat
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    _flag.clear()
+    _repeat = repeat
+    return signal.signal(signal.SIGINT, _handler)
+
+
+@contextmanager
+def handling() -> Iterator[None]:
+    """The handler installed for the block, the previous one restored after it (the CLI's main, which
+    tests also call in process)."""
+    previous = install()
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+            _flag.clear()

@@ -1,0 +1,178 @@
+"""Jobs in spawned worker processes that stop on Ctrl-C within about a second and die with their parent.
+
+:func:`run_in_workers` runs each job ``"module:function", args`` in its own process and returns the
+results by name. A worker
+
+- starts with SIGINT ignored and installs :mod:`mpc.interrupt`'s handler before it imports the job's
+  module (args are plain data, so nothing heavy is imported before that): Ctrl-C in the terminal, or a
+  SIGINT its parent forwards, ends its solve and it reports KeyboardInterrupt;
+- dies with its parent: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and a watchdog thread that exits
+  once ``os.getppid()`` is no longer the parent (any POSIX system), so ``kill -9`` of the parent leaves no
+  orphan solving on.
+
+When the parent is interrupted, or a job fails, the other workers get SIGINT, then SIGTERM after
+``grace`` seconds (0.5: a worker inside a long CasADi call, e.g. building an NLP, sees the signal only
+when it returns) and SIGKILL after one more. Their finished work is already on disk (atomically), so a
+rerun resumes there; what they were solving is dropped.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import pickle
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from mpc import interrupt
+
+WATCHDOG_PERIOD = 0.5  # s between the watchdog's looks at the parent
+
+
+class WorkerTraceback(Exception):
+    """The traceback of an exception raised in a worker (set as that exception's cause)."""
+
+
+def run_in_workers(jobs: dict[str, tuple[str, tuple]], log_level: int = logging.WARNING,
+                   grace: float = 0.5) -> dict[str, Any]:
+    """``{name: module:function(*args)}`` with each job in a spawned process; a job's exception (and
+    KeyboardInterrupt) is raised here once the other workers are stopped."""
+    ctx = multiprocessing.get_context("spawn")  # not fork: the parent may hold threads (torch, BLAS) a fork inherits locked
+    procs: dict[str, Any] = {}
+    conns: dict[Any, str] = {}
+    results: dict[str, Any] = {}
+    try:
+        for name, (target, args) in jobs.items():
+            recv, send = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_child, args=(send, os.getpid(), log_level, target, args),
+                            name=f"wl-worker-{name}", daemon=True)
+            with _sigint_held():
+                p.start()
+            send.close()  # the worker holds the only write end: its death reads as EOF here
+            procs[name], conns[recv] = p, name
+        while conns:
+            for conn in multiprocessing.connection.wait(list(conns)):
+                name = conns.pop(conn)
+                try:
+                    kind, value, tb = conn.recv()
+                except EOFError:
+                    procs[name].join(1.0)
+                    raise RuntimeError(f"the worker process for {name} died (exit code {procs[name].exitcode})") from None
+                finally:
+                    conn.close()
+                if kind != "ok":
+                    if tb:
+                        value.__cause__ = WorkerTraceback(tb)
+                    raise value
+                results[name] = value
+        return results
+    finally:
+        _stop(list(procs.values()), graceful=len(results) == len(jobs), grace=grace)
+
+
+@contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT ignored while a worker is spawned, so it starts ignoring it (a disposition exec keeps)
+    until its handler is in place; blocked here meanwhile, so a Ctrl-C in this moment is delivered
+    afterwards instead of lost."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hasattr(signal, "pthread_sigmask") else None
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _stop(procs: list[Any], graceful: bool, grace: float) -> None:
+    """Join workers that are done; interrupt, then terminate and kill those that are not."""
+    if graceful:
+        for p in procs:
+            p.join(10.0)
+    alive = [p for p in procs if p.is_alive()]
+    for p in alive:
+        try:
+            os.kill(p.pid, signal.SIGINT)
+        except (ProcessLookupError, AttributeError):  # gone, or no os.kill signals (Windows)
+            pass
+    deadline = time.monotonic() + grace
+    for p in alive:
+        p.join(max(0.0, deadline - time.monotonic()))
+    for p in alive:
+        if p.is_alive():
+            p.terminate()
+            p.join(1.0)
+        if p.is_alive():
+            p.kill()
+            p.join()
+
+
+# ---------------------------------------------------------------------------------------------- worker side
+def _child(conn: Any, parent_pid: int, log_level: int, target: str, args: tuple) -> None:
+    interrupt.install(repeat=False)  # before anything heavy is imported
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _die_with_parent(parent_pid)
+    logging.basicConfig(level=log_level, format="%(message)s", stream=sys.stderr)
+    try:
+        module, _, name = target.partition(":")
+        message = ("ok", getattr(importlib.import_module(module), name)(*args), None)
+    except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent, KeyboardInterrupt too
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a forwarded Ctrl-C must not cut the report short
+        message = ("error", _portable(exc), None if isinstance(exc, KeyboardInterrupt) else traceback.format_exc())
+    try:
+        conn.send(message)
+    except (OSError, pickle.PicklingError, TypeError, AttributeError):  # parent gone, or a result that does not pickle
+        if message[0] == "ok":
+            conn.send(("error", RuntimeError(f"the result of {target} cannot be sent back"), traceback.format_exc()))
+    finally:
+        conn.close()
+        # Reported: end now. The interpreter's teardown with CasADi loaded takes ~0.2 s, which an
+        # interrupted parent would wait for; everything this process wrote is on disk (atomically).
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0 if message[0] == "ok" else 1)
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """``exc`` if it survives pickling, else a RuntimeError with its text."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - any failure to round-trip
+        return RuntimeError(f"{type(exc).__name__}: {exc}")
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            PR_SET_PDEATHSIG = 1
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass  # the watchdog below still ends it
+    if os.getppid() != parent_pid:  # the parent died before the death signal was armed
+        os._exit(1)
+    threading.Thread(target=_watchdog, args=(parent_pid,), name="wl-parent-watchdog", daemon=True).start()
+
+
+def _watchdog(parent_pid: int) -> None:
+    while True:
+        time.sleep(WATCHDOG_PERIOD)
+        if os.getppid() != parent_pid:  # re-parented: the parent is gone
+            os._exit(1)

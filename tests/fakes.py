@@ -1,0 +1,25 @@
+"""Fast stand-ins for the expensive work, shared by the tests (and the subprocesses some of them start)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mpc.benchmark.ocp import OCPResult
+from wl_env.params import resolve
+
+
+def fake_solve(braking: str = "service", objective: str = "time", T: float | None = None, w_fuel=None,
+               params=None, settings=None, **_: object) -> OCPResult:
+    """A stand-in for ``solve_ocp``: T_min 7 s, the fuel optimum 47 g at 21 s, a convex front between.
+    Each call is recorded in ``fake_solve.calls`` as (braking, objective, T)."""
+    fake_solve.calls.append((braking, objective, T))
+    T_sol = {"time": 7.0, "fuel": 21.0}.get(objective, T)
+    fuel = 47.0 + 63.0 * ((21.0 - T_sol) / 14.0) ** 2
+    t = np.linspace(0.0, T_sol, 5)
+    return OCPResult(braking, objective, float(T_sol), float(fuel), [T_sol / 4] * 4, t.tolist(),
+                     np.zeros((5, 4)).tolist(), np.zeros((4, 3)).tolist(), [1, 2, 3, 4, 4], np.zeros(5).tolist(),
+                     "Solve_Succeeded", True, 10, 0.01, target_T=T, params_fingerprint=resolve(params).fingerprint(),
+                     mesh=list(settings.intervals) if settings else [20, 12, 20, 12], verification={"passed": True})
+
+
+fake_solve.calls = []

@@ -1,0 +1,495 @@
+"""Reliability: Ctrl-C stops the work and keeps nothing, workers die with their parent, caches are checked,
+report files are written atomically (docs/reliability.md lists what is promised and where it is tested).
+
+The interrupt and orphan tests run the real ``wl`` in subprocesses with a fresh cache; the cache tests
+replace the expensive solve with a fast fake (:func:`fake_solve`) and go through the real load path.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fakes import fake_solve
+
+import mpc.benchmark.pareto as pareto
+import wl.cli
+from mpc import interrupt
+from mpc.benchmark import store
+from mpc.benchmark.ocp import OCPSettings, get_ocp, template_guess
+from wl_env.params import resolve
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+ABORTED = ("NonIpopt_Exception_Thrown", "User_Requested_Stop", "nterrupt")
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _wl(args: list[str], cache: Path, stderr: int = subprocess.PIPE) -> subprocess.Popen:
+    """``python -m wl ARGS`` from this checkout, with its own cache folder and process group."""
+    return subprocess.Popen([sys.executable, "-m", "wl", *args], env={**ENV, "WL_CACHE_DIR": str(cache)},
+                            stdout=subprocess.DEVNULL, stderr=stderr, text=True, start_new_session=True)
+
+
+def _read_until(proc: subprocess.Popen, needle: str, count: int = 1, timeout: float = 60.0) -> list[str]:
+    """stderr lines of ``proc`` until ``count`` of them contain ``needle``."""
+    lines: list[str] = []
+    deadline = time.monotonic() + timeout
+    while sum(needle in line for line in lines) < count:
+        assert time.monotonic() < deadline, f"no {needle!r} in {lines}"
+        line = proc.stderr.readline()
+        assert line, f"the process ended before {needle!r}: {lines}"
+        lines.append(line)
+    return lines
+
+
+def _interrupt(proc: subprocess.Popen, group: bool = False, timeout: float = 10.0) -> tuple[int, float, str]:
+    """SIGINT to ``proc`` (or its whole process group, as Ctrl-C in a terminal); (exit code, seconds to exit,
+    the rest of stderr)."""
+    t0 = time.monotonic()
+    if group:
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail(f"still running {timeout} s after SIGINT")
+    return proc.returncode, time.monotonic() - t0, err
+
+
+def _proc_state(pid: int) -> str | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    return _proc_state(pid) not in (None, "Z", "X")  # a zombie has ended; only its exit status is left
+
+
+def _workers(parent: int) -> list[int]:
+    """The spawned worker processes of ``parent`` (from /proc; psutil is not a dependency)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == parent and b"spawn_main" in cmd and _alive(int(d.name)):
+            out.append(int(d.name))
+    return out
+
+
+def _cache_is_clean(cache: Path) -> None:
+    """Every file in the cache is a valid entry with no interrupted start in it; no temporary is left."""
+    for path in cache.rglob("*"):
+        if path.is_dir():
+            continue
+        assert path.suffix == ".json" and not path.name.startswith("."), f"stray file {path}"
+        if path.name == "front.json":
+            pareto.ParetoFront.load(path)
+            continue
+        r = pareto.load_result(path)
+        for s in r.starts:
+            assert not any(a in str(s.get("status")) for a in ABORTED), (path, s)
+
+
+needs_proc = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds processes in /proc")
+
+
+# ---------------------------------------------------------------------------------------------- interrupts
+@pytest.mark.parametrize("handler", ["installed", "default"])
+def test_sigint_inside_ipopt_raises_keyboard_interrupt(handler):
+    """CasADi returns from an interrupted IPOPT as a failed solve (OCPError before); the solve raises
+    KeyboardInterrupt instead, with the CLI's handler and with Python's default one (library use)."""
+    p = resolve(None)
+    ocp = get_ocp("service", p, OCPSettings())
+    z0 = ocp.guess_from_trajectory(**template_guess(p, 6.0, 0.7))
+    t0 = time.perf_counter()
+    ocp.solve(z0, "fuel_at_time", T=12.0)  # built and timed: the next solve's time is IPOPT's
+    timer = threading.Timer(0.25 * (time.perf_counter() - t0), os.kill, (os.getpid(), signal.SIGINT))
+    previous = interrupt.install() if handler == "installed" else signal.signal(signal.SIGINT, signal.default_int_handler)
+    outcome = "returned"
+    try:
+        try:
+            timer.start()
+            ocp.solve(z0, "fuel_at_time", T=12.0)
+        except KeyboardInterrupt:
+            outcome = "interrupted"
+        except Exception as exc:  # noqa: BLE001 - the old behaviour: a failed start
+            outcome = f"{type(exc).__name__}: {exc}"
+        finally:
+            timer.join()
+            time.sleep(0.05)  # a signal that came after the solve is taken here, not later in the suite
+    except KeyboardInterrupt:
+        outcome = "signal after the solve"
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        interrupt._flag.clear()
+    assert outcome == "interrupted"
+
+
+def test_wl_ocp_interrupted_exits_130_and_writes_nothing(tmp_path):
+    """SIGINT while IPOPT runs (CasADi's warning shows it landed there): exit 130, no result, no cache."""
+    cache = tmp_path / "cache"
+    hit_ipopt = False
+    for delay in (1.2, 0.9, 1.6):  # the solve starts ~0.6 s after the first line and lasts ~1.5 s
+        out = tmp_path / f"o_{delay}.json"
+        proc = _wl(["ocp", "--braking", "service", "--objective", "fuel", "--time", "12", "--out", str(out)], cache)
+        _read_until(proc, "solving the service fuel_at_time OCP")
+        time.sleep(delay)
+        code, latency, err = _interrupt(proc)
+        assert code == 130, err
+        assert latency < 2.0, latency
+        assert "wl: interrupted" in err and "Traceback" not in err
+        assert not out.exists()
+        assert not list(tmp_path.glob(".o_*"))  # no temporary of the result left either
+        assert not cache.exists() or not any(cache.rglob("*.json"))
+        if "KeyboardInterruptException" in err:
+            hit_ipopt = True
+            break
+    assert hit_ipopt, "no attempt interrupted IPOPT itself"
+
+
+@needs_proc
+@pytest.mark.parametrize("group", [False, True], ids=["kill-INT-parent", "ctrl-C-group"])
+def test_wl_pareto_interrupted_stops_its_workers(tmp_path, group):
+    """``wl pareto --braking both``: SIGINT to the parent alone or to the whole group (Ctrl-C) ends the
+    parent and both workers within seconds, exit 130, no front written, nothing interrupted cached."""
+    cache, out = tmp_path / "cache", tmp_path / "fronts"
+    proc = _wl(["pareto", "--braking", "both", "--points", "3", "--cache", str(cache), "--out", str(out)], cache)
+    _read_until(proc, "solving the Pareto front", count=2)  # both workers are at work
+    workers = _workers(proc.pid)
+    assert len(workers) == 2, workers
+    time.sleep(1.5)
+    code, latency, err = _interrupt(proc, group=group)
+    assert code == 130, err
+    assert latency < 3.0, latency
+    deadline = time.monotonic() + 3.0
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(_alive, workers))
+    assert not list(out.glob("pareto_*.json"))
+    _cache_is_clean(cache)
+
+
+def test_wl_mpc_interrupted_exits_130_without_a_result(tmp_path):
+    """An interrupt inside one of the MPC's IPOPT solves ends the run (it was a failed plan: exit 2, or a
+    fallback step)."""
+    out = tmp_path / "mpc.json"
+    hit_ipopt = False
+    for delay in (3.0, 2.4, 3.8, 4.5):  # the first plans are solved ~2-5 s after the first line
+        proc = _wl(["mpc", "--no-score", "--out", str(out)], tmp_path / "cache")
+        _read_until(proc, "MPC (time) driving")
+        time.sleep(delay)
+        if proc.poll() is not None:
+            continue
+        code, latency, err = _interrupt(proc)
+        assert code == 130, err
+        assert latency < 2.0 and not out.exists()
+        if "KeyboardInterruptException" in err:
+            hit_ipopt = True
+            break
+    assert hit_ipopt, "no attempt interrupted IPOPT itself"
+
+
+@needs_proc
+def test_wl_run_interrupted_exits_130_without_a_report(tmp_path):
+    out, cache = tmp_path / "results", tmp_path / "cache"
+    proc = _wl(["run", "--out", str(out), "--cache", str(cache)], cache)
+    _read_until(proc, "solving the Pareto front", count=2)
+    time.sleep(1.0)
+    code, latency, err = _interrupt(proc, group=True)
+    assert code == 130, err
+    assert latency < 3.0
+    assert not (out / "results.json").exists() and not (out / "leaderboard.md").exists()
+    _cache_is_clean(cache)
+
+
+@pytest.mark.slow
+def test_interrupted_pareto_resumes_to_the_same_front(tmp_path):
+    """After an interrupt the rerun completes from the cache and gives the uninterrupted front."""
+    cache, out = tmp_path / "cache", tmp_path / "fronts"
+    proc = _wl(["pareto", "--braking", "service", "--points", "3", "--out", str(out)], cache)
+    _read_until(proc, "point 1/3")
+    code, _, err = _interrupt(proc)
+    assert code == 130, err
+    rerun = subprocess.run([sys.executable, "-m", "wl", "pareto", "--braking", "service", "--points", "3",
+                            "--out", str(out)], env={**ENV, "WL_CACHE_DIR": str(cache)}, capture_output=True,
+                           text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    fresh = pareto.pareto_front("service", 3, cache=tmp_path / "fresh")
+    resumed = pareto.ParetoFront.load(out / "pareto_service.json")
+    np.testing.assert_allclose(resumed.fuel_g, fresh.fuel_g, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- orphans
+@needs_proc
+def test_workers_die_with_their_killed_parent(tmp_path):
+    cache = tmp_path / "cache"
+    proc = _wl(["pareto", "--braking", "both", "--points", "3", "--cache", str(cache), "--out", str(tmp_path / "f")],
+               cache, stderr=subprocess.DEVNULL)  # not a pipe: the test must not wait for the workers' end of it
+    deadline = time.monotonic() + 30
+    while len(workers := _workers(proc.pid)) < 2:
+        assert time.monotonic() < deadline and proc.poll() is None, "no workers"
+        time.sleep(0.05)
+    time.sleep(1.0)  # solving
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 5.0
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = [w for w in workers if _alive(w)]
+    for w in left:  # do not leave them to the rest of the suite
+        os.kill(w, signal.SIGKILL)
+    assert not left, f"orphaned workers {left}"
+
+
+# ---------------------------------------------------------------------------------------------- caches
+@pytest.fixture
+def fake(monkeypatch):
+    fake_solve.calls = []
+    monkeypatch.setattr(pareto, "solve_ocp", fake_solve)
+    return fake_solve
+
+
+def _truncate(text: str) -> str:
+    return text[: len(text) // 2]
+
+
+def _set(data: dict, **changes) -> str:
+    """The entry with ``changes`` and a checksum that matches them (so only the field checks can object)."""
+    data = {**data, **changes}
+    data["checksum"] = store.checksum(data)
+    return json.dumps(data)
+
+
+CORRUPTIONS = {
+    "truncated": lambda text, data: _truncate(text),
+    "empty": lambda text, data: "",
+    "garbage": lambda text, data: "\x00\xff garbage \x13",
+    "not-an-object": lambda text, data: "[1, 2, 3]",
+    "no-schema": lambda text, data: json.dumps({k: v for k, v in data.items() if k not in ("schema", "checksum")}),
+    "wrong-field-type": lambda text, data: _set(data, T="fast"),
+    "missing-field": lambda text, data: _set({k: v for k, v in data.items() if k != "fuel_g"}),
+    "nan-fuel": lambda text, data: text.replace(str(data["fuel_g"][1]), "NaN"),
+    "nan-fuel-checksummed": lambda text, data: _set(data, fuel_g=[data["fuel_g"][0], None, data["fuel_g"][2]]),
+    "single-point": lambda text, data: _set(data, T=data["T"][:1], fuel_g=data["fuel_g"][:1]),
+    "not-monotone": lambda text, data: _set(data, fuel_g=data["fuel_g"][::-1]),
+    "changed-number": lambda text, data: json.dumps({**data, "fuel_g": [f * 0.5 for f in data["fuel_g"]]}),
+    "other-parameters": lambda text, data: _set(data, params_fingerprint="0123456789abcdef"),
+}
+
+
+@pytest.mark.parametrize("how", sorted(CORRUPTIONS))
+def test_bad_front_is_set_aside_and_recomputed(tmp_path, fake, caplog, how):
+    good = pareto.pareto_front("service", 3, cache=tmp_path)
+    front_file = pareto.front_folder("service", 3, cache=tmp_path) / "front.json"
+    text = front_file.read_text()
+    front_file.write_text(CORRUPTIONS[how](text, json.loads(text)))
+    fake.calls.clear()
+    with caplog.at_level(logging.WARNING, logger="mpc.benchmark.store"):
+        again = pareto.pareto_front("service", 3, cache=tmp_path)
+    assert again.T == good.T and again.fuel_g == good.fuel_g
+    assert fake.calls == []  # rebuilt from the cached points, none solved again
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and str(front_file) in warnings[0].getMessage()
+    aside = list(front_file.parent.glob("front.json.bad-*"))
+    assert len(aside) == 1
+    pareto.ParetoFront.load(front_file)  # the new one is valid
+    assert pareto.pareto_front("service", 3, cache=tmp_path).fuel_g == good.fuel_g  # and now used as it is
+    assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 1
+
+
+@pytest.mark.parametrize("how", ["truncated", "garbage", "changed-number", "wrong-type", "nan"])
+def test_bad_point_is_set_aside_and_solved_again(tmp_path, fake, caplog, how):
+    pareto.pareto_front("service", 3, cache=tmp_path)
+    folder = pareto.front_folder("service", 3, cache=tmp_path)
+    (folder / "front.json").unlink()
+    point = folder / "min_fuel.json"
+    text = point.read_text()
+    data = json.loads(text)
+    point.write_text({"truncated": _truncate(text), "garbage": "\x01\x02", "changed-number":
+                      json.dumps({**data, "fuel_g": 1.0}), "wrong-type": _set(data, states="none"),
+                      "nan": text.replace(repr(data["fuel_g"]), "NaN", 1)}[how])
+    fake.calls.clear()
+    with caplog.at_level(logging.WARNING):
+        front = pareto.pareto_front("service", 3, cache=tmp_path)
+    assert fake.calls == [("service", "fuel", None)]  # that point alone
+    assert str(point) in caplog.text and list(folder.glob("min_fuel.json.bad-*"))
+    assert all(math.isfinite(f) for f in front.fuel_g)
+
+
+def test_entries_carry_schema_checksum_and_parameters(tmp_path, fake):
+    front = pareto.pareto_front("service", 3, cache=tmp_path)
+    folder = pareto.front_folder("service", 3, cache=tmp_path)
+    fp = resolve(None).fingerprint()
+    for path in folder.iterdir():
+        data = json.loads(path.read_text())
+        assert data["schema"]["version"] == store.SCHEMA_VERSION and data["params_fingerprint"] == fp
+        assert data["checksum"] == store.checksum(data)
+    with pytest.raises(store.BadEntry, match="parameters"):  # a front of other parameters is not taken
+        pareto.ParetoFront.load(folder / "front.json", fingerprint="0" * 16)
+    bad = pareto.ParetoFront(**{**front.__dict__, "fuel_g": [front.fuel_g[0], math.nan, front.fuel_g[2]]})
+    with pytest.raises(ValueError, match="refusing"):  # nor written
+        bad.save(tmp_path / "bad.json")
+    assert not (tmp_path / "bad.json").exists()
+
+
+def test_wl_pareto_recomputes_a_truncated_front_and_names_it(tmp_path, fake, capsys):
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    assert wl.cli.main(["pareto", "--braking", "service", "--points", "3", "--cache", str(cache), "--out", str(out)]) == 0
+    front_file = pareto.front_folder("service", 3, cache=cache) / "front.json"
+    front_file.write_text(front_file.read_text()[:100])
+    capsys.readouterr()
+    code = wl.cli.main(["pareto", "--braking", "service", "--points", "3", "--cache", str(cache), "--out", str(out)])
+    _, err = capsys.readouterr()
+    assert code == 0, err
+    assert f"bad cache entry {front_file}" in err and "Traceback" not in err
+    pareto.ParetoFront.load(out / "pareto_service.json")
+
+
+def test_wl_evaluate_never_scores_against_a_nan_front(tmp_path, fake, capsys):
+    cache = tmp_path / "cache"
+    front_file = pareto.front_folder("service", 8, cache=cache) / "front.json"
+    front_file.parent.mkdir(parents=True)
+    front_file.write_text(json.dumps({"braking": "service", "T": [7.0, 8.0, 21.0], "fuel_g": [110.0, math.nan, 47.0],
+                                      "params_fingerprint": resolve(None).fingerprint(), "T_min": 7.0,
+                                      "T_fuel_opt": 21.0, "fuel_min_g": 47.0, "mesh": [20, 12, 20, 12]}))
+    out = tmp_path / "eval.json"
+    code = wl.cli.main(["evaluate", "--controller", "operator", "--episodes", "1", "--cache", str(cache),
+                        "--out", str(out)])
+    stdout, err = capsys.readouterr()
+    assert code == 0, err
+    assert "nan" not in stdout.lower() and str(front_file) in err
+    ep = json.loads(out.read_text())["per_episode"][0]
+    assert math.isfinite(ep["fuel_gap"]) and math.isfinite(ep["time_gap"])
+
+
+_CONCURRENT = """
+import sys, time
+import mpc.benchmark.pareto as pareto
+sys.path.insert(0, {tests!r})
+from fakes import fake_solve
+
+def slow(*a, **k):
+    time.sleep(0.05)
+    return fake_solve(*a, **k)
+
+pareto.solve_ocp = slow
+front = pareto.pareto_front("service", 8, cache={cache!r})
+print(repr(front.fuel_g))
+"""
+
+
+def test_concurrent_sweeps_share_one_cache(tmp_path):
+    """Four processes sweep the same front on one cache at once, one of its entries bad to begin with:
+    all finish with the same front and leave only valid entries."""
+    cache = tmp_path / "cache"
+    folder = pareto.front_folder("service", 8, cache=cache)
+    folder.mkdir(parents=True)
+    (folder / "min_time.json").write_text("{truncated")
+    script = _CONCURRENT.format(tests=str(ROOT / "tests"), cache=str(cache))
+    procs = [subprocess.Popen([sys.executable, "-c", script], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for _ in range(4)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
+    assert len({out for out, _ in outs}) == 1
+    assert [p.name for p in folder.glob(".*")] == []  # no temporaries left
+    for path in folder.glob("*.json"):
+        (pareto.ParetoFront.load if path.name == "front.json" else pareto.load_result)(path)
+
+
+# ---------------------------------------------------------------------------------------------- report files
+def test_report_files_are_written_atomically(tmp_path, monkeypatch):
+    """A failure in the middle of writing a figure or the leaderboard leaves the previous file whole."""
+    import matplotlib.figure
+
+    import wl.report
+
+    front = pareto.ParetoFront("service", [7.0, 10.0, 20.0], [110.0, 80.0, 65.0], "x", 7.0, 20.0, 65.0, [20, 12, 20, 12])
+    results = {"format": 2, "brakings": ["service"], "rows": [], "wall_time_s": 1.0, "fronts": {"service": front.__dict__},
+               "optima": {"service": {"T": 7.0, "fuel_g": 110.0, "t": [0.0, 7.0], "states": [[0.0] * 4] * 2}},
+               "trajectories": []}
+    out = tmp_path / "report"
+    written = wl.report.render(results, out)
+    before = {p.name: p.read_bytes() for p in written}
+
+    def broken_savefig(self, fname, **kw):
+        Path(fname).write_bytes(b"\x89PNG half a figure")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", broken_savefig)
+    with pytest.raises(OSError, match="disk full"):
+        wl.report.render({**results, "wall_time_s": 2.0}, out)
+    for name in ("pareto.png", "trajectories_service.png"):
+        assert (out / name).read_bytes() == before[name]
+    monkeypatch.undo()
+    leaderboard = (out / "leaderboard.md").read_bytes()  # rewritten (whole) before the figure failed
+
+    real_write_bytes = Path.write_bytes
+
+    def half_write(self, data):
+        real_write_bytes(self, data[: len(data) // 2])
+        raise OSError("disk full")
+
+    monkeypatch.setattr(Path, "write_bytes", half_write)
+    monkeypatch.setattr(Path, "write_text", lambda self, text, *a, **k: half_write(self, text.encode()))
+    with pytest.raises(OSError, match="disk full"):
+        wl.report.render({**results, "wall_time_s": 3.0}, out)
+    monkeypatch.undo()
+    assert (out / "leaderboard.md").read_bytes() == leaderboard
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # the temporaries went with the failures
+
+
+# ---------------------------------------------------------------------------------------------- determinism, resume
+def test_evaluation_is_identical_across_processes(tmp_path):
+    """The same seed gives the same file in two processes (with different hash seeds)."""
+    outs = []
+    for i, hash_seed in enumerate(("1", "2")):
+        out = tmp_path / f"eval_{i}.json"
+        proc = subprocess.run([sys.executable, "-m", "wl", "evaluate", "--controller", "operator", "--braking", "tc",
+                               "--episodes", "3", "--seed", "7", "--no-score", "--out", str(out)],
+                              env={**ENV, "PYTHONHASHSEED": hash_seed}, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        outs.append(json.loads(out.read_text()))
+    assert outs[0] == outs[1]
+
+
+def test_training_resumes_after_sigkill(tmp_path):
+    """kill -9 in the middle of a run, then --resume: the run ends at its step budget from the last
+    checkpoint (written atomically, so a kill during one leaves the previous)."""
+    argv = ["train", "--total-timesteps", "3072", "--num-envs", "4", "--n-steps", "64", "--batch-size", "128",
+            "--n-epochs", "1", "--eval-freq", "100000", "--eval-episodes", "0", "--checkpoint-freq", "512",
+            "--no-score", "--no-progress-bar", "--net-arch", "8", "--log-dir", str(tmp_path), "--run-name", "k"]
+    proc = _wl(argv, tmp_path / "cache", stderr=subprocess.DEVNULL)
+    checkpoints = tmp_path / "k" / "checkpoints"
+    deadline = time.monotonic() + 60
+    while not list(checkpoints.glob("step_*/progress.json")):
+        assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint"
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    assert not (tmp_path / "k" / "final").exists()
+    resumed = subprocess.run([sys.executable, "-m", "wl", *argv[:1], "--run-name", "k", "--log-dir", str(tmp_path),
+                              "--resume", "--no-progress-bar"], env=ENV, capture_output=True, text=True, timeout=180)
+    assert resumed.returncode == 0, resumed.stderr
+    summary = json.loads((tmp_path / "k" / "final" / "summary.json").read_text())
+    assert 3072 <= summary["num_timesteps"] < 3072 + 4 * 64
