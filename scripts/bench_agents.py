@@ -65,7 +65,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    import logging
+    from wl_env.logs import cli_logging
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the Pareto sweep's progress, as `wl` shows it
-    main()
+    with cli_logging():  # the Pareto sweep's progress, as `wl` shows it
+        main()

@@ -11,17 +11,14 @@ the cache and redraws. The analysis, figures and table are wl.paper; this script
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo, if not installed
 
 from wl.paper.run import main  # noqa: E402
+from wl_env.logs import cli_logging  # noqa: E402
 
 if __name__ == "__main__":
-    # progress of the library's loggers on stderr; other libraries stay at warnings
-    logging.basicConfig(level=logging.WARNING, format="[reproduce_paper] %(message)s")
-    for name in ("mpc", "wl"):
-        logging.getLogger(name).setLevel(logging.INFO)
-    sys.exit(main(description=__doc__))
+    with cli_logging():  # the library's progress on stderr
+        sys.exit(main(description=__doc__))

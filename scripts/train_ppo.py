@@ -28,8 +28,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.logs import cli_logging  # noqa: E402
 from agents.train_cli import add_train_args, run_train  # noqa: E402
+from wl_env.logs import cli_logging  # noqa: E402
 
 PROG = "python scripts/train_ppo.py"
 
@@ -44,7 +44,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import logging
-
-    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the Pareto sweep's progress, as `wl` shows it
     sys.exit(main())

@@ -16,7 +16,6 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import wl_env  # noqa: F401
-from agents.logs import cli_logging
 from agents.operator import OperatorPolicy, run_episode
 from agents.ppo import (
     PPOConfig,
@@ -31,6 +30,7 @@ from agents.ppo import (
     train,
 )
 from agents.sb3_vec import make_sb3_vec_env
+from wl_env.logs import cli_logging
 
 ROOT = Path(__file__).resolve().parents[1]
 POLICIES = ROOT / "agents" / "policies"

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
-PACKAGES = ("wl", "mpc", "agents", "wl_env")  # the loggers main() shows at INFO
 
 
 class UsageError(Exception):
@@ -375,22 +374,6 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-class _StderrHandler(logging.StreamHandler):
-    """Log records as plain lines on whatever ``sys.stderr`` is when they are emitted (pytest swaps it)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.setFormatter(logging.Formatter("%(message)s"))
-
-    @property  # type: ignore[override]
-    def stream(self) -> Any:
-        return sys.stderr
-
-    @stream.setter
-    def stream(self, value: Any) -> None:
-        pass
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the ``wl`` command line ``argv``; returns the exit code (0, 1 for a run that did not complete,
     2 for a user error, 130 for an interrupt).
@@ -430,30 +413,20 @@ def main(argv: list[str] | None = None) -> int:
 def _run_command(args: argparse.Namespace) -> int:
     """``args.func(args)`` with logging to stderr and the interrupt handler in place; the exit code."""
     from mpc import interrupt
+    from wl_env.logs import cli_logging
 
-    handler = _StderrHandler()
-    loggers = [logging.getLogger(name) for name in PACKAGES]
-    levels = [lg.level for lg in loggers]
-    logging.getLogger().addHandler(handler)
-    for lg in loggers:
-        lg.setLevel(logging.INFO)
-    try:
-        with interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
-            try:
-                return int(args.func(args) or 0)
-            except KeyboardInterrupt:
+    with cli_logging(), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
+        try:
+            return int(args.func(args) or 0)
+        except KeyboardInterrupt:
+            print("wl: interrupted", file=sys.stderr)
+            return 130
+        except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
+            if interrupt.interrupted():  # an interrupt a library turned into an error
                 print("wl: interrupted", file=sys.stderr)
                 return 130
-            except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
-                if interrupt.interrupted():  # an interrupt a library turned into an error
-                    print("wl: interrupted", file=sys.stderr)
-                    return 130
-                print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
-                return 2
-    finally:
-        logging.getLogger().removeHandler(handler)
-        for lg, level in zip(loggers, levels, strict=True):
-            lg.setLevel(level)
+            print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":
