@@ -8,7 +8,7 @@ mesh refinement). The Pareto sweep (8 points per alternative) is timed for both 
 parallel processes (``pareto_fronts``, as ``wl pareto`` and ``wl run`` run it) and one after the other,
 each from an empty cache and with no NLP built beforehand in the process. Usage::
 
-    python scripts/bench_ocp.py [--repeats 5] [--pareto-repeats 3] [--json PATH] [--skip-pareto]
+    python scripts/bench_ocp.py [--repeats 5] [--pareto-repeats 3] [--json PATH] [--skip-pareto | --pareto-only]
 """
 
 from __future__ import annotations
@@ -106,9 +106,10 @@ def main() -> None:
     ap.add_argument("--pareto-repeats", type=int, default=3, help="timings of each Pareto sweep mode")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
     ap.add_argument("--skip-pareto", action="store_true")
+    ap.add_argument("--pareto-only", action="store_true", help="time the Pareto sweeps only")
     args = ap.parse_args()
-    single = single_solves(args.repeats)
-    full = full_solves(max(1, args.repeats // 2))
+    single = [] if args.pareto_only else single_solves(args.repeats)
+    full = [] if args.pareto_only else full_solves(max(1, args.repeats // 2))
     pareto, points = ([], {}) if args.skip_pareto else pareto_sweeps(args.pareto_repeats)
 
     print("| solver | braking | objective | NLP build (s) | solve median (s) | iterations | optimum | status |")

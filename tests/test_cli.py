@@ -440,7 +440,7 @@ def test_output_paths_are_checked_before_the_work(tmp_path, capsys, no_work, com
     path = {"wrong-kind": a_folder if kind == "file" else a_file, "under-a-file": a_file / "sub" / "out.json",
             "unwritable": _unwritable(tmp_path) / "out.json"}[problem]
     if command == "train" and problem == "wrong-kind":
-        (tmp_path / "policy.zip").mkdir()
+        (tmp_path / "policy.safetensors").mkdir()  # where the export would write its weights
         path = tmp_path / "policy"
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv] + [option, str(path)]
     code, err = _attempt(capsys, argv)
