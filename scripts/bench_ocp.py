@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import statistics
 import sys
@@ -132,7 +131,7 @@ def main() -> None:
     if args.json:
         write_json_atomic(args.json, {"single_solves": single, "full_solves": full, "pareto": pareto,
                                       "pareto_points": points, "cpu_count": os.cpu_count()})
-    print(json.dumps(points))
+
 
 
 if __name__ == "__main__":

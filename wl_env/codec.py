@@ -27,6 +27,7 @@ OBS_NAMES = (
 )
 OBS_LOW = np.array([0, -1.5, 0, 0, -2.5, -1.5, 0, 0, 0, 0, 0, 0], dtype=np.float32)
 OBS_HIGH = np.array([1.5, 1.5, 1.5, 2.0, 1.5, 2.5, 1.5, 5.0, 1, 1, 1, 1], dtype=np.float32)
+_LOW, _HIGH = tuple(OBS_LOW.tolist()), tuple(OBS_HIGH.tolist())  # (as Python floats: the flattened step's literals)
 ACTION_NAMES = ("fuel_injection", "bucket_acceleration", "service_brake", "shift")
 N_OBS, N_ACTIONS = len(OBS_NAMES), len(ACTION_NAMES)
 
@@ -85,10 +86,10 @@ class Codec:
 
     def encode_observation(self, y: Any, phase: Any, t: Any) -> tuple[Any, ...]:
         """The observation's features (:data:`OBS_NAMES`) of the state y = (omega, V, H, V_b, s, m_f),
-        each a float or an array (unclipped; the environments clip to [OBS_LOW, OBS_HIGH])."""
+        each a float or an array, clipped to [OBS_LOW, OBS_HIGH]."""
         p = self.params
         ops = ops_for(y[0])
-        return (
+        features = (
             y[0] / p.omega_max,
             y[1] / p.V_max,
             y[2] / p.H_T,
@@ -102,6 +103,7 @@ class Codec:
             ops.where(phase == 3, 1.0, 0.0),
             ops.where(phase == 4, 1.0, 0.0),
         )
+        return tuple(ops.clip(f, lo, hi) for f, lo, hi in zip(features, _LOW, _HIGH, strict=True))
 
     def decode_observation(self, obs: Any) -> Observation:
         """An observation (shape (12,), or (N, 12)) -> :class:`Observation` in SI units."""

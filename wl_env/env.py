@@ -15,11 +15,6 @@ from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
 
 
-def _clip_unit(v: float) -> float:
-    """min(max(v, -1), 1) for a finite v."""
-    return -1.0 if v < -1.0 else (1.0 if v > 1.0 else v)
-
-
 def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None, w_time: float | None) -> RewardConfig:
     """A RewardConfig from a config, a dict of fields or None, with the weight shortcuts applied."""
     if reward is None:
@@ -179,11 +174,10 @@ class WheelLoaderEnv(gym.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (4,):
             raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
-        values = a.tolist()  # checked and clipped as Python floats: numpy calls would cost more than the math
+        values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action must be finite numbers in [-1, 1], got {values}")
-        action = tuple(map(_clip_unit, values))
-        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
+        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         self._features = r["obs"]
@@ -194,8 +188,7 @@ class WheelLoaderEnv(gym.Env):
         return self._obs(), float(r["reward"]), terminated, truncated, self._info(r)
 
     def _obs(self) -> np.ndarray:
-        obs = np.array(self._features, dtype=np.float32)  # (the step computed them, in its flattened code)
-        return obs.clip(OBS_LOW, OBS_HIGH, out=obs)  # = np.clip(obs, ...) without its Python layers
+        return np.array(self._features, dtype=np.float32)  # (the step computed and clipped them, flattened)
 
     def _info(self, r: dict) -> dict[str, Any]:
         y, excess = self._y, r["excess_by_limit"]

