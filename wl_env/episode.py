@@ -206,7 +206,7 @@ class CycleStepper(Flattened):
             "y": y, "phase": phase, "t": t, "rev_err": rev_err, "violation": violation,
             "reward": reward, "terminated": terminated, "truncated": truncated,
             "completed": completed, "success": success, "stalled": stalled, "off_site": off_site,
-            "u": u_first[:3], "u_mf_torque": u_first[3], "u_ab_pressure": u_first[4], "u_cmd": u_cmd,
+            "u": (u_mf, u_ab, u_first[2]),
             "excess": step_excess, "excess_by_limit": worst,
             "obs": self.codec.encode_observation(y, phase, t),
             "gear": gear, "phi": phi, "tc_mode": ops.where(gear == 0.0, 0, torque_converter.operating_mode(phi)),
