@@ -9,7 +9,6 @@ Works on floats and numpy arrays (a batch: arrays of shape (N,), or observations
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -119,7 +118,3 @@ class Codec:
         if o.ndim == 1:
             return Observation(*(float(v) if i < 8 else int(v) for i, v in enumerate(values)))
         return Observation(*values)
-
-    def step_index(self, obs: Observation, dt: float) -> int:
-        """The control step an observation was taken at (its elapsed time in steps of dt)."""
-        return int(math.floor(obs.time / dt + 0.5))

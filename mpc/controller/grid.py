@@ -132,9 +132,11 @@ class StepModel:
                 add(r)
 
         def decel_rows(stages: list, end: State, end_held: float = 0.0) -> None:
-            points = stages if not geared else step.driver_limit_points(
-                stages, end, step.rhs(end, u, gear, d, p, est, end_held, saturate=False))
-            add([r for _, k in (points if geared else stages[:1]) for r in limits.deceleration(k[1], d, p)], decel=True)
+            if geared:
+                points = step.driver_limit_points(stages, end, step.rhs(end, u, gear, d, p, est, end_held, saturate=False))
+            else:  # in neutral the same all along
+                points = stages[:1]
+            add([r for _, k in points for r in limits.deceleration(k[1], d, p)], decel=True)
 
         def end_rows(y: State) -> None:  # the torque curve and the pump flow at a substep's end, u still held
             add(limits.torque(y[0], u[0], p) + limits.lift_speed(y[2], y[0], y[3], p))

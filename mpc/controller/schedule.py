@@ -9,7 +9,6 @@ mode's cost falls. A move that did not pay waits before it is tried again.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
@@ -152,7 +151,3 @@ class ScheduleSearch:
         else:
             self.tried[move] = (k, self.tried.get(move, (0, 0))[1] + 1)
             self.last_failure, self.failures = k, self.failures + 1
-
-
-def schedule_info(counts: dict[int, int] | None, dt: float) -> dict[str, Any]:
-    return {"schedule": dict(counts or {}), "planned_T_remaining": float(steps_of(counts) * dt) if counts else math.nan}
