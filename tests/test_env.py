@@ -89,6 +89,23 @@ def test_many_random_steps_stay_finite():
         assert venv.observation_space.contains(obs)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("braking", BRAKINGS)
+def test_57_million_random_vector_steps_stay_finite(braking):
+    """The issue's figure (#12): 57 M env-steps (two brakings x 28 M) of random actions beyond both ends of
+    every range, no NaN or inf and no observation out of bounds (about 1 min each at N = 1024)."""
+    n = 1024
+    venv = gym.make_vec("WheelLoader-v1", num_envs=n, vectorization_mode="vector_entry_point", braking=braking,
+                        init_noise=1.0)
+    obs, _ = venv.reset(seed=1)
+    rng = np.random.default_rng(1)
+    low, high = venv.single_observation_space.low, venv.single_observation_space.high
+    for _ in range(28_000_000 // n):
+        obs, rew, *_ = venv.step(rng.uniform(-1.2, 1.2, (n, 4)).astype(np.float32))
+        assert np.isfinite(obs).all() and np.isfinite(rew).all()
+        assert (obs >= low).all() and (obs <= high).all()
+
+
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_operator_completes_the_cycle(braking):
     env = gym.make("WheelLoader-v1", braking=braking)
