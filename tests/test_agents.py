@@ -236,12 +236,12 @@ def test_shipped_policy_completes_the_cycle(braking):
     policy = load_policy(path)
     env = gym.make("WheelLoader-v1", braking=braking)
     result = run_episode(env, policy)
-    assert result.completed, result
+    assert result.completed and result.success, result
     env = gym.make("WheelLoader-v1", braking=braking, init_noise=1.0)
     assert run_episode(env, policy, seed=123).completed
 
 
-@pytest.mark.parametrize("braking", ["service", "tc"])
+@pytest.mark.parametrize("braking", ["tc"])  # (the service policy was retrained on v1, exported pickle-free)
 def test_shipped_policy_acts_as_before_its_conversion(braking):
     """The pickle-free shipped policy gives exactly the actions the stable-baselines3 zip gave before the
     conversion (recorded with the old loader on 100 uniform and 100 on-trajectory observations)."""
