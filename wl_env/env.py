@@ -171,7 +171,7 @@ class WheelLoaderEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._done:
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
-        a = np.asarray(action, dtype=np.float64)
+        a = action if type(action) is np.ndarray and action.dtype.kind == "f" else np.asarray(action, dtype=np.float64)
         if a.shape != (4,):
             raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
@@ -191,7 +191,7 @@ class WheelLoaderEnv(gym.Env):
         return np.array(self._features, dtype=np.float32)  # (the step computed and clipped them, flattened)
 
     def _info(self, r: dict) -> dict[str, Any]:
-        y, excess = self._y, r["excess_by_limit"]
+        y = self._y
         return {
             "t": self._t,
             "fuel_g": y[5] * 1000.0,
@@ -205,7 +205,7 @@ class WheelLoaderEnv(gym.Env):
             "saturations": r["saturations"],
             # per limit (wl_env.limits.ENV_NAMES), its largest relative excess within this step; "excess" the
             # largest of them, "max_excess" the largest so far in the episode
-            "violations": {"deceleration": excess["deceleration"], "speed": excess["speed"],
+            "violations": {"deceleration": r["excess_deceleration"], "speed": r["excess_speed"],
                            "excess": r["excess"], "max_excess": self._violation},
             "reversing_error": None if math.isnan(self._rev_err) else self._rev_err,  # m, None until reached
             "is_success": bool(r["success"]),

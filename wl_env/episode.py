@@ -207,7 +207,7 @@ class CycleStepper(Flattened):
             "reward": reward, "terminated": terminated, "truncated": truncated,
             "completed": completed, "success": success, "stalled": stalled, "off_site": off_site,
             "u": (u_mf, u_ab, u_first[2]),
-            "excess": step_excess, "excess_by_limit": worst,
+            "excess": step_excess, **{f"excess_{name}": v for name, v in worst.items()},  # (flat: no nested dict)
             "obs": self.codec.encode_observation(y, phase, t),
             "gear": gear, "phi": phi, "tc_mode": ops.where(gear == 0.0, 0, torque_converter.operating_mode(phi)),
             "saturations": {
