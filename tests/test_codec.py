@@ -1,0 +1,67 @@
+"""The observation and action codec (wl_env.codec): what the environment encodes, a controller decodes
+back, by name, for any parameter set; a bad observation is a clear error."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import wl_env  # noqa: F401  (registers the env)
+from wl_env.codec import N_OBS, OBS_HIGH, OBS_LOW, TIME_SCALE, Codec
+from wl_env.params import DEFAULT_PARAMS as P
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(60.0, 230.0), st.floats(-2.5, 2.5), st.floats(0.7, 5.1), st.floats(0.0, 1.5),
+       st.floats(-13.0, 6.0), st.floats(0.0, 0.3), st.integers(1, 4), st.floats(0.0, 55.0))
+def test_decode_inverts_encode_within_float32(omega, V, H, V_b, s, m_f, phase, t):
+    codec = Codec(P)
+    obs = np.array(codec.encode_observation((omega, V, H, V_b, s, m_f), phase, t), dtype=np.float32)
+    assert ((obs >= OBS_LOW) & (obs <= OBS_HIGH)).all()  # encoded clipped
+    o = codec.decode_observation(obs)
+    assert o.phase == phase
+    for value, decoded in ((omega, o.engine_speed), (V, o.vehicle_speed), (H, o.bucket_height), (V_b, o.bucket_speed),
+                           (s, o.position), (t, o.time), (m_f, o.fuel_kg)):
+        assert decoded == pytest.approx(value, rel=1e-6, abs=1e-5)
+    to_go = s + P.distance if phase <= 2 else -s
+    assert o.distance_to_go == pytest.approx(to_go, rel=1e-6, abs=1e-5)
+
+
+def test_actions_round_trip_and_clip():
+    codec = Codec(P)
+    lo, hi = P.U_ab_bounds
+    for u in ((0.0, lo, 0.0), (P.U_mf_max, hi, P.U_b_max), (130.0, 0.3, 12345.0)):
+        a = codec.encode_action(*u, shift=True)
+        assert a[3] == 1.0
+        assert np.allclose(codec.decode_action(*a[:3].astype(float)), u, rtol=1e-6, atol=1e-3)
+    a = codec.encode_action(1e9, math.nan, -5.0, shift=False)  # beyond the ranges, NaN: clipped, no brake
+    assert a.tolist() == [1.0, -1.0, -1.0, -1.0]
+
+
+def test_the_env_observes_what_the_codec_decodes():
+    """A controller reads state, time and phase from the codec alone (no copy of max_time or a scale)."""
+    params = P.replace(distance=5.0, H_T=4.5)
+    env = gym.make("WheelLoader-v1", braking="tc", params=params, max_time=25.0).unwrapped
+    obs, _ = env.reset(seed=0)
+    codec = Codec(params)
+    for _ in range(15):
+        obs, *_ = env.step(np.array([1.0, 0.5, -1.0, -1.0], np.float32))
+    o = codec.decode_observation(obs)
+    assert o.time == pytest.approx(env.time, abs=1e-5) and o.phase == env.phase
+    assert np.allclose(o.state, [*env.state, env.position], rtol=1e-6, atol=1e-5)
+    assert o.distance_to_go == pytest.approx(env.position + 5.0, abs=1e-5)  # the scenario's own distance
+    assert TIME_SCALE == 40.0
+
+
+def test_batches_decode_column_wise_and_bad_observations_are_named():
+    codec = Codec(P)
+    batch = np.stack([np.array(codec.encode_observation((150.0 + i, -1.0, 2.0, 0.3, -2.0, 0.01), 1 + i % 4, 1.0),
+                               dtype=np.float32) for i in range(5)])
+    o = codec.decode_observation(batch)
+    assert o.engine_speed.shape == (5,) and o.phase.tolist() == [1, 2, 3, 4, 1]
+    for bad in (np.zeros(N_OBS - 1), np.full(N_OBS, np.nan), np.zeros((2, 3, N_OBS))):
+        with pytest.raises(ValueError, match="observations of shape"):
+            codec.decode_observation(bad)
