@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from agents.ppo import read_eval_csv  # noqa: E402
+from wl_env.atomic_io import save_figure  # noqa: E402
 
 GAP_TARGET = 0.15
 
@@ -83,10 +84,7 @@ def plot(rows: list[dict[str, float]], braking: str, title: str, out: Path, fron
         a.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.tmp{out.suffix}")
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(out)
+    save_figure(fig, out, dpi=110)
     plt.close(fig)
     return out
 

@@ -32,11 +32,10 @@ from wl.paper.figures import (
     engine_map_grid,
     operating_points,
     pareto_figure,
-    save_figure,
 )
 from wl.paper.run import main, parse_args
 from wl.paper.table import build_table_markdown, compute_results, fmt_num, fmt_pct, markdown_table, statement_rows
-from wl_env.atomic_io import write_atomic, write_json_atomic
+from wl_env.atomic_io import save_figure, write_atomic, write_json_atomic
 from wl_env.params import DEFAULT_PARAMS
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.atomic_io import atomic_path, write_atomic
+from wl_env.atomic_io import save_figure, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +205,8 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    written.append(_save_figure(fig, out / "pareto.png", dpi=130))
+    written.append(save_figure(fig, out / "pareto.png", dpi=130))
+    plt.close(fig)
     # ---- trajectories beside the time-optimal ones
     labels = ["engine speed (rpm)", "vehicle speed (m/s)", "bucket height (m)", "bucket speed (m/s)"]
     scale = [30 / np.pi, 1, 1, 1]
@@ -224,20 +225,9 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
         axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{b} braking: controllers against the time-optimal cycle")
         fig.tight_layout()
-        written.append(_save_figure(fig, out / f"trajectories_{b}.png", dpi=120))
-    return written
-
-
-def _save_figure(fig: Any, path: Path, dpi: int) -> Path:
-    """``fig`` saved to ``path`` atomically (matplotlib picks the format by the temporary's suffix), then closed."""
-    import matplotlib.pyplot as plt
-
-    try:
-        with atomic_path(path, suffix=path.suffix) as tmp:
-            fig.savefig(tmp, dpi=dpi)
-    finally:
+        written.append(save_figure(fig, out / f"trajectories_{b}.png", dpi=120))
         plt.close(fig)
-    return path
+    return written
 
 
 def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[str, Any]:

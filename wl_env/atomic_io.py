@@ -40,6 +40,14 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         raise
 
 
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 150) -> Path:
+    """A matplotlib figure written atomically, in the format of the path's suffix (PNG without one)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:  # the temporary's name ends in .tmp: the format is passed, not guessed
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi)
+    return path
+
+
 def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
     """Create ``folder`` if missing and probe it with a real write (permission bits say nothing for root or
     a read-only file system), so a bad output path fails before the work, not after it. ValueError

@@ -198,7 +198,7 @@ class CycleStepper(Flattened):
         reward = reward - ops.where(failed, rw.failure, 0.0)
         success = completed & (rev_abs <= DISTANCE_TOL) & (end_dist <= DISTANCE_TOL) & (end_height <= HEIGHT_TOL)
         # what the machine made of the commands (the first substep's saturations), and its converter now
-        u_mf, u_ab, _, u_mf_torque, u_ab_pressure = u_first
+        u_mf, u_ab, u_b, u_mf_torque, u_ab_pressure = u_first
         cmd_mf, cmd_ab = ops.clip(u_cmd[0], 0.0, p.U_mf_max), ops.clip(u_cmd[1], *p.U_ab_bounds)
         gear = sim.phase_constants(phase)[0]
         phi = torque_converter.speed_ratio(y[1], ops.fmax(y[0], OMEGA_FLOOR), gear, p)  # (a stalled engine: 0)
@@ -206,7 +206,7 @@ class CycleStepper(Flattened):
             "y": y, "phase": phase, "t": t, "rev_err": rev_err, "violation": violation,
             "reward": reward, "terminated": terminated, "truncated": truncated,
             "completed": completed, "success": success, "stalled": stalled, "off_site": off_site,
-            "u": (u_mf, u_ab, u_first[2]),
+            "u": (u_mf, u_ab, u_b),
             "excess": step_excess, **{f"excess_{name}": v for name, v in worst.items()},  # (flat: no nested dict)
             "obs": self.codec.encode_observation(y, phase, t),
             "gear": gear, "phi": phi, "tc_mode": ops.where(gear == 0.0, 0, torque_converter.operating_mode(phi)),

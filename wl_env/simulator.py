@@ -137,7 +137,6 @@ class Simulator(Flattened):
         rest, ys, stop_stages, rest_stages, held = step.cut_substep(y0, y1, u, gear, d, h, p, rest_gear, rest_d, rest_brake)
         s_rev = ops.where(at_reversal, ys[4], math.nan)
         # up to the stop, the stop itself (the converter's drag peaks at standstill), then the rest
-        stop_rate = step.rhs(ys, u, gear, d, p)
-        excess = step.within_step_excess(step.driver_limit_points(stop_stages, ys, stop_rate), d, p)
+        excess = self._excess(stop_stages, ys, u, gear, d, 0.0)
         rest_excess = self._excess(rest_stages, rest, (u[0], u[1], u[2] * rest_brake), rest_gear, rest_d, held)
         return rest, after, s_rev, limits.worst(excess, rest_excess)

@@ -1,15 +1,13 @@
 """Figs. 6-9 of the paper from our optima: cycle transients, engine operating points, Pareto fronts.
 
-Each figure is a :class:`matplotlib.figure.Figure` (no pyplot state); :func:`save_figure` writes it
+Each figure is a :class:`matplotlib.figure.Figure` (no pyplot state); :func:`wl_env.atomic_io.save_figure` writes it
 through :func:`wl_env.atomic_io.atomic_path`.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,7 +18,6 @@ from mpc.benchmark.ocp import OCPResult
 from mpc.benchmark.optima import LEAN_FACTOR
 from mpc.benchmark.pareto import ParetoFront, pchip
 from wl.paper.analysis import RAD_S_TO_RPM, cycle_signals, extra_fuel_points, phase_boundaries
-from wl_env.atomic_io import atomic_path
 from wl_env.params import LoaderParams
 from wl_env.physics import engine
 
@@ -28,14 +25,6 @@ DPI = 150
 COLORS = {"service": "tab:blue", "tc": "tab:red"}
 LABELS = {"service": "service brakes", "tc": "TC braking"}
 MARKERS = {"service": "o", "tc": "^"}
-
-
-def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = DPI) -> Path:
-    """Write ``fig`` atomically, in the format of the path's suffix (PNG without one)."""
-    path = Path(path)
-    with atomic_path(path) as tmp:  # the temporary's name ends in .tmp: the format is passed, not guessed
-        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=dpi)
-    return path
 
 
 PANELS = (

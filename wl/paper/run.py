@@ -30,9 +30,9 @@ from typing import Any
 from agents.train_cli import add_dataclass_args, config_from_args
 from mpc.benchmark.optima import fixed_time_optimum, front_optima, lean_time_optimum, polish_front
 from mpc.benchmark.pareto import cache_dir
-from wl.paper.figures import cycles_figure, engine_map_figure, pareto_figure, save_figure
+from wl.paper.figures import cycles_figure, engine_map_figure, pareto_figure
 from wl.paper.table import FIXED_T, build_table_markdown, compute_results, statement_rows
-from wl_env.atomic_io import write_atomic, write_json_atomic
+from wl_env.atomic_io import save_figure, write_atomic, write_json_atomic
 from wl_env.cycle import BRAKING_MODES
 from wl_env.params import resolve
 
