@@ -9,8 +9,9 @@ that a plan made with it is what the environment does, step for step:
 
 * a *full step* holds the controls over ``substeps`` RK4 substeps. What the machine would saturate
   becomes a constraint (:func:`wl_env.step.saturation_residuals`) at each substep start, where the
-  controls are applied, and the torque curve and the pump flow also at the substep's end (the machine
-  saturates them within the step too: a plan stays clear of that, and its NLP smooth). The driver's
+  controls are applied, and the torque curve, the pump flow and the relief pressure also at the other
+  RK4 stages and the substep's end (the machine saturates them within the step too: a plan stays clear
+  of that, and its NLP smooth). The driver's
   limits (:mod:`wl_env.limits`) are rows where the environment checks them: the deceleration at every
   RK4 stage and at the substep's end (with a gear engaged; in neutral it is the same all along). The
   speed limit needs no row: V_max is the speed at omega_max without converter slip, out of reach;
