@@ -26,7 +26,7 @@ def test_decode_inverts_encode_within_float32(omega, V, H, V_b, s, m_f, phase, t
     for value, decoded in ((omega, o.engine_speed), (V, o.vehicle_speed), (H, o.bucket_height), (V_b, o.bucket_speed),
                            (s, o.position), (t, o.time), (m_f, o.fuel_kg)):
         assert decoded == pytest.approx(value, rel=1e-6, abs=1e-5)
-    to_go = s + P.distance if phase <= 2 else -s
+    to_go = s + P.reverse_distance if phase <= 2 else P.final_position - s
     assert o.distance_to_go == pytest.approx(to_go, rel=1e-6, abs=1e-5)
 
 

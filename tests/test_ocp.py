@@ -40,7 +40,7 @@ def test_boundary_conditions_and_constraints_in_the_solution(optima, braking):
     p = DEFAULT_PARAMS
     assert x[0] == pytest.approx([p.omega_0, 0.0, p.H_0, 0.0])
     assert x[-1][1] == pytest.approx(0.0, abs=1e-6) and x[-1][2] == pytest.approx(p.H_T, abs=1e-6)
-    assert s[-1] == pytest.approx(0.0, abs=1e-6) and s.min() == pytest.approx(-p.distance, abs=1e-6)
+    assert s[-1] == pytest.approx(0.0, abs=1e-6) and s.min() == pytest.approx(-p.reverse_distance, abs=1e-6)
     assert all(d >= 0.1 - 1e-9 for d in r.phase_durations) and sum(r.phase_durations) == pytest.approx(r.T)
     assert list(np.unique(phase)) == [1, 2, 3, 4] and (np.diff(phase) >= 0).all()
     assert len(r.controls) == len(r.t) - 1

@@ -54,7 +54,9 @@ def test_variants_and_round_trip():
     assert heavy.M_load == pytest.approx(12000.0) and heavy.c_r == pytest.approx(0.021)
     assert heavy.M_tot > DEFAULT_PARAMS.M_tot and heavy.fingerprint() != DEFAULT_PARAMS.fingerprint()
     assert LoaderParams.from_dict(heavy.to_dict()) == heavy
-    assert resolve({"distance": 8.0}).distance == 8.0
+    both = resolve({"distance": 8.0})  # the paper's "each way": both legs
+    assert both.reverse_distance == both.forward_distance == 8.0 and both.final_position == 0.0
+    assert resolve({"reverse_distance": 8.0, "forward_distance": 5.0}).final_position == -3.0
     with pytest.raises(ValueError, match="params must be"):
         resolve(42)
 
@@ -83,7 +85,8 @@ NAN, INF = float("nan"), float("inf")
         ({"J_ice": 0.0}, "J_ice"),
         ({"c_r": -0.01}, "c_r"),
         ({"g": None}, "g"),
-        ({"distance": INF}, "distance"),
+        ({"reverse_distance": INF}, "reverse_distance"),
+        ({"forward_distance": 0.0}, "forward_distance"),
         ({"tc_xi_poly": [1.0] * 6 + [INF]}, "tc_xi_poly"),
         ({"c_fr": [0.0, 0.0, -1.0]}, "c_fr"),  # negative friction
         ({"T_max_lines": [[8.0, 2.086], [-10.0, 0.0], [3855.0, -1.4]]}, "T_max_lines"),  # no torque

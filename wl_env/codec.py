@@ -4,7 +4,13 @@ The environments encode with it; every controller (the MPC, the operator, a user
 a scale is written once. Elapsed time is normalized by a fixed :data:`TIME_SCALE`, not by the episode's
 ``max_time``: a controller needs nothing of the environment's configuration to read it.
 
-Works on floats and numpy arrays (a batch: arrays of shape (N,), or observations of shape (N, 12)).
+Two layouts. ``WheelLoader-v1`` (12 entries) scales heights by the cycle's H_T and lengths by its
+reverse distance. ``WheelLoader-v2`` (``observe_scenario``, 19 entries) scales them by fixed lengths
+(the nominal cycle's 5 m and 6.6 m, so that its first 12 entries equal v1's on the nominal cycle) and
+appends the scenario's features (:func:`wl_env.scenario.param_features`, each in [-1, 1]): an observation
+alone tells the cycle, and a policy can condition on it.
+
+Works on floats and numpy arrays (a batch: arrays of shape (N,), or observations of shape (N, n_obs)).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import numpy as np
 
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics.backend import ops_for
+from wl_env.scenario import FIELDS, Scenario, param_features
 
 TIME_SCALE = 40.0  # s: the observation's elapsed time is t / TIME_SCALE
 
@@ -26,9 +33,17 @@ OBS_NAMES = (
 )
 OBS_LOW = np.array([0, -1.5, 0, 0, -2.5, -1.5, 0, 0, 0, 0, 0, 0], dtype=np.float32)
 OBS_HIGH = np.array([1.5, 1.5, 1.5, 2.0, 1.5, 2.5, 1.5, 5.0, 1, 1, 1, 1], dtype=np.float32)
-_LOW, _HIGH = tuple(OBS_LOW.tolist()), tuple(OBS_HIGH.tolist())  # (as Python floats: the flattened step's literals)
 ACTION_NAMES = ("fuel_injection", "bucket_acceleration", "service_brake", "shift")
 N_OBS, N_ACTIONS = len(OBS_NAMES), len(ACTION_NAMES)
+# WheelLoader-v2: fixed length scales, then the scenario's features
+SCENARIO_OBS_NAMES = (
+    "engine_speed/omega_max", "vehicle_speed/V_max", "bucket_height/(5 m)", "bucket_speed/(1 m/s)",
+    "position/(6.6 m)", "distance_to_go/(6.6 m)", *OBS_NAMES[6:], *(f"scenario.{name}" for name in FIELDS),
+)
+HEIGHT_SCALE, LENGTH_SCALE = 5.0, 6.6  # m: v2's fixed scales (the nominal H_T and distance)
+N_SCENARIO_OBS = len(SCENARIO_OBS_NAMES)
+SCENARIO_OBS_LOW = np.concatenate([OBS_LOW, -np.ones(len(FIELDS), dtype=np.float32)])
+SCENARIO_OBS_HIGH = np.concatenate([OBS_HIGH, np.ones(len(FIELDS), dtype=np.float32)])
 
 
 @dataclass(frozen=True)
@@ -52,13 +67,23 @@ class Observation:
 
 
 class Codec:
-    """Encodes and decodes for one parameter set (the scales: omega_max, V_max, H_T, the distance, the
-    control ranges)."""
+    """Encodes and decodes for one parameter set (the scales: omega_max, V_max, the control ranges and, in
+    v1's layout, H_T and the reverse distance). ``observe_scenario``: v2's layout (see the module doc)."""
 
-    def __init__(self, params: LoaderParams | dict | None = None) -> None:
+    def __init__(self, params: LoaderParams | dict | None = None, observe_scenario: bool = False) -> None:
         self.params = p = resolve(params)
+        self.observe_scenario = bool(observe_scenario)
         lo, hi = p.U_ab_bounds
         self._ab_mid, self._ab_half = 0.5 * (hi + lo), 0.5 * (hi - lo)
+        low, high = (SCENARIO_OBS_LOW, SCENARIO_OBS_HIGH) if observe_scenario else (OBS_LOW, OBS_HIGH)
+        self.obs_low, self.obs_high = low, high
+        self.n_obs = len(low)
+        self._low, self._high = tuple(low.tolist()), tuple(high.tolist())  # (Python floats: the flat step's literals)
+
+    def _scales(self) -> tuple[Any, Any]:
+        """(height scale, length scale) in m."""
+        p = self.params
+        return (HEIGHT_SCALE, LENGTH_SCALE) if self.observe_scenario else (p.H_T, p.reverse_distance)
 
     # ------------------------------------------------------------------ actions
     def decode_action(self, a_fuel: Any, a_bucket: Any, a_brake: Any) -> tuple[Any, Any, Any]:
@@ -80,21 +105,23 @@ class Codec:
 
     # ------------------------------------------------------------------ observations
     def distance_to_go(self, s: Any, phase: Any) -> Any:
-        """Distance to the current leg's end (m): the reversing point in phases 1-2, s = 0 after."""
-        return ops_for(s).where(phase <= 2, s + self.params.distance, -s)
+        """Distance to the current leg's end (m): the reversing point in phases 1-2, the truck after."""
+        p = self.params
+        return ops_for(s).where(phase <= 2, s + p.reverse_distance, p.final_position - s)
 
     def encode_observation(self, y: Any, phase: Any, t: Any) -> tuple[Any, ...]:
-        """The observation's features (:data:`OBS_NAMES`) of the state y = (omega, V, H, V_b, s, m_f),
-        each a float or an array, clipped to [OBS_LOW, OBS_HIGH]."""
+        """The observation's entries of the state y = (omega, V, H, V_b, s, m_f), each a float or an array,
+        clipped to [obs_low, obs_high]."""
         p = self.params
         ops = ops_for(y[0])
+        height, length = self._scales()
         features = (
             y[0] / p.omega_max,
             y[1] / p.V_max,
-            y[2] / p.H_T,
+            y[2] / height,
             y[3],
-            y[4] / p.distance,
-            self.distance_to_go(y[4], phase) / p.distance,
+            y[4] / length,
+            self.distance_to_go(y[4], phase) / length,
             t / TIME_SCALE,
             y[5],
             ops.where(phase == 1, 1.0, 0.0),
@@ -102,19 +129,39 @@ class Codec:
             ops.where(phase == 3, 1.0, 0.0),
             ops.where(phase == 4, 1.0, 0.0),
         )
-        return tuple(ops.clip(f, lo, hi) for f, lo, hi in zip(features, _LOW, _HIGH, strict=True))
+        if self.observe_scenario:
+            features += tuple(f + 0.0 * y[0] for f in param_features(p))  # (arrays for a batch)
+        return tuple(ops.clip(f, lo, hi) for f, lo, hi in zip(features, self._low, self._high, strict=True))
+
+    def _checked(self, obs: Any) -> np.ndarray:
+        o = np.asarray(obs, dtype=np.float64)
+        n = self.n_obs
+        if o.shape[-1:] != (n,) or o.ndim > 2 or not np.isfinite(o).all():
+            raise ValueError(f"obs must be finite WheelLoader observations of shape ({n},) or (N, {n}), "
+                             f"got shape {o.shape}{'' if np.isfinite(o).all() else ' with non-finite entries'}")
+        return o
 
     def decode_observation(self, obs: Any) -> Observation:
-        """An observation (shape (12,), or (N, 12)) -> :class:`Observation` in SI units."""
+        """An observation (shape (n_obs,), or (N, n_obs)) -> :class:`Observation` in SI units."""
         p = self.params
-        o = np.asarray(obs, dtype=np.float64)
-        if o.shape[-1:] != (N_OBS,) or o.ndim > 2 or not np.isfinite(o).all():
-            raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_OBS},) or (N, {N_OBS}), "
-                             f"got shape {o.shape}{'' if np.isfinite(o).all() else ' with non-finite entries'}")
+        o = self._checked(obs)
         c = o.T
+        height, length = self._scales()
         phase = np.argmax(c[8:12], axis=0) + 1
-        values = (c[0] * p.omega_max, c[1] * p.V_max, c[2] * p.H_T, c[3], c[4] * p.distance, c[5] * p.distance,
+        values = (c[0] * p.omega_max, c[1] * p.V_max, c[2] * height, c[3], c[4] * length, c[5] * length,
                   c[6] * TIME_SCALE, c[7], phase)
         if o.ndim == 1:
             return Observation(*(float(v) if i < 8 else int(v) for i, v in enumerate(values)))
         return Observation(*values)
+
+    def decode_scenario(self, obs: Any, braking: str) -> Scenario:
+        """The scenario a v2 observation (shape (n_obs,)) carries, to float32 precision."""
+        if not self.observe_scenario:
+            raise ValueError("a WheelLoader-v1 observation carries no scenario; use WheelLoader-v2")
+        o = self._checked(obs)
+        if o.ndim != 1:
+            raise ValueError(f"decode_scenario takes one observation, got shape {o.shape}")
+        f = o[N_OBS:]
+        values = {name: min(max(0.5 * (s.lo + s.hi) + v * 0.5 * (s.hi - s.lo), s.lo), s.hi)
+                  for (name, s), v in zip(FIELDS.items(), f, strict=True)}
+        return Scenario(braking=braking, **values)

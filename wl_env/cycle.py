@@ -60,15 +60,16 @@ def phase_tables(braking: str, params: LoaderParams) -> tuple[np.ndarray, np.nda
 
 
 def initial_state(params: LoaderParams) -> np.ndarray:
-    """[omega, V, H, V_b] at t = 0: 1500 rpm, standing, bucket at H_0, bucket still (Table II)."""
+    """[omega, V, H, V_b] at t = 0: omega_0 (1500 rpm), standing, bucket at H_0, bucket still (Table II)."""
     return np.array([params.omega_0, 0.0, params.H_0, 0.0])
 
 
 def reversing_target(params: LoaderParams) -> float:
-    """Position s (m) of the reversing point, the end of phase 2."""
-    return -params.distance
+    """Position s (m) of the reversing point, the end of phase 2: reverse_distance behind the pile."""
+    return -params.reverse_distance
 
 
 def final_target(params: LoaderParams) -> dict[str, float]:
-    """End of phase 4: back at s = 0, standing, bucket at H_T and still."""
-    return {"s": 0.0, "V": 0.0, "H": params.H_T, "V_b": 0.0}
+    """End of phase 4: at the truck (s = forward_distance - reverse_distance; 0 for equal legs), standing,
+    bucket at H_T and still."""
+    return {"s": params.final_position, "V": 0.0, "H": params.H_T, "V_b": 0.0}

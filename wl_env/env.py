@@ -1,4 +1,4 @@
-"""``WheelLoader-v1``: a wheel loader driving the short loading cycle."""
+"""``WheelLoader-v2`` (and ``-v1``): a wheel loader driving the short loading cycle of a scenario."""
 
 from __future__ import annotations
 
@@ -10,9 +10,29 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
-from wl_env.codec import OBS_HIGH, OBS_LOW
+from wl_env.codec import Codec
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
+from wl_env.scenario import Scenario, resolve_scenario
+from wl_env.suites import SUITES, Suite, load_suite
+
+
+def scenario_source(scenario: Scenario | dict | str | None, braking: str | None) -> tuple[Scenario | Suite | None, str]:
+    """(a fixed Scenario, a Suite to draw from, or None for the given params; the braking alternative)."""
+    if isinstance(scenario, str) and scenario in SUITES:
+        return load_suite(scenario), cycle.check_braking(braking or "service")
+    if scenario is None:
+        return None, cycle.check_braking(braking or "service")
+    s = resolve_scenario(scenario, braking)
+    return s, s.braking
+
+
+def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -> Scenario | None:
+    """The scenario an episode runs from its actual start (omega rad/s, H m), or None outside the ranges."""
+    try:
+        return Scenario.from_params(params.replace(omega_0=omega, H_0=H), braking)
+    except ValueError:
+        return None
 
 
 def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None, w_time: float | None) -> RewardConfig:
@@ -36,8 +56,15 @@ def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None,
 
 
 class WheelLoaderEnv(gym.Env):
-    """A wheel loader in the short loading cycle: reverse 6.6 m from the pile while lifting the load,
-    brake, stop, drive 6.6 m forward to the truck, brake and stop with the bucket raised to 5 m.
+    """A wheel loader in the short loading cycle of a scenario: reverse from the pile while lifting the load
+    (6.6 m in the paper's cycle), brake, stop, drive forward to the truck (6.6 m), brake and stop with the
+    bucket raised to the dump height (5 m).
+
+    ``scenario`` (:class:`wl_env.scenario.Scenario`, a dict of its fields, or a suite name of
+    :mod:`wl_env.suites`, drawn from at each reset with the env's seeded generator) sets the payload, the
+    distances, the rolling resistance, the dump height and the start state on the machine ``params``;
+    ``reset(options={"scenario": ...})`` sets one episode's. ``info["scenario"]`` is the episode's scenario
+    with its actual start (None if that lies outside the scenario ranges).
 
     The plant is the model of Nezhadali & Eriksson (diesel engine, torque converter, gearbox, hydraulic
     lift; 4 states), integrated with RK4 (``dt`` control interval, ``substeps`` per interval). The cycle
@@ -63,19 +90,21 @@ class WheelLoaderEnv(gym.Env):
 
     ## Observation Space
 
-    ``Box((12,), float32)``, normalized (:class:`wl_env.codec.Codec` encodes and decodes it by name):
+    ``Box((19,), float32)`` in v2, ``Box((12,), float32)`` in v1, normalized (:class:`wl_env.codec.Codec`
+    encodes and decodes it by name):
 
-    | Num | Observation                          | Min  | Max |
-    |-----|--------------------------------------|------|-----|
-    | 0   | engine speed omega / omega_max       | 0    | 1.5 |
-    | 1   | vehicle speed V / V_max (fwd > 0)    | -1.5 | 1.5 |
-    | 2   | bucket height H / H_T                | 0    | 1.5 |
-    | 3   | bucket speed V_b (m/s)               | 0    | 2   |
-    | 4   | position s / 6.6 m (start = 0)       | -2.5 | 1.5 |
-    | 5   | distance to the leg's end / 6.6 m    | -1.5 | 2.5 |
-    | 6   | elapsed time / 40 s                  | 0    | 1.5 |
-    | 7   | fuel used (kg)                       | 0    | 5   |
-    | 8-11| phase one-hot (1, 2, 3, 4)           | 0    | 1   |
+    | Num  | Observation (v2; v1 where it differs)                   | Min  | Max |
+    |------|---------------------------------------------------------|------|-----|
+    | 0    | engine speed omega / omega_max                          | 0    | 1.5 |
+    | 1    | vehicle speed V / V_max (fwd > 0)                       | -1.5 | 1.5 |
+    | 2    | bucket height H / 5 m (v1: H / H_T)                     | 0    | 1.5 |
+    | 3    | bucket speed V_b (m/s)                                  | 0    | 2   |
+    | 4    | position s / 6.6 m (v1: / reverse_distance; start = 0)  | -2.5 | 1.5 |
+    | 5    | distance to the leg's end / 6.6 m (v1: as 4)            | -1.5 | 2.5 |
+    | 6    | elapsed time / 40 s                                     | 0    | 1.5 |
+    | 7    | fuel used (kg)                                          | 0    | 5   |
+    | 8-11 | phase one-hot (1, 2, 3, 4)                              | 0    | 1   |
+    | 12-18| v2 only: the scenario's payload, reverse and forward distance, rolling resistance, dump height, start engine speed and start bucket height, each mapped from its range onto [-1, 1] | -1 | 1 |
 
     ## Rewards
 
@@ -84,27 +113,32 @@ class WheelLoaderEnv(gym.Env):
     at every RK4 stage and substep end; torque curve, pump flow and relief pressure at each substep's end
     under the held control; :mod:`wl_env.limits`, reported per limit in ``info["violations"]``),
     plus a potential-based progress term (``shaping``). Once: minus ``target_distance`` per metre of
-    error at the reversing point (s = -6.6 m) and at the end (s = 0), minus ``target_height`` per metre of
+    error at the reversing point (s = -reverse_distance) and at the truck (s = forward_distance -
+    reverse_distance), minus ``target_height`` per metre of
     bucket-height error at the end, minus ``failure`` for a stall or leaving the site. See
     :class:`wl_env.episode.RewardConfig`; ``w_fuel``/``w_time`` trace the fuel-time trade-off.
 
     ## Starting State
 
-    omega = 1500 rpm, V = 0, H = 0.7 m, V_b = 0, s = 0, phase 1 (Table II); ``init_noise`` > 0 adds a
-    seeded uniform perturbation of omega (+-init_noise * 100 rpm) and H (+-init_noise * 0.1 m).
+    The scenario's start: omega = 1500 rpm, H = 0.7 m in the paper's cycle (Table II); V = 0, V_b = 0, s = 0,
+    phase 1. ``init_noise`` > 0 adds a seeded uniform perturbation of omega (+-init_noise * 100 rpm) and H
+    (+-init_noise * 0.1 m).
 
     ## Episode End
 
     | Outcome    | Condition                                                                 |
     |------------|---------------------------------------------------------------------------|
     | terminated | cycle completed: phase 4, V = 0 and the bucket still (``info["is_success"]`` if the reversing point, the end position (5 cm) and the height (2 cm) are met) |
-    | terminated | failure: engine stall (omega < omega_min) or off the site (s < -13.2 m or s > 6.6 m) |
+    | terminated | failure: engine stall (omega < omega_min) or off the site (more than a reverse distance behind the reversing point or past the truck) |
     | truncated  | elapsed time >= ``max_time`` (default 40 s)                                |
 
     ``step()`` after the episode has ended raises ``RuntimeError``: call ``reset()``.
 
     ## Version History
 
+    * v2: scenarios (``scenario=``, ``reset(options={"scenario": ...})``, ``info["scenario"]``), the
+      scenario's features in the observation, fixed length scales (5 m, 6.6 m); the two legs' distances
+      may differ. The paper's cycle runs the same numbers as in v1.
     * v1: every limit checked within the step (at the RK4 stages and the substep's end, where the
       benchmark checks it), elapsed time observed as t / 40 s (not t / max_time), a stalled engine stops
       at omega = 0, ``step()`` after the end raises.
@@ -115,7 +149,7 @@ class WheelLoaderEnv(gym.Env):
 
     def __init__(
         self,
-        braking: str = "service",
+        braking: str | None = None,
         params: LoaderParams | dict | None = None,
         dt: float = 0.1,
         substeps: int = 1,
@@ -125,19 +159,27 @@ class WheelLoaderEnv(gym.Env):
         w_time: float | None = None,
         init_noise: float = 0.0,
         render_mode: str | None = None,
+        scenario: Scenario | dict | str | None = None,
+        observe_scenario: bool = True,
     ) -> None:
-        self.params = resolve(params)
-        self.braking = cycle.check_braking(braking)
+        self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
+        self._source, self.braking = scenario_source(scenario, braking)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.render_mode = render_mode
         self.init_noise = float(init_noise)
-        self.core = CycleStepper(self.params, braking, dt, substeps, max_time, make_reward_config(reward, w_fuel, w_time))
+        self.observe_scenario = bool(observe_scenario)
+        fixed = self._source if isinstance(self._source, Scenario) else None
+        self.params = fixed.params(self.machine) if fixed is not None else self.machine
+        self.scenario = fixed or start_scenario(self.machine, self.braking, self.machine.omega_0, self.machine.H_0)
+        self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
+                                 make_reward_config(reward, w_fuel, w_time), self.observe_scenario)
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
-        self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
-        self.codec = self.core.codec
+        codec = self.core.codec
+        self.observation_space = spaces.Box(codec.obs_low, codec.obs_high, dtype=np.float32)
+        self.codec = codec
         self._gears = self.core.sim._tables_py[0]
         self._done = False
         self._renderer = None
@@ -150,8 +192,14 @@ class WheelLoaderEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
+        options = dict(options or {})
+        chosen = options.pop("scenario", None)
         if options:
-            raise ValueError(f"WheelLoaderEnv.reset takes no options, got {sorted(options)}")
+            raise ValueError(f"WheelLoaderEnv.reset takes only the option 'scenario', got {sorted(options)}")
+        source = self._source if chosen is None else scenario_source(chosen, self.braking)[0]
+        if isinstance(source, Suite):
+            source = source.sample(self.np_random, self.braking)
+        self._set_scenario(source)
         p = self.params
         omega, H = p.omega_0, p.H_0
         if self.init_noise > 0.0:
@@ -162,9 +210,23 @@ class WheelLoaderEnv(gym.Env):
         self._phase, self._t, self._rev_err, self._violation = 1, 0.0, math.nan, 0.0
         self._done = False
         self._features = self.codec.encode_observation(self._y, self._phase, self._t)
+        self._episode_scenario = start_scenario(p, self.braking, omega, H) if self.init_noise > 0.0 else self.scenario
         if self.render_mode == "human":
             self.render()
-        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0}
+        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self._episode_scenario}
+
+    def _set_scenario(self, scenario: Scenario | None) -> None:
+        """Drive ``scenario``'s cycle (None: the machine's own parameters) from now on."""
+        if scenario is not None and scenario.braking != self.braking:
+            raise ValueError(f"this env runs {self.braking} braking; the scenario has {scenario.braking!r}")
+        params = self.machine if scenario is None else scenario.params(self.machine)
+        p = self.machine
+        self.scenario = scenario or start_scenario(p, self.braking, p.omega_0, p.H_0)
+        if params != self.params:
+            c = self.core
+            self.params = params
+            self.core = CycleStepper(params, self.braking, c.dt, c.substeps, c.max_time, c.reward, self.observe_scenario)
+            self.codec = self.core.codec
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         if not self._y:
@@ -212,6 +274,7 @@ class WheelLoaderEnv(gym.Env):
             "completed": bool(r["completed"]),
             "stalled": bool(r["stalled"]),
             "off_site": bool(r["off_site"]),
+            "scenario": self._episode_scenario,
         }
 
     # ------------------------------------------------------------------ extras

@@ -29,6 +29,9 @@ STILL_SPEED = 1e-6  # m/s: the bucket counts as still below this
 
 # The flattened step unrolls the substeps (~150 lines of code each); beyond this many it is not worth it.
 MAX_FLAT_SUBSTEPS = 8
+# Flattening takes ~40 ms, some 25 episodes' worth of the time it saves: a configuration is flattened once
+# it has run this many steps (an env drawing a new scenario every episode never pays for it).
+FLATTEN_AFTER_STEPS = 300
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,8 @@ class CycleStepper(Flattened):
     limits so far, :data:`wl_env.limits.ENV_NAMES`, checked within every substep).
     """
 
+    _steps_unflattened = 0  # (not configuration: flatten.config_key leaves it out)
+
     def __init__(
         self,
         params: LoaderParams,
@@ -81,6 +86,7 @@ class CycleStepper(Flattened):
         substeps: int,
         max_time: float,
         reward: RewardConfig,
+        observe_scenario: bool = False,
     ) -> None:
         if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
@@ -96,17 +102,18 @@ class CycleStepper(Flattened):
         self.h = self.dt / substeps
         self.max_time = float(max_time)
         self.reward = reward
-        self.codec = Codec(params)
+        self.codec = Codec(params, observe_scenario)
 
     # -------------------------------------------------------------- progress
     def potential(self, y: Any, phase: Any) -> Any:
-        """Progress potential: minus the normalized path still to go and the height still to lift."""
+        """Progress potential: minus the path still to go (per mean leg length) and the height still to lift
+        (per height to lift)."""
         p = self.params
         ops = ops_for(y[4])
         to_go = self.codec.distance_to_go(y[4], phase)
-        path_left = to_go + ops.where(phase <= 2, p.distance, 0.0)
+        path_left = to_go + ops.where(phase <= 2, p.forward_distance, 0.0)
         lift_left = ops.fmax(p.H_T - y[2], 0.0) / (p.H_T - p.H_0)
-        return -(path_left / p.distance + lift_left)
+        return -(path_left / (0.5 * (p.reverse_distance + p.forward_distance)) + lift_left)
 
     # -------------------------------------------------------------- one control interval
     def step(self, y: Any, phase: Any, t: Any, rev_err: Any, violation: Any, action: tuple[Any, Any, Any, Any]) -> dict[str, Any]:
@@ -121,6 +128,9 @@ class CycleStepper(Flattened):
             # speculation fails; several substeps that differ in that run the code below.
             flat = self._flat
             if flat is None or flat[2] is not self.sim._flat:  # new, or the simulator was reconfigured
+                if self._steps_unflattened < FLATTEN_AFTER_STEPS:
+                    object.__setattr__(self, "_steps_unflattened", self._steps_unflattened + 1)
+                    return self._step(y, phase, t, rev_err, violation, action)
                 flat = self._flatten_step()
             r = flat[0](y, phase, t, rev_err, violation, action)
             if r is None:
@@ -146,7 +156,7 @@ class CycleStepper(Flattened):
         # Shift requests end phases 1 and 3; a machine standing in phase 2 is at its reversing point.
         phase = ops.where(((phase == 1) | (phase == 3)) & (action[3] > 0.0), phase + 1, phase)
         at_rev = (phase == 2) & (y[1] == 0.0)
-        rev_err = ops.where(at_rev, y[4] + p.distance, rev_err)
+        rev_err = ops.where(at_rev, y[4] + p.reverse_distance, rev_err)
         phase = ops.where(at_rev, 3, phase)
         if isinstance(phase, np.ndarray):
             phase = phase.astype(np.int64)
@@ -162,7 +172,7 @@ class CycleStepper(Flattened):
             u_first = u_first or u
             y, phase, s_rev, excess = sim.substep(y, phase, u[:3], self.h)
             y = (ops.fmax(y[0], 0.0), *y[1:])  # a stalled engine stops at 0 (it does not turn backwards)
-            rev_err = ops.where(ops.isnan(s_rev), rev_err, s_rev + p.distance)
+            rev_err = ops.where(ops.isnan(s_rev), rev_err, s_rev + p.reverse_distance)
             # Every limit at every RK4 stage and at the substep's end (wl_env.step.within_step_excess).
             total = 0.0 * y[0]
             for name in limits.ENV_NAMES:
@@ -177,7 +187,8 @@ class CycleStepper(Flattened):
         # ---- episode end
         still = abs(y[3]) < STILL_SPEED
         completed = (phase == 4) & (y[1] == 0.0) & still
-        off_site = (y[4] < -2.0 * p.distance) | (y[4] > p.distance)
+        # twice the reversing distance behind the pile, or a reversing distance past the truck
+        off_site = (y[4] < -2.0 * p.reverse_distance) | (y[4] > p.final_position + p.reverse_distance)
         failed = stalled | off_site
         terminated = completed | failed
         truncated = (t >= self.max_time - 1e-9) & ~terminated
@@ -190,7 +201,7 @@ class CycleStepper(Flattened):
         rev_abs = abs(rev_err)
         # The reversing-point error is charged once, in the step that reaches it (NaN until then).
         reward = reward - ops.where(rev_pending & ~ops.isnan(rev_err), rw.target_distance * rev_abs, 0.0)
-        end_dist = abs(y[4])
+        end_dist = abs(y[4] - p.final_position)
         end_height = abs(p.H_T - y[2])
         reward = reward - ops.where(
             completed, rw.target_distance * end_dist + rw.target_height * end_height, 0.0

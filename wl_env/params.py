@@ -33,7 +33,7 @@ PROVENANCE: dict[str, tuple[str, str]] = {
     ),
     "omega_min": ("rad/s", "reimpl (~544 rpm)"),
     "omega_max": ("rad/s", "reimpl (~2200 rpm)"),
-    "omega_0": ("rad/s", "paper Table II (1500 rpm)"),
+    "omega_0": ("rad/s", "paper Table II: 1500 rpm exactly (params.json's 157.08 rad/s is that, rounded)"),
     "tc_xi_poly": ("N m/krpm^2, highest power first, 0<=phi<=1.5", "reimpl (fit of the paper's Fig. 5)"),
     "tc_kappa_poly": ("N m/krpm^2, highest power first, 0<=phi<=1.5", "reimpl (fit of the paper's Fig. 5)"),
     "tc_phi_hi": ("-", "assumed: above this (and below 0) the polynomials continue linearly, C1"),
@@ -66,7 +66,8 @@ PROVENANCE: dict[str, tuple[str, str]] = {
     "decel_max": ("g", "paper eq. (31)"),
     "H_0": ("m", "paper Table II"),
     "H_T": ("m", "paper Table II"),
-    "distance": ("m", "paper (each way)"),
+    "reverse_distance": ("m", "paper (6.6 m each way): from the pile to the reversing point"),
+    "forward_distance": ("m", "paper (6.6 m each way): from the reversing point to the truck"),
 }
 
 
@@ -130,7 +131,8 @@ _REAL_RANGES: dict[str, _Range] = {
     "decel_max": _Range(0.01, 2.0),
     "H_0": _Range(0.0, 20.0),
     "H_T": _Range(0.0, 20.0, lo_open=True),
-    "distance": _Range(0.5, 100.0),
+    "reverse_distance": _Range(0.5, 100.0),
+    "forward_distance": _Range(0.5, 100.0),
 }
 _INT_RANGES: dict[str, _Range] = {"n_cyl": _Range(1, 24), "n_lift_cyl": _Range(1, 8)}
 # Vector fields: (length, range of each entry). The shapes are what the model's equations index.
@@ -162,7 +164,7 @@ class LoaderParams:
     T_max_lines: tuple[tuple[float, float], ...] = ((8.0, 2.086), (2200.0, 0.0), (3855.0, -1.40))
     omega_min: float = 57.0
     omega_max: float = 230.4
-    omega_0: float = 157.08
+    omega_0: float = 1500.0 * (math.pi / 30.0)  # (as wl_env.scenario converts rpm)
     tc_xi_poly: tuple[float, ...] = (-57.24, -177.0, 1339.0, -1794.0, 334.3, -39.47, 406.2)
     tc_kappa_poly: tuple[float, ...] = (26.26, -176.9, 427.4, -341.0, -9.083, -598.1, 675.4)
     tc_phi_hi: float = 1.5
@@ -195,7 +197,8 @@ class LoaderParams:
     decel_max: float = 0.18
     H_0: float = 0.7
     H_T: float = 5.0
-    distance: float = 6.6
+    reverse_distance: float = 6.6
+    forward_distance: float = 6.6
 
     # ---- derived constants (cached so hot paths do not recompute them) ----
     _derived: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -241,6 +244,11 @@ class LoaderParams:
     def T_ig_per_mg(self) -> float:
         """Indicated torque per mg of injected fuel, eq. (6) (N m per mg/cycle)."""
         return self._derived["T_ig_per_mg"]
+
+    @property
+    def final_position(self) -> float:
+        """Position s (m) of the truck, the end of the cycle: forward_distance - reverse_distance."""
+        return self.forward_distance - self.reverse_distance
 
     @property
     def H_max(self) -> float:
@@ -305,7 +313,12 @@ class LoaderParams:
 
     # ---- variants and serialization ----
     def replace(self, **changes: Any) -> LoaderParams:
-        """A copy with some fields changed (validated). Unknown names raise ``ValueError``."""
+        """A copy with some fields changed (validated). Unknown names raise ``ValueError``. ``distance`` sets
+        both legs (``reverse_distance`` and ``forward_distance``), as the paper's 6.6 m each way."""
+        if "distance" in changes:
+            both = changes.pop("distance")
+            changes.setdefault("reverse_distance", both)
+            changes.setdefault("forward_distance", both)
         known = {f.name for f in dataclasses.fields(self) if f.init}
         unknown = set(changes) - known
         if unknown:
@@ -398,11 +411,48 @@ DEFAULT_PARAMS = LoaderParams()
 
 
 def resolve(params: LoaderParams | dict | None) -> LoaderParams:
-    """``None`` -> the defaults, a dict -> the defaults with those overrides, a LoaderParams -> itself."""
+    """``None`` -> the defaults, a dict -> the defaults with those overrides, a LoaderParams (or a
+    :class:`ParamsView`) -> itself."""
     if params is None:
         return DEFAULT_PARAMS
-    if isinstance(params, LoaderParams):
+    if isinstance(params, (LoaderParams, ParamsView)):
         return params
     if isinstance(params, dict):
         return LoaderParams.from_dict(params)
     raise ValueError(f"params must be a LoaderParams, a dict of overrides or None, got {type(params).__name__}")
+
+
+# The fields a scenario sets (wl_env.scenario): they may vary between the loaders of a batch, or be
+# symbols of an NLP parametric in the scenario. The model reads them, and M_tot and F_roll derived from them.
+SCENARIO_FIELDS = ("M_load", "c_r", "H_T", "H_0", "omega_0", "reverse_distance", "forward_distance")
+
+
+class ParamsView:
+    """A :class:`LoaderParams` whose scenario fields (:data:`SCENARIO_FIELDS`) hold other values: numpy
+    arrays of shape (N,), one loader per entry (the vector env), or CasADi symbols (an NLP that takes the
+    scenario as a parameter). The model reads it as it reads LoaderParams; every other field and derived
+    constant is the base's. Not validated: its values come from validated LoaderParams or from a solver."""
+
+    def __init__(self, base: LoaderParams, **values: Any) -> None:
+        unknown = set(values) - set(SCENARIO_FIELDS)
+        if unknown:
+            raise ValueError(f"ParamsView overrides only {SCENARIO_FIELDS}, got {sorted(unknown)}")
+        self.base = base
+        self.values = {name: values.get(name, getattr(base, name)) for name in SCENARIO_FIELDS}
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name in ("base", "values"):
+            raise AttributeError(name)
+        v = self.values
+        if name in v:
+            return v[name]
+        b = self.base
+        if name == "M_tot":  # eq. (27)
+            return b.M_veh + v["M_load"] + 4.0 * b.J_w / b.r_w**2
+        if name == "F_roll":  # eq. (25)
+            return v["c_r"] * (b.M_veh + v["M_load"]) * b.g
+        if name == "final_position":
+            return v["forward_distance"] - v["reverse_distance"]
+        if name in ("fingerprint", "replace", "variant", "to_dict"):
+            raise AttributeError(f"a ParamsView has no {name}(): it is not one parameter set")
+        return getattr(b, name)

@@ -116,7 +116,7 @@ class _Scene:
         self.ax = ax
         # The view must show x in [-distance - 6.3, 8.4] and y in [-0.9, 7.3]; equal scale in x and y, the
         # spare room of other aspect ratios goes to the sides or to the sky.
-        x_min, x_max, y_min = -p.distance - 6.3, 8.4, -0.9
+        x_min, x_max, y_min = -p.reverse_distance - 6.3, 8.4 + max(p.final_position, 0.0), -0.9
         scene_w, scene_h = w, (1.0 - panel_h) * h  # pixels
         m_per_px = max((x_max - x_min) / scene_w, (7.3 - y_min) / scene_h)
         spare = m_per_px * scene_w - (x_max - x_min)
@@ -135,13 +135,15 @@ class _Scene:
         ax.text(x_max - 0.15, -0.3, "s (m)", ha="right", va="top", fontsize=6.5, color=_GROUND_LINE, zorder=2)
 
         # Marks: the reversing point and the end (s = 0), where the pivot must stop.
-        rev = -p.distance
+        rev = -p.reverse_distance
         ax.plot([rev, rev], [0, 6.3], color=_REV, lw=1.4, ls=(0, (4, 2)), zorder=3)
         ax.add_patch(Polygon([(rev, 6.3), (rev + 0.9, 6.05), (rev, 5.8)], color=_REV, zorder=3))
         ax.text(rev - 0.2, 6.05, f"reversing point\ns = {rev:g} m", ha="right", va="center", fontsize=7,
                 color=_REV, zorder=3, linespacing=1.1)
-        ax.plot([0, 0], [0, 1.0], color=_TARGET, lw=1.4, ls=(0, (4, 2)), zorder=3)
-        ax.text(0.0, -0.62, "s = 0", ha="center", va="top", fontsize=7, color=_TARGET, fontweight="bold", zorder=3)
+        end = p.final_position  # (the truck is drawn at s = 0; with unequal legs the end mark moves)
+        ax.plot([end, end], [0, 1.0], color=_TARGET, lw=1.4, ls=(0, (4, 2)), zorder=3)
+        ax.text(end, -0.62, f"s = {end:g}", ha="center", va="top", fontsize=7, color=_TARGET, fontweight="bold",
+                zorder=3)
 
         # The pile (start) and the truck (end); their emphasis follows the phase.
         pile = Polygon([(2.75, 0.0), (3.15, 0.75), (3.45, 0.9), (4.3, 1.55), (5.4, 2.15), (6.6, 2.45), (x_max, 2.55),
@@ -297,7 +299,7 @@ class _Scene:
         v["rpm"].set_text(f"{snap['rpm']:.0f}")
         v["fuel"].set_text(f"{snap['fuel_g']:.1f}")
         v["s"].set_text(f"{_clean(s):+.2f}")
-        v["to_go"].set_text(f"{_clean(s + p.distance if phase <= 2 else -s):.2f}")
+        v["to_go"].set_text(f"{_clean(s + p.reverse_distance if phase <= 2 else p.final_position - s):.2f}")
 
         canvas = self.canvas
         if self._background is None:

@@ -72,7 +72,7 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
         completed=bool(info["completed"]), truncated=bool(trunc), stalled=bool(info["stalled"]),
         off_site=bool(info["off_site"]), episode_return=total,
         reversing_error_m=None if rev is None or math.isnan(rev) else float(rev),
-        final_position_error_m=float(info["s"]), final_height_error_m=float(info["state"][2] - unwrapped.params.H_T),
+        final_position_error_m=float(info["s"] - unwrapped.params.final_position), final_height_error_m=float(info["state"][2] - unwrapped.params.H_T),
         max_violation=float(info["violations"]["max_excess"]),
         trajectory=Trajectory(ts, states, controls, phases) if trajectory else None,
     )

@@ -1,9 +1,11 @@
-"""Native vectorized ``WheelLoader-v1``: N loaders stepped together as numpy arrays.
+"""Native vectorized ``WheelLoader-v2`` (and ``-v1``): N loaders stepped together as numpy arrays.
 
-Built by ``gymnasium.make_vec("WheelLoader-v1", num_envs=N, vectorization_mode="vector_entry_point")``.
+Built by ``gymnasium.make_vec("WheelLoader-v2", num_envs=N, vectorization_mode="vector_entry_point")``.
 It runs the same :class:`~wl_env.episode.CycleStepper` as the single environment on arrays of shape
 (N,), so loader i follows exactly the trajectory of a single ``WheelLoaderEnv`` seeded with ``seed + i``.
-Finished loaders are reset on the next call to ``step`` (Gymnasium's next-step autoreset).
+Finished loaders are reset on the next call to ``step`` (Gymnasium's next-step autoreset). With a suite
+as ``scenario``, each loader draws its own scenario at each (auto)reset from its own seeded generator:
+the scenario's fields are then arrays of shape (N,) in a :class:`~wl_env.params.ParamsView`.
 """
 
 from __future__ import annotations
@@ -16,11 +18,11 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from wl_env import cycle
-from wl_env.codec import OBS_HIGH, OBS_LOW
-from wl_env.env import make_reward_config
+from wl_env.env import make_reward_config, scenario_source
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
+from wl_env.scenario import Scenario
+from wl_env.suites import Suite
 
 
 class WheelLoaderVectorEnv(VectorEnv):
@@ -31,7 +33,7 @@ class WheelLoaderVectorEnv(VectorEnv):
     def __init__(
         self,
         num_envs: int = 1,
-        braking: str = "service",
+        braking: str | None = None,
         params: LoaderParams | dict | None = None,
         dt: float = 0.1,
         substeps: int = 1,
@@ -41,6 +43,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         w_time: float | None = None,
         init_noise: float = 0.0,
         render_mode: str | None = None,
+        scenario: Scenario | dict | str | None = None,
+        observe_scenario: bool = True,
     ) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -49,12 +53,20 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
-        self.params = resolve(params)
-        self.braking = cycle.check_braking(braking)
+        self.machine = resolve(params)
+        self._source, self.braking = scenario_source(scenario, braking)
         self.init_noise = float(init_noise)
-        self.core = CycleStepper(self.params, braking, dt, substeps, max_time, make_reward_config(reward, w_fuel, w_time))
+        if isinstance(self._source, Suite):  # one scenario per loader, drawn at each reset
+            self.params: LoaderParams | ParamsView = ParamsView(
+                self.machine, **{f: np.full(num_envs, float(getattr(self.machine, f))) for f in SCENARIO_FIELDS})
+        else:
+            self.params = self._source.params(self.machine) if self._source is not None else self.machine
+        self.scenarios: list[Scenario | None] = [self._source if isinstance(self._source, Scenario) else None] * num_envs
+        self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
+                                 make_reward_config(reward, w_fuel, w_time), observe_scenario)
+        codec = self.core.codec
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
-        self.single_observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+        self.single_observation_space = spaces.Box(codec.obs_low, codec.obs_high, dtype=np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = None
@@ -83,8 +95,14 @@ class WheelLoaderVectorEnv(VectorEnv):
     def _reset_where(self, mask: np.ndarray) -> None:
         p = self.params
         idx = np.flatnonzero(mask)
-        omega = np.full(idx.size, p.omega_0)
-        H = np.full(idx.size, p.H_0)
+        if isinstance(self._source, Suite):
+            for i in idx:
+                s = self.scenarios[i] = self._source.sample(self._rngs[i], self.braking)
+                drawn = s.params(self.machine)
+                for f in SCENARIO_FIELDS:
+                    p.values[f][i] = getattr(drawn, f)
+        omega = np.broadcast_to(p.omega_0, (self.num_envs,))[idx].astype(float)
+        H = np.broadcast_to(p.H_0, (self.num_envs,))[idx].astype(float)
         if self.init_noise > 0.0:
             for j, i in enumerate(idx):
                 du = self._rngs[i].uniform(-1.0, 1.0, size=2)

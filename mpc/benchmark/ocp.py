@@ -6,9 +6,10 @@ continuous across the boundaries, every constraint of eq. (31), the boundary con
 phase, controls piecewise constant on the mesh, solved with IPOPT. The right-hand side is
 ``wl_env.model.derivatives`` itself, evaluated on CasADi symbols: the simulator and the OCP share the model.
 
-One NLP per (braking, parameters, mesh) serves every objective: the weights, a fixed cycle time and the
-control-rate smoothing of eq. (33) enter as NLP parameters and constraint bounds, so Pareto sweeps and
-smoothing homotopies reuse the built solver and warm-start from the neighbouring solution.
+One NLP per (braking, machine, mesh) serves every objective and every scenario: the weights, a fixed
+cycle time, the control-rate smoothing of eq. (33) and the scenario's payload and rolling resistance
+enter as NLP parameters, its start state, distances and dump height as bounds. Pareto sweeps, smoothing
+homotopies and a suite's scenarios reuse the built solver and warm-start from a neighbouring solution.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from mpc import interrupt
 from wl_env import cycle, limits
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import DEFAULT_PARAMS, SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
 from wl_env.physics import lift
 
 OBJECTIVES = ("time", "fuel", "weighted", "fuel_at_time")
@@ -39,7 +40,7 @@ X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])  # omega, V, H, V_b, s
 U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf, U_ab, U_b
 FUEL_REF_G = 100.0  # g, normalizes the fuel term of the weighted objective
 TIME_REF = 10.0  # s, normalizes the time term
-N_PARAMETERS = 3  # length of the NLP parameter vector, see nlp_parameters()
+N_PARAMETERS = 5  # length of the NLP parameter vector, see nlp_parameters()
 # Upper bound of each phase's duration (s). The braking phases 2 and 4 last under a second, so the
 # longest cycle the NLP holds is two driving phases at the bound: 60 s, well past the fuel-optimal
 # cycle (about 21.4 s; slower cycles only burn more fuel). Longer fixed times are rejected up front,
@@ -48,10 +49,15 @@ MAX_PHASE_DURATION = 30.0
 MAX_CYCLE_TIME = 2 * MAX_PHASE_DURATION
 
 
-def nlp_parameters(w_fuel: float, w_time: float, smoothing: float = 0.0) -> list[float]:
+def nlp_parameters(w_fuel: float, w_time: float, smoothing: float, params: LoaderParams) -> list[float]:
     """The parameter vector of a :class:`CycleOCP` NLP: ``w_fuel`` per g and ``w_time`` per s weigh the
-    objective; ``smoothing`` is k of eq. (33)."""
-    return [w_fuel, w_time, smoothing]
+    objective; ``smoothing`` is k of eq. (33); the scenario's payload M_load (kg) and rolling resistance c_r."""
+    return [w_fuel, w_time, smoothing, params.M_load, params.c_r]
+
+
+def machine_key(params: LoaderParams) -> str:
+    """The fingerprint of the machine alone (the scenario's fields at their defaults): one NLP per machine."""
+    return params.replace(**{f: getattr(DEFAULT_PARAMS, f) for f in SCENARIO_FIELDS}).fingerprint()
 
 
 class OCPError(RuntimeError):
@@ -146,10 +152,14 @@ class OCPResult:
 
 
 # ----------------------------------------------------------------------------------------------------
+_NLP_CACHE: dict[tuple, dict[str, Any]] = {}
+
+
 class CycleOCP:
-    """The collocation NLP for one braking alternative, parameter set and mesh (built once, reused),
-    from Table II's initial state in phase 1. (The MPC plans on the environment's own grid instead,
-    :mod:`mpc.controller.grid`.)"""
+    """The collocation NLP for one braking alternative, parameter set and mesh, from the scenario's start
+    state in phase 1. The NLP and its solver are built once per machine and mesh (:func:`machine_key`) and
+    shared by every scenario; an instance holds its scenario's bounds. (The MPC plans on the environment's
+    own grid instead, :mod:`mpc.controller.grid`.)"""
 
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
                  settings: OCPSettings | None = None) -> None:
@@ -157,10 +167,19 @@ class CycleOCP:
         self.params = resolve(params)
         self.settings = settings or OCPSettings()
         self.specs = cycle.phase_specs(self.braking, self.params)
-        self._build()
+        key = (self.braking, machine_key(self.params), self.settings)
+        if key not in _NLP_CACHE:
+            _NLP_CACHE[key] = self._build()
+        self.__dict__.update(_NLP_CACHE[key])
+        p = self.params
+        self._lbw, self._ubw = (np.concatenate([np.broadcast_to(b(p) if callable(b) else b, (n,)) for n, b in self._w_bounds[i]])
+                                for i in (0, 1))
+        self._lbg, self._ubg = (np.concatenate([np.broadcast_to(b(p) if callable(b) else b, (n,)) for n, b in self._g_bounds[i]])
+                                for i in (0, 1))
 
     # ------------------------------------------------------------------ construction
-    def _build(self) -> None:
+    def _build(self) -> dict[str, Any]:
+        """The NLP, its solver and its bounds as functions of the scenario's parameters (shared, see above)."""
         p, st = self.params, self.settings
         d = st.degree
         tau = np.append(0.0, ca.collocation_points(d, "radau"))
@@ -182,36 +201,39 @@ class CycleOCP:
         self.phases = [spec.phase for spec in self.specs]
         xs = ca.DM(X_SCALE)
         us = ca.DM(U_SCALE)
-        w, w_lb, w_ub = [], [], []
+        w, w_lb, w_ub = [], [], []  # bounds: arrays, or functions of the scenario's LoaderParams
         g, g_lb, g_ub = [], [], []
         self._index: dict[str, list] = {"dur": [], "dur_copies": [], "X": [], "XC": [], "U": []}
         n_w = 0
 
-        def add_var(name: str, n: int, lb: np.ndarray, ub: np.ndarray) -> tuple[ca.SX, int]:
+        def add_var(name: str, n: int, lb: Any, ub: Any) -> tuple[ca.SX, int]:
             nonlocal n_w
             v = ca.SX.sym(name, n)
             w.append(v)
-            w_lb.append(np.broadcast_to(lb, (n,)))
-            w_ub.append(np.broadcast_to(ub, (n,)))
+            w_lb.append((n, lb))
+            w_ub.append((n, ub))
             n_w += n
             return v, n_w - n
 
-        def add_con(expr: ca.SX, lb: float | np.ndarray, ub: float | np.ndarray) -> None:
+        def add_con(expr: ca.SX, lb: Any, ub: Any) -> None:
             n = int(expr.numel())
             g.append(expr)
-            g_lb.append(np.broadcast_to(lb, (n,)))
-            g_ub.append(np.broadcast_to(ub, (n,)))
+            g_lb.append((n, lb))
+            g_ub.append((n, ub))
 
-        # NLP parameters: see nlp_parameters()
+        # NLP parameters: see nlp_parameters(); the model reads the scenario's M_load and c_r from them
         par = ca.SX.sym("par", N_PARAMETERS)
+        self._pv = pv = ParamsView(p, M_load=par[3], c_r=par[4])
         H_stop = lift.max_bucket_height(p)
-        x0 = cycle.initial_state(p)
         path_lb, path_ub = self._path_bounds()
         fuel_total = 0
         smooth = 0
         durations = []
         u_prev = None
-        X_start, off = add_var("X0", 5, np.append(x0, 0.0) / X_SCALE, np.append(x0, 0.0) / X_SCALE)
+        def start(q: LoaderParams) -> np.ndarray:
+            return np.append(cycle.initial_state(q), 0.0) / X_SCALE
+
+        X_start, off = add_var("X0", 5, start, start)
         self._index["X"].append(off)
         x_k = X_start * xs
         min_dur = cycle.MIN_PHASE_DURATION
@@ -222,8 +244,14 @@ class CycleOCP:
             durations.append(dur)
             h = dur / n_int
             v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
-            x_lb = np.array([p.omega_min, v_lo, p.H_0, 0.0, -2 * p.distance]) / X_SCALE
-            x_ub = np.array([p.omega_max, v_hi, H_stop, 5.0, p.distance]) / X_SCALE
+
+            def x_lb(q: LoaderParams, v_lo: float = v_lo) -> np.ndarray:
+                return np.tile(np.array([q.omega_min, v_lo, q.H_0, 0.0, -2 * q.reverse_distance]) / X_SCALE, d)
+
+            def x_ub(q: LoaderParams, v_hi: float = v_hi) -> np.ndarray:
+                end = max(q.final_position, 0.0) + q.reverse_distance
+                return np.tile(np.array([q.omega_max, v_hi, H_stop, 5.0, end]) / X_SCALE, d)
+
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0]) / U_SCALE
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0]) / U_SCALE
@@ -245,24 +273,28 @@ class CycleOCP:
                     du = (U[:2] - u_prev[:2])
                     smooth += ca.sumsqr(du) / h
                 u_prev = U
-                XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, np.tile(x_lb, d), np.tile(x_ub, d))
+                XC, off = add_var(f"XC{spec.phase}_{j}", 5 * d, x_lb, x_ub)
                 self._index["XC"].append(off)
-                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h)
+                defects, fuel, path = fn(x_k, XC * ca.repmat(xs, d, 1), u, h, par[3:5])
                 add_con(defects, 0.0, 0.0)
                 add_con(path, path_lb, path_ub)
                 fuel_total += fuel
                 x_k = XC[5 * (d - 1):] * xs
             # boundary conditions at the end of the phase
+            # (positions and heights in X_SCALE's units: the targets are the scenario's bounds)
             if spec.phase == 2:  # the reversing point
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con((x_k[4] + p.distance) / p.distance, 0.0, 0.0)
+                rev = lambda q: -q.reverse_distance / X_SCALE[4]  # noqa: E731
+                add_con(x_k[4] / X_SCALE[4], rev, rev)
             if spec.phase == 4:  # end: standing at the truck, bucket up and still, U_ab = 0, engine steady
                 add_con(x_k[1] / p.V_max, 0.0, 0.0)
-                add_con(x_k[4] / p.distance, 0.0, 0.0)
-                add_con((x_k[2] - p.H_T) / p.H_T, 0.0, 0.0)
+                end = lambda q: q.final_position / X_SCALE[4]  # noqa: E731
+                add_con(x_k[4] / X_SCALE[4], end, end)
+                height = lambda q: q.H_T / X_SCALE[2]  # noqa: E731
+                add_con(x_k[2] / X_SCALE[2], height, height)
                 add_con(x_k[3], 0.0, 0.0)
                 add_con(U[1], 0.0, 0.0)
-                d_om = derivatives(x_k[0], x_k[1], x_k[2], x_k[3], u[0], u[1], u[2], spec.gear, spec.direction, p)[0]
+                d_om = derivatives(x_k[0], x_k[1], x_k[2], x_k[3], u[0], u[1], u[2], spec.gear, spec.direction, pv)[0]
                 add_con(d_om / 100.0, 0.0, 0.0)
         T = sum(durations)
         self._g_T_index = sum(int(x.numel()) for x in g)
@@ -271,23 +303,25 @@ class CycleOCP:
         J = par[0] * fuel_g + par[1] * T + par[2] * smooth
 
         z = ca.vertcat(*w)
-        self.n_var = int(z.numel())
-        self._lbw, self._ubw = np.concatenate(w_lb), np.concatenate(w_ub)
-        self._lbg, self._ubg = np.concatenate(g_lb), np.concatenate(g_ub)
-        self._fn_parts = ca.Function("parts", [z], [fuel_g, T, smooth])
-        self._nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
-        self._solver = self._make_solver()
+        nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
+        return {"tau": tau, "_C": C, "_B": B, "_interval_fns": self._interval_fns, "phases": self.phases,
+                "_index": self._index, "n_var": int(z.numel()), "_g_T_index": self._g_T_index,
+                "_w_bounds": (w_lb, w_ub), "_g_bounds": (g_lb, g_ub),
+                "_fn_parts": ca.Function("parts", [z], [fuel_g, T, smooth]), "_nlp": nlp,
+                "_solver": self._make_solver(nlp)}
 
     def _interval_function(self, spec: cycle.PhaseSpec) -> ca.Function:
         """Collocation of one mesh interval of a phase: (x_start, X_colloc, u, h) -> (defects, fuel kg, path).
 
         Built once per phase as an SX function, so the NLP inlines it instead of re-tracing the model.
         """
-        p, d = self.params, self.settings.degree
+        d = self.settings.degree
         x0 = ca.SX.sym("x0", 5)
         xc = ca.SX.sym("xc", 5 * d)
         u = ca.SX.sym("u", 3)
         h = ca.SX.sym("h")
+        scenario = ca.SX.sym("scenario", 2)  # M_load, c_r
+        p = ParamsView(self.params, M_load=scenario[0], c_r=scenario[1])
         pts = [x0] + [xc[5 * c:5 * (c + 1)] for c in range(d)]
         defects, path = [], []
         fuel = 0
@@ -296,29 +330,29 @@ class CycleOCP:
             d_om, d_v, d_h, d_vb, m_dot = derivatives(x[0], x[1], x[2], x[3], u[0], u[1], u[2], spec.gear, spec.direction, p)
             # Path constraints at the collocation points and at the interval start, where the control
             # switches (the simulator applies the new control from that point on).
-            rows = self._path_expressions(x, u, d_v, spec.direction)
+            rows = self._path_expressions(x, u, d_v, spec.direction, p)
             path.append(rows)
             if c == 0:
                 continue
             xp = sum(self._C[r, c] * pts[r] for r in range(d + 1))
             defects.append((h * ca.vertcat(d_om, d_v, d_h, d_vb, x[1]) - xp) / ca.DM(X_SCALE))
             fuel += self._B[c] * m_dot * h
-        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h],
+        return ca.Function(f"interval_{spec.phase}", [x0, xc, u, h, scenario],
                            [ca.vertcat(*defects), fuel, ca.vertcat(*path)])
 
     # eq. (31) at the collocation points (:mod:`wl_env.limits`); speed and engine speed are state bounds
     PATH_LIMITS = ("torque", "lift_speed", "cylinder_pressure", "deceleration")
 
-    def _path_expressions(self, x, u, d_v, dirn) -> ca.SX:
+    def _path_expressions(self, x, u, d_v, dirn, p) -> ca.SX:
         """The path constraints' residuals (<= 0)."""
-        rows = limits.residuals(x, u, d_v, dirn, self.params, names=self.PATH_LIMITS)
+        rows = limits.residuals(x, u, d_v, dirn, p, names=self.PATH_LIMITS)
         return ca.vertcat(*(r for name in self.PATH_LIMITS for r in rows[name]))
 
     def _path_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         n = (self.settings.degree + 1) * 7  # 3 torque lines, 2 pump pieces, pressure, deceleration per point
         return np.full(n, -math.inf), np.zeros(n)
 
-    def _make_solver(self) -> ca.Function:
+    def _make_solver(self, nlp: dict[str, Any]) -> ca.Function:
         st = self.settings
         opts = {
             "ipopt.print_level": st.print_level,
@@ -331,7 +365,7 @@ class CycleOCP:
             "ipopt.hessian_approximation": st.hessian,
             "ipopt.sb": "yes",
         }
-        return ca.nlpsol("cycle_ocp", "ipopt", self._nlp, opts)
+        return ca.nlpsol("cycle_ocp", "ipopt", nlp, opts)
 
     # ------------------------------------------------------------------ initial guesses
     def guess_from_trajectory(self, t: np.ndarray, states: np.ndarray, position: np.ndarray,
@@ -408,8 +442,8 @@ class CycleOCP:
         for k in ks:
             # the smoothing penalty is scaled like the objective so k means the same for every objective
             scale = max(weights)
-            args = dict(x0=z, p=nlp_parameters(weights[0], weights[1], k * scale), lbx=self._lbw, ubx=self._ubw,
-                        lbg=lbg, ubg=ubg)
+            args = dict(x0=z, p=nlp_parameters(weights[0], weights[1], k * scale, self.params), lbx=self._lbw,
+                        ubx=self._ubw, lbg=lbg, ubg=ubg)
             if lam_x is not None:
                 args.update(lam_x0=lam_x, lam_g0=lam_g)
             sol = self._solver(**args)
@@ -472,7 +506,7 @@ def template_guess(params: LoaderParams, leg_time: float, accel_fraction: float,
     T = 2.0 * leg_time
     t = np.arange(0.0, T + 1e-9, dt)
     t[-1] = T
-    v_peak = 2.0 * p.distance / leg_time
+    v_peak = 2.0 * p.reverse_distance / leg_time
     ta = accel_fraction * leg_time
 
     def leg_speed(tl: np.ndarray) -> np.ndarray:
@@ -481,8 +515,8 @@ def template_guess(params: LoaderParams, leg_time: float, accel_fraction: float,
     first = t <= leg_time
     V = np.where(first, -leg_speed(t), leg_speed(t - leg_time))
     s = np.concatenate([[0.0], np.cumsum(0.5 * (V[1:] + V[:-1]) * np.diff(t))])
-    s[first] *= p.distance / max(-s[first].min(), 1e-9)
-    s[~first] = -p.distance + (s[~first] - s[~first][0]) * p.distance / max(s[-1] - s[~first][0], 1e-9)
+    s[first] *= p.reverse_distance / max(-s[first].min(), 1e-9)
+    s[~first] = -p.reverse_distance + (s[~first] - s[~first][0]) * p.forward_distance / max(s[-1] - s[~first][0], 1e-9)
     H = p.H_0 + (p.H_T - p.H_0) * np.clip(t / (0.9 * T), 0.0, 1.0)
     V_b = np.gradient(H, t)
     omega = np.full_like(t, 0.5 * (p.omega_0 + p.omega_max))

@@ -103,8 +103,8 @@ def verify_result(result: Any, params: LoaderParams | dict | None = None, max_su
     viol_sim = constraint_violations(sim["states"], sim["applied"], sim["phase"], result.braking, p)
     viol_sim = {k: max(v, sim["excess"].get(k, 0.0)) for k, v in viol_sim.items()}  # within the substeps too
     return {
-        "reversing_error_m": float(sim["s_rev"] + p.distance) if sim["s_rev"] == sim["s_rev"] else float("nan"),
-        "final_position_error_m": float(sim["position"][-1]),
+        "reversing_error_m": float(sim["s_rev"] + p.reverse_distance) if sim["s_rev"] == sim["s_rev"] else float("nan"),
+        "final_position_error_m": float(sim["position"][-1] - p.final_position),
         "final_height_error_m": float(final[2] - p.H_T),
         "final_speed_mps": float(final[1]),
         "final_bucket_speed_mps": float(final[3]),
@@ -117,8 +117,8 @@ def verify_result(result: Any, params: LoaderParams | dict | None = None, max_su
         "max_substep_s": max_substep,
         "engine_speed_gain": ENGINE_SPEED_GAIN,
         "open_loop": {
-            "reversing_error_m": float(open_loop["s_rev"] + p.distance),
-            "final_position_error_m": float(open_loop["position"][-1]),
+            "reversing_error_m": float(open_loop["s_rev"] + p.reverse_distance),
+            "final_position_error_m": float(open_loop["position"][-1] - p.final_position),
             "final_height_error_m": float(open_loop["states"][-1][2] - p.H_T),
             "fuel_g_simulated": float(open_loop["fuel_g"]),
         },

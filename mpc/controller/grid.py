@@ -310,9 +310,9 @@ class GridNLP:
             fuel += fuel_k
             x_prev = X * xs
             if kind == "stop" and ph == 2:  # the reversing point
-                con((s_stop + p.distance) / p.distance - elastic("reversing point"), 0.0, 0.0)
+                con((s_stop + p.reverse_distance) / p.reverse_distance - elastic("reversing point"), 0.0, 0.0)
             if kind == "stop" and ph == 4:  # the end: at the truck, bucket at H_T and still, the machine at rest
-                con(s_stop / p.distance - elastic("end position"), 0.0, 0.0)
+                con((s_stop - p.final_position) / p.reverse_distance - elastic("end position"), 0.0, 0.0)
                 con((x_prev[2] - p.H_T) / p.H_T - elastic("end height"), 0.0, 0.0)
                 con(x_prev[3], 0.0, 0.0)
                 # at rest (as the benchmark's end): the engine holds its speed with the last injection

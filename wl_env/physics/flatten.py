@@ -220,7 +220,8 @@ def config_key(obj: Any) -> str:
         if isinstance(v, dict):
             return ("dict", *((repr(k), walk(x)) for k, x in v.items()))
         if hasattr(v, "__dict__") and not callable(v):
-            return (type(v).__qualname__, *((k, walk(x)) for k, x in sorted(vars(v).items()) if k != "_flat"))
+            return (type(v).__qualname__, *((k, walk(x)) for k, x in sorted(vars(v).items())
+                                            if k not in ("_flat", "_steps_unflattened")))
         return repr(v)  # numbers (repr tells -0.0 from 0.0, which == does not), strings, None
 
     return repr(walk(obj))

@@ -1,0 +1,179 @@
+"""Scenarios: the loading cycles a real site has (payload, distances, ground, truck, start state, braking).
+
+A :class:`Scenario` is what changes from cycle to cycle on a site; everything else (the machine) stays a
+:class:`~wl_env.params.LoaderParams`. ``scenario.params(base)`` is the machine driving that cycle: the
+environment, the OCP, the MPC and the scoring all take it, so a scenario is one parameter set of the
+one model. ``Scenario.nominal()`` is the paper's cycle and maps onto the default parameters exactly.
+
+| field               | unit | range          | nominal | model                      |
+|---------------------|------|----------------|---------|----------------------------|
+| payload             | kg   | 6 000 - 13 000 | 10 000  | M_load (bucket plus load)  |
+| reverse_distance    | m    | 4 - 10         | 6.6     | pile -> reversing point    |
+| forward_distance    | m    | 4 - 10         | 6.6     | reversing point -> truck   |
+| rolling_resistance  | -    | 0.015 - 0.05   | 0.03    | c_r                        |
+| dump_height         | m    | 3.5 - 5.1      | 5.0     | H_T (the boom reaches 5.2) |
+| start_engine_speed  | rpm  | 800 - 2 000    | 1 500   | omega_0                    |
+| start_bucket_height | m    | 0.5 - 1.2      | 0.7     | H_0                        |
+| braking             | -    | service, tc    | service | the braking alternative    |
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import numbers
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wl_env.cycle import BRAKING_MODES
+from wl_env.params import DEFAULT_PARAMS, LoaderParams
+
+RPM = math.pi / 30.0  # rad/s per rpm
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """A scenario field: unit, allowed range, nominal value and the LoaderParams field it sets."""
+
+    unit: str
+    lo: float
+    hi: float
+    nominal: float
+    param: str
+    to_param: float = 1.0  # LoaderParams value = scenario value * to_param
+
+
+FIELDS: dict[str, FieldSpec] = {
+    "payload": FieldSpec("kg", 6000.0, 13000.0, 10000.0, "M_load"),
+    "reverse_distance": FieldSpec("m", 4.0, 10.0, 6.6, "reverse_distance"),
+    "forward_distance": FieldSpec("m", 4.0, 10.0, 6.6, "forward_distance"),
+    "rolling_resistance": FieldSpec("-", 0.015, 0.05, 0.03, "c_r"),
+    "dump_height": FieldSpec("m", 3.5, 5.1, 5.0, "H_T"),
+    "start_engine_speed": FieldSpec("rpm", 800.0, 2000.0, 1500.0, "omega_0", RPM),
+    "start_bucket_height": FieldSpec("m", 0.5, 1.2, 0.7, "H_0"),
+}
+NUMERIC_FIELDS = tuple(FIELDS)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One loading cycle (see the module's table). Frozen and validated: a value outside its range raises
+    ``ValueError`` naming the field and the range. Numbers are stored as floats, so equal scenarios
+    compare, hash and fingerprint equal however they were spelled."""
+
+    payload: float = 10000.0  # kg, the paper's M_load (bucket plus load)
+    reverse_distance: float = 6.6  # m, pile -> reversing point
+    forward_distance: float = 6.6  # m, reversing point -> truck
+    rolling_resistance: float = 0.03  # c_r
+    dump_height: float = 5.0  # m, H_T
+    start_engine_speed: float = 1500.0  # rpm
+    start_bucket_height: float = 0.7  # m, H_0
+    braking: str = "service"
+
+    def __post_init__(self) -> None:
+        for name, spec in FIELDS.items():
+            v = getattr(self, name)
+            allowed = f"[{spec.lo:g}, {spec.hi:g}]" + ("" if spec.unit == "-" else f" {spec.unit}")
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ValueError(f"Scenario.{name} must be a number in {allowed}, got {v!r} ({type(v).__name__})")
+            v = float(v)
+            if not (math.isfinite(v) and spec.lo <= v <= spec.hi):
+                raise ValueError(f"Scenario.{name} must lie in {allowed}, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.braking not in BRAKING_MODES:
+            raise ValueError(f"Scenario.braking must be one of {BRAKING_MODES}, got {self.braking!r}")
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def nominal(cls, braking: str = "service") -> Scenario:
+        """The paper's cycle: 10 t payload, 6.6 m each way, c_r 0.03, 5 m dump height, 1500 rpm, H = 0.7 m."""
+        return cls(braking=braking)
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Scenario:
+        """A scenario from a mapping of its fields; a missing field takes its nominal value."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a scenario must be a JSON object of its fields, got {type(data).__name__}")
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(map(str, data)) - set(known))
+        if unknown:
+            raise ValueError(f"unknown Scenario field(s) {unknown}; known: {known}")
+        return cls(**data)
+
+    @classmethod
+    def parse(cls, text: str) -> Scenario:
+        """A scenario from JSON text or from the path of a JSON file (the ``--scenario`` option)."""
+        text = text.strip()
+        if not text.startswith("{"):
+            path = Path(text)
+            if not path.is_file():
+                raise ValueError(f"--scenario takes JSON text or a JSON file; no file {text!r}")
+            text = path.read_text()
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--scenario is not valid JSON: {exc}") from None
+        return cls.from_dict(data)
+
+    @classmethod
+    def from_params(cls, params: LoaderParams, braking: str = "service") -> Scenario:
+        """The scenario a parameter set drives (raises if one of its scenario fields is out of range)."""
+        # (rounded to 9 decimals: rpm from rad/s is not exact in floats)
+        return cls(braking=braking, **{name: round(getattr(params, s.param) / s.to_param, 9) for name, s in FIELDS.items()})
+
+    def replace(self, **changes: Any) -> Scenario:
+        return dataclasses.replace(self, **changes)
+
+    # ------------------------------------------------------------------ what it means for the model
+    def params(self, base: LoaderParams = DEFAULT_PARAMS) -> LoaderParams:
+        """The machine ``base`` driving this cycle (``Scenario.nominal().params()`` is DEFAULT_PARAMS)."""
+        return base.replace(**{s.param: getattr(self, name) * s.to_param for name, s in FIELDS.items()})
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def fingerprint(self, base: LoaderParams = DEFAULT_PARAMS) -> str:
+        """A short stable hash of the cycle (its parameters on ``base`` and the braking): the cache key."""
+        text = json.dumps({"braking": self.braking, "params": self.params(base).fingerprint()}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def features(self) -> np.ndarray:
+        """The numeric fields normalized to [-1, 1] over their ranges (the observation's scenario part)."""
+        return np.array([feature(name, getattr(self, name)) for name in NUMERIC_FIELDS])
+
+    def label(self) -> str:
+        return (f"{self.braking} {self.payload / 1000:g} t, {self.reverse_distance:g}/{self.forward_distance:g} m, "
+                f"c_r {self.rolling_resistance:g}, H_T {self.dump_height:g} m, {self.start_engine_speed:.0f} rpm, "
+                f"H_0 {self.start_bucket_height:g} m")
+
+
+def feature(name: str, value: Any) -> Any:
+    """A scenario field's value (a float or an array) normalized to [-1, 1] over its range."""
+    s = FIELDS[name]
+    return (value - 0.5 * (s.lo + s.hi)) / (0.5 * (s.hi - s.lo))
+
+
+def param_features(params: Any) -> tuple[Any, ...]:
+    """The scenario features of a parameter set (LoaderParams or a batch :class:`~wl_env.params.ParamsView`)."""
+    return tuple(feature(name, getattr(params, s.param) / s.to_param) for name, s in FIELDS.items())
+
+
+def resolve_scenario(scenario: Scenario | dict | str | None, braking: str | None = None) -> Scenario:
+    """A Scenario from a Scenario, a dict of fields, JSON text or a file path; ``None`` is the nominal
+    cycle. ``braking``, if given, must agree with the scenario's (a dict without one takes it)."""
+    if scenario is None:
+        return Scenario.nominal(braking or "service")
+    if isinstance(scenario, dict):
+        scenario = Scenario.from_dict({"braking": braking, **scenario} if braking and "braking" not in scenario else scenario)
+    elif isinstance(scenario, str):
+        scenario = Scenario.parse(scenario)
+    elif not isinstance(scenario, Scenario):
+        raise ValueError(f"scenario must be a Scenario, a dict of its fields or JSON, got {type(scenario).__name__}")
+    if braking is not None and braking != scenario.braking:
+        raise ValueError(f"braking={braking!r} contradicts the scenario's braking {scenario.braking!r}")
+    return scenario

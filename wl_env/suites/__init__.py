@@ -1,0 +1,119 @@
+"""Named, versioned scenario suites, committed as data (the JSON files beside this module).
+
+| suite   | kind    | what                                                                    |
+|---------|---------|-------------------------------------------------------------------------|
+| nominal | list    | the paper's cycle, per braking alternative                              |
+| train   | sampler | uniform over the scenario ranges, seeded (seed stream ``TRAIN_STREAM``) |
+| test    | list    | 50 draws per braking alternative, from the same ranges (``TEST_STREAM``) |
+| corners | list    | each field at each end of its range, the others nominal                 |
+
+The ``test`` list was drawn once by :func:`draw` with its own seed stream (``scripts/make_suites.py``
+writes the files); a test checks the file against a fresh draw and against ``train``'s stream.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wl_env.cycle import BRAKING_MODES, check_braking
+from wl_env.scenario import FIELDS, Scenario
+
+FOLDER = Path(__file__).resolve().parent
+SUITES = ("nominal", "train", "test", "corners")
+TRAIN_STREAM, TEST_STREAM = 0, 1  # SeedSequence spawn keys: the two streams never share a draw
+ROOT_ENTROPY = 20261201  # the suites' root seed
+# Drawn values are rounded to these decimals (readable files; far finer than any effect).
+ROUNDING = {"payload": -1, "reverse_distance": 2, "forward_distance": 2, "rolling_resistance": 4,
+            "dump_height": 2, "start_engine_speed": 0, "start_bucket_height": 2}
+
+
+def draw(rng: np.random.Generator, braking: str) -> Scenario:
+    """One scenario, uniform over the ranges (rounded, :data:`ROUNDING`)."""
+    values = {}
+    for name, spec in FIELDS.items():
+        values[name] = float(np.clip(round(float(rng.uniform(spec.lo, spec.hi)), ROUNDING[name]), spec.lo, spec.hi))
+    return Scenario(braking=check_braking(braking), **values)
+
+
+def stream(which: int, seed: int = 0) -> np.random.Generator:
+    """The generator of a suite's seed stream (TRAIN_STREAM or TEST_STREAM) for a seed."""
+    return np.random.default_rng(np.random.SeedSequence(ROOT_ENTROPY, spawn_key=(which, seed)))
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A named, versioned set of scenarios: a fixed list, or (``train``) a seeded sampler."""
+
+    name: str
+    version: int
+    description: str
+    scenarios: tuple[Scenario, ...] = ()  # empty for a sampler
+    sampler: bool = False
+
+    def of(self, braking: str) -> tuple[Scenario, ...]:
+        """The list's scenarios of one braking alternative."""
+        check_braking(braking)
+        if self.sampler:
+            raise ValueError(f"suite {self.name!r} is a sampler, not a list: use sample()")
+        return tuple(s for s in self.scenarios if s.braking == braking)
+
+    def sample(self, rng: np.random.Generator, braking: str) -> Scenario:
+        """One scenario of the braking alternative: a fresh draw (sampler) or one of the list, uniformly."""
+        if self.sampler:
+            return draw(rng, braking)
+        options = self.of(braking)
+        return options[int(rng.integers(len(options)))]
+
+
+@lru_cache(maxsize=None)
+def load_suite(name: str) -> Suite:
+    """The suite ``name`` (one of :data:`SUITES`), read from its file and validated."""
+    if name not in SUITES:
+        raise ValueError(f"unknown suite {name!r}; suites: {SUITES}")
+    path = FOLDER / f"{name}.json"
+    data = json.loads(path.read_text())
+    try:
+        scenarios = tuple(Scenario.from_dict(d) for d in data.get("scenarios", ()))
+        suite = Suite(name=data["name"], version=int(data["version"]), description=data["description"],
+                      scenarios=scenarios, sampler=data.get("kind") == "sampler")
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"suite file {path} is invalid: {exc}") from None
+    if suite.name != name:
+        raise ValueError(f"suite file {path} names itself {suite.name!r}")
+    return suite
+
+
+def suite_files() -> dict[str, dict[str, Any]]:
+    """The suites' file contents as :func:`draw` and the corners define them (``scripts/make_suites.py``)."""
+    nominal = [Scenario.nominal(b).to_dict() for b in BRAKING_MODES]
+    corners = []
+    for b in BRAKING_MODES:
+        for name, spec in FIELDS.items():
+            for end in (spec.lo, spec.hi):
+                corners.append(Scenario(braking=b, **{name: end}).to_dict())
+    test = []
+    rng = stream(TEST_STREAM)
+    draws = [draw(rng, "service") for _ in range(50)]
+    for b in BRAKING_MODES:  # the same 50 cycles for both alternatives: their fronts compare per cycle
+        test += [s.replace(braking=b).to_dict() for s in draws]
+    return {
+        "nominal": {"name": "nominal", "version": 1, "kind": "list",
+                    "description": "the paper's cycle, per braking alternative", "scenarios": nominal},
+        "train": {"name": "train", "version": 1, "kind": "sampler",
+                  "description": "uniform over the scenario ranges, rounded (wl_env.suites.draw), seed stream "
+                                 f"spawn_key=({TRAIN_STREAM}, seed) of SeedSequence({ROOT_ENTROPY})",
+                  "ranges": {n: [s.lo, s.hi] for n, s in FIELDS.items()}},
+        "test": {"name": "test", "version": 1, "kind": "list",
+                 "description": f"50 cycles drawn once as train's, seed stream spawn_key=({TEST_STREAM}, 0) of "
+                                f"SeedSequence({ROOT_ENTROPY}), each with both braking alternatives",
+                 "scenarios": test},
+        "corners": {"name": "corners", "version": 1, "kind": "list",
+                    "description": "each field at each end of its range, the others nominal, per braking alternative",
+                    "scenarios": corners},
+    }
