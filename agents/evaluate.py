@@ -30,6 +30,7 @@ import numpy as np
 
 from wl_env import cycle
 from wl_env.controller import Controller
+from wl_env.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,8 @@ def default_policy_path(braking: str) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------- loading
-def load_controller(spec: str, braking: str, model: str | None = None, *, trust_pickle: bool = False) -> Controller:
+def load_controller(spec: str, braking: str, model: str | None = None, *, trust_pickle: bool = False,
+                    scenario: Scenario | None = None) -> Controller:
     """The controller named by ``spec`` for ``braking``.
 
     ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``; a pickle-free policy,
@@ -52,7 +54,9 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
     that argument (and ``model=`` if a model is given), else without arguments; the result needs an
-    ``act(obs)`` method (``reset()`` is optional for :func:`wl_env.rollout.run_episode`).
+    ``act(obs)`` method (``reset()`` is optional for :func:`wl_env.rollout.run_episode`). ``scenario``: the
+    cycle the operator and the MPC start with (and a user's class, if it takes ``scenario=``); during an
+    evaluation each episode's reaches a controller whose ``reset`` takes ``scenario=``.
     """
     cycle.check_braking(braking)
     spec = spec.strip()
@@ -65,15 +69,15 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     if spec == "operator":
         from agents.operator import OperatorPolicy
 
-        return OperatorPolicy(braking)
+        return OperatorPolicy(braking, params=None if scenario is None else scenario.params())
     if spec == "mpc":
         from mpc.controller.mpc import MPCController
 
-        return MPCController(braking)
+        return MPCController(braking, params=None if scenario is None else scenario.params())
     if ":" not in spec:
         raise ValueError(f"unknown controller {spec!r}: use {', '.join(BUILTIN_CONTROLLERS)}, module:Class "
                          f"or path/to/file.py:Class")
-    return _load_user_controller(spec, braking, model)
+    return _load_user_controller(spec, braking, model, scenario)
 
 
 def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Controller:
@@ -90,7 +94,7 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Co
     return policy
 
 
-def _load_user_controller(spec: str, braking: str, model: str | None) -> Controller:
+def _load_user_controller(spec: str, braking: str, model: str | None, scenario: Scenario | None = None) -> Controller:
     target, _, name = spec.rpartition(":")
     if not target or not all(part.isidentifier() for part in name.split(".")):
         raise ValueError(f"controller {spec!r}: expected module:Class or path/to/file.py:Class")
@@ -106,6 +110,8 @@ def _load_user_controller(spec: str, braking: str, model: str | None) -> Control
     kwargs: dict[str, Any] = {}
     if _accepts(factory, "braking"):
         kwargs["braking"] = braking
+    if scenario is not None and _accepts(factory, "scenario"):
+        kwargs["scenario"] = scenario
     if model is not None:
         if not _accepts(factory, "model"):
             raise ValueError(f"--model given, but controller {spec!r} takes no model= argument")
@@ -205,10 +211,15 @@ class GuardedController:
         self.controller, self.name, self.act_timeout = controller, name, act_timeout
         self.episode, self.step = -1, 0
 
-    def reset(self) -> None:
+    def reset(self, scenario: Scenario | None = None) -> None:
         self.episode, self.step = self.episode + 1, 0
         if hasattr(self.controller, "reset"):
-            self._call("reset()", self.controller.reset, timeout=None)
+            from wl_env.rollout import takes_scenario
+
+            if scenario is not None and takes_scenario(self.controller.reset):
+                self._call("reset(scenario=...)", lambda: self.controller.reset(scenario=scenario), timeout=None)
+            else:
+                self._call("reset()", self.controller.reset, timeout=None)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         out = self._call("act()", self.controller.act, obs, timeout=self.act_timeout)
@@ -280,11 +291,13 @@ def check_settings(episodes: int, init_noise: float, seed: int) -> None:
 
 def evaluate_controller(
     controller: Controller,
-    braking: str,
+    braking: str | None = None,
     episodes: int = 10,
     init_noise: float = 1.0,
     seed: int = 0,
     *,
+    scenario: Scenario | None = None,
+    scenarios: list[Scenario] | None = None,
     score: bool = True,
     front: Any = None,
     cache: str | os.PathLike | None = None,
@@ -293,76 +306,103 @@ def evaluate_controller(
     progress: Callable[[str], None] | None = None,
     name: str | None = None,
     act_timeout: float | None = None,
+    solve: bool = True,
+    env_id: str | None = None,
+    unknown: str = "raise",
 ) -> dict[str, Any]:
-    """Run ``episodes`` episodes of ``controller`` and score the completed ones against the optimum.
+    """Run episodes of ``controller`` and score each completed one against the optimum of its own cycle.
 
-    Episode 0 starts at the nominal state (init_noise 0), episodes 1..N-1 perturbed by ``init_noise``,
-    each reset with seed ``seed + i``: the same call gives the same result. The Pareto front (``front``,
-    else :func:`mpc.benchmark.pareto.pareto_front` from ``cache``) is loaded once, when the first episode completes.
-    ``trajectories`` keeps each episode's t, states, controls and phase. Values that do not exist (the
-    gaps of an unfinished cycle, the mean time of no completed cycle) are None.
+    Without ``scenarios``: ``episodes`` episodes of ``scenario`` (default: the nominal cycle), episode 0
+    from its start, episodes 1..N-1 from starts perturbed by ``init_noise``, each scored against the
+    optimum from its own start. With ``scenarios`` (a suite's list): one episode per scenario from its
+    own start (``episodes`` and ``init_noise`` unused). Episode i is reset with seed ``seed + i``: the
+    same call gives the same result. The optimum comes from the shipped suites' optima, the cache, or a
+    direct solve (:mod:`mpc.benchmark.reference`; ``solve`` False: never solve, LookupError instead, or
+    with ``unknown="skip"`` the episode left unscored);
+    ``front`` (the nominal cycle's, if given) is used for the episodes it belongs to.
 
-    The controller runs through :class:`GuardedController`: whatever goes wrong in its code is a
-    :class:`ControllerError` naming it (``name``, default its class), the episode and the step.
-    ``act_timeout`` (seconds, default None: off) fails an ``act()`` call that takes longer.
+    The controller is told each episode's scenario if its ``reset`` takes ``scenario=``, and runs through
+    :class:`GuardedController`: whatever goes wrong in its code is a :class:`ControllerError` naming it
+    (``name``, default its class), the episode and the step. ``act_timeout`` (seconds, default None:
+    off) fails an ``act()`` call that takes longer. ``env_id``: default the controller's ``env_id``
+    attribute, else ``WheelLoader-v2``. Values that do not exist (the gaps of an unfinished cycle) are None.
     """
     import gymnasium as gym
 
-    import wl_env  # noqa: F401  (registers WheelLoader-v1)
+    import wl_env  # noqa: F401  (registers WheelLoader-v1/v2)
     from wl_env.rollout import run_episode
 
-    cycle.check_braking(braking)
+    if scenarios is not None:
+        if not scenarios:
+            raise ValueError("scenarios is empty: nothing to evaluate")
+        braking = braking or scenarios[0].braking
+        episodes, init_noise = len(scenarios), 0.0
+    elif scenario is not None:
+        braking = braking or scenario.braking
+    braking = cycle.check_braking(braking or "service")
+    plan = list(scenarios) if scenarios is not None else [scenario or Scenario.nominal(braking)] * episodes
+    for s in plan:
+        if s.braking != braking:
+            raise ValueError(f"scenario {s.label()} has {s.braking} braking; this evaluation runs {braking}")
     check_settings(episodes, init_noise, seed)
     check_act_timeout(act_timeout)
     guarded = GuardedController(controller, name or type(controller).__name__, act_timeout)
     say = progress or (lambda msg: None)
+    env_id = env_id or getattr(controller, "env_id", "WheelLoader-v2")
     kwargs = {**(env_kwargs or {}), "braking": braking}
-    nominal_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": 0.0})
-    perturbed_env = gym.make("WheelLoader-v1", **{**kwargs, "init_noise": float(init_noise)}) if episodes > 1 else None
+    envs = {noise: gym.make(env_id, **{**kwargs, "init_noise": noise}) for noise in {0.0, float(init_noise)}}
     records: list[dict[str, Any]] = []
     previous_alarm = signal.signal(signal.SIGALRM, _on_alarm) if act_timeout is not None else None
     try:
-        for i in range(episodes):
-            env = nominal_env if i == 0 else perturbed_env
-            ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories)
-            rec: dict[str, Any] = {"episode": i, "init_noise": 0.0 if i == 0 else float(init_noise),
+        for i, sc in enumerate(plan):
+            noise = 0.0 if i == 0 or scenarios is not None else float(init_noise)
+            env = envs[noise]
+            ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories, scenario=sc)
+            ran = env.unwrapped.episode_params  # the cycle with its actual start
+            ran_scenario = env.unwrapped.episode_scenario
+            rec: dict[str, Any] = {"episode": i, "init_noise": noise,
+                                   "scenario": None if ran_scenario is None else ran_scenario.to_dict(),
                                    **ep.to_dict(trajectory=trajectories),
-                                   "T_min": None, "time_gap": None, "fuel_opt_g": None, "fuel_gap": None}
+                                   "T_min": None, "time_gap": None, "fuel_opt_g": None, "fuel_gap": None,
+                                   "reference": None}
             if score and ep.completed:
-                if front is None:
-                    from mpc.benchmark.pareto import pareto_front
-
-                    # Solved (minutes) unless cached: say so, a silent wait looks like a hang.
-                    front = pareto_front(braking, params=kwargs.get("params"), cache=cache,
-                                         progress=lambda m: say("  [optimum] " + m))
                 from mpc.benchmark.scoring import score_run
 
-                s = score_run(ep.T, ep.fuel_g, braking, params=kwargs.get("params"), front=front, cache=cache)
-                rec.update(T_min=s.T_min, time_gap=s.time_gap, fuel_opt_g=s.fuel_opt_g, fuel_gap=s.fuel_gap)
+                own = front if front is not None and front.params_fingerprint == ran.fingerprint() else None
+                try:
+                    s = score_run(ep.T, ep.fuel_g, braking, params=ran, front=own, cache=cache, solve=solve)
+                except LookupError:
+                    if unknown != "skip":
+                        raise
+                else:
+                    rec.update(T_min=s.T_min, time_gap=s.time_gap, fuel_opt_g=s.fuel_opt_g, fuel_gap=s.fuel_gap,
+                               reference=s.reference)
             records.append(rec)
             say(_episode_line(rec))
     finally:
         if act_timeout is not None:
             signal.signal(signal.SIGALRM, signal.SIG_DFL if previous_alarm is None else previous_alarm)
-        nominal_env.close()
-        if perturbed_env is not None:
-            perturbed_env.close()
-    optimum = None if front is None else {
-        "T_min": front.T_min, "T_fuel_opt": front.T_fuel_opt, "fuel_min_g": front.fuel_min_g,
-        "params_fingerprint": front.params_fingerprint}
+        for env in envs.values():
+            env.close()
+    first = records[0]
+    optimum = None if first["T_min"] is None else {k: first[k] for k in ("T_min", "fuel_opt_g", "reference")}
     return {"braking": braking, "episodes": episodes, "init_noise": float(init_noise), "seed": seed,
-            "optimum": optimum, "summary": summarize(records), "per_episode": records}
+            "env_id": env_id, "scenario": None if scenarios is not None else plan[0].to_dict(),
+            "optimum": optimum,  # episode 0's (each episode records its own: T_min, fuel_opt_g)
+            "summary": summarize(records), "per_episode": records}
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Aggregates over episodes: rates over all of them, times and fuels over the completed ones, gaps
-    over the scored ones; ``nominal`` repeats episode 0."""
+    """Aggregates over episodes: rates over all of them, times and fuels over the completed ones, the gaps
+    (regret) over the successful ones (a completed cycle that missed its targets has no gap worth
+    averaging; the success rate stands beside them); ``nominal`` repeats episode 0."""
     if not records:
         raise ValueError("no episodes to summarize")
     done = [r for r in records if r["completed"]]
-    scored = [r for r in done if r["time_gap"] is not None]
+    scored = [r for r in records if r["success"] and r["time_gap"] is not None]
     violations = [r["max_violation"] for r in records]
     nominal = records[0]
+    time_gaps, fuel_gaps = [r["time_gap"] for r in scored], [r["fuel_gap"] for r in scored]
     return {
         "episodes": len(records),
         "success_rate": _mean([float(r["success"]) for r in records]),
@@ -373,8 +413,12 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
         "T": _stats([r["T"] for r in done]),
         "fuel_g": _stats([r["fuel_g"] for r in done]),
         "scored": len(scored),
-        "time_gap": _stats([r["time_gap"] for r in scored]),
-        "fuel_gap": _stats([r["fuel_gap"] for r in scored]),
+        "time_gap": _stats(time_gaps),
+        "fuel_gap": _stats(fuel_gaps),
+        "time_gap_median": _stats(time_gaps)["median"],
+        "time_gap_p90": _stats(time_gaps)["p90"],
+        "fuel_gap_median": _stats(fuel_gaps)["median"],
+        "fuel_gap_p90": _stats(fuel_gaps)["p90"],
         "nominal": {k: nominal[k] for k in ("success", "completed", "T", "fuel_g", "max_violation", "time_gap",
                                             "fuel_gap")},
     }
@@ -386,10 +430,11 @@ def _mean(values: list[float]) -> float | None:
 
 def _stats(values: list[float]) -> dict[str, float | None]:
     if not values:
-        return {"mean": None, "std": None, "min": None, "max": None}
+        return {"mean": None, "std": None, "min": None, "max": None, "median": None, "p90": None}
     mean = math.fsum(values) / len(values)
     std = math.sqrt(math.fsum((v - mean) ** 2 for v in values) / len(values))
-    return {"mean": mean, "std": std, "min": min(values), "max": max(values)}
+    return {"mean": mean, "std": std, "min": min(values), "max": max(values),
+            "median": float(np.median(values)), "p90": float(np.percentile(values, 90))}
 
 
 def _pct(v: float | None) -> str:
@@ -412,6 +457,6 @@ def summary_line(result: dict[str, Any], name: str) -> str:
 
     return (f"{name}, {result['braking']} braking, {s['episodes']} episodes: success {100 * s['success_rate']:.0f} %, "
             f"completed {100 * s['completion_rate']:.0f} %, mean T {num(s['T'], '.2f', ' s')}, "
-            f"mean fuel {num(s['fuel_g'], '.2f', ' g')}, mean time gap {_pct(s['time_gap']['mean'])}, "
-            f"mean fuel gap {_pct(s['fuel_gap']['mean'])} ({s['scored']} scored), "
+            f"mean fuel {num(s['fuel_g'], '.2f', ' g')}, median time gap {_pct(s['time_gap_median'])}, "
+            f"median fuel gap {_pct(s['fuel_gap_median'])} (p90 {_pct(s['fuel_gap_p90'])}; {s['scored']} successful, scored), "
             f"max violation {100 * s['max_violation']:.1f} %")

@@ -17,6 +17,7 @@ from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
+from wl_env.scenario import Scenario
 from wl_env.step import OMEGA_FLOOR
 
 
@@ -45,8 +46,13 @@ class OperatorPolicy:
         self._specs = cycle.phase_specs(braking, p)
         self.codec = Codec(p)
 
-    def reset(self) -> None:  # stateless; present for the controller protocol
-        pass
+    def reset(self, scenario: Scenario | None = None) -> None:
+        """Start a cycle; ``scenario``: drive that cycle (its distances, dump height, payload) from now on."""
+        if scenario is not None:
+            if scenario.braking != self.braking:
+                raise ValueError(f"the operator drives {self.braking} braking; the scenario has {scenario.braking!r}")
+            self.params = scenario.params(self.params)
+            self.codec = Codec(self.params)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)

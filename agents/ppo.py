@@ -60,8 +60,9 @@ from agents.policy_files import (
     write_policy,
 )
 from agents.ppo_config import PPOConfig
-from agents.sb3_vec import make_sb3_vec_env
+from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
+from wl_env.codec import N_OBS, N_SCENARIO_OBS
 from wl_env.atomic_io import write_atomic
 
 log = logging.getLogger(__name__)
@@ -174,6 +175,8 @@ class PPOPolicy:
         self.normalization = normalization
         self.meta = meta or {}
         self.braking = self.meta.get("braking")
+        # the env whose observations it takes: v1's 12 entries (the shipped policies) or v2's 19
+        self.env_id = "WheelLoader-v2" if network.observation_space.shape == (N_SCENARIO_OBS,) else "WheelLoader-v1"
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:
@@ -295,18 +298,18 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 
 def _check_spaces(network: Any, path: Path) -> None:
-    """The policy must take WheelLoader-v1's observations (12,) and give its actions (4,)."""
-    from wl_env.codec import OBS_LOW
-
+    """The policy must take WheelLoader-v1's (12,) or v2's (19,) observations and give its actions (4,)."""
     obs, act = network.observation_space.shape, network.action_space.shape
-    if obs != OBS_LOW.shape or act != (4,):
+    if obs not in ((N_OBS,), (N_SCENARIO_OBS,)) or act != (4,):
         raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
-                              f"{OBS_LOW.shape} and (4,)")
+                              f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},) and (4,)")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
 class _Deterministic:
     """A batched ``act(obs) -> actions`` as a controller of the protocol (training-time evaluation)."""
+
+    env_id = ENV_ID  # what the policy is trained on
 
     def __init__(self, act: Any) -> None:
         self._act = act
@@ -323,8 +326,11 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
+    # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
+    # own optimum would cost a solve per episode at every evaluation.
     res = evaluate_controller(_Deterministic(act), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
-                              score=with_score, front=front, env_kwargs=env_kwargs, name="policy")
+                              score=with_score, front=front, env_kwargs=env_kwargs, name="policy", solve=False,
+                              unknown="skip")
     nominal = res["per_episode"][0]
     perturbed = res["per_episode"][1:] or res["per_episode"]
     done = [e for e in perturbed if e["completed"]]

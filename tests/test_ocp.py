@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
-from mpc.benchmark.pareto import ParetoFront, pchip
+from mpc.benchmark.pareto import ParetoFront, front_times, pchip
 from mpc.benchmark.scoring import score_run
-from wl_env.params import DEFAULT_PARAMS
+from wl_env.params import DEFAULT_PARAMS, resolve
 
 BRAKINGS = ["service", "tc"]
 
@@ -121,13 +121,34 @@ def test_result_json_round_trip(optima, tmp_path):
         OCPResult.load(tmp_path / "bad.json")
 
 
+def test_the_front_is_interpolated_where_it_is_straight():
+    """Near T_min the fuel falls like sqrt(T - T_min): on the front's points (front_times) the interpolation
+    in u = sqrt(T - T_min) follows such a front within 0.05 %, where interpolating in T misses by far more."""
+    T_min, T_end = 8.0, 21.0
+
+    def true_fuel(T):
+        x = T - T_min
+        return 85.0 - 30.0 * np.sqrt(x) + 1.2 * x - 0.035 * x * x
+
+    times = front_times(T_min, T_end, 10)
+    front = ParetoFront("service", times.tolist(), [float(true_fuel(t)) for t in times], "f", T_min, T_end,
+                        float(true_fuel(T_end)), [20, 12, 20, 12])
+    probe = T_min * (1 + np.array([0.002, 0.004, 0.01, 0.02, 0.05, 0.1, 0.3, 0.6, 1.0]))
+    err_u = max(abs(front.fuel_at(t) / true_fuel(t) - 1) for t in probe)
+    err_T = max(abs(pchip(times, np.array(front.fuel_g), t) / true_fuel(t) - 1) for t in probe)
+    assert err_u < 5e-4 < 3 * err_u < err_T
+    assert times[0] == pytest.approx(1.001 * T_min) and times[-1] == pytest.approx(T_end)
+
+
 def test_front_interpolation_and_scoring():
     T = [8.0, 9.0, 11.0, 15.0, 21.0]
     fuel = [95.0, 70.0, 55.0, 49.0, 47.5]
-    front = ParetoFront("service", T, fuel, "x", 8.0, 21.0, 47.5, [20, 12, 20, 12])
+    front = ParetoFront("service", T, fuel, resolve(None).fingerprint(), 8.0, 21.0, 47.5, [20, 12, 20, 12])
     assert front.fuel_at(9.0) == pytest.approx(70.0)
     mid = front.fuel_at(10.0)
-    assert 55.0 < mid < 70.0 and mid < pchip(np.array(T), np.array(fuel), 10.0) + 1e-12
+    assert 55.0 < mid < 70.0
+    with pytest.raises(ValueError, match="own optimum"):  # a front of other parameters scores nothing
+        score_run(10.0, 60.0, "service", front=ParetoFront("service", T, fuel, "x", 8.0, 21.0, 47.5, [20, 12, 20, 12]))
     with pytest.raises(ValueError, match="impossible"):
         front.fuel_at(7.0)
     s = score_run(10.0, mid * 1.1, "service", front=front)

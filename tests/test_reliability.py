@@ -369,7 +369,7 @@ def test_wl_pareto_recomputes_a_truncated_front_and_names_it(tmp_path, fake, cap
 
 def test_wl_evaluate_never_scores_against_a_nan_front(tmp_path, fake, capsys):
     cache = tmp_path / "cache"
-    front_file = pareto.front_folder("service", 8, cache=cache) / "front.json"
+    front_file = pareto.front_folder("service", cache=cache) / "front.json"
     front_file.parent.mkdir(parents=True)
     front_file.write_text(json.dumps({"braking": "service", "T": [7.0, 8.0, 21.0], "fuel_g": [110.0, math.nan, 47.0],
                                       "params_fingerprint": resolve(None).fingerprint(), "T_min": 7.0,

@@ -87,13 +87,16 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
     if args.objective == "weighted" and args.w_fuel is None:
         raise ValueError("--objective weighted needs --w-fuel W (0..1, the fuel weight W1; W2 = 1 - W1)")
     params = _params_from(args)
+    scenario = _scenario_from(args)
     out = _out_file(args.out)
     settings = OCPSettings(hessian=args.hessian) if args.hessian else None
-    log.info(f"solving the {args.braking} {objective} OCP ...")
-    r = solve_ocp(args.braking, objective, T=args.time, w_fuel=args.w_fuel, params=params, settings=settings)
+    braking = scenario.braking if scenario is not None else args.braking or "service"
+    log.info(f"solving the {braking} {objective} OCP ...")
+    r = solve_ocp(braking, objective, T=args.time, w_fuel=args.w_fuel, params=params, settings=settings,
+                  scenario=scenario)
     save_result(r, out)
     v = r.verification
-    print(f"{args.braking} {objective}: T = {r.T:.3f} s, fuel = {r.fuel_g:.2f} g, phases "
+    print(f"{braking} {objective}: T = {r.T:.3f} s, fuel = {r.fuel_g:.2f} g, phases "
           f"{', '.join(f'{d:.2f}' for d in r.phase_durations)} s, {r.iterations} iterations, {r.wall_time:.2f} s; "
           f"re-simulated: end position {100 * v['final_position_error_m']:+.1f} cm, height "
           f"{100 * v['final_height_error_m']:+.1f} cm, max violation {100 * v['max_violation']:.2f} % -> {args.out}")
@@ -104,10 +107,15 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
     from mpc.benchmark.pareto import pareto_fronts
 
     params = _params_from(args)
+    scenario = _scenario_from(args, braking_given=args.braking not in (None, "both"))
+    if scenario is not None:  # the scenario's cycle on the machine: both alternatives unless --braking says one
+        from wl_env.params import resolve
+
+        params = scenario.params(resolve(params))
     out = _out_dir(args.out)
     if args.cache:
         _out_dir(args.cache, "--cache")
-    brakings = ("service", "tc") if args.braking == "both" else (args.braking,)
+    brakings = ("service", "tc") if args.braking in (None, "both") else (args.braking,)
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
     for b, front in fronts.items():
@@ -135,13 +143,18 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         from wl_env.params import resolve
 
         plant = resolve(_params_from(args)).variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
-    log.info(f"MPC ({config.mode}) driving the {args.braking} cycle ...")
-    result = run_closed_loop(args.braking, config, params=_params_from(args), plant_params=plant,
-                             score=not args.no_score, cache=args.cache)
+    scenario = _scenario_from(args)
+    braking = scenario.braking if scenario is not None else args.braking or "service"
+    if args.mismatch and scenario is None:
+        raise ValueError("--mismatch plans a --scenario's cycle with the nominal payload and rolling resistance: "
+                         "give --scenario")
+    log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
+    result = run_closed_loop(braking, config, params=_params_from(args), plant_params=plant,
+                             score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
     r = result.to_dict()
     write_json_atomic(out, r)
     st = r["solve_time"]
-    line = (f"{args.braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
+    line = (f"{braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
             f"solve time median {1e3 * st['median_s']:.1f} ms, p95 {1e3 * st['p95_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
             f"{st['fallbacks']} fallbacks")
     if r["score"] is not None:
@@ -153,16 +166,27 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import evaluate_controller, load_controller, summary_line
     from wl_env.atomic_io import write_json_atomic
+    from wl_env.suites import load_suite
 
     out = _out_file(args.out)  # an unwritable --out fails now, not after the episodes
     if args.cache:
         _out_dir(args.cache, "--cache")
-    controller = load_controller(args.controller, args.braking, args.model, trust_pickle=args.trust_pickle)
-    log.info(f"evaluating {args.controller} with {args.braking} braking: {args.episodes} episode(s) ...")
-    r = evaluate_controller(controller, args.braking, episodes=args.episodes, init_noise=args.init_noise,
+    scenario = _scenario_from(args)
+    if scenario is not None and args.suite:
+        raise ValueError("give --scenario or --suite, not both")
+    braking = scenario.braking if scenario is not None else args.braking or "service"
+    if args.sample and not args.suite:
+        raise ValueError("--sample N takes N scenarios of a --suite: give --suite")
+    scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
+    controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
+                                 scenario=scenario or (scenarios[0] if scenarios else None))
+    what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{args.episodes} episode(s)"
+    log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
+    r = evaluate_controller(controller, braking, episodes=args.episodes, init_noise=args.init_noise,
                             seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
-                            name=args.controller, act_timeout=args.act_timeout)
-    r = {"controller": args.controller, "model": args.model, **r}
+                            name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
+                            scenarios=scenarios, solve=not args.no_solve)
+    r = {"controller": args.controller, "model": args.model, "suite": args.suite, **r}
     write_json_atomic(out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
     return 0
@@ -180,7 +204,7 @@ def _run_cmd(args: argparse.Namespace) -> int:
     _out_dir(args.out)
     if args.cache:
         _out_dir(args.cache, "--cache")
-    run_all(args.out, cache=args.cache)
+    run_all(args.out, cache=args.cache, full_suite=args.full_suite)
     print((Path(args.out) / "leaderboard.md").read_text())
     return 0
 
@@ -268,6 +292,52 @@ def _params_from(args: argparse.Namespace):
     return LoaderParams.from_dict(_json_option(args.params, "--params")) if getattr(args, "params", None) else None
 
 
+def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
+    """The --scenario (JSON text or a JSON file; a missing field is nominal, the braking --braking's), or None."""
+    from wl_env.scenario import Scenario
+
+    if not getattr(args, "scenario", None):
+        return None
+    try:
+        s = Scenario.parse(args.scenario)
+    except ValueError as exc:
+        raise ValueError(f"--scenario: {exc}") from None
+    given = args.braking is not None if braking_given is None else braking_given
+    if given:
+        data = json.loads(Path(args.scenario).read_text()) if not args.scenario.strip().startswith("{") else \
+            json.loads(args.scenario)
+        if "braking" in data and data["braking"] != args.braking:
+            raise ValueError(f"--braking {args.braking} contradicts the --scenario's braking {data['braking']!r}")
+        s = s.replace(braking=args.braking)
+    return s
+
+
+def _suite_cmd(args: argparse.Namespace) -> int:
+    from mpc.benchmark.suite import check_shipped, solve_suite
+
+    if args.cache:
+        _out_dir(args.cache, "--cache")
+    ray = args.ray
+    if args.check:
+        rows = check_shipped(args.suite, cache=args.cache, limit=args.limit, workers=args.workers, ray_address=ray)
+        bad = [r for r in rows if not r["ok"]]
+        for r in rows:
+            print(f"{r['key']}: " + ("OK" if r["ok"] else "MISMATCH") + (
+                f" (T_min {100 * r['T_min_rel']:+.3f} %, fuel up to {100 * r['fuel_rel_max']:.3f} %)" if "T_min_rel" in r
+                else f" ({r.get('problem')})"))
+        print(f"{len(rows) - len(bad)} of {len(rows)} shipped optima agree with a fresh solve")
+        return 1 if bad else 0
+    out = _out_file(args.out) if args.out else None
+    r = solve_suite(args.suite, cache=args.cache, out=out, workers=args.workers, ray_address=ray, limit=args.limit)
+    import statistics
+
+    per = r.per_scenario_s
+    print(f"suite {r.suite}: {len(r.entries)} scenarios, {r.solved} solved now in {r.wall_time:.0f} s"
+          + (f" (per scenario and braking alternative: median {statistics.median(per):.1f} s)" if per else "")
+          + f" -> {r.file}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="wl",
@@ -282,8 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", metavar="JSON", help='overrides, e.g. \'{"M_load": 12000}\' (validated)')
     p.set_defaults(func=_params_cmd)
 
+    scenario_help = ("the cycle: a Scenario as JSON text or a JSON file, e.g. '{\"payload\": 12000, "
+                     "\"reverse_distance\": 5}' (a missing field is nominal; fields and ranges: wl_env.scenario)")
     p = sub.add_parser("ocp", help="solve the cycle's optimal control problem (the benchmark)")
-    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
+    p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
     p.add_argument("--objective", choices=["time", "fuel", "weighted"], default="time")
     p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel, in (0, 60] "
                    "(each phase is bounded to 30 s; the fuel-optimal cycle takes about 21.5 s)")
@@ -294,8 +367,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_ocp_cmd)
 
     p = sub.add_parser("pareto", help="the fuel-time Pareto front (cached)")
-    p.add_argument("--braking", choices=["service", "tc", "both"], default="both")
-    p.add_argument("--points", type=_int_in(3, 100), default=8, help="cycle times on the front, 3..100 (default 8)")
+    p.add_argument("--braking", choices=["service", "tc", "both"], help="default: both")
+    p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
+    p.add_argument("--points", type=_int_in(3, 100), default=10, help="cycle times on the front, 3..100 (default 10)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
     p.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
     p.add_argument("--no-cache", action="store_true", help="solve again even if cached")
@@ -303,7 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_pareto_cmd)
 
     p = sub.add_parser("mpc", help="drive the cycle with the receding-horizon MPC and score it")
-    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
+    p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
+    p.add_argument("--mismatch", action="store_true", help="plan the --scenario's cycle with the nominal payload and "
+                   "rolling resistance (the plant has the scenario's): the estimator learns the difference")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--min-time", action="store_true", help="minimum cycle time (default)")
     g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
@@ -330,7 +407,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--controller", required=True, metavar="{ppo,operator,mpc,module:Class}",
                    help="a built-in controller, or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
-    p.add_argument("--braking", choices=["service", "tc"], default="service")
+    p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
+    p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
+    p.add_argument("--suite", choices=["nominal", "train", "test", "corners"],
+                   help="one episode per scenario of the suite (of the braking alternative), from its own start")
+    p.add_argument("--sample", type=_positive_int, metavar="N", help="with --suite: N scenarios spread evenly over it "
+                   "(a sampler suite: N draws)")
+    p.add_argument("--no-solve", action="store_true", help="score only against shipped or cached optima (an "
+                   "episode of another cycle is an error instead of a solve)")
     p.add_argument("--model", metavar="PATH", help="ppo: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
                    "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>); module:Class: passed "
                    "as model=")
@@ -358,9 +442,25 @@ def build_parser() -> argparse.ArgumentParser:
     add_train_args(p)
     p.set_defaults(func=_train_cmd)
 
+    p = sub.add_parser("suite", help="a suite's reference optima: solve (resumable) or check the shipped ones")
+    suite_sub = p.add_subparsers(dest="suite_command", metavar="ACTION", required=True)
+    q = suite_sub.add_parser("solve", help="T_min and the Pareto front of every scenario of a suite")
+    q.add_argument("--suite", required=True, choices=["nominal", "test", "corners"])
+    q.add_argument("--check", action="store_true", help="solve afresh and compare with the shipped optima "
+                   "(exit 1 on a mismatch)")
+    q.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS", help="run on a Ray cluster (ADDRESS, e.g. "
+                   "ray://host:10001, or none: a Ray instance on this machine); default: local processes")
+    q.add_argument("--workers", type=_positive_int, metavar="N", help="local processes (default: the CPU count)")
+    q.add_argument("--limit", type=_positive_int, metavar="N", help="only N scenarios per braking alternative")
+    q.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
+    q.add_argument("--out", metavar="FILE.json", help="the suite's optima file (default <cache>/suites/<suite>.json)")
+    q.set_defaults(func=_suite_cmd)
+
     p = sub.add_parser("run", help="the main job: benchmark, every controller, report (results/)")
     p.add_argument("--out", default="results", metavar="DIR", help="report folder (default results/)")
     p.add_argument("--cache", metavar="DIR", help="cache folder for solved optima")
+    p.add_argument("--full-suite", action="store_true", help="run the controllers on every scenario of the test suite "
+                   "(default: a fixed sample of 10 per braking alternative)")
     p.set_defaults(func=_run_cmd)
 
     p = sub.add_parser("report", help="rebuild the report of `wl run` from its results.json (nothing is solved or run)")

@@ -27,7 +27,9 @@ log = logging.getLogger(__name__)
 
 BRAKINGS = ("service", "tc")
 RESULTS_FILE = "results.json"
-RESULTS_FORMAT = 2  # 1: rows only (cannot be re-rendered); 2: + fronts, optima, trajectories
+RESULTS_FORMAT = 3  # 1: rows only (cannot be re-rendered); 2: + fronts, optima, trajectories; 3: + the suite
+SUITE = "test"  # the suite leaderboard's suite (its optima are shipped: nothing is solved for it)
+SUITE_SAMPLE = 10  # scenarios per braking alternative the main job runs by default (--full-suite: all)
 ROW_KEYS = ("controller", "braking", "T", "fuel_g", "time_gap", "fuel_gap", "max_violation", "success")
 
 
@@ -46,29 +48,82 @@ def controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
     return out
 
 
+def suite_controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
+    """(name, factory) of the controllers of the suite leaderboard: each is told each episode's scenario
+    (the operator and the MPC use it; the shipped PPO policies run as trained, on the nominal cycle)."""
+    from agents.evaluate import default_policy_path, load_controller
+    from mpc.controller.mpc import MPCConfig, MPCController
+
+    out: list[tuple[str, Callable[[], Any]]] = [
+        ("operator", lambda: load_controller("operator", braking)),
+        ("mpc (min time)", lambda: MPCController(braking, config=MPCConfig(mode="time"))),
+    ]
+    if default_policy_path(braking).exists():
+        out.append(("ppo (nominal-trained)", lambda: load_controller("ppo", braking)))
+    return out
+
+
+def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: str | None = None,
+                  controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = suite_controllers,
+                  brakings: tuple[str, ...] = BRAKINGS) -> dict[str, Any]:
+    """Every controller on ``sample`` scenarios of the suite per braking alternative (None: all of them),
+    each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes."""
+    from agents.evaluate import evaluate_controller
+    from wl_env.suites import load_suite
+
+    s = load_suite(suite)
+    rows, episodes = [], []
+    for b in brakings:
+        scenarios = list(s.spread(b, sample))
+        for name, factory in controllers(b):
+            log.info(f"[{suite} suite, {b}] {name}: {len(scenarios)} scenarios")
+            ev = evaluate_controller(factory(), b, scenarios=scenarios, cache=cache, name=name)
+            sm = ev["summary"]
+            rows.append({"controller": name, "braking": b, "scenarios": len(scenarios), "success_rate": sm["success_rate"],
+                         "time_gap_median": sm["time_gap_median"], "time_gap_p90": sm["time_gap_p90"],
+                         "fuel_gap_median": sm["fuel_gap_median"], "fuel_gap_p90": sm["fuel_gap_p90"],
+                         "max_violation": sm["max_violation"]})
+            episodes += [{"controller": name, "braking": b, "scenario": e["scenario"], "success": e["success"],
+                          "T": e["T"], "fuel_g": e["fuel_g"], "T_min": e["T_min"], "fuel_opt_g": e["fuel_opt_g"],
+                          "time_gap": e["time_gap"], "fuel_gap": e["fuel_gap"]} for e in ev["per_episode"]]
+    n_list = len(s.of(brakings[0]))
+    return {"suite": suite, "version": s.version, "sample": sample, "full": sample is None or sample >= n_list,
+            "scenarios_per_braking": n_list, "rows": rows, "episodes": episodes}
+
+
 # ---------------------------------------------------------------------------------------------- collect
 def collect(out_dir: str | Path = "results", cache: str | None = None,
             controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = controllers,
-            brakings: tuple[str, ...] = BRAKINGS) -> dict[str, Any]:
-    """Solve (or load) the fronts, run each controller from the nominal start, save ``results.json``.
+            brakings: tuple[str, ...] = BRAKINGS, suite_sample: int | None = SUITE_SAMPLE,
+            suite_controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] | None = suite_controllers,
+            ) -> dict[str, Any]:
+    """Load (shipped) or solve the nominal fronts, run each controller from the nominal start and on a
+    sample of the ``test`` suite (``suite_sample`` per braking alternative, None: all; ``suite_controllers``
+    None: no suite), save ``results.json``.
 
-    Every controller runs through :func:`agents.evaluate.evaluate_controller` (one episode, seed 0), the
-    same evaluation as ``wl evaluate``. Returns what was saved.
+    Every controller runs through :func:`agents.evaluate.evaluate_controller`, the same evaluation as
+    ``wl evaluate``. Returns what was saved.
     """
     from agents.evaluate import evaluate_controller
     from mpc.benchmark.pareto import min_time_result, pareto_fronts
+    from mpc.benchmark.reference import known_front
     from wl_env.atomic_io import write_json_atomic
+    from wl_env.params import DEFAULT_PARAMS
 
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fronts, optima, rows, trajectories = {}, {}, [], []
-    log.info(f"[benchmark] Pareto fronts, {' and '.join(brakings)} braking (solved in parallel; cached after the first run)")
-    solved = pareto_fronts(tuple(brakings), cache=cache, progress=True)
+    known = {b: known_front(b, DEFAULT_PARAMS, cache) for b in brakings}
+    missing = tuple(b for b in brakings if known[b] is None)
+    solved = {b: known[b][0] for b in brakings if known[b] is not None}
+    if missing:
+        log.info(f"[benchmark] Pareto fronts, {' and '.join(missing)} braking (solved in parallel; cached after the first run)")
+        solved.update(pareto_fronts(missing, cache=cache, progress=True))
     for b in brakings:
         front = solved[b]
         fronts[b] = dict(front.__dict__)
-        opt = min_time_result(b, cache=cache)  # of the default 8-point front
+        opt = min_time_result(b, cache=cache)  # the time-optimal cycle's trajectory (cached)
         optima[b] = {"T": opt.T, "fuel_g": opt.fuel_g, "t": opt.t, "states": opt.states}
         # The minimum-time optimum leaves the fuel free where it costs no time; the reference a controller
         # is scored against is the front: minimum time, and the minimum fuel at each cycle time.
@@ -87,8 +142,11 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
                          "success": ep["success"], "completed": ep["completed"]})
             traj = ep["trajectory"]
             trajectories.append({"controller": name, "braking": b, "t": traj["t"], "states": traj["states"]})
+    suite = (collect_suite(sample=suite_sample, cache=cache, controllers=suite_controllers, brakings=brakings)
+             if suite_controllers is not None else None)
     results = {"format": RESULTS_FORMAT, "brakings": list(brakings), "rows": rows, "fronts": fronts,
-               "optima": optima, "trajectories": trajectories, "wall_time_s": time.perf_counter() - t_start}
+               "optima": optima, "trajectories": trajectories, "suite": suite,
+               "wall_time_s": time.perf_counter() - t_start}
     write_json_atomic(out / RESULTS_FILE, results)
     return results
 
@@ -137,6 +195,14 @@ def _problem(results: Any) -> str | None:
             _check_trajectory(tr)
         if not _is_number(results["wall_time_s"]):
             return "wall_time_s is not a number"
+        suite = results.get("suite")
+        if suite is not None:
+            for r in suite["rows"]:
+                if not all(v is None or _is_number(v) for v in (r["success_rate"], r["time_gap_median"],
+                                                                r["fuel_gap_median"], r["fuel_gap_p90"])):
+                    return f"a suite row of {r['controller']!r} holds a value that is not a number"
+            for e in suite["episodes"]:
+                str(e["controller"]), bool(e["success"]), e["scenario"]
     except (KeyError, TypeError, IndexError) as exc:
         return f"missing or malformed entry {exc}"
     except ValueError as exc:
@@ -185,7 +251,12 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
                      f"{_gap(r['fuel_gap'])} | {100 * r['max_violation']:.1f} % | {'yes' if r['success'] else 'no'} |")
     front_text = ", ".join(f"{b}: {len(fronts[b]['T'])} points, T {fronts[b]['T_min']:.2f}-{fronts[b]['T_fuel_opt']:.2f} s"
                            for b in brakings)
-    lines += ["", f"Pareto fronts: {front_text}.", f"Generated by `wl run` in {results['wall_time_s']:.0f} s."]
+    lines += ["", f"Pareto fronts: {front_text}."]
+    suite = results.get("suite")
+    if suite:
+        lines += suite_table(suite)
+        written.append(suite_figure(suite, out / "suite_gaps.png"))
+    lines += ["", f"Generated by `wl run` in {results['wall_time_s']:.0f} s."]
     written.append(write_atomic(out / "leaderboard.md", "\n".join(lines) + "\n"))
     # ---- Pareto figure with the controllers' points
     fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -230,10 +301,57 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     return written
 
 
-def run_all(out_dir: str | Path = "results", cache: str | None = None) -> dict[str, Any]:
+def suite_table(suite: dict[str, Any]) -> list[str]:
+    """The suite leaderboard's lines (markdown)."""
+    which = (f"all {suite['scenarios_per_braking']} scenarios" if suite["full"] else
+             f"a fixed sample of {suite['sample']} of its {suite['scenarios_per_braking']} scenarios (`wl run "
+             f"--full-suite` runs all)")
+    lines = ["", f"## The `{suite['suite']}` suite (v{suite['version']}): {which} per braking alternative", "",
+             "Each episode from its scenario's own start, scored against that scenario's own optimum (shipped with "
+             "the package). Gaps over the successful episodes (median, p90); the success rate beside them.", "",
+             "| controller | braking | scenarios | success | time gap median | time gap p90 | fuel gap median | "
+             "fuel gap p90 | max violation |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in suite["rows"]:
+        lines.append(f"| {r['controller']} | {r['braking']} | {r['scenarios']} | {100 * r['success_rate']:.0f} % | "
+                     f"{_gap(r['time_gap_median'])} | {_gap(r['time_gap_p90'])} | {_gap(r['fuel_gap_median'])} | "
+                     f"{_gap(r['fuel_gap_p90'])} | {100 * r['max_violation']:.1f} % |")
+    return lines
+
+
+def suite_figure(suite: dict[str, Any], path: Path) -> Path:
+    """Fuel gap against the scenario's payload and its total distance, per controller and braking."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    names = sorted({e["controller"] for e in suite["episodes"]})
+    for k, name in enumerate(names):
+        for b, marker in (("service", "o"), ("tc", "^")):
+            eps = [e for e in suite["episodes"] if e["controller"] == name and e["braking"] == b
+                   and e["success"] and e["fuel_gap"] is not None and e["scenario"]]
+            if not eps:
+                continue
+            gap = [100 * e["fuel_gap"] for e in eps]
+            axes[0].plot([e["scenario"]["payload"] / 1000 for e in eps], gap, marker, color=f"C{k}", mfc="none",
+                         label=f"{name}, {b}")
+            axes[1].plot([e["scenario"]["reverse_distance"] + e["scenario"]["forward_distance"] for e in eps], gap,
+                         marker, color=f"C{k}", mfc="none")
+    axes[0].set_xlabel("payload (t)")
+    axes[1].set_xlabel("reverse + forward distance (m)")
+    axes[0].set_ylabel("fuel gap to the scenario's optimum (%)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"`{suite['suite']}` suite: fuel gap per scenario (successful episodes)")
+    fig.tight_layout()
+    out = save_figure(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def run_all(out_dir: str | Path = "results", cache: str | None = None, full_suite: bool = False) -> dict[str, Any]:
     """``wl run``: :func:`collect` then :func:`render` into ``out_dir``; returns the results."""
     t_start = time.perf_counter()
-    results = collect(out_dir, cache=cache)
+    results = collect(out_dir, cache=cache, suite_sample=None if full_suite else SUITE_SAMPLE)
     render(results, out_dir)
     log.info(f"report written to {out_dir}/ in {time.perf_counter() - t_start:.0f} s")
     return results

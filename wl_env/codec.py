@@ -80,10 +80,11 @@ class Codec:
         self.n_obs = len(low)
         self._low, self._high = tuple(low.tolist()), tuple(high.tolist())  # (Python floats: the flat step's literals)
 
-    def _scales(self) -> tuple[Any, Any]:
-        """(height scale, length scale) in m."""
+    def _scales(self, observe_scenario: bool | None = None) -> tuple[Any, Any]:
+        """(height scale, length scale) in m of a layout (default: this codec's)."""
         p = self.params
-        return (HEIGHT_SCALE, LENGTH_SCALE) if self.observe_scenario else (p.H_T, p.reverse_distance)
+        v2 = self.observe_scenario if observe_scenario is None else observe_scenario
+        return (HEIGHT_SCALE, LENGTH_SCALE) if v2 else (p.H_T, p.reverse_distance)
 
     # ------------------------------------------------------------------ actions
     def decode_action(self, a_fuel: Any, a_bucket: Any, a_brake: Any) -> tuple[Any, Any, Any]:
@@ -135,18 +136,19 @@ class Codec:
 
     def _checked(self, obs: Any) -> np.ndarray:
         o = np.asarray(obs, dtype=np.float64)
-        n = self.n_obs
-        if o.shape[-1:] != (n,) or o.ndim > 2 or not np.isfinite(o).all():
-            raise ValueError(f"obs must be finite WheelLoader observations of shape ({n},) or (N, {n}), "
-                             f"got shape {o.shape}{'' if np.isfinite(o).all() else ' with non-finite entries'}")
+        if o.shape[-1:] not in ((N_OBS,), (N_SCENARIO_OBS,)) or o.ndim > 2 or not np.isfinite(o).all():
+            raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_SCENARIO_OBS},) (v2) or "
+                             f"({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"
+                             f"{'' if np.isfinite(o).all() else ' with non-finite entries'}")
         return o
 
     def decode_observation(self, obs: Any) -> Observation:
-        """An observation (shape (n_obs,), or (N, n_obs)) -> :class:`Observation` in SI units."""
+        """An observation of either layout (told by its length; shape (n,), or (N, n)) -> :class:`Observation`
+        in SI units (v1's scales are this codec's parameters')."""
         p = self.params
         o = self._checked(obs)
         c = o.T
-        height, length = self._scales()
+        height, length = self._scales(o.shape[-1] == N_SCENARIO_OBS)
         phase = np.argmax(c[8:12], axis=0) + 1
         values = (c[0] * p.omega_max, c[1] * p.V_max, c[2] * height, c[3], c[4] * length, c[5] * length,
                   c[6] * TIME_SCALE, c[7], phase)
@@ -156,9 +158,9 @@ class Codec:
 
     def decode_scenario(self, obs: Any, braking: str) -> Scenario:
         """The scenario a v2 observation (shape (n_obs,)) carries, to float32 precision."""
-        if not self.observe_scenario:
-            raise ValueError("a WheelLoader-v1 observation carries no scenario; use WheelLoader-v2")
         o = self._checked(obs)
+        if o.shape[-1] != N_SCENARIO_OBS:
+            raise ValueError("a WheelLoader-v1 observation carries no scenario; use WheelLoader-v2")
         if o.ndim != 1:
             raise ValueError(f"decode_scenario takes one observation, got shape {o.shape}")
         f = o[N_OBS:]

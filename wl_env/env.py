@@ -210,10 +210,12 @@ class WheelLoaderEnv(gym.Env):
         self._phase, self._t, self._rev_err, self._violation = 1, 0.0, math.nan, 0.0
         self._done = False
         self._features = self.codec.encode_observation(self._y, self._phase, self._t)
-        self._episode_scenario = start_scenario(p, self.braking, omega, H) if self.init_noise > 0.0 else self.scenario
+        # The cycle this episode runs, its actual start included: what it is scored against.
+        self.episode_params = p.replace(omega_0=float(omega), H_0=float(H)) if self.init_noise > 0.0 else p
+        self.episode_scenario = start_scenario(p, self.braking, omega, H) if self.init_noise > 0.0 else self.scenario
         if self.render_mode == "human":
             self.render()
-        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self._episode_scenario}
+        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self.episode_scenario}
 
     def _set_scenario(self, scenario: Scenario | None) -> None:
         """Drive ``scenario``'s cycle (None: the machine's own parameters) from now on."""
@@ -274,7 +276,7 @@ class WheelLoaderEnv(gym.Env):
             "completed": bool(r["completed"]),
             "stalled": bool(r["stalled"]),
             "off_site": bool(r["off_site"]),
-            "scenario": self._episode_scenario,
+            "scenario": self.episode_scenario,
         }
 
     # ------------------------------------------------------------------ extras

@@ -6,9 +6,18 @@ the report all run episodes here and get an :class:`EpisodeResult`.
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import asdict, dataclass
 from typing import Any
+
+
+def takes_scenario(fn: Any) -> bool:
+    """True if a callable (a controller's reset) takes a ``scenario`` argument."""
+    try:
+        return "scenario" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):  # a builtin or an odd callable: call it plainly
+        return False
 
 
 @dataclass(frozen=True)
@@ -50,11 +59,17 @@ class EpisodeResult:
         return d
 
 
-def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: bool = True) -> EpisodeResult:
-    """Roll one episode of ``env`` (a ``WheelLoader`` env) under ``controller`` from ``reset(seed=seed)``."""
-    obs, info = env.reset(seed=seed)
+def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: bool = True,
+                scenario: Any = None) -> EpisodeResult:
+    """Roll one episode of ``env`` (a ``WheelLoader`` env) under ``controller`` from ``reset(seed=seed)``
+    (of ``scenario``, if given: then a controller whose ``reset`` takes ``scenario`` is told it; the
+    start state it reads from the observation)."""
+    obs, info = env.reset(seed=seed, options=None if scenario is None else {"scenario": scenario})
     if hasattr(controller, "reset"):
-        controller.reset()
+        if scenario is not None and takes_scenario(controller.reset):
+            controller.reset(scenario=scenario)
+        else:
+            controller.reset()
     unwrapped = env.unwrapped
     ts, states, controls, phases = [0.0], [list(map(float, unwrapped.state))], [], [int(unwrapped.phase)]
     total, term, trunc = 0.0, False, False

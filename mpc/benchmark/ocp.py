@@ -123,6 +123,8 @@ class OCPResult:
     smoothing: list[dict[str, float]] = field(default_factory=list)  # homotopy steps: k, objective
     starts: list[dict[str, Any]] = field(default_factory=list)  # multi-start record
     verification: dict[str, Any] = field(default_factory=dict)
+    scenario_fields: dict[str, float] = field(default_factory=dict)  # the LoaderParams SCENARIO_FIELDS solved for
+    scenario: dict[str, Any] | None = None  # the wl_env.scenario.Scenario solved (None: outside the scenario ranges)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -167,7 +169,7 @@ class CycleOCP:
         self.params = resolve(params)
         self.settings = settings or OCPSettings()
         self.specs = cycle.phase_specs(self.braking, self.params)
-        key = (self.braking, machine_key(self.params), self.settings)
+        key = (self.braking, machine_key(self.params), replace(self.settings, smoothing=(0.0,)))  # (k: a parameter)
         if key not in _NLP_CACHE:
             _NLP_CACHE[key] = self._build()
         self.__dict__.update(_NLP_CACHE[key])
@@ -576,8 +578,19 @@ def check_cycle_time(T: Any, name: str = "T") -> float:
     return float(T)
 
 
+def with_scenario(braking: str | None, params: LoaderParams | dict | None, scenario: Any) -> tuple[str, LoaderParams]:
+    """(braking, parameters) of a call that may name a :class:`wl_env.scenario.Scenario` (its cycle on the
+    machine ``params``; ``braking``, if given, must agree with it)."""
+    if scenario is None:
+        return cycle.check_braking(braking or "service"), resolve(params)
+    from wl_env.scenario import resolve_scenario
+
+    s = resolve_scenario(scenario, braking)
+    return s.braking, s.params(resolve(params))
+
+
 def solve_ocp(
-    braking: str = "service",
+    braking: str | None = None,
     objective: str = "time",
     T: float | None = None,
     w_fuel: float | None = None,
@@ -589,8 +602,13 @@ def solve_ocp(
     refine: bool = True,
     max_interval: float = 0.15,
     max_refinements: int = 3,
+    scenario: Any = None,
 ) -> OCPResult:
     """Solve the cycle OCP and return the best optimum found, re-simulated and refined until it holds.
+
+    The cycle is ``scenario``'s (a :class:`wl_env.scenario.Scenario`: its start state, distances, dump
+    height, payload and rolling resistance on the machine ``params``), else that of ``params`` itself. A
+    warm start from another scenario's optimum is reshaped to this one's first (:func:`transport`).
 
     Multi-start: each (leg time, acceleration fraction) in ``starts`` gives a template guess; a
     ``warm_start`` result is tried first. All starts are recorded in ``result.starts``. With ``verify``,
@@ -598,12 +616,11 @@ def solve_ocp(
     does not reproduce is a discretization artefact, not an optimum. With ``refine``, if no candidate
     reproduces, the best is solved again on a mesh with at least twice the intervals and none longer than
     ``max_interval`` (halved at each further failure), warm-started from it; ``result.starts`` records
-    every mesh tried.
+    every mesh tried. A result whose re-simulation still fails has ``success`` False and says so in its status.
     """
-    cycle.check_braking(braking)
+    braking, p = with_scenario(braking, params, scenario)
     if objective == "fuel_at_time":
         check_cycle_time(T)
-    p = resolve(params)
     settings = settings or OCPSettings()
     result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
     if not verify:
@@ -620,6 +637,9 @@ def solve_ocp(
         result.starts = previous.starts + result.starts
         history.append(_mesh_record(result))
     result.verification["mesh_history"] = history
+    if not result.verification["passed"]:  # solved, but its cycle does not reproduce: no optimum to use
+        result.success = False
+        result.status += " (re-simulation check failed)"
     return result
 
 
@@ -631,9 +651,10 @@ def _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, start
     ocp = get_ocp(braking, p, settings)
     candidates: list[tuple[str, np.ndarray]] = []
     if warm_start is not None:
+        ws = transport(warm_start, p)
         candidates.append(("warm_start", ocp.guess_from_trajectory(
-            np.asarray(warm_start.t), np.asarray(warm_start.states), np.asarray(warm_start.position),
-            np.asarray(warm_start.controls), np.asarray(warm_start.phase))))
+            np.asarray(ws.t), np.asarray(ws.states), np.asarray(ws.position),
+            np.asarray(ws.controls), np.asarray(ws.phase))))
     if starts is None:
         starts = DEFAULT_STARTS if warm_start is None else ()
         if objective == "fuel_at_time" and T is not None:
@@ -693,4 +714,41 @@ def _result(ocp: CycleOCP, z: np.ndarray, info: dict[str, Any], objective: str, 
         success=True, iterations=info["iterations"], wall_time=sum(r.get("wall_time", 0.0) for r in records),
         w_fuel=w_fuel, target_T=T, params_fingerprint=p.fingerprint(), mesh=list(ocp.settings.intervals),
         degree=ocp.settings.degree, solver=ocp.settings.solver, smoothing=info["smoothing"], starts=records,
+        scenario_fields=scenario_fields(p), scenario=scenario_of(p, ocp.braking),
     )
+
+
+def scenario_of(p: LoaderParams, braking: str) -> dict[str, Any] | None:
+    """The scenario a parameter set drives, as a dict (None if a field lies outside the scenario ranges)."""
+    from wl_env.scenario import Scenario
+
+    try:
+        return Scenario.from_params(p, braking).to_dict()
+    except ValueError:
+        return None
+
+
+def scenario_fields(p: LoaderParams) -> dict[str, float]:
+    return {f: float(getattr(p, f)) for f in SCENARIO_FIELDS}
+
+
+def transport(result: OCPResult, params: LoaderParams) -> OCPResult:
+    """An optimum of another scenario reshaped as a guess for ``params``' scenario: positions scaled per
+    leg to its distances, heights mapped from H_0..H_T onto its own, times kept. (A warm start needs the
+    shape, not consistency; without the scenario it was solved for, it is returned as it is.)"""
+    src = result.scenario_fields
+    if not src:
+        return result
+    dst = scenario_fields(params)
+    phase = np.asarray(result.phase)
+    s = np.asarray(result.position, dtype=float)
+    first = phase <= 2
+    rd, rd_new = src["reverse_distance"], dst["reverse_distance"]
+    s_new = np.where(first, s * rd_new / rd,
+                     -rd_new + (s + rd) * dst["forward_distance"] / src["forward_distance"])
+    x = np.array(result.states, dtype=float)
+    lift = (dst["H_T"] - dst["H_0"]) / (src["H_T"] - src["H_0"])
+    x[:, 2] = dst["H_0"] + (x[:, 2] - src["H_0"]) * lift
+    x[:, 3] *= lift
+    x[0, 0] = dst["omega_0"]
+    return replace(result, states=x.tolist(), position=s_new.tolist(), scenario_fields=dst)

@@ -100,7 +100,7 @@ def front_optima(braking: str, n_points: int, params: LoaderParams,
     r_fuel = _load_or_solve(folder / "min_fuel.json", lambda: solve_ocp(braking, "fuel", params=params),
                             f"the {braking} minimum-fuel cycle")
     solved = []
-    for f in sorted(folder.glob("T_*.json")):  # forward and backward continuation solves
+    for f in sorted(folder.glob("point_*.json")):  # forward and backward continuation solves
         r = _cached(f)
         if r is not None:
             solved.append(r)

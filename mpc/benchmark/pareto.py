@@ -52,6 +52,8 @@ FIRST_POINT_SLACK = 1e-3  # the front starts at T_min * (1 + this): minimum fuel
 # from 13 % on.
 SWEEP_ACCEL_FRACTIONS = (0.6, 0.8)
 MULTI_START_BELOW = 1.10
+DEFAULT_POINTS = 10  # points per front (the shipped suites', the scoring's, `wl pareto`'s default)
+SECOND_POINT_SLACK = 6e-3  # front_times: the second point at T_min * (1 + this)
 
 
 def cache_dir(path: str | os.PathLike | None = None) -> Path:
@@ -76,11 +78,19 @@ class ParetoFront:
     mesh: list[int]
     wall_time: float = 0.0
     points: list[dict[str, Any]] = field(default_factory=list)  # per point: T, fuel, verification summary
+    machine: str = ""  # mpc.benchmark.ocp.machine_key: the machine, whatever the scenario
+    scenario_fields: dict[str, float] = field(default_factory=dict)  # the scenario's LoaderParams fields
+    warm_started_from: str | None = None  # the neighbouring scenario's front folder, if one warm-started it
+    scenario: dict[str, Any] | None = None  # the wl_env.scenario.Scenario (None: outside the scenario ranges)
 
     def fuel_at(self, T: float) -> float:
-        """Optimal fuel (g) at cycle time T, interpolated on the front (monotone cubic, T_min <= T < T_fuel_opt).
+        """Optimal fuel (g) at cycle time T, interpolated on the front (T_min <= T < T_fuel_opt).
 
-        Between T_min and the first point (0.1 % above it) the first point's fuel is returned.
+        Monotone cubic in u = sqrt(T - T_min): near T_min the fuel falls like sqrt(T - T_min) (measured on
+        the nominal front: d fuel / d u stays within -46..-74 g/sqrt(s) from 1.001 to 1.12 T_min, where
+        d fuel / d T runs from -610 to -89 g/s), so in u the front is nearly straight and the points,
+        spaced evenly in u (:func:`front_times`), interpolate it closely. Between T_min and the first point
+        (0.1 % above it) the first point's fuel is returned.
         """
         if not math.isfinite(T):
             raise ValueError(f"cycle time must be finite, got {T!r}")
@@ -94,7 +104,8 @@ class ParetoFront:
                 f"cycle time {T:.3f} s lies beyond the fuel-optimal cycle ({self.T_fuel_opt:.3f} s); "
                 f"use optimal_fuel_at(), which solves such points on demand"
             )
-        return float(pchip(np.asarray(self.T), np.asarray(self.fuel_g), max(T, self.T[0])))
+        u = np.sqrt(np.asarray(self.T) - self.T_min)
+        return float(pchip(u, np.asarray(self.fuel_g), math.sqrt(max(T, self.T[0]) - self.T_min)))
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write as a checked cache entry (schema, checksum), atomically; ValueError if the front is bad."""
@@ -247,23 +258,24 @@ def pchip(x: np.ndarray, y: np.ndarray, xq: float) -> float:
     return float(h00 * y[k] + h10 * h[k] * m[k] + h01 * y[k + 1] + h11 * h[k] * m[k + 1])
 
 
-# The cached optima's version: v5, checked entries (mpc.benchmark.store), re-simulated by WheelLoader-v1's
-# step (its saturations within the step, its limits at every RK4 stage).
-CACHE_VERSION = "v5"
+# The cached optima's version: v6, scenarios (two leg distances, exactly 1500 rpm; points named point_<i>,
+# unverified ones out of the front); v5, checked entries (mpc.benchmark.store), re-simulated by
+# WheelLoader-v1's step (its saturations within the step, its limits at every RK4 stage).
+CACHE_VERSION = "v6"
 
 
 def _key(braking: str, p: LoaderParams, n_points: int) -> str:
     return f"{braking}_{p.fingerprint()}_n{n_points}_{CACHE_VERSION}"
 
 
-def front_folder(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
+def front_folder(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderParams | dict | None = None,
                  cache: str | os.PathLike | None = None) -> Path:
     """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
     and one ``T_<cycle time>.json`` per point (each an :class:`mpc.benchmark.ocp.OCPResult`)."""
     return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), n_points)
 
 
-def min_time_result(braking: str, n_points: int = 8, params: LoaderParams | dict | None = None,
+def min_time_result(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderParams | dict | None = None,
                     cache: str | os.PathLike | None = None) -> OCPResult:
     """The minimum-time cycle a front was swept from (its ``min_time.json``), solved again if that entry is
     missing or bad."""
@@ -276,39 +288,91 @@ def min_time_result(braking: str, n_points: int = 8, params: LoaderParams | dict
     return r
 
 
-def sweep_mesh(ends: list[OCPResult], max_interval: float) -> tuple[int, int, int, int]:
-    """One mesh for the whole sweep (one NLP, built once): no interval longer than ``max_interval`` in
-    the longest phase durations of the front's two ends, half that in the braking phases 2 and 4.
+# Intervals per phase a point's mesh is rounded up to (driving phases 1 and 3, braking phases 2 and 4): few
+# distinct meshes, so that the points of every scenario share a handful of NLPs (each takes seconds to build).
+MESH_LADDER = ((24, 32, 40, 48, 64, 80, 96, 128, 160, 192, 256), (12, 16, 24, 32, 48, 64, 96))
+
+
+def point_mesh(durations: list[float], max_interval: float) -> tuple[int, int, int, int]:
+    """The mesh of a cycle with these phase durations: no interval longer than ``max_interval`` in the
+    driving phases, half that in the braking phases 2 and 4, rounded up on MESH_LADDER.
 
     Measured on the service front: with 0.15 s in the braking phases the re-simulated bucket height of
     the 9.2 s cycle missed by 3.6 cm (limit 2 cm); the lift rides the pump limit there while the engine
     speed falls fast, and 0.075 s brings the miss under 1 cm.
     """
-    longest = np.max([r.phase_durations for r in ends], axis=0)
-    base = np.max([r.mesh for r in ends], axis=0)
-    limits = (max_interval, max_interval / 2, max_interval, max_interval / 2)
-    return tuple(max(int(b), math.ceil(d / h)) for d, b, h in zip(longest, base, limits, strict=True))  # type: ignore[return-value]
+    out = []
+    for k, d in enumerate(durations):
+        ladder = MESH_LADDER[k % 2]
+        need = math.ceil(d / (max_interval if k % 2 == 0 else max_interval / 2))
+        out.append(next((n for n in ladder if n >= need), max(need, ladder[-1])))
+    return tuple(out)  # type: ignore[return-value]
+
+
+def front_times(T_min: float, T_fuel_opt: float, n_points: int) -> np.ndarray:
+    """The front's cycle times: the first at (1 + FIRST_POINT_SLACK) T_min, the second at
+    (1 + SECOND_POINT_SLACK) T_min (the front curves most between them, even in u), then evenly spaced in
+    u = sqrt(T - T_min) up to T_fuel_opt (see :meth:`ParetoFront.fuel_at`)."""
+    u_end = math.sqrt(T_fuel_opt - T_min)
+    u_first = math.sqrt(T_min * FIRST_POINT_SLACK)
+    u_second = min(math.sqrt(T_min * SECOND_POINT_SLACK), 0.5 * (u_first + u_end))
+    u = np.concatenate([[u_first], np.linspace(u_second, u_end, n_points - 1)]) if n_points > 3 else \
+        np.linspace(u_first, u_end, n_points)
+    return T_min + u**2
+
+
+def _scenario_distance(a: dict[str, float], b: dict[str, float]) -> float:
+    """How far two scenarios lie apart: the scenario fields, each relative to its scale."""
+    return math.fsum(((a[k] - b[k]) / _FIELD_SCALE[k]) ** 2 for k in _FIELD_SCALE)
+
+
+_FIELD_SCALE = {"M_load": 7000.0, "c_r": 0.035, "H_T": 1.6, "H_0": 0.7, "omega_0": 125.0,
+                "reverse_distance": 6.0, "forward_distance": 6.0}  # (the scenario ranges' widths)
+
+
+def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.PathLike | None = None) -> Path | None:
+    """The folder of the nearest front already solved for another scenario of the same machine and braking
+    alternative (same number of points), or None."""
+    from mpc.benchmark.ocp import machine_key, scenario_fields
+
+    machine, own = machine_key(p), scenario_fields(p)
+    best, best_d = None, math.inf
+    for f in (cache_dir(cache) / "pareto").glob(f"{braking}_*_n{n_points}_{CACHE_VERSION}/front.json"):
+        data = store.load_entry(f, FRONT_KIND, check_front)
+        if data is None or data.get("machine") != machine or not data.get("scenario_fields"):
+            continue
+        d = _scenario_distance(own, data["scenario_fields"])
+        if 0.0 < d < best_d:
+            best, best_d = f.parent, d
+    return best
 
 
 def pareto_front(
-    braking: str = "service",
-    n_points: int = 8,
+    braking: str | None = None,
+    n_points: int = DEFAULT_POINTS,
     params: LoaderParams | dict | None = None,
     cache: str | os.PathLike | None = None,
     use_cache: bool = True,
     progress: Callable[[str], None] | None = None,
     max_interval: float = 0.15,
+    scenario: Any = None,
+    neighbour: bool = True,
 ) -> ParetoFront:
-    """The Pareto front with ``n_points`` cycle times from the minimum time to the fuel optimum.
+    """The Pareto front with ``n_points`` cycle times from the minimum time to the fuel optimum, of
+    ``scenario``'s cycle (:class:`wl_env.scenario.Scenario`, on the machine ``params``) or of ``params``.
 
-    Solved points are cached (one entry per point plus the front); a valid cached front is returned at
-    once, a bad one is set aside and rebuilt from the cached points. ``progress`` gets each step (default:
-    this module's logger at INFO).
+    Solved points are cached (one entry per point plus the front, keyed by the braking alternative and
+    the parameters' fingerprint); a valid cached front is returned at once, a bad one is set aside and
+    rebuilt from the cached points. With ``neighbour``, the front of the nearest scenario already solved
+    (:func:`nearest_front`) warm-starts every point. A point whose cycle fails the re-simulation check is
+    kept in ``points`` with ``verified`` False and left out of the front. ``progress`` gets each step
+    (default: this module's logger at INFO).
     """
-    cycle.check_braking(braking)
+    from mpc.benchmark.ocp import machine_key, scenario_fields, scenario_of, with_scenario
+
+    braking, p = with_scenario(braking, params, scenario)
     if not (isinstance(n_points, int) and 3 <= n_points <= 100):
         raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
-    p = resolve(params)
     fingerprint = p.fingerprint()
     say = progress or log.info
     folder = front_folder(braking, n_points, p, cache)
@@ -321,7 +385,15 @@ def pareto_front(
         data = store.load_entry(front_file, FRONT_KIND, matches, fingerprint)
         if data is not None:
             return ParetoFront._from(data)
-    say(f"[{braking}] solving the Pareto front ({n_points} points; each solved point is cached in {folder})")
+    near = nearest_front(braking, n_points, p, cache) if neighbour else None
+    guide: dict[str, OCPResult] = {}
+    if near is not None:  # the neighbour's solves, by name
+        for f in near.glob("*.json"):
+            r = cached_result(f) if f.name != "front.json" else None
+            if r is not None:
+                guide[f.stem] = r
+    say(f"[{braking}] solving the Pareto front ({n_points} points; each solved point is cached in {folder})"
+        + (f", warm-started from {near.name}" if guide else ""))
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
 
@@ -335,55 +407,91 @@ def pareto_front(
         save_result(result, path)
         return result
 
+    # From a neighbouring scenario's optimum, which is smooth already, the smoothing homotopy of eq. (33) is
+    # left out (one solve instead of two).
+    guided = OCPSettings(smoothing=(0.0,))
+
+    def end(name: str, objective: str) -> OCPResult:
+        """The minimum-time or -fuel cycle: from the neighbour's if there is one (else the templates)."""
+        if name in guide:
+            try:
+                return cached_solve(name, objective=objective, warm_start=guide[name], starts=(), settings=guided)
+            except OCPError:
+                pass
+        return cached_solve(name, objective=objective)
+
     say(f"[{braking}] minimum time")
-    r_time = cached_solve("min_time", objective="time")
+    r_time = end("min_time", "time")
     say(f"[{braking}] minimum time {r_time.T:.3f} s, {r_time.fuel_g:.2f} g; minimum fuel")
-    r_fuel = cached_solve("min_fuel", objective="fuel")
+    r_fuel = end("min_fuel", "fuel")
     say(f"[{braking}] minimum fuel {r_fuel.fuel_g:.2f} g at {r_fuel.T:.3f} s")
-    settings = OCPSettings(intervals=sweep_mesh([r_time, r_fuel], max_interval))
-    # Points cluster towards the minimum time, where the front bends most. The minimum-time problem
-    # leaves the fuel free (its optimum is not unique), so the front's first point is the minimum fuel
-    # a hair above the minimum time instead.
-    times = r_time.T + (r_fuel.T - r_time.T) * np.linspace(0.0, 1.0, n_points) ** 2
-    times[0] = r_time.T * (1.0 + FIRST_POINT_SLACK)
+    times = front_times(r_time.T, r_fuel.T, n_points)
+
+    def mesh_at(i: int) -> OCPSettings:
+        """Point i's mesh: sized for its phase durations (its guide's, else interpolated between the ends)."""
+        if guides[i] is not None:
+            durations = guides[i].phase_durations
+        else:
+            w = (times[i] - r_time.T) / max(r_fuel.T - r_time.T, 1e-9)
+            durations = [a + w * (b - a) for a, b in zip(r_time.phase_durations, r_fuel.phase_durations, strict=True)]
+        return OCPSettings(intervals=point_mesh(durations, max_interval))
+
+    guides = [guide.get(f"point_{i}") for i in range(n_points)]
     points: list[OCPResult] = []
+    meshes: list[list[int]] = []
     previous = r_time
     for i, T in enumerate(times[:-1]):
         say(f"[{braking}] point {i + 1}/{n_points}: minimum fuel at T = {T:.3f} s")
-        # Continuation from the neighbour; near T_min also fresh template starts, which can end in
-        # other local optima (other splits of the time between the phases). The best one is kept.
-        templates = tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS)
+        # Continuation from the neighbouring point, or from the neighbouring scenario's same point; near
+        # T_min also fresh template starts, which can end in other local optima (other splits of the time
+        # between the phases). The best one is kept.
+        templates = tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS) if T < MULTI_START_BELOW * r_time.T else ()
+        warm = guides[i] if guides[i] is not None else previous
+        settings = mesh_at(i)
+        meshes.append(list(settings.intervals))
         try:
-            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings,
-                             warm_start=previous, starts=templates if T < MULTI_START_BELOW * r_time.T else ())
+            r = cached_solve(f"point_{i}", objective="fuel_at_time", T=float(T), warm_start=warm,
+                             settings=settings if guides[i] is None else replace(settings, smoothing=(0.0,)),
+                             starts=() if guides[i] is not None else templates)
         except OCPError:  # continuation lost the way: start afresh from the templates
-            r = cached_solve(f"T_{T:.4f}", objective="fuel_at_time", T=float(T), settings=settings, starts=templates)
+            r = cached_solve(f"point_{i}", objective="fuel_at_time", T=float(T), settings=settings,
+                             starts=tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS))
         points.append(r)
         previous = r
     points.append(r_fuel)
     # Continuation back from the fuel-optimal end: a forward chain that took a worse basin near T_min
-    # carries it along; the neighbour on the long side may lead into a better one.
-    for i in range(len(points) - 2, 0, -1):
+    # carries it along; the neighbour on the long side may lead into a better one. (Warm-started from a
+    # neighbouring scenario, each point already had its own guide: the pass is left out.)
+    for i in range(len(points) - 2, 0, -1) if not guide else ():
         T = float(times[i])
         say(f"[{braking}] point {i + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
         try:
-            alt = cached_solve(f"T_{T:.4f}_back", objective="fuel_at_time", T=T, settings=settings,
+            alt = cached_solve(f"point_{i}_back", objective="fuel_at_time", T=T, settings=mesh_at(i),
                                warm_start=points[i + 1], starts=())
         except OCPError:  # the forward point stands
             continue
         if alt.verification.get("passed") and alt.fuel_g < points[i].fuel_g - 1e-6:
             alt.starts = points[i].starts + alt.starts
             points[i] = alt
-    fuel = [r.fuel_g for r in points]
+    good = [r for r in points if r.verification.get("passed")]
+    if len(good) < 2:
+        raise OCPError(f"the {braking} front has {len(good)} verified point(s) of {len(points)}: no front to "
+                       f"interpolate (statuses: {', '.join(sorted({r.status for r in points}))})")
+    for r in points:
+        if not r.verification.get("passed"):
+            log.warning(f"[{braking}] the point at T = {r.T:.3f} s fails the re-simulation check: left out of the front")
+    fuel = np.minimum.accumulate([r.fuel_g for r in good]).tolist()  # (a local optimum above a later point: capped)
     front = ParetoFront(
-        braking=braking, T=[float(r.T) for r in points], fuel_g=fuel, params_fingerprint=p.fingerprint(),
+        braking=braking, T=[float(r.T) for r in good], fuel_g=fuel, params_fingerprint=fingerprint,
         T_min=float(r_time.T),  # the minimum time itself; the first point lies 0.1 % above it
-        T_fuel_opt=float(r_fuel.T), fuel_min_g=float(r_fuel.fuel_g), mesh=list(settings.intervals),
+        T_fuel_opt=float(r_fuel.T), fuel_min_g=float(r_fuel.fuel_g), mesh=np.max(meshes + [r_fuel.mesh], axis=0).tolist(),
         wall_time=time.perf_counter() - t0,
-        points=[{"T": r.T, "fuel_g": r.fuel_g, "mesh": r.mesh, "verified": r.verification.get("passed"),
+        points=[{"T": r.T, "fuel_g": r.fuel_g, "mesh": r.mesh, "verified": bool(r.verification.get("passed")),
                  "final_position_error_m": r.verification.get("final_position_error_m"),
                  "final_height_error_m": r.verification.get("final_height_error_m"),
                  "max_violation": r.verification.get("max_violation")} for r in points],
+        machine=machine_key(p), scenario_fields=scenario_fields(p),
+        warm_started_from=near.name if guide else None, scenario=scenario_of(p, braking),
     )
     front.save(front_file)
     return front
@@ -402,7 +510,7 @@ def _front_job(braking: str, n_points: int, params: dict[str, Any], cache: str |
 
 def pareto_fronts(
     brakings: tuple[str, ...] = cycle.BRAKING_MODES,
-    n_points: int = 8,
+    n_points: int = DEFAULT_POINTS,
     params: LoaderParams | dict | None = None,
     cache: str | os.PathLike | None = None,
     use_cache: bool = True,

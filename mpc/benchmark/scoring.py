@@ -1,7 +1,9 @@
-"""Scoring a controller's cycle against the optimum.
+"""Scoring a controller's cycle against the optimum of its own cycle.
 
-Cycle time against the minimum cycle time; fuel against the minimum fuel at the *same* cycle time
-(the Pareto front), as the paper compares the braking alternatives.
+Cycle time against that cycle's minimum cycle time; fuel against its minimum fuel at the *same* cycle
+time (the Pareto front), as the paper compares the braking alternatives. "Its own cycle" is the
+scenario and the start state the episode ran (:mod:`mpc.benchmark.reference` finds or solves it):
+nothing is scored against another cycle's front.
 """
 
 from __future__ import annotations
@@ -11,14 +13,16 @@ import os
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from mpc.benchmark.pareto import ParetoFront, optimal_fuel_at, pareto_front
-from wl_env.params import LoaderParams
+from mpc.benchmark.pareto import ParetoFront
+from mpc.benchmark.reference import reference_at
+from wl_env.params import LoaderParams, resolve
 
 
 @dataclass(frozen=True)
 class Score:
     """A cycle's gaps to the optimum: its time T (s) against the minimum cycle time T_min, its fuel
-    against the minimum fuel at the same cycle time, fuel_opt_g. Gaps are relative: 0.05 = 5 % above."""
+    against the minimum fuel at the same cycle time, fuel_opt_g. Gaps are relative: 0.05 = 5 % above.
+    ``reference`` says where the optimum came from (a shipped, cached or given front, or a direct solve)."""
 
     braking: str
     T: float
@@ -27,6 +31,7 @@ class Score:
     time_gap: float
     fuel_opt_g: float
     fuel_gap: float
+    reference: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -39,17 +44,20 @@ def score_run(
     params: LoaderParams | dict | None = None,
     front: ParetoFront | None = None,
     cache: str | os.PathLike | None = None,
+    solve: bool = True,
 ) -> Score:
-    """Score one cycle (its time T in s and fuel in g, as run in the environment): the one scoring of the
-    project, for every controller and every evaluation."""
+    """Score one cycle (its time T in s and fuel in g, as run in the environment with ``params``, its
+    scenario and start state included): the one scoring of the project, for every controller and every
+    evaluation. ``front`` must be that cycle's own front if given. ``solve`` False: only shipped or
+    cached optima (LookupError if there is none)."""
     for name, v in (("T", T), ("fuel_g", fuel_g)):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-    front = front or pareto_front(braking, params=params, cache=cache)
-    if T < front.T_min - 1e-6:
-        # Faster than the optimum is only possible by breaking a constraint or missing a target.
-        fuel_opt = front.fuel_g[0]
-    else:
-        fuel_opt = optimal_fuel_at(T, braking, params=params, cache=cache, front=front)
-    return Score(braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=front.T_min, time_gap=T / front.T_min - 1.0,
-                 fuel_opt_g=float(fuel_opt), fuel_gap=fuel_g / fuel_opt - 1.0)
+    p = resolve(params)
+    if front is not None and front.params_fingerprint not in ("", p.fingerprint()):
+        raise ValueError(f"the front given was solved for parameters {front.params_fingerprint}, the cycle ran "
+                         f"{p.fingerprint()}: a cycle is scored against its own optimum only")
+    ref = reference_at(float(T), braking, p, cache, front=front, solve=solve)
+    return Score(braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=ref["T_min"], time_gap=T / ref["T_min"] - 1.0,
+                 fuel_opt_g=float(ref["fuel_opt_g"]), fuel_gap=fuel_g / ref["fuel_opt_g"] - 1.0,
+                 reference=ref["reference"])

@@ -48,13 +48,14 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
     for i in range(len(t) - 1):
         ph = max(ph, int(phase[i]))  # the simulator may already be past the OCP's phase 2
         phases.append(ph)
-        dt = t[i + 1] - t[i]
+        dt = float(t[i + 1] - t[i])  # (floats throughout: the simulator's flattened float path)
         n = max(1, int(math.ceil(dt / max_substep - 1e-9)))
         h = dt / n
         for m in range(n):
             u_mf, u_ab, u_b = map(float, controls[i])
             if planned_speed is not None:
-                w_plan = planned_speed[i] + (planned_speed[i + 1] - planned_speed[i]) * m / n
+                w_plan = float(planned_speed[i] + (planned_speed[i + 1] - planned_speed[i]) * m / n)  # (a float:
+                # numpy scalars would take the simulator off its flattened float path)
                 u_mf += speed_gain * (w_plan - y[0])
             u = sim.effective_controls(y, ph, u_mf, u_ab, u_b, h)
             if m == 0:

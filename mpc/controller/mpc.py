@@ -43,6 +43,7 @@ from wl_env.codec import Codec
 from wl_env.params import LoaderParams, resolve
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
+from wl_env.scenario import Scenario
 
 if TYPE_CHECKING:
     from mpc.benchmark.scoring import Score
@@ -127,7 +128,17 @@ class MPCController:
         self.reset()
 
     # ------------------------------------------------------------------ protocol
-    def reset(self) -> None:
+    def reset(self, scenario: Scenario | None = None) -> None:
+        """Start a cycle; ``scenario``: plan with that cycle's model and targets from now on."""
+        if scenario is not None:
+            if scenario.braking != self.braking:
+                raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
+            params = scenario.params(self.params)
+            if params != self.params:
+                self.params = params
+                self.codec = Codec(params)
+                self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))
+                self.estimator = ModelErrorEstimator(self.model, self.dt)
         self._sol: Solve | None = None  # the last good solve (its z is the plan, shifted by the counts)
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
@@ -162,7 +173,7 @@ class MPCController:
         """[omega, V, H, V_b, s], elapsed time and phase from an observation (:class:`wl_env.codec.Codec`)."""
         o = self.codec.decode_observation(obs)
         if np.ndim(o.time) != 0:
-            raise ValueError(f"the MPC acts on one observation of shape (12,), got shape {np.shape(obs)}")
+            raise ValueError(f"the MPC acts on one observation, got shape {np.shape(obs)}")
         return o.state, o.time, o.phase
 
     # ------------------------------------------------------------------ one step
@@ -457,16 +468,19 @@ class ClosedLoopResult:
                 "solve_time": self.solve_time, "solve_times_s": self.solve_times_s, "plant_params": self.plant_params}
 
 
-def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
+def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
                     score: bool = True, seed: int = 0, controller: MPCController | None = None,
-                    cache: str | os.PathLike | None = None) -> ClosedLoopResult:
-    """One cycle of ``WheelLoader-v1`` under the MPC, scored against the plant's optimum.
+                    cache: str | os.PathLike | None = None, scenario: Scenario | None = None,
+                    mismatch: bool = False) -> ClosedLoopResult:
+    """One cycle of ``WheelLoader-v2`` under the MPC, scored against the plant's optimum.
 
     ``params`` is the controller's model, ``plant_params`` the simulated machine (default: the same);
-    they differ in a model-mismatch study, and the score is the plant's (its own Pareto front).
-    ``controller`` (default: built from ``config``) lets a caller inspect the controller afterwards.
-    ``cache`` is the folder of the Pareto fronts the score reads (default: :func:`mpc.benchmark.pareto.cache_dir`).
+    they differ in a model-mismatch study, and the score is the plant's (its own Pareto front). A
+    ``scenario`` sets the cycle of both; with ``mismatch`` the model keeps its own payload and rolling
+    resistance (the nominal ones by default) and knows only the cycle's distances, dump height and start:
+    its estimator learns the rest. ``controller`` (default: built from ``config``) lets a caller inspect
+    the controller afterwards. ``cache`` is the folder of the optima the score reads.
     """
     import gymnasium as gym
 
@@ -476,7 +490,17 @@ def run_closed_loop(braking: str = "service", config: MPCConfig | None = None,
     config = config or MPCConfig()
     model = resolve(params)
     plant = resolve(plant_params) if plant_params is not None else model
-    env = gym.make("WheelLoader-v1", braking=braking, params=plant)
+    if scenario is not None:
+        braking = scenario.braking if braking is None else cycle.check_braking(braking)
+        if braking != scenario.braking:
+            raise ValueError(f"braking={braking!r} contradicts the scenario's braking {scenario.braking!r}")
+        plant = scenario.params(plant)
+        model = scenario.params(model)
+        if mismatch:
+            base = resolve(params)
+            model = model.replace(M_load=base.M_load, c_r=base.c_r)
+    braking = cycle.check_braking(braking or "service")
+    env = gym.make("WheelLoader-v2", braking=braking, params=plant)
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps)
     ep = run_episode(env, ctrl, seed=seed)

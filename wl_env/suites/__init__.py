@@ -63,6 +63,19 @@ class Suite:
             raise ValueError(f"suite {self.name!r} is a sampler, not a list: use sample()")
         return tuple(s for s in self.scenarios if s.braking == braking)
 
+    def spread(self, braking: str, n: int | None = None) -> tuple[Scenario, ...]:
+        """``n`` of the list's scenarios of one braking alternative, evenly spread over it (all if n is None
+        or larger): a fixed sample, the same every run. A sampler suite gives its first n draws of seed 0."""
+        if self.sampler:
+            if not n:
+                raise ValueError(f"suite {self.name!r} is a sampler: say how many scenarios to draw")
+            rng = stream(TRAIN_STREAM)
+            return tuple(draw(rng, braking) for _ in range(n))
+        options = self.of(braking)
+        if n is None or n >= len(options):
+            return options
+        return tuple(options[round(i * (len(options) - 1) / max(n - 1, 1))] for i in range(n))
+
     def sample(self, rng: np.random.Generator, braking: str) -> Scenario:
         """One scenario of the braking alternative: a fresh draw (sampler) or one of the list, uniformly."""
         if self.sampler:

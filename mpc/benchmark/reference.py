@@ -1,0 +1,166 @@
+"""A cycle's reference optimum: its minimum cycle time and its minimum fuel at a given cycle time.
+
+Where a reference comes from, first found first:
+
+1. **cached**: a front :func:`mpc.benchmark.pareto.pareto_front` solved before, in the cache folder (the
+   same problem as a shipped one, solved here);
+2. **shipped**: the suites' optima in the package (``mpc/benchmark/references/<suite>.json``, written by
+   ``wl suite solve``): T_min and the Pareto front of every scenario of the ``nominal`` and ``test``
+   suites, each point re-simulated, so scoring those needs no solver;
+3. **direct**: for any other cycle (a perturbed start, a user's scenario), the two numbers are solved
+   directly: T_min warm-started from the nearest solved front's minimum-time cycle (and the templates),
+   the fuel at the cycle's own T from the nearest front's points around T and the templates, the best
+   kept (:func:`mpc.benchmark.optima.multistart_fixed_time`). Cached under ``optima/``.
+
+A reference never lies above the front it was warm-started from: the direct fuel is the lower of the
+direct solve and the front's interpolation when the front belongs to the same cycle.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from mpc.benchmark import store
+from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
+from mpc.benchmark.pareto import (
+    CACHE_VERSION,
+    DEFAULT_POINTS,
+    FRONT_KIND,
+    ParetoFront,
+    cache_dir,
+    cached_result,
+    check_front,
+    front_folder,
+    nearest_front,
+    save_result,
+)
+from wl_env import cycle
+from wl_env.params import LoaderParams
+
+log = logging.getLogger(__name__)
+
+REFERENCE_DIR = Path(__file__).resolve().parent / "references"
+SUITE_KIND = "suite_references"  # a shipped suite file (mpc.benchmark.store entry)
+N_POINTS = DEFAULT_POINTS  # points per front in the shipped suites and the fronts the scoring solves
+
+
+def check_suite_file(d: dict[str, Any]) -> str | None:
+    """What is wrong with a shipped suite file, or None: its fields, and each entry a valid front."""
+    for name in ("suite", "suite_version", "cache_version", "n_points", "entries"):
+        if name not in d:
+            return f"missing field {name!r}"
+    if not isinstance(d["entries"], dict):
+        return "field 'entries' is not a mapping"
+    for key, e in d["entries"].items():
+        problem = check_front(e) if isinstance(e, dict) else "not a mapping"
+        if problem:
+            return f"entry {key}: {problem}"
+        if key != f"{e['braking']}_{e['params_fingerprint']}":
+            return f"entry {key} holds the front of {e['braking']}_{e['params_fingerprint']}"
+        if not all(p.get("verified") for p in e["points"] if any(abs(p["T"] - T) < 1e-9 for T in e["T"])):
+            return f"entry {key}: a front point failed its re-simulation"
+    return None
+
+
+@lru_cache(maxsize=None)
+def shipped_fronts() -> dict[str, ParetoFront]:
+    """Every shipped front by ``<braking>_<params fingerprint>`` (the files are read, checked, once)."""
+    fronts: dict[str, ParetoFront] = {}
+    for path in sorted(REFERENCE_DIR.glob("*.json")):
+        data = store.read_entry(path, SUITE_KIND, check_suite_file)  # BadEntry names the file
+        if data["cache_version"] != CACHE_VERSION:
+            log.warning(f"{path} holds optima of cache version {data['cache_version']}, not {CACHE_VERSION}: unused")
+            continue
+        for key, e in data["entries"].items():
+            fronts[key] = ParetoFront._from(e)
+    return fronts
+
+
+def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None,
+                n_points: int = N_POINTS) -> tuple[ParetoFront, str] | None:
+    """(the front of this cycle, "shipped" or "cached") without solving anything, or None."""
+    path = front_folder(cycle.check_braking(braking), n_points, params, cache) / "front.json"
+    data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint())
+    if data is not None:
+        return ParetoFront._from(data), "cached"
+    key = f"{braking}_{params.fingerprint()}"
+    return (shipped_fronts()[key], "shipped") if key in shipped_fronts() else None
+
+
+def _folder(braking: str, params: LoaderParams, cache: str | os.PathLike | None) -> Path:
+    return cache_dir(cache) / "optima" / f"{braking}_{params.fingerprint()}_{CACHE_VERSION}"
+
+
+def _guides(braking: str, params: LoaderParams, cache: str | os.PathLike | None) -> list[OCPResult]:
+    """The nearest solved front's cycles (its minimum time, minimum fuel and points), to warm-start from."""
+    near = nearest_front(braking, N_POINTS, params, cache)
+    if near is None:
+        return []
+    return [r for f in sorted(near.glob("*.json")) if f.name != "front.json" for r in [cached_result(f)] if r is not None]
+
+
+def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
+    """The cycle's minimum time, solved (cached): from the nearest front's minimum-time cycle and the templates."""
+    path = _folder(braking, params, cache) / "min_time.json"
+    r = cached_result(path, params.fingerprint(), "time")
+    if r is not None:
+        return r
+    warm = [g for g in _guides(braking, params, cache) if g.objective == "time"]
+    r = solve_ocp(braking, "time", params=params, warm_start=warm[0] if warm else None, starts=None)
+    if not r.success:
+        raise OCPError(f"the {braking} minimum-time cycle of this scenario fails its re-simulation: {r.status}")
+    save_result(r, path)
+    return r
+
+
+def direct_fuel_at(braking: str, T: float, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
+    """Minimum fuel at the cycle time T, solved (cached): the best of warm starts from the nearest front's two
+    points around T and the template multi-start, re-simulated."""
+    from mpc.benchmark.optima import multistart_fixed_time
+
+    path = _folder(braking, params, cache) / f"fuel_at_T{T:.4f}.json"
+    r = cached_result(path, params.fingerprint(), "fuel_at_time")
+    if r is not None and abs(r.T - T) <= 1e-6 * T:
+        return r
+    guides = sorted((g for g in _guides(braking, params, cache) if g.objective != "time"), key=lambda g: g.T)
+    below = [g for g in guides if g.T <= T][-1:]
+    above = [g for g in guides if g.T > T][:1]
+    mesh = max((g.mesh for g in guides), key=sum, default=None)
+    settings = OCPSettings(intervals=tuple(mesh)) if mesh else OCPSettings()
+    r = multistart_fixed_time(braking, T, params, settings, below + above)
+    if r is None or not r.success:
+        raise OCPError(f"no verified {braking} optimum at T = {T:.3f} s for this scenario"
+                       + ("" if r is None else f": {r.status}"))
+    save_result(r, path)
+    return r
+
+
+def reference_at(T: float, braking: str, params: LoaderParams, cache: str | os.PathLike | None = None,
+                 front: ParetoFront | None = None, solve: bool = True) -> dict[str, Any]:
+    """``{"T_min", "fuel_opt_g", "reference"}`` of a cycle of time T (s): the known front's (``front``,
+    shipped or cached), else solved directly (unless ``solve`` is False: then LookupError)."""
+    source = "given"
+    if front is None:
+        known = known_front(braking, params, cache)
+        if known is not None:
+            front, source = known
+    if front is not None:
+        T_ref = max(T, front.T[0])  # faster than the optimum breaks a limit or misses a target
+        if T_ref < front.T_fuel_opt:
+            return {"T_min": front.T_min, "fuel_opt_g": front.fuel_at(T_ref), "reference": f"{source} front"}
+        if not solve:  # slower than the fuel optimum: its own optimum lies above the front's minimum
+            return {"T_min": front.T_min, "fuel_opt_g": front.fuel_min_g, "reference": f"{source} front (fuel minimum)"}
+        return {"T_min": front.T_min, "fuel_opt_g": direct_fuel_at(braking, T, params, cache).fuel_g,
+                "reference": "direct solve (beyond the fuel optimum)"}
+    if not solve:
+        raise LookupError(f"no shipped or cached optimum for this {braking} cycle (parameters {params.fingerprint()}); "
+                          f"solve it (`wl pareto --scenario ...`) or allow solving")
+    r_time = direct_min_time(braking, params, cache)
+    T_ref = max(T, r_time.T * 1.001)
+    fuel = direct_fuel_at(braking, float(T_ref), params, cache).fuel_g
+    return {"T_min": r_time.T, "fuel_opt_g": fuel, "reference": "direct solve"}
+

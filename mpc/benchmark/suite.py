@@ -1,0 +1,213 @@
+"""A suite's reference optima (``wl suite solve``): per scenario, T_min and the Pareto front, re-simulated.
+
+The scenarios of each braking alternative are ordered as a nearest-neighbour chain from the nominal
+cycle, so that each front is warm-started from the one solved just before it (``pareto_front``'s
+``neighbour``), and the chains are split between the workers: local processes by default
+(:mod:`mpc.workers`: Ctrl-C stops them within about a second), or Ray tasks on a cluster
+(``ray_address``; ``"local"`` starts a Ray instance on this machine). Each scenario's result is written
+atomically to ``<cache>/suites/<suite>/<braking>_<fingerprint>.json`` as soon as it is solved; a killed
+sweep resumes with the scenarios that have none. The suite's file (every entry, checked) is assembled
+at the end: ``wl suite solve --suite test --out mpc/benchmark/references/test.json`` is how the shipped
+optima were made.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mpc.benchmark import store
+from mpc.benchmark.pareto import CACHE_VERSION, FRONT_KIND, ParetoFront, cache_dir, check_front, pareto_front
+from mpc.benchmark.reference import N_POINTS, SUITE_KIND, check_suite_file, shipped_fronts
+from wl_env.cycle import BRAKING_MODES
+from wl_env.scenario import FIELDS, Scenario
+from wl_env.suites import load_suite
+
+log = logging.getLogger(__name__)
+
+CHECK_TOL = {"T_min": 1e-3, "fuel": 3e-3}  # --check: relative agreement of a fresh solve with the shipped optimum
+
+
+@dataclass
+class SuiteSolve:
+    """What a suite solve did: per scenario key its entry, and the times."""
+
+    suite: str
+    entries: dict[str, dict[str, Any]]
+    solved: int  # solved now (the rest came from earlier runs)
+    wall_time: float
+    per_scenario_s: list[float] = field(default_factory=list)  # each solved front's own wall time
+    file: Path | None = None
+
+
+def entry_key(scenario: Scenario) -> str:
+    return f"{scenario.braking}_{scenario.params().fingerprint()}"
+
+
+def _distance(a: Scenario, b: Scenario) -> float:
+    return math.fsum(((getattr(a, n) - getattr(b, n)) / (s.hi - s.lo)) ** 2 for n, s in FIELDS.items())
+
+
+def chain_order(scenarios: list[Scenario]) -> list[Scenario]:
+    """A nearest-neighbour chain through the scenarios, from the one nearest the nominal cycle."""
+    left = list(scenarios)
+    if not left:
+        return []
+    nominal = Scenario.nominal(left[0].braking)
+    order = [min(left, key=lambda s: _distance(s, nominal))]
+    left.remove(order[0])
+    while left:
+        nxt = min(left, key=lambda s: _distance(s, order[-1]))
+        order.append(nxt)
+        left.remove(nxt)
+    return order
+
+
+def check_entry(d: dict[str, Any]) -> str | None:
+    problem = check_front(d)
+    if problem is None and not isinstance(d.get("scenario"), dict):
+        problem = "missing its scenario"
+    return problem
+
+
+def solve_one(scenario: Scenario, cache: str | os.PathLike | None, n_points: int = N_POINTS) -> dict[str, Any]:
+    """One scenario's entry: its front (warm-started from the nearest front in ``cache``) and its scenario."""
+    t0 = time.perf_counter()
+    front = pareto_front(scenario=scenario, n_points=n_points, cache=cache, progress=log.debug)
+    return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": time.perf_counter() - t0}
+
+
+def _solve_chain(scenarios: list[dict[str, Any]], folder: str, cache: str | None, n_points: int) -> list[str]:
+    """A worker's chain: each scenario solved in turn and written to ``folder`` at once (atomically)."""
+    done = []
+    for d in scenarios:
+        s = Scenario.from_dict(d)
+        e = solve_one(s, cache, n_points)
+        store.write_entry(Path(folder) / f"{entry_key(s)}.json", FRONT_KIND, e, check_entry)
+        done.append(entry_key(s))
+    return done
+
+
+def _split(chains: dict[str, list[Scenario]], parts: int) -> list[list[Scenario]]:
+    """``parts`` pieces of work: each braking alternative's chain cut into consecutive pieces (fewer workers
+    than alternatives: the chains one after the other)."""
+    if parts < len(chains):
+        return [[s for chain in chains.values() for s in chain]]
+    per = parts // len(chains)
+    out = []
+    for chain in chains.values():
+        n = math.ceil(len(chain) / per)
+        out += [chain[i:i + n] for i in range(0, len(chain), n)]
+    return [c for c in out if c]
+
+
+def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | os.PathLike | None = None,
+                workers: int | None = None, ray_address: str | None = None, n_points: int = N_POINTS,
+                limit: int | None = None, ray_chunk: int = 4) -> SuiteSolve:
+    """Solve (or resume) every scenario of a list suite and assemble its file (``out``, default
+    ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain."""
+    s = load_suite(suite)
+    if s.sampler:
+        raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
+    folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_{CACHE_VERSION}"
+    folder.mkdir(parents=True, exist_ok=True)
+    chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
+    wanted = [sc for chain in chains.values() for sc in chain]
+    have = {entry_key(sc) for sc in wanted
+            if store.load_entry(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry) is not None}
+    todo = {b: [sc for sc in chain if entry_key(sc) not in have] for b, chain in chains.items()}
+    todo = {b: c for b, c in todo.items() if c}
+    n_todo = sum(map(len, todo.values()))
+    log.info(f"suite {suite}: {len(wanted)} scenarios, {len(have)} already solved, {n_todo} to solve in {folder}")
+    t0 = time.perf_counter()
+    if todo and ray_address is not None:
+        _run_on_ray(todo, folder, cache, n_points, ray_address, ray_chunk)
+    elif todo:
+        pieces = _split(todo, workers or os.cpu_count() or 1)
+        args = (None if cache is None else str(cache), n_points)
+        if len(pieces) == 1:
+            _solve_chain([sc.to_dict() for sc in pieces[0]], str(folder), *args)
+        else:
+            from mpc.workers import run_in_workers
+
+            run_in_workers({f"chain{i}": (f"{__name__}:_solve_chain", ([sc.to_dict() for sc in p], str(folder), *args))
+                            for i, p in enumerate(pieces)})
+    wall = time.perf_counter() - t0
+    entries = {entry_key(sc): store.read_entry(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry)
+               for sc in wanted}
+    for e in entries.values():
+        for k in ("schema", "checksum"):
+            e.pop(k, None)
+    data = {"suite": suite, "suite_version": s.version, "cache_version": CACHE_VERSION, "n_points": n_points,
+            "entries": entries}
+    path = Path(out) if out is not None else cache_dir(cache) / "suites" / f"{suite}.json"
+    store.write_entry(path, SUITE_KIND, data, check_suite_file)
+    solved_now = [e["solve_s"] for k, e in entries.items() if k not in have]
+    return SuiteSolve(suite=suite, entries=entries, solved=n_todo, wall_time=wall, per_scenario_s=solved_now, file=path)
+
+
+def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.PathLike | None, n_points: int,
+                address: str, chunk: int) -> None:
+    """The chains as Ray tasks of ``chunk`` scenarios each; the driver writes each task's entries as it ends."""
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=None if address == "local" else address, include_dashboard=False,
+                 logging_level=logging.WARNING, log_to_driver=False)
+    try:
+        task = ray.remote(_ray_chain)
+        pieces = [chain[i:i + chunk] for chain in todo.values() for i in range(0, len(chain), chunk)]
+        pending = [task.remote([sc.to_dict() for sc in p], None if cache is None else str(cache), n_points)
+                   for p in pieces]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for key, e in ray.get(ready[0]):
+                store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _ray_chain(scenarios: list[dict[str, Any]], cache: str | None, n_points: int) -> list[tuple[str, dict[str, Any]]]:
+    """A Ray task: a chain solved in the given cache (a shared folder) or a private temporary one."""
+    with tempfile.TemporaryDirectory(prefix="wl-ray-") as tmp:
+        out = []
+        for d in scenarios:
+            s = Scenario.from_dict(d)
+            out.append((entry_key(s), solve_one(s, cache or tmp, n_points)))
+        return out
+
+
+def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int | None = None,
+                  workers: int | None = None, ray_address: str | None = None) -> list[dict[str, Any]]:
+    """Solve the suite afresh (in ``cache``) and compare with the shipped optima: one row per scenario with
+    the relative differences of T_min and of the fuel at the shipped points, and ``ok``."""
+    shipped = shipped_fronts()
+    cache = cache or tempfile.mkdtemp(prefix="wl-check-")  # a fresh solve: nothing cached to reuse
+    fresh = solve_suite(suite, cache=cache, workers=workers, ray_address=ray_address, limit=limit)
+    rows = []
+    for key, e in fresh.entries.items():
+        old = shipped.get(key)
+        if old is None:
+            rows.append({"key": key, "ok": False, "problem": "not shipped"})
+            continue
+        new = ParetoFront._from(e)
+        dT = new.T_min / old.T_min - 1.0
+        dfuel = max((abs(new.fuel_at(T) / f - 1.0) for T, f in zip(old.T, old.fuel_g, strict=True)
+                     if new.T[0] <= T < new.T_fuel_opt), default=0.0)
+        rows.append({"key": key, "T_min_rel": dT, "fuel_rel_max": dfuel,
+                     "ok": abs(dT) <= CHECK_TOL["T_min"] and dfuel <= CHECK_TOL["fuel"]})
+    return rows

@@ -1,0 +1,172 @@
+"""Scenarios and suites: validation, determinism, the environment on a scenario, the vector env's draws."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import wl_env  # noqa: F401
+from wl_env.codec import Codec
+from wl_env.params import DEFAULT_PARAMS
+from wl_env.scenario import FIELDS, Scenario
+from wl_env.suites import SUITES, TEST_STREAM, TRAIN_STREAM, draw, load_suite, stream, suite_files
+
+ACTIONS = [np.array([0.8, 0.4, -1.0, -1.0])] * 30 + [np.array([0.2, 0.2, -1.0, 1.0])] + \
+          [np.array([0.0, 0.1, 0.6, -1.0])] * 30 + [np.array([0.9, 0.3, -1.0, 1.0])] * 40
+
+
+# ---------------------------------------------------------------------------------------------- validation
+@pytest.mark.parametrize("name", list(FIELDS))
+@pytest.mark.parametrize("side", ["below", "above"])
+def test_a_value_outside_its_range_names_the_field_and_the_range(name, side):
+    spec = FIELDS[name]
+    bad = spec.lo - 0.01 * (spec.hi - spec.lo) if side == "below" else spec.hi + 0.01 * (spec.hi - spec.lo)
+    with pytest.raises(ValueError, match=rf"Scenario\.{name} must lie in \[{spec.lo:g}, {spec.hi:g}\]"):
+        Scenario(**{name: bad})
+
+
+@given(name=st.sampled_from(list(FIELDS)),
+       value=st.one_of(st.none(), st.text(max_size=3), st.booleans(), st.just(math.nan), st.just(math.inf),
+                       st.floats(allow_nan=False, allow_infinity=False)))
+@settings(max_examples=150, deadline=None)
+def test_any_value_is_accepted_in_range_or_refused_by_name(name, value):
+    spec = FIELDS[name]
+    ok = (isinstance(value, float) and math.isfinite(value) and spec.lo <= value <= spec.hi)
+    if ok:
+        assert getattr(Scenario(**{name: value}), name) == value
+    else:
+        with pytest.raises(ValueError, match=rf"Scenario\.{name}"):
+            Scenario(**{name: value})
+
+
+def test_the_ranges_cover_what_the_issue_asks():
+    need = {"payload": (6000, 13000), "reverse_distance": (4, 10), "forward_distance": (4, 10),
+            "rolling_resistance": (0.015, 0.05), "dump_height": (3.5, 5.1), "start_engine_speed": (800, 2000),
+            "start_bucket_height": (0.5, 1.2)}
+    for name, (lo, hi) in need.items():
+        assert FIELDS[name].lo <= lo and FIELDS[name].hi >= hi, name
+    for s in (Scenario(**{n: FIELDS[n].lo for n in FIELDS}), Scenario(**{n: FIELDS[n].hi for n in FIELDS})):
+        s.params()  # every corner of the ranges is a valid machine
+
+
+def test_nominal_is_the_papers_cycle_and_round_trips():
+    s = Scenario.nominal()
+    assert s.params() == DEFAULT_PARAMS  # the same fingerprint, so the same cached optima
+    assert s.params().omega_0 == pytest.approx(1500 * math.pi / 30)
+    assert Scenario.from_params(DEFAULT_PARAMS) == s
+    assert Scenario.from_dict(s.to_dict()) == s and Scenario.parse(json.dumps({"payload": 10000})) == s
+    other = Scenario(payload=12000.0, reverse_distance=5.0, braking="tc")
+    assert other.params().M_load == 12000.0 and other.params().final_position == pytest.approx(1.6)
+    assert other.fingerprint() != s.fingerprint() and other.replace(braking="service").fingerprint() != other.fingerprint()
+
+
+def test_bad_scenario_inputs_are_named(tmp_path):
+    with pytest.raises(ValueError, match="unknown Scenario field"):
+        Scenario.from_dict({"payloda": 9000})
+    with pytest.raises(ValueError, match="braking must be one of"):
+        Scenario(braking="air")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        Scenario.parse("{payload: 9000")
+    with pytest.raises(ValueError, match="no file"):
+        Scenario.parse(str(tmp_path / "missing.json"))
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"dump_height": 4.0}))
+    assert Scenario.parse(str(f)).dump_height == 4.0
+
+
+# ---------------------------------------------------------------------------------------------- suites
+def test_suite_files_are_their_definitions_and_load():
+    for name, data in suite_files().items():
+        assert json.loads((wl_env.suites.FOLDER / f"{name}.json").read_text()) == data, name
+        assert load_suite(name).version >= 1
+    test = load_suite("test")
+    for b in ("service", "tc"):
+        assert len(test.of(b)) >= 50
+    assert [s.replace(braking="tc") for s in test.of("service")] == list(test.of("tc"))
+    assert load_suite("nominal").of("tc") == (Scenario.nominal("tc"),)
+    corners = load_suite("corners").of("service")
+    for name, spec in FIELDS.items():
+        assert {getattr(s, name) for s in corners} >= {spec.lo, spec.hi}
+    with pytest.raises(ValueError, match="unknown suite"):
+        load_suite("nope")
+    assert set(SUITES) == {"nominal", "train", "test", "corners"}
+
+
+def test_train_draws_are_seeded_and_disjoint_from_test():
+    a = [draw(stream(TRAIN_STREAM, seed), "service") for seed in range(3)]
+    assert a == [draw(stream(TRAIN_STREAM, seed), "service") for seed in range(3)]  # same seed, same draw
+    test = {s.replace(braking="service") for s in load_suite("test").of("service")}
+    train = {load_suite("train").sample(stream(TRAIN_STREAM, seed), "service") for seed in range(2000)}
+    assert not (train & test)
+    first_test = draw(stream(TEST_STREAM), "service")  # the test stream reproduces the committed list
+    assert first_test == load_suite("test").of("service")[0]
+
+
+# ---------------------------------------------------------------------------------------------- environment
+def _rollout(env, seed=0, options=None):
+    obs, info = env.reset(seed=seed, options=options)
+    out = [obs]
+    for a in ACTIONS:
+        obs, r, term, trunc, info = env.step(a)
+        out.append(np.append(obs, r))
+        if term or trunc:
+            break
+    return np.array([o[:12] for o in out[1:]]), np.array([o[-1] for o in out[1:]]), info
+
+
+def test_v2_under_the_nominal_scenario_runs_v1s_numbers():
+    o1, r1, i1 = _rollout(gym.make("WheelLoader-v1"))
+    o2, r2, i2 = _rollout(gym.make("WheelLoader-v2", scenario=Scenario.nominal()))
+    assert np.array_equal(o1, o2) and np.array_equal(r1, r2)
+    assert i1["fuel_g"] == i2["fuel_g"] and i2["scenario"] == Scenario.nominal()
+
+
+def test_the_scenario_is_observed_and_changes_the_cycle():
+    s = Scenario(payload=13000.0, reverse_distance=4.0, forward_distance=9.0, dump_height=3.6,
+                 start_engine_speed=900.0, start_bucket_height=1.1)
+    env = gym.make("WheelLoader-v2", scenario=s)
+    obs, info = env.reset(seed=0)
+    assert info["scenario"] == s and obs.shape == (19,)
+    assert np.allclose(obs[12:], s.features(), atol=1e-6)
+    assert Codec(s.params(), observe_scenario=True).decode_scenario(obs, "service").payload == pytest.approx(13000, abs=0.01)
+    o = env.unwrapped.codec.decode_observation(obs)
+    assert o.engine_speed == pytest.approx(900 * math.pi / 30, rel=1e-6) and o.bucket_height == pytest.approx(1.1, rel=1e-6)
+    assert o.distance_to_go == pytest.approx(4.0, rel=1e-6)
+    with pytest.raises(ValueError, match="only the option 'scenario'"):
+        env.reset(options={"speed": 1})
+    _, info = env.reset(options={"scenario": {"payload": 7000}})
+    assert info["scenario"].payload == 7000.0 and env.unwrapped.params.M_load == 7000.0
+    with pytest.raises(ValueError, match="contradicts"):
+        gym.make("WheelLoader-v2", scenario=s, braking="tc")
+
+
+def test_a_suite_env_draws_per_reset_deterministically():
+    env = gym.make("WheelLoader-v2", scenario="train")
+    first = [env.reset(seed=5)[1]["scenario"] for _ in range(2)]
+    again = gym.make("WheelLoader-v2", scenario="train")
+    assert [again.reset(seed=5)[1]["scenario"] for _ in range(2)] == first
+    draws = {env.reset()[1]["scenario"] for _ in range(5)}
+    assert len(draws) == 5
+
+
+def test_the_vector_env_draws_a_scenario_per_loader_and_matches_single_envs():
+    n = 3
+    vec = gym.make_vec("WheelLoader-v2", num_envs=n, vectorization_mode="vector_entry_point", scenario="train")
+    obs, _ = vec.reset(seed=11)
+    singles = [gym.make("WheelLoader-v2", scenario="train") for _ in range(n)]
+    sobs = [e.reset(seed=11 + i)[0] for i, e in enumerate(singles)]
+    assert np.allclose(obs, np.array(sobs), atol=1e-7)
+    assert len({tuple(o[12:]) for o in obs}) == n  # each loader its own scenario
+    for a in ACTIONS[:40]:
+        obs, rew, term, trunc, _ = vec.step(np.tile(a, (n, 1)))
+        res = [e.step(a) for e in singles]
+        assert np.allclose(obs, np.array([r[0] for r in res]), atol=1e-6)
+        assert np.allclose(rew, [r[1] for r in res], atol=1e-9)
+        if term.any() or trunc.any():
+            break
