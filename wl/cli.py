@@ -335,7 +335,9 @@ def _suite_cmd(args: argparse.Namespace) -> int:
     print(f"suite {r.suite}: {len(r.entries)} scenarios, {r.solved} solved now in {r.wall_time:.0f} s"
           + (f" (per scenario and braking alternative: median {statistics.median(per):.1f} s)" if per else "")
           + f" -> {r.file}")
-    return 0
+    for key, why in r.failed.items():
+        print(f"  no optimum for {key}: {why}")
+    return 1 if r.failed else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -155,6 +155,7 @@ class OCPResult:
 
 # ----------------------------------------------------------------------------------------------------
 _NLP_CACHE: dict[tuple, dict[str, Any]] = {}
+NLP_CACHE_SIZE = 12  # built NLPs kept per process (a suite's meshes: pareto.MESH_LADDER), 50-200 MB each
 
 
 class CycleOCP:
@@ -171,7 +172,10 @@ class CycleOCP:
         self.specs = cycle.phase_specs(self.braking, self.params)
         key = (self.braking, machine_key(self.params), replace(self.settings, smoothing=(0.0,)))  # (k: a parameter)
         if key not in _NLP_CACHE:
+            if len(_NLP_CACHE) >= NLP_CACHE_SIZE:  # the least recently used goes (each holds ~50-100 MB)
+                del _NLP_CACHE[next(iter(_NLP_CACHE))]
             _NLP_CACHE[key] = self._build()
+        _NLP_CACHE[key] = _NLP_CACHE.pop(key)  # (most recently used last)
         self.__dict__.update(_NLP_CACHE[key])
         p = self.params
         self._lbw, self._ubw = (np.concatenate([np.broadcast_to(b(p) if callable(b) else b, (n,)) for n, b in self._w_bounds[i]])
@@ -531,17 +535,10 @@ def template_guess(params: LoaderParams, leg_time: float, accel_fraction: float,
     return {"t": t, "states": np.column_stack([omega, V, H, V_b]), "position": s, "controls": controls, "phase": phase}
 
 
-_OCP_CACHE: dict[tuple, CycleOCP] = {}
-
-
 def get_ocp(braking: str, params: LoaderParams | dict | None = None, settings: OCPSettings | None = None) -> CycleOCP:
-    """The built NLP for these inputs, cached for the process (building takes about a second)."""
-    p = resolve(params)
-    settings = settings or OCPSettings()
-    key = (braking, p.fingerprint(), settings)
-    if key not in _OCP_CACHE:
-        _OCP_CACHE[key] = CycleOCP(braking, p, settings)
-    return _OCP_CACHE[key]
+    """The NLP for these inputs with the scenario's bounds (the NLP itself is built once per machine and mesh
+    and kept for the process, :data:`NLP_CACHE_SIZE`; building takes seconds)."""
+    return CycleOCP(braking, resolve(params), settings or OCPSettings())
 
 
 DEFAULT_STARTS = ((5.0, 0.7), (6.0, 0.75), (4.6, 0.6), (8.0, 0.8))  # (leg time s, accel fraction)

@@ -403,17 +403,18 @@ def pareto_front(
             cached = cached_result(path, fingerprint, kwargs["objective"])
             if cached is not None:
                 return cached
-        result = solve_ocp(braking, params=p, **kwargs)  # an interrupt raises KeyboardInterrupt: nothing is saved
+        # One refinement at most: a point that still fails its re-simulation is left out of the front (its
+        # neighbours span it), not refined on into NLPs of hundreds of intervals per phase.
+        result = solve_ocp(braking, params=p, max_refinements=1, **kwargs)  # an interrupt: KeyboardInterrupt, nothing saved
         save_result(result, path)
         return result
 
-    # From a neighbouring scenario's optimum, which is smooth already, the smoothing homotopy of eq. (33) is
-    # left out (one solve instead of two).
-    guided = OCPSettings(smoothing=(0.0,))
-
     def end(name: str, objective: str) -> OCPResult:
-        """The minimum-time or -fuel cycle: from the neighbour's if there is one (else the templates)."""
+        """The minimum-time or -fuel cycle: from the neighbour's if there is one (else the templates). From a
+        neighbouring scenario's optimum, which is smooth already, the smoothing homotopy of eq. (33) is left
+        out (one solve instead of two), on a mesh sized for the neighbour's phase durations."""
         if name in guide:
+            guided = OCPSettings(intervals=point_mesh(guide[name].phase_durations, max_interval), smoothing=(0.0,))
             try:
                 return cached_solve(name, objective=objective, warm_start=guide[name], starts=(), settings=guided)
             except OCPError:
@@ -438,6 +439,8 @@ def pareto_front(
 
     guides = [guide.get(f"point_{i}") for i in range(n_points)]
     points: list[OCPResult] = []
+    failed: list[dict[str, Any]] = []  # points no start solved
+    index: list[int] = []  # each solved point's number
     meshes: list[list[int]] = []
     previous = r_time
     for i, T in enumerate(times[:-1]):
@@ -453,20 +456,35 @@ def pareto_front(
             r = cached_solve(f"point_{i}", objective="fuel_at_time", T=float(T), warm_start=warm,
                              settings=settings if guides[i] is None else replace(settings, smoothing=(0.0,)),
                              starts=() if guides[i] is not None else templates)
-        except OCPError:  # continuation lost the way: start afresh from the templates
-            r = cached_solve(f"point_{i}", objective="fuel_at_time", T=float(T), settings=settings,
-                             starts=tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS))
+        except OCPError:
+            r = None
+        # Continuation lost the way: start afresh from the templates; then from the minimum-time cycle on its
+        # own mesh (just above T_min another mesh's discretization can make the cycle time infeasible).
+        retries = ((settings, None, tuple((T / 2.0, a) for a in SWEEP_ACCEL_FRACTIONS)),
+                   (OCPSettings(intervals=tuple(r_time.mesh)), r_time, ()))
+        for st, ws, starts in retries if r is None else ():
+            try:
+                r = cached_solve(f"point_{i}", objective="fuel_at_time", T=float(T), settings=st, warm_start=ws,
+                                 starts=starts)
+                break
+            except OCPError as exc:
+                failure = exc
+        if r is None:
+            log.warning(f"[{braking}] no optimum at T = {T:.3f} s ({failure}): the point is left out of the front")
+            failed.append({"T": float(T), "fuel_g": None, "verified": False, "status": str(failure)})
+            continue
         points.append(r)
+        index.append(i)
         previous = r
     points.append(r_fuel)
     # Continuation back from the fuel-optimal end: a forward chain that took a worse basin near T_min
     # carries it along; the neighbour on the long side may lead into a better one. (Warm-started from a
     # neighbouring scenario, each point already had its own guide: the pass is left out.)
     for i in range(len(points) - 2, 0, -1) if not guide else ():
-        T = float(times[i])
-        say(f"[{braking}] point {i + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
+        T, k = float(points[i].T), index[i]
+        say(f"[{braking}] point {k + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
         try:
-            alt = cached_solve(f"point_{i}_back", objective="fuel_at_time", T=T, settings=mesh_at(i),
+            alt = cached_solve(f"point_{k}_back", objective="fuel_at_time", T=T, settings=mesh_at(k),
                                warm_start=points[i + 1], starts=())
         except OCPError:  # the forward point stands
             continue
@@ -489,7 +507,7 @@ def pareto_front(
         points=[{"T": r.T, "fuel_g": r.fuel_g, "mesh": r.mesh, "verified": bool(r.verification.get("passed")),
                  "final_position_error_m": r.verification.get("final_position_error_m"),
                  "final_height_error_m": r.verification.get("final_height_error_m"),
-                 "max_violation": r.verification.get("max_violation")} for r in points],
+                 "max_violation": r.verification.get("max_violation")} for r in points] + failed,
         machine=machine_key(p), scenario_fields=scenario_fields(p),
         warm_started_from=near.name if guide else None, scenario=scenario_of(p, braking),
     )

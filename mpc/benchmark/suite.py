@@ -32,6 +32,7 @@ from wl_env.suites import load_suite
 log = logging.getLogger(__name__)
 
 CHECK_TOL = {"T_min": 1e-3, "fuel": 3e-3}  # --check: relative agreement of a fresh solve with the shipped optimum
+JOB = f"{__name__}:solve_one"  # the per-scenario solve (module:function, so that a worker or a Ray task imports it)
 
 
 @dataclass
@@ -42,6 +43,7 @@ class SuiteSolve:
     entries: dict[str, dict[str, Any]]
     solved: int  # solved now (the rest came from earlier runs)
     wall_time: float
+    failed: dict[str, str] = field(default_factory=dict)  # scenario key -> the solver's message
     per_scenario_s: list[float] = field(default_factory=list)  # each solved front's own wall time
     file: Path | None = None
 
@@ -83,15 +85,30 @@ def solve_one(scenario: Scenario, cache: str | os.PathLike | None, n_points: int
     return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": time.perf_counter() - t0}
 
 
-def _solve_chain(scenarios: list[dict[str, Any]], folder: str, cache: str | None, n_points: int) -> list[str]:
-    """A worker's chain: each scenario solved in turn and written to ``folder`` at once (atomically)."""
-    done = []
+def _job(job: str) -> Any:
+    import pkgutil
+
+    return pkgutil.resolve_name(job)
+
+
+def _solve_chain(scenarios: list[dict[str, Any]], folder: str, cache: str | None, n_points: int,
+                 job: str = JOB) -> dict[str, str]:
+    """A worker's chain: each scenario solved in turn and written to ``folder`` at once (atomically). Returns
+    the scenarios no solve could do, with the solver's message (the chain goes on without them)."""
+    from mpc.benchmark.ocp import OCPError
+
+    failed = {}
+    solve = _job(job)
     for d in scenarios:
         s = Scenario.from_dict(d)
-        e = solve_one(s, cache, n_points)
+        try:
+            e = solve(s, cache, n_points)
+        except OCPError as exc:
+            log.warning(f"{s.label()}: no front ({exc})")
+            failed[entry_key(s)] = str(exc)
+            continue
         store.write_entry(Path(folder) / f"{entry_key(s)}.json", FRONT_KIND, e, check_entry)
-        done.append(entry_key(s))
-    return done
+    return failed
 
 
 def _split(chains: dict[str, list[Scenario]], parts: int) -> list[list[Scenario]]:
@@ -109,9 +126,11 @@ def _split(chains: dict[str, list[Scenario]], parts: int) -> list[list[Scenario]
 
 def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | os.PathLike | None = None,
                 workers: int | None = None, ray_address: str | None = None, n_points: int = N_POINTS,
-                limit: int | None = None, ray_chunk: int = 4) -> SuiteSolve:
+                limit: int | None = None, ray_chunk: int = 4, job: str = JOB) -> SuiteSolve:
     """Solve (or resume) every scenario of a list suite and assemble its file (``out``, default
-    ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain."""
+    ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain.
+    ``job``: the per-scenario solve as ``module:function(scenario, cache, n_points) -> entry`` (default
+    :func:`solve_one`)."""
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
@@ -126,21 +145,23 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     n_todo = sum(map(len, todo.values()))
     log.info(f"suite {suite}: {len(wanted)} scenarios, {len(have)} already solved, {n_todo} to solve in {folder}")
     t0 = time.perf_counter()
+    failed: dict[str, str] = {}
     if todo and ray_address is not None:
-        _run_on_ray(todo, folder, cache, n_points, ray_address, ray_chunk)
+        failed = _run_on_ray(todo, folder, cache, n_points, ray_address, ray_chunk, job)
     elif todo:
         pieces = _split(todo, workers or os.cpu_count() or 1)
-        args = (None if cache is None else str(cache), n_points)
+        args = (None if cache is None else str(cache), n_points, job)
         if len(pieces) == 1:
-            _solve_chain([sc.to_dict() for sc in pieces[0]], str(folder), *args)
+            failed = _solve_chain([sc.to_dict() for sc in pieces[0]], str(folder), *args)
         else:
             from mpc.workers import run_in_workers
 
-            run_in_workers({f"chain{i}": (f"{__name__}:_solve_chain", ([sc.to_dict() for sc in p], str(folder), *args))
-                            for i, p in enumerate(pieces)})
+            done = run_in_workers({f"chain{i}": (f"{__name__}:_solve_chain", ([sc.to_dict() for sc in p], str(folder),
+                                                                               *args)) for i, p in enumerate(pieces)})
+            failed = {k: v for f in done.values() for k, v in f.items()}
     wall = time.perf_counter() - t0
     entries = {entry_key(sc): store.read_entry(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry)
-               for sc in wanted}
+               for sc in wanted if entry_key(sc) not in failed}
     for e in entries.values():
         for k in ("schema", "checksum"):
             e.pop(k, None)
@@ -149,12 +170,14 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     path = Path(out) if out is not None else cache_dir(cache) / "suites" / f"{suite}.json"
     store.write_entry(path, SUITE_KIND, data, check_suite_file)
     solved_now = [e["solve_s"] for k, e in entries.items() if k not in have]
-    return SuiteSolve(suite=suite, entries=entries, solved=n_todo, wall_time=wall, per_scenario_s=solved_now, file=path)
+    return SuiteSolve(suite=suite, entries=entries, solved=n_todo - len(failed), wall_time=wall,
+                      per_scenario_s=solved_now, file=path, failed=failed)
 
 
 def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.PathLike | None, n_points: int,
-                address: str, chunk: int) -> None:
-    """The chains as Ray tasks of ``chunk`` scenarios each; the driver writes each task's entries as it ends."""
+                address: str, chunk: int, job: str = JOB) -> dict[str, str]:
+    """The chains as Ray tasks of ``chunk`` scenarios each; the driver writes each task's entries as it ends.
+    Returns the scenarios no solve could do."""
     try:
         import ray
     except ImportError:
@@ -166,12 +189,17 @@ def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.P
     try:
         task = ray.remote(_ray_chain)
         pieces = [chain[i:i + chunk] for chain in todo.values() for i in range(0, len(chain), chunk)]
-        pending = [task.remote([sc.to_dict() for sc in p], None if cache is None else str(cache), n_points)
+        pending = [task.remote([sc.to_dict() for sc in p], None if cache is None else str(cache), n_points, job)
                    for p in pieces]
+        failed: dict[str, str] = {}
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             for key, e in ray.get(ready[0]):
-                store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+                if isinstance(e, str):
+                    failed[key] = e
+                else:
+                    store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+        return failed
     except KeyboardInterrupt:
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -181,13 +209,20 @@ def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.P
             ray.shutdown()
 
 
-def _ray_chain(scenarios: list[dict[str, Any]], cache: str | None, n_points: int) -> list[tuple[str, dict[str, Any]]]:
+def _ray_chain(scenarios: list[dict[str, Any]], cache: str | None, n_points: int,
+               job: str = JOB) -> list[tuple[str, dict[str, Any]]]:
     """A Ray task: a chain solved in the given cache (a shared folder) or a private temporary one."""
+    from mpc.benchmark.ocp import OCPError
+
+    solve = _job(job)
     with tempfile.TemporaryDirectory(prefix="wl-ray-") as tmp:
-        out = []
+        out: list[tuple[str, Any]] = []
         for d in scenarios:
             s = Scenario.from_dict(d)
-            out.append((entry_key(s), solve_one(s, cache or tmp, n_points)))
+            try:
+                out.append((entry_key(s), solve(s, cache or tmp, n_points)))
+            except OCPError as exc:  # (a str: the solver's message)
+                out.append((entry_key(s), str(exc)))
         return out
 
 
