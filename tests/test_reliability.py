@@ -190,6 +190,26 @@ def test_wl_pareto_interrupted_stops_its_workers(tmp_path, group):
     _cache_is_clean(cache)
 
 
+@needs_proc
+def test_wl_suite_solve_interrupted_stops_its_workers_and_assembles_nothing(tmp_path):
+    """``wl suite solve``: Ctrl-C ends the parent and its workers within seconds, exit 130; no suite file,
+    nothing interrupted cached, and a rerun resumes (the entries solved before stay valid)."""
+    cache = tmp_path / "cache"
+    proc = _wl(["suite", "solve", "--suite", "nominal", "--cache", str(cache)], cache)
+    _read_until(proc, "to solve in")
+    time.sleep(2.0)
+    workers = _workers(proc.pid)
+    code, latency, err = _interrupt(proc, group=True)
+    assert code == 130, err
+    assert latency < 3.0, latency
+    deadline = time.monotonic() + 3.0
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(_alive, workers))
+    assert not (cache / "suites" / "nominal.json").exists()
+    _cache_is_clean(cache / "pareto")
+
+
 def test_wl_mpc_interrupted_exits_130_without_a_result(tmp_path):
     """An interrupt inside one of the MPC's IPOPT solves ends the run (it was a failed plan: exit 2, or a
     fallback step)."""

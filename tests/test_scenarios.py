@@ -170,3 +170,18 @@ def test_the_vector_env_draws_a_scenario_per_loader_and_matches_single_envs():
         assert np.allclose(rew, [r[1] for r in res], atol=1e-9)
         if term.any() or trunc.any():
             break
+
+
+# ---------------------------------------------------------------------------------------------- controllers
+def test_the_operator_and_the_mpc_drive_the_scenarios_cycle():
+    """Told the episode's scenario, both stop on its own marks (5 m legs, a 4 m truck, 12 t): the operator
+    once assumed 6.6 m and missed the reversing point by 12-24 cm."""
+    from agents.evaluate import evaluate_controller, load_controller
+
+    s = Scenario(payload=12000.0, reverse_distance=5.0, forward_distance=5.0, dump_height=4.0, braking="service")
+    for name in ("operator", "mpc"):
+        ev = evaluate_controller(load_controller(name, "service"), scenarios=[s], score=False)
+        e = ev["per_episode"][0]
+        assert e["scenario"] == s.to_dict()
+        assert e["success"] and abs(e["reversing_error_m"]) <= 0.05 and abs(e["final_height_error_m"]) <= 0.02, name
+        assert e["max_violation"] == 0.0, name

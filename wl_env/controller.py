@@ -1,9 +1,12 @@
 """The controller protocol: what :func:`wl_env.rollout.run_episode` and ``wl evaluate`` drive the loader with.
 
-A controller sees the environment's normalized observation (shape (12,), see
-:class:`wl_env.env.WheelLoaderEnv`) and returns the normalized action (shape (4,): fuel injection,
-bucket acceleration, service brake, shift request, each in [-1, 1]). ``reset()`` is called before each
-episode, so a controller with memory (a plan, an estimator) starts every cycle afresh.
+A controller sees the environment's normalized observation (shape (19,) in ``WheelLoader-v2``, the
+scenario included; (12,) in v1; see :class:`wl_env.env.WheelLoaderEnv`) and returns the normalized action
+(shape (4,): fuel injection, bucket acceleration, service brake, shift request, each in [-1, 1]).
+``reset()`` is called before each episode, so a controller with memory (a plan, an estimator) starts every
+cycle afresh; one whose ``reset`` takes ``scenario=`` is told the episode's :class:`wl_env.scenario.Scenario`
+when an evaluation runs a suite or a scenario. An ``env_id`` attribute names the env it acts in (default
+``WheelLoader-v2``).
 """
 
 from __future__ import annotations
@@ -22,5 +25,5 @@ class Controller(Protocol):
         ...
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        """The action, shape (4,) in [-1, 1], for the observation ``obs``, shape (12,)."""
+        """The action, shape (4,) in [-1, 1], for the observation ``obs``."""
         ...

@@ -456,13 +456,14 @@ class ClosedLoopResult:
     solve_time: dict[str, float]  # MPCController.stats()
     solve_times_s: list[float]
     plant_params: dict[str, Any] | None  # the simulated machine where it differs from the model
+    scenario: dict[str, Any] | None = None  # the plant's cycle (wl_env.scenario.Scenario; None: outside its ranges)
 
     def to_dict(self) -> dict[str, Any]:
         """As written to JSON: the episode's fields at the top level (with its trajectory's t, states,
         controls and phase), beside the controller's."""
         ep = self.episode.to_dict(trajectory=False)
         traj = asdict(self.episode.trajectory) if self.episode.trajectory is not None else {}
-        return {"controller": "mpc", "braking": self.braking, "mode": self.config.mode,
+        return {"controller": "mpc", "braking": self.braking, "mode": self.config.mode, "scenario": self.scenario,
                 "target_time": self.config.target_time, **ep, **traj,
                 "score": self.score.to_dict() if self.score is not None else None,
                 "solve_time": self.solve_time, "solve_times_s": self.solve_times_s, "plant_params": self.plant_params}
@@ -509,5 +510,8 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         from mpc.benchmark.scoring import score_run
 
         s = score_run(ep.T, ep.fuel_g, braking, params=plant, cache=cache)
+    from mpc.benchmark.ocp import scenario_of
+
     return ClosedLoopResult(braking=braking, config=config, episode=ep, score=s, solve_time=ctrl.stats(),
-                            solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None)
+                            solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None,
+                            scenario=scenario_of(plant, braking))

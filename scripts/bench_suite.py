@@ -1,0 +1,75 @@
+"""Benchmark: a scenario's Pareto fronts (both braking alternatives) and a suite's solve, local and on Ray.
+
+    python scripts/bench_suite.py --scenarios 6 --points 10 --out results/bench_suite.json
+
+Each run solves in a fresh cache: first the nominal cycle (the chain's start, not timed), then the first
+``--scenarios`` scenarios of each braking alternative's chain of the ``test`` suite (`wl suite solve`),
+with two local processes (one per braking alternative): ``chain``, each warm-started from the nearest
+one solved before; ``cold``, each from the templates alone (no neighbour); ``ray``, the chain on a local
+Ray instance. Per scenario: its front's own wall time per braking alternative (median, max), and the
+suite's wall time per scenario (both alternatives in parallel).
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass
+
+import tyro
+
+from mpc.benchmark.suite import solve_suite
+from wl_env.atomic_io import write_json_atomic
+from wl_env.logs import cli_logging
+
+log = logging.getLogger("bench_suite")
+
+
+@dataclass
+class Options:
+    scenarios: int = 6  # scenarios per braking alternative
+    points: int = 10  # points per front
+    modes: tuple[str, ...] = ("chain", "cold", "ray")  # which solves to time
+    out: str = "results/bench_suite.json"
+
+
+def solve_cold(scenario, cache, n_points):
+    """A suite job: the scenario's front from the templates alone, warm-started from no neighbour."""
+    from mpc.benchmark.pareto import pareto_front
+
+    t0 = time.perf_counter()
+    front = pareto_front(scenario=scenario, n_points=n_points, cache=cache, progress=log.debug, neighbour=False)
+    return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": time.perf_counter() - t0}
+
+
+def timed_suite(n: int, points: int, mode: str) -> dict[str, float]:
+    ray = "local" if mode == "ray" else None
+    job = "bench_suite:solve_cold" if mode == "cold" else "mpc.benchmark.suite:solve_one"
+    with tempfile.TemporaryDirectory(prefix="wl-bench-") as cache:
+        solve_suite("nominal", cache=cache, n_points=points, ray_address=ray, job=job)  # the chain's start (untimed)
+        t0 = time.perf_counter()
+        r = solve_suite("test", cache=cache, n_points=points, limit=n, ray_address=ray, job=job)
+        wall = time.perf_counter() - t0
+    per = r.per_scenario_s
+    return {"scenarios": n, "wall_s": wall, "wall_per_scenario_s": wall / n, "front_median_s": statistics.median(per),
+            "front_max_s": max(per), "failed": len(r.failed)}
+
+
+def main(o: Options) -> dict[str, dict[str, float]]:
+    out = {}
+    for mode in o.modes:
+        out[mode] = timed_suite(o.scenarios, o.points, mode)
+        log.info(f"{mode}: {out[mode]}")
+    for name, r in out.items():
+        print(f"{name:6s} {r['scenarios']} scenarios x 2 brakings, {o.points} points: {r['wall_s']:.0f} s, "
+              f"{r['wall_per_scenario_s']:.1f} s per scenario (both alternatives); one front median "
+              f"{r['front_median_s']:.1f} s, max {r['front_max_s']:.1f} s; {r['failed']} failed")
+    write_json_atomic(o.out, {"options": o.__dict__, **out})
+    return out
+
+
+if __name__ == "__main__":
+    with cli_logging():
+        main(tyro.cli(Options))
