@@ -155,7 +155,9 @@ class OCPResult:
 
 # ----------------------------------------------------------------------------------------------------
 _NLP_CACHE: dict[tuple, dict[str, Any]] = {}
-NLP_CACHE_SIZE = 12  # built NLPs kept per process (a suite's meshes: pareto.MESH_LADDER), 50-200 MB each
+# Built NLPs kept per process (a suite's points take dozens of meshes, pareto.MESH_LADDER; 50-200 MB each,
+# 1-5 s to build): $WL_NLP_CACHE_SIZE, for a long suite solve on a machine with the memory.
+NLP_CACHE_SIZE = int(os.environ.get("WL_NLP_CACHE_SIZE", "12"))
 
 
 class CycleOCP:
