@@ -371,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pareto", help="the fuel-time Pareto front (cached)")
     p.add_argument("--braking", choices=["service", "tc", "both"], help="default: both")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
-    p.add_argument("--points", type=_int_in(3, 100), default=10, help="cycle times on the front, 3..100 (default 10)")
+    p.add_argument("--points", type=_int_in(3, 100), default=11, help="cycle times on the front, 3..100 (default 11)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
     p.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
     p.add_argument("--no-cache", action="store_true", help="solve again even if cached")

@@ -134,7 +134,7 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
-    folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_{CACHE_VERSION}"
+    folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
     folder.mkdir(parents=True, exist_ok=True)
     chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
     wanted = [sc for chain in chains.values() for sc in chain]
