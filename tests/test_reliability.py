@@ -168,6 +168,17 @@ def test_wl_ocp_interrupted_exits_130_and_writes_nothing(tmp_path):
     assert hit_ipopt, "no attempt interrupted IPOPT itself"
 
 
+def _interrupt_stops_all(proc: subprocess.Popen, workers: list[int], group: bool) -> None:
+    """SIGINT ends ``proc`` with exit 130 within 3 s, and its workers within 3 s more."""
+    code, latency, err = _interrupt(proc, group=group)
+    assert code == 130, err
+    assert latency < 3.0, latency
+    deadline = time.monotonic() + 3.0
+    while any(map(_alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(_alive, workers))
+
+
 @needs_proc
 @pytest.mark.parametrize("group", [False, True], ids=["kill-INT-parent", "ctrl-C-group"])
 def test_wl_pareto_interrupted_stops_its_workers(tmp_path, group):
@@ -179,13 +190,7 @@ def test_wl_pareto_interrupted_stops_its_workers(tmp_path, group):
     workers = _workers(proc.pid)
     assert len(workers) == 2, workers
     time.sleep(1.5)
-    code, latency, err = _interrupt(proc, group=group)
-    assert code == 130, err
-    assert latency < 3.0, latency
-    deadline = time.monotonic() + 3.0
-    while any(map(_alive, workers)) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not any(map(_alive, workers))
+    _interrupt_stops_all(proc, workers, group)
     assert not list(out.glob("pareto_*.json"))
     _cache_is_clean(cache)
 
@@ -198,14 +203,7 @@ def test_wl_suite_solve_interrupted_stops_its_workers_and_assembles_nothing(tmp_
     proc = _wl(["suite", "solve", "--suite", "nominal", "--cache", str(cache)], cache)
     _read_until(proc, "to solve in")
     time.sleep(2.0)
-    workers = _workers(proc.pid)
-    code, latency, err = _interrupt(proc, group=True)
-    assert code == 130, err
-    assert latency < 3.0, latency
-    deadline = time.monotonic() + 3.0
-    while any(map(_alive, workers)) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not any(map(_alive, workers))
+    _interrupt_stops_all(proc, _workers(proc.pid), group=True)
     assert not (cache / "suites" / "nominal.json").exists()
     _cache_is_clean(cache / "pareto")
 
