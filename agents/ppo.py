@@ -62,8 +62,8 @@ from agents.policy_files import (
 from agents.ppo_config import PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
-from wl_env.codec import N_OBS, N_SCENARIO_OBS
 from wl_env.atomic_io import write_atomic
+from wl_env.codec import N_OBS, N_SCENARIO_OBS
 
 log = logging.getLogger(__name__)
 

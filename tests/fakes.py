@@ -36,5 +36,5 @@ def fake_front_job(scenario, cache, n_points):
     T_min = 4.0 + 0.5 * (p.reverse_distance + p.forward_distance)
     T = [T_min * 1.001, T_min * 1.2, T_min * 2.5]
     front = ParetoFront(scenario.braking, T, [90.0, 60.0, 45.0], p.fingerprint(), T_min, T[-1], 45.0, [20, 12, 20, 12],
-                        points=[{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, [90.0, 60.0, 45.0])])
+                        points=[{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, [90.0, 60.0, 45.0], strict=True)])
     return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": 0.0, "pid": os.getpid()}

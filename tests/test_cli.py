@@ -79,9 +79,10 @@ def _check_scores(episodes: list[dict], braking: str) -> None:
 @pytest.fixture(autouse=True)
 def fake_direct_solves(monkeypatch):
     """A perturbed start's own optimum is solved directly: by the fake solver here (seconds saved per episode)."""
+    from fakes import fake_solve
+
     import mpc.benchmark.optima
     import mpc.benchmark.reference
-    from fakes import fake_solve
 
     for module in (mpc.benchmark.reference, mpc.benchmark.optima):
         monkeypatch.setattr(module, "solve_ocp", fake_solve)
@@ -571,8 +572,9 @@ def test_fuzz_numeric_options_are_accepted_finite_or_rejected_in_one_line(tmp_pa
 def test_suite_solve_writes_each_scenario_resumes_and_assembles(tmp_path, capsys, monkeypatch):
     """`wl suite solve` (solver faked): one checked file per scenario, a rerun solves nothing, a lost entry
     is rebuilt from its cached points (nothing solved twice), and the suite's file holds every entry."""
-    import mpc.benchmark.pareto as pareto
     from fakes import fake_solve
+
+    import mpc.benchmark.pareto as pareto
 
     fake_solve.calls = []
     monkeypatch.setattr(pareto, "solve_ocp", fake_solve)

@@ -10,7 +10,6 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
-from wl_env.codec import Codec
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
 from wl_env.scenario import Scenario, resolve_scenario

@@ -158,6 +158,12 @@ def feature(name: str, value: Any) -> Any:
     return (value - 0.5 * (s.lo + s.hi)) / (0.5 * (s.hi - s.lo))
 
 
+def param_distance(a: dict[str, float], b: dict[str, float]) -> float:
+    """How far two cycles lie apart: their scenario fields (by LoaderParams name, e.g. ``M_load``), each
+    over its range's width, squared and summed."""
+    return math.fsum(((a[s.param] - b[s.param]) / ((s.hi - s.lo) * s.to_param)) ** 2 for s in FIELDS.values())
+
+
 def param_features(params: Any) -> tuple[Any, ...]:
     """The scenario features of a parameter set (LoaderParams or a batch :class:`~wl_env.params.ParamsView`)."""
     return tuple(feature(name, getattr(params, s.param) / s.to_param) for name, s in FIELDS.items())

@@ -196,9 +196,9 @@ def polish_front(braking: str, alt: FrontOptima, params: LoaderParams,
 
 
 def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str | os.PathLike | None,
-                       front: ParetoFront, points: Sequence[OCPResult]) -> OCPResult:
-    """Minimum fuel at the cycle time T (cached) on the front's mesh: warm starts from the two of the
-    front's ``points`` around T and the template multi-start, the leanest kept. OCPError if all fail."""
+                       mesh: Sequence[int] | None, points: Sequence[OCPResult]) -> OCPResult:
+    """Minimum fuel at the cycle time T (cached) on ``mesh`` (a front's; None: the default): warm starts
+    from the two of ``points`` around T and the template multi-start, the leanest kept. OCPError if all fail."""
     path = optima_folder(braking, params, cache) / f"fuel_at_T{T:.4f}.json"
     cached = _cached(path, T)
     if cached is not None:
@@ -207,7 +207,7 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
     above = [r for r in points if r.T > T]
     neighbours = ([max(below, key=lambda r: r.T)] if below else []) + ([min(above, key=lambda r: r.T)] if above else [])
     log.info(f"[{braking}] minimum fuel at T = {T:g} s")
-    r = multistart_fixed_time(braking, T, params, _settings(front.mesh), neighbours)
+    r = multistart_fixed_time(braking, T, params, _settings(mesh) if mesh else OCPSettings(), neighbours)
     if r is None:
         raise OCPError(f"no optimum found for the {braking} cycle at T = {T:g} s")
     log.info(f"[{braking}] fuel at T = {T:g} s: {r.fuel_g:.3f} g"

@@ -40,6 +40,7 @@ from mpc.benchmark.ocp import (
 )
 from wl_env import cycle
 from wl_env.params import LoaderParams, resolve
+from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
 
@@ -322,15 +323,6 @@ def front_times(T_min: float, T_fuel_opt: float, n_points: int) -> np.ndarray:
     return T_min + np.concatenate([[u_first, u_near], np.linspace(u_second, u_end, n_points - 2)]) ** 2
 
 
-def _scenario_distance(a: dict[str, float], b: dict[str, float]) -> float:
-    """How far two scenarios lie apart: the scenario fields, each relative to its scale."""
-    return math.fsum(((a[k] - b[k]) / _FIELD_SCALE[k]) ** 2 for k in _FIELD_SCALE)
-
-
-_FIELD_SCALE = {"M_load": 7000.0, "c_r": 0.035, "H_T": 1.6, "H_0": 0.7, "omega_0": 125.0,
-                "reverse_distance": 6.0, "forward_distance": 6.0}  # (the scenario ranges' widths)
-
-
 def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.PathLike | None = None) -> Path | None:
     """The folder of the nearest front already solved for another scenario of the same machine and braking
     alternative (same number of points), or None."""
@@ -342,7 +334,7 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
         data = store.load_entry(f, FRONT_KIND, check_front)
         if data is None or data.get("machine") != machine or not data.get("scenario_fields"):
             continue
-        d = _scenario_distance(own, data["scenario_fields"])
+        d = param_distance(own, data["scenario_fields"])
         if 0.0 < d < best_d:
             best, best_d = f.parent, d
     return best

@@ -12,26 +12,25 @@ Where a reference comes from, first found first:
    the fuel at the cycle's own T from the nearest front's points around T and the templates, the best
    kept (:func:`mpc.benchmark.optima.multistart_fixed_time`). Cached under ``optima/``.
 
-A reference never lies above the front it was warm-started from: the direct fuel is the lower of the
-direct solve and the front's interpolation when the front belongs to the same cycle.
+A cycle with a known front is scored on that front only (never another cycle's: ``score_run`` refuses one).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 from mpc.benchmark import store
-from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp
+from mpc.benchmark.ocp import OCPError, OCPResult, solve_ocp
+from mpc.benchmark.optima import fixed_time_optimum, optima_folder
 from mpc.benchmark.pareto import (
     CACHE_VERSION,
     DEFAULT_POINTS,
     FRONT_KIND,
     ParetoFront,
-    cache_dir,
     cached_result,
     check_front,
     front_folder,
@@ -45,7 +44,6 @@ log = logging.getLogger(__name__)
 
 REFERENCE_DIR = Path(__file__).resolve().parent / "references"
 SUITE_KIND = "suite_references"  # a shipped suite file (mpc.benchmark.store entry)
-N_POINTS = DEFAULT_POINTS  # points per front in the shipped suites and the fronts the scoring solves
 
 
 def check_suite_file(d: dict[str, Any]) -> str | None:
@@ -66,7 +64,7 @@ def check_suite_file(d: dict[str, Any]) -> str | None:
     return None
 
 
-@lru_cache(maxsize=None)
+@cache
 def shipped_fronts() -> dict[str, ParetoFront]:
     """Every shipped front by ``<braking>_<params fingerprint>`` (the files are read, checked, once)."""
     fronts: dict[str, ParetoFront] = {}
@@ -81,7 +79,7 @@ def shipped_fronts() -> dict[str, ParetoFront]:
 
 
 def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None,
-                n_points: int = N_POINTS) -> tuple[ParetoFront, str] | None:
+                n_points: int = DEFAULT_POINTS) -> tuple[ParetoFront, str] | None:
     """(the front of this cycle, "shipped" or "cached") without solving anything, or None."""
     path = front_folder(cycle.check_braking(braking), n_points, params, cache) / "front.json"
     data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint())
@@ -91,13 +89,9 @@ def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | N
     return (shipped_fronts()[key], "shipped") if key in shipped_fronts() else None
 
 
-def _folder(braking: str, params: LoaderParams, cache: str | os.PathLike | None) -> Path:
-    return cache_dir(cache) / "optima" / f"{braking}_{params.fingerprint()}_{CACHE_VERSION}"
-
-
 def _guides(braking: str, params: LoaderParams, cache: str | os.PathLike | None) -> list[OCPResult]:
     """The nearest solved front's cycles (its minimum time, minimum fuel and points), to warm-start from."""
-    near = nearest_front(braking, N_POINTS, params, cache)
+    near = nearest_front(braking, DEFAULT_POINTS, params, cache)
     if near is None:
         return []
     return [r for f in sorted(near.glob("*.json")) if f.name != "front.json" for r in [cached_result(f)] if r is not None]
@@ -105,7 +99,7 @@ def _guides(braking: str, params: LoaderParams, cache: str | os.PathLike | None)
 
 def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
     """The cycle's minimum time, solved (cached): from the nearest front's minimum-time cycle and the templates."""
-    path = _folder(braking, params, cache) / "min_time.json"
+    path = optima_folder(braking, params, cache) / "min_time.json"
     r = cached_result(path, params.fingerprint(), "time")
     if r is not None:
         return r
@@ -118,24 +112,13 @@ def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike
 
 
 def direct_fuel_at(braking: str, T: float, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
-    """Minimum fuel at the cycle time T, solved (cached): the best of warm starts from the nearest front's two
-    points around T and the template multi-start, re-simulated."""
-    from mpc.benchmark.optima import multistart_fixed_time
-
-    path = _folder(braking, params, cache) / f"fuel_at_T{T:.4f}.json"
-    r = cached_result(path, params.fingerprint(), "fuel_at_time")
-    if r is not None and abs(r.T - T) <= 1e-6 * T:
-        return r
-    guides = sorted((g for g in _guides(braking, params, cache) if g.objective != "time"), key=lambda g: g.T)
-    below = [g for g in guides if g.T <= T][-1:]
-    above = [g for g in guides if g.T > T][:1]
-    mesh = max((g.mesh for g in guides), key=sum, default=None)
-    settings = OCPSettings(intervals=tuple(mesh)) if mesh else OCPSettings()
-    r = multistart_fixed_time(braking, T, params, settings, below + above)
-    if r is None or not r.success:
-        raise OCPError(f"no verified {braking} optimum at T = {T:.3f} s for this scenario"
-                       + ("" if r is None else f": {r.status}"))
-    save_result(r, path)
+    """Minimum fuel at the cycle time T, solved (cached): :func:`mpc.benchmark.optima.fixed_time_optimum`
+    from the nearest front's points around T (on its finest mesh) and the templates; OCPError unless it
+    re-simulates."""
+    guides = [g for g in _guides(braking, params, cache) if g.objective != "time"]
+    r = fixed_time_optimum(braking, T, params, cache, max((g.mesh for g in guides), key=sum, default=None), guides)
+    if not r.success:
+        raise OCPError(f"no verified {braking} optimum at T = {T:.3f} s for this scenario: {r.status}")
     return r
 
 

@@ -23,10 +23,19 @@ from pathlib import Path
 from typing import Any
 
 from mpc.benchmark import store
-from mpc.benchmark.pareto import CACHE_VERSION, FRONT_KIND, ParetoFront, cache_dir, check_front, pareto_front
-from mpc.benchmark.reference import N_POINTS, SUITE_KIND, check_suite_file, shipped_fronts
+from mpc.benchmark.ocp import scenario_fields
+from mpc.benchmark.pareto import (
+    CACHE_VERSION,
+    DEFAULT_POINTS,
+    FRONT_KIND,
+    ParetoFront,
+    cache_dir,
+    check_front,
+    pareto_front,
+)
+from mpc.benchmark.reference import SUITE_KIND, check_suite_file, shipped_fronts
 from wl_env.cycle import BRAKING_MODES
-from wl_env.scenario import FIELDS, Scenario
+from wl_env.scenario import Scenario, param_distance
 from wl_env.suites import load_suite
 
 log = logging.getLogger(__name__)
@@ -52,23 +61,19 @@ def entry_key(scenario: Scenario) -> str:
     return f"{scenario.braking}_{scenario.params().fingerprint()}"
 
 
-def _distance(a: Scenario, b: Scenario) -> float:
-    return math.fsum(((getattr(a, n) - getattr(b, n)) / (s.hi - s.lo)) ** 2 for n, s in FIELDS.items())
-
-
 def chain_order(scenarios: list[Scenario]) -> list[Scenario]:
-    """A nearest-neighbour chain through the scenarios, from the one nearest the nominal cycle."""
+    """A nearest-neighbour chain through the scenarios (:func:`wl_env.scenario.param_distance`, as
+    ``pareto.nearest_front`` finds a warm start), from the one nearest the nominal cycle."""
     left = list(scenarios)
     if not left:
         return []
-    nominal = Scenario.nominal(left[0].braking)
-    order = [min(left, key=lambda s: _distance(s, nominal))]
-    left.remove(order[0])
+    fields = {s: scenario_fields(s.params()) for s in [*left, Scenario.nominal(left[0].braking)]}
+    order = [Scenario.nominal(left[0].braking)]
     while left:
-        nxt = min(left, key=lambda s: _distance(s, order[-1]))
+        nxt = min(left, key=lambda s: param_distance(fields[s], fields[order[-1]]))
         order.append(nxt)
         left.remove(nxt)
-    return order
+    return order[1:]
 
 
 def check_entry(d: dict[str, Any]) -> str | None:
@@ -78,7 +83,7 @@ def check_entry(d: dict[str, Any]) -> str | None:
     return problem
 
 
-def solve_one(scenario: Scenario, cache: str | os.PathLike | None, n_points: int = N_POINTS) -> dict[str, Any]:
+def solve_one(scenario: Scenario, cache: str | os.PathLike | None, n_points: int = DEFAULT_POINTS) -> dict[str, Any]:
     """One scenario's entry: its front (warm-started from the nearest front in ``cache``) and its scenario."""
     t0 = time.perf_counter()
     front = pareto_front(scenario=scenario, n_points=n_points, cache=cache, progress=log.debug)
@@ -125,7 +130,7 @@ def _split(chains: dict[str, list[Scenario]], parts: int) -> list[list[Scenario]
 
 
 def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | os.PathLike | None = None,
-                workers: int | None = None, ray_address: str | None = None, n_points: int = N_POINTS,
+                workers: int | None = None, ray_address: str | None = None, n_points: int = DEFAULT_POINTS,
                 limit: int | None = None, ray_chunk: int = 4, job: str = JOB) -> SuiteSolve:
     """Solve (or resume) every scenario of a list suite and assemble its file (``out``, default
     ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain.

@@ -81,7 +81,7 @@ def reproduce(options: PaperOptions) -> dict[str, Any]:
     for b in BRAKING_MODES:
         alts[b] = polish_front(b, alts[b], p, cache)
         alts[b].lean = lean_time_optimum(b, alts[b].time, p, cache, first_point=alts[b].first_point)
-    fixed = {b: fixed_time_optimum(b, FIXED_T, p, cache, alts[b].front, alts[b].points) for b in BRAKING_MODES}
+    fixed = {b: fixed_time_optimum(b, FIXED_T, p, cache, alts[b].front.mesh, alts[b].points) for b in BRAKING_MODES}
     times = {b: alts[b].time for b in BRAKING_MODES}
     fuels = {b: alts[b].fuel for b in BRAKING_MODES}
     figs = []

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +84,7 @@ class Suite:
         return options[int(rng.integers(len(options)))]
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_suite(name: str) -> Suite:
     """The suite ``name`` (one of :data:`SUITES`), read from its file and validated."""
     if name not in SUITES:
