@@ -212,7 +212,7 @@ def test_schedule_sensitivities_predict_a_stretched_phase():
     for phase in (1, 2, 3, 4):
         ks = [k for k in active if nlp.slots[k].phase == phase]
         p = args["p"].copy()
-        p[5 + 3 + np.array(ks)] *= 1.0 + 1e-3  # each step 0.1 ms longer
+        p[nlp.h_offset + np.array(ks)] *= 1.0 + 1e-3  # each step 0.1 ms longer
         stretched = tight(x0=base["x"], **{**args, "p": p})
         per_step = (float(stretched["f"]) - float(base["f"])) / (1e-3 * len(ks))
         assert loose[phase] == pytest.approx(per_step, rel=0.1)

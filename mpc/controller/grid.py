@@ -57,6 +57,8 @@ MIN_STOP_SPEED = 1e-3  # m/s: a stop step starts moving (the crossing's time is 
 # m/s: the speed a stop step would reach past the crossing if the simulator did not cut it. A plan that
 # rides v1 = 0 stops at the step's very end, and a plant a hair slower does not stop within the step.
 STOP_OVERSHOOT = 2e-3
+IDLE_WEIGHT = 1.0  # objective per unit of an idle slot's scaled control squared (it acts on nothing)
+MIN_MARGIN = 1e-6  # the least upper bound of the margin used (an interior-point method needs lb < ub)
 
 
 def _state(x: Any) -> State:
@@ -93,7 +95,9 @@ class StepModel:
             raise ValueError(f"omega_margin must be >= 0 rad/s, got {omega_margin!r}")
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
-        self.substeps, self.omega_margin = substeps, float(omega_margin)
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt (the control interval) must be > 0 s, got {dt!r}")
+        self.dt, self.substeps, self.omega_margin = float(dt), substeps, float(omega_margin)
         p = self.params
         # The boom's end stop can act only if a bucket lifting at the pump's limit reaches it within a
         # substep from H_T (the plan never goes above H_T: the bucket is not lowered and ends there).
@@ -186,29 +190,33 @@ class StepModel:
                             np.array(lb, dtype=float), np.array(ub, dtype=float), tuple(decel_all))
 
 
-SLOT_VARS = 3 + N_X + 2  # a slot's decision variables: control, end state, excess, margin used
+N_R = 2  # the previous step's U_mf and U_ab (scaled), carried as states: the rate penalty stays stage-wise
+N_XR = N_X + N_R
+SLOT_VARS = 3 + 2 + N_XR  # a full slot's decision variables: control, excess, margin used, end state
 
 
 @dataclass(frozen=True)
 class Slot:
-    """One step of a :class:`GridNLP`: its phase and kind, and where its variables and rows are."""
+    """One step of a :class:`GridNLP`: its phase and kind, and where its variables and rows are.
+
+    Stage-wise layout (what fatrop's structure detection and a Riccati recursion need): per slot the
+    control, the deceleration excess and the margin used, a stop slot's elastic target misses, then the
+    end state; its rows, then the N_XR shooting equalities to the end state."""
 
     phase: int
     kind: str  # "full" or "stop"
-    u: int  # offset of the control (3) in z; the end state (N_X), the excess and the margin used (1 each) follow
-    g: int  # offset of the rows in g; the N_X shooting equalities come just before
-
-    @property
-    def x(self) -> int:
-        return self.u + 3
+    u: int  # offset of the control (3) in z; the excess and the margin used (1 each) follow
+    x: int  # offset of the end state (N_XR) in z
+    g: int  # offset of the step's rows in g
+    gap: int  # offset of the shooting equalities in g
 
     @property
     def ex(self) -> int:
-        return self.u + 3 + N_X
+        return self.u + 3
 
     @property
     def em(self) -> int:
-        return self.u + 4 + N_X
+        return self.u + 4
 
 
 class GridNLP:
@@ -218,14 +226,18 @@ class GridNLP:
     ``symbolic``: "SX" inlines the step functions (an NLP that evaluates fast, ~1-2 s to build with its
     solver), "MX" calls them (builds in ~0.1 s, evaluates ~2x slower): the same variables and rows.
 
-    Parameters: the start state (scaled), the plant estimate, one step length per slot (dt, or 0 when
-    idle). Per slot the decision vector holds the control (scaled), the end state (scaled), an elastic
-    excess over the deceleration limit and the part of the margin below it the plan uses (bounded by the
-    margin, set per solve). Elastic, because a brake can always hold the limit and the converter's drag
-    cannot always (it follows the engine speed at the shift, and a plant heavier than the model, found
-    out late, leaves it too high): a plan with the least excess beats no plan. Objective: fuel (g) plus
-    the elastic misses of the reversing point, the end position and the end height, the excesses and the
-    margin used, each priced above any fuel (TARGET_WEIGHT, DECEL_EXCESS_WEIGHT, DECEL_MARGIN_WEIGHT).
+    Parameters: the start state (scaled) and the control applied before it, the plant estimate, one step
+    length per slot (dt, or 0 when idle: an idle slot carries its state through), the weight of each
+    slot's control-rate term (0 where it does not count) and the rate penalty's weights. The decision
+    vector is stage-wise (:class:`Slot`): the start state, then per slot the control (scaled), an elastic
+    excess over the deceleration limit, the part of the margin below it the plan uses (bounded by the
+    margin, set per solve) and the end state. Elastic, because a brake can always hold the limit and the
+    converter's drag cannot always (it follows the engine speed at the shift, and a plant heavier than
+    the model, found out late, leaves it too high): a plan with the least excess beats no plan.
+    Objective: fuel (g) plus the elastic misses of the reversing point, the end position and the end
+    height, the excesses and the margin used, each priced above any fuel (TARGET_WEIGHT,
+    DECEL_EXCESS_WEIGHT, DECEL_MARGIN_WEIGHT), and the control-rate penalty: sum over steps of
+    w . (u_k - u_{k-1})^2 on U_mf and U_ab (scaled; eq. (33) of the paper on the grid).
     """
 
     def __init__(self, model: StepModel, first_phase: int, slots: dict[int, int], symbolic: str = "SX") -> None:
@@ -247,11 +259,17 @@ class GridNLP:
         xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
         kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
         kinds = sorted(kinds + [(ph, "stop") for ph in self.phases if ph in (2, 4)], key=lambda k: (k[0], k[1] == "stop"))
+        n_slots = len(kinds)
         sym = self.symbolic
-        par = sym.sym("par", N_X + N_EST + len(kinds))
-        x_prev = par[:N_X] * xs
-        est = par[N_X:N_X + N_EST]
-        hs = par[N_X + N_EST:]
+        self.h_offset = N_XR + N_EST  # parameters: the start, the estimate, then per slot h, active, rate on
+        self._active_offset = self.h_offset + n_slots
+        self._rate_offset = self._active_offset + n_slots
+        par = sym.sym("par", self._rate_offset + n_slots + N_R)
+        est = par[N_XR:N_XR + N_EST]
+        hs = par[self.h_offset:self._active_offset]
+        is_active = par[self._active_offset:self._rate_offset]
+        rate_on = par[self._rate_offset:self._rate_offset + n_slots]
+        rate_w = par[self._rate_offset + n_slots:]
         w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
         size = {"w": 0, "g": 0}
 
@@ -271,96 +289,129 @@ class GridNLP:
             size["g"] += n
             return size["g"] - n
 
-        misses, excess, margins, fuel = [], [], [], 0.0
+        cost: list[Any] = []
         self._miss_index: dict[str, int] = {}
 
         def elastic(name: str) -> Any:  # a target's signed miss, penalized in L1
             e, off = var(2, 0.0, math.inf)
             self._miss_index[name] = off
-            misses.append(e[0] + e[1])
+            cost.append(TARGET_WEIGHT * (e[0] + e[1]))
             return e[0] - e[1]
 
+        r_lb = np.array([0.0, p.U_ab_bounds[0]]) / U_SCALE[:N_R]
+        r_ub = np.array([p.U_mf_max, p.U_ab_bounds[1]]) / U_SCALE[:N_R]
+        x_lb0 = np.array([p.omega_min, -p.V_max, -math.inf, 0.0, -math.inf])
+        x_ub0 = np.array([p.omega_max, p.V_max, math.inf, math.inf, math.inf])
+        Xk, _ = var(N_XR, np.concatenate([x_lb0 / X_SCALE, r_lb]), np.concatenate([x_ub0 / X_SCALE, r_ub]))
+        Xk_start = Xk
+        fuel = 0.0
         slots: list[Slot] = []
+        self.stage_controls, self.stage_rows = [], []  # per slot (stage): its controls and non-gap rows
         for ph, kind in kinds:
             spec = m.specs[ph]
             v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
             if kind == "stop" and ph == 2:
                 v_lo, v_hi = 0.0, p.V_max  # the rest of the step runs in phase 3
-            # Bounds only where a row does not hold the state already (a bound costs IPOPT a multiplier):
-            # the bucket rises monotonically to H_T (no lowering), the pump rows cap its speed.
+            # Bounds only where a row does not hold the state already (a bound costs the solver a
+            # multiplier): the bucket rises monotonically to H_T (no lowering), the pump rows cap its speed.
             x_lb = np.array([p.omega_min + m.omega_margin, v_lo, -math.inf, 0.0, -math.inf])
             x_ub = np.array([p.omega_max, v_hi, math.inf, math.inf, math.inf])
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0])
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0])
             step = m.full[ph] if kind == "full" else m.stop[ph]
+            k = len(slots)
+            w_before = size["w"]
             U, u_off = var(3, u_lb / U_SCALE, u_ub / U_SCALE)
-            X, _ = var(N_X, x_lb / X_SCALE, x_ub / X_SCALE)
             ex, _ = var(1, 0.0, math.inf)
-            em, _ = var(1, 0.0, 0.0)  # (its upper bound, the margin, is set per solve)
+            em, _ = var(1, 0.0, math.inf)  # (its upper bound, the margin, is set per solve)
             u = U * us
-            x_end, rows, fuel_k, s_stop = step.fn(x_prev, u, hs[len(slots)], est)
-            con((x_end - X * xs) / xs, 0.0, 0.0)
+            x_now, r_now = Xk[:N_X] * xs, Xk[N_X:]
+            x_end, rows, fuel_k, s_stop = step.fn(x_now, u, hs[k], est)
             sel = np.zeros(step.n_rows)
             sel[list(step.decel)] = 1.0
-            g_off = con(rows - ca.DM(sel) * (ex + em), step.lb, step.ub)  # (the deceleration's: elastic)
-            slots.append(Slot(ph, kind, u_off, g_off))
-            excess.append(ex)
-            margins.append(em)
-            fuel += fuel_k
-            x_prev = X * xs
+            path = [(rows - ca.DM(sel) * (ex + em), step.lb, step.ub)]  # (the deceleration's: elastic)
             if kind == "stop" and ph == 2:  # the reversing point
-                con((s_stop + p.reverse_distance) / p.reverse_distance - elastic("reversing point"), 0.0, 0.0)
+                path.append(((s_stop + p.reverse_distance) / p.reverse_distance - elastic("reversing point"), 0.0, 0.0))
             if kind == "stop" and ph == 4:  # the end: at the truck, bucket at H_T and still, the machine at rest
-                con((s_stop - p.final_position) / p.reverse_distance - elastic("end position"), 0.0, 0.0)
-                con((x_prev[2] - p.H_T) / p.H_T - elastic("end height"), 0.0, 0.0)
-                con(x_prev[3], 0.0, 0.0)
+                path.append(((s_stop - p.final_position) / p.reverse_distance - elastic("end position"), 0.0, 0.0))
+                path.append(((x_end[2] - p.H_T) / p.H_T - elastic("end height"), 0.0, 0.0))
+                path.append((x_end[3], 0.0, 0.0))
                 # at rest (as the benchmark's end): the engine holds its speed with the last injection
-                d_om = estimated_derivatives(x_prev, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
+                d_om = estimated_derivatives(x_end, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
                                              est[0], est[1], est[2])[0]  # (at omega >= omega_min: no floor)
-                con(d_om / 100.0, 0.0, 0.0)
+                path.append((d_om / 100.0, 0.0, 0.0))
+            # the previous control moves on to this slot's where the slot is a step (h > 0), else stays
+            active = is_active[k]
+            r_next = r_now + active * (U[:N_R] - r_now)
+            cost.append(rate_on[k] * ca.dot(rate_w, (U[:N_R] - r_now) ** 2))
+            cost.append(IDLE_WEIGHT * (1.0 - active) * ca.dot(U, U))  # an idle slot's control: 0
+            cost.append(DECEL_EXCESS_WEIGHT * ex + DECEL_MARGIN_WEIGHT * em)
+            self.stage_controls.append(size["w"] - w_before)
+            Xk, x_off = var(N_XR, np.concatenate([x_lb / X_SCALE, r_lb]), np.concatenate([x_ub / X_SCALE, r_ub]))
+            # rows in stage order (as fatrop's structure needs): the shooting gap, then the stage's rows
+            gap = con(ca.vertcat(Xk[:N_X] - x_end / xs, Xk[N_X:] - r_next), 0.0, 0.0)
+            g_before = size["g"]
+            if k == 0:
+                con(Xk_start - par[:N_XR], 0.0, 0.0)  # the measured start and the control applied before it
+            g_off = con(*path[0])
+            for row in path[1:]:
+                con(*row)
+            self.stage_rows.append(size["g"] - g_before)
+            slots.append(Slot(ph, kind, u_off, x_off, g_off, gap))
+            fuel += fuel_k
         fuel_g = 1000.0 * fuel
-        J = (fuel_g + TARGET_WEIGHT * ca.sum1(ca.vertcat(*misses)) + DECEL_EXCESS_WEIGHT * ca.sum1(ca.vertcat(*excess))
-             + DECEL_MARGIN_WEIGHT * ca.sum1(ca.vertcat(*margins)))
+        J = fuel_g + ca.sum1(ca.vertcat(*cost))
         self.slots = slots
-        self.n_var, self.n_con = size["w"], size["g"]
+        self.n_var, self.n_con, self.n_par = size["w"], size["g"], int(par.numel())
         self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
         self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
         z = ca.vertcat(*w)
         self.nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
+        self.equality = self.lbg == self.ubg  # fixed by the build: per solve only inequality rows are relaxed
         self.fuel_g = ca.Function("fuel_g", [z, par], [fuel_g])
 
     # ------------------------------------------------------------------ per solve
     def arguments(self, counts: dict[int, int], x_start: np.ndarray, est: np.ndarray, dt: float,
-                  tighten: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
+                  tighten: tuple[float, float] = (0.0, 0.0), u_prev: np.ndarray | None = None,
+                  rate_weight: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
         """Parameters and bounds for a schedule: ``counts[phase]`` full steps in each phase, besides the
-        stop steps. The idle slots before the first active step carry the measured start (fixed: IPOPT
-        drops them); those of later phases carry the state of the phase before. ``tighten``: the margin
+        stop steps. Idle slots carry the state through (the measured start before the first active step,
+        the state of the phase before in later phases), their rows relaxed. ``tighten``: the margin
         (fraction of the deceleration limit) the plan keeps in its first step and in the later ones;
-        the plan may use it at DECEL_MARGIN_WEIGHT."""
+        the plan may use it at DECEL_MARGIN_WEIGHT. ``u_prev``: the control [U_mf, U_ab] applied before
+        (None: the first step has no rate term); ``rate_weight``: the rate penalty's weights, per unit of
+        scaled control change squared (g)."""
+        if abs(dt - self.model.dt) > 1e-12:
+            raise ValueError(f"dt {dt!r} s is not the model's control interval {self.model.dt!r} s")
         active = self.active_slots(counts)
-        par = np.zeros(N_X + N_EST + len(self.slots))
-        par[:N_X] = np.asarray(x_start, dtype=float) / X_SCALE
-        par[N_X:N_X + N_EST] = est
-        par[N_X + N_EST + active] = dt
+        n = len(self.slots)
+        par = np.zeros(self.n_par)
+        par[:N_X] = np.asarray(x_start, dtype=float)[:N_X] / X_SCALE
+        if u_prev is not None:
+            par[N_X:N_XR] = np.asarray(u_prev, dtype=float)[:N_R] / U_SCALE[:N_R]
+        par[N_XR:N_XR + N_EST] = est
+        par[self.h_offset + active] = dt
+        par[self._active_offset + active] = 1.0
+        par[self._rate_offset + active] = 1.0
+        if u_prev is None:
+            par[self._rate_offset + active[0]] = 0.0
+        par[self._rate_offset + n:] = rate_weight
         lbw, ubw, lbg, ubg = self.lbw.copy(), self.ubw.copy(), self.lbg.copy(), self.ubg.copy()
-        idle = np.ones(len(self.slots), dtype=bool)
+        idle = np.ones(n, dtype=bool)
         idle[active] = False
         for k in np.flatnonzero(idle):
             s = self.slots[k]
-            lbw[s.u:s.u + 3] = ubw[s.u:s.u + 3] = 0.0
             lbg[s.g:s.g + self._rows(s)] = -math.inf
             ubg[s.g:s.g + self._rows(s)] = math.inf
-            if k < active[0]:  # before the first active step: the measured start, fixed
-                lbw[s.x:s.x + N_X] = ubw[s.x:s.x + N_X] = par[:N_X]
-                lbg[s.g - N_X:s.g] = -math.inf
-                ubg[s.g - N_X:s.g] = math.inf
-        for k in np.flatnonzero(idle):
-            lbw[self.slots[k].ex] = ubw[self.slots[k].ex] = 0.0
+            # an idle slot's state is the one before it (which its bounds need not admit: the start's)
+            lbw[s.x:s.x + N_X] = -math.inf
+            ubw[s.x:s.x + N_X] = math.inf
+        lbw[:N_X], ubw[:N_X] = -math.inf, math.inf  # the measured start is what it is (the equality fixes it)
         for i, k in enumerate(active):
             s, margin = self.slots[k], tighten[0] if i == 0 else tighten[1]
             ubg[s.g + np.array(self._step_of(s).decel)] = -margin
-            ubw[s.em] = margin
+            ubw[s.em] = max(margin, MIN_MARGIN)
         return {"p": par, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
 
     def _step_of(self, s: Slot) -> StepFunction:
@@ -384,12 +435,20 @@ class GridNLP:
                 k += 1
         return np.array(out, dtype=int)
 
-    def segment_offsets(self, phase: int) -> tuple[int, int]:
-        """(z offset, g offset) where the slots of ``phase`` begin: an NLP from ``phase`` on is the tail."""
-        for s in self.slots:
-            if s.phase == phase:
-                return s.u, s.g - N_X
-        raise ValueError(f"phase {phase} is not in this NLP (phases {self.phases})")
+    def tail(self, z: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
+             phase: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A solution's part from ``phase`` on, as the NLP from ``phase`` on (same slots) lays it out: its
+        start state is the end state of the slot before, whose shooting multipliers become the start
+        equality's (the stage-wise rows: the first slot's gap, then the start equality, then its rows)."""
+        i = next((i for i, s in enumerate(self.slots) if s.phase == phase), None)
+        if i is None:
+            raise ValueError(f"phase {phase} is not in this NLP (phases {self.phases})")
+        if i == 0:
+            return z, lam_x, lam_g
+        before, first = self.slots[i - 1], self.slots[i]
+        g_start = lam_g[before.gap:before.gap + N_XR]
+        lam_g = np.concatenate([lam_g[first.gap:first.gap + N_XR], g_start, lam_g[first.gap + N_XR:]])
+        return z[before.x:], lam_x[before.x:], lam_g
 
     def excess(self, z: np.ndarray) -> float:
         """The largest relative excess over the deceleration limit a solution plans (0: none)."""
@@ -411,6 +470,24 @@ class GridNLP:
             "states": np.vstack([np.asarray(x_start, dtype=float)[:N_X]] + [z[s.x:s.x + N_X] * X_SCALE for s in sl]),
         }
 
+    def initial_guess(self, x_start: np.ndarray, counts: dict[int, int], controls: dict[int, np.ndarray],
+                      states: dict[int, np.ndarray]) -> np.ndarray:
+        """A decision vector from per-slot controls and end states (unscaled; slots not given, idle or
+        not, carry the state before them and no control)."""
+        z = np.zeros(self.n_var)
+        x_prev = np.asarray(x_start, dtype=float)[:N_X] / X_SCALE
+        r = np.zeros(N_R)
+        z[:N_X] = x_prev
+        for k, s in enumerate(self.slots):
+            if k in controls:
+                z[s.u:s.u + 3] = np.asarray(controls[k], dtype=float) / U_SCALE
+                r = z[s.u:s.u + N_R].copy()
+            if k in states:
+                x_prev = np.asarray(states[k], dtype=float)[:N_X] / X_SCALE
+            z[s.x:s.x + N_X] = x_prev
+            z[s.x + N_X:s.x + N_XR] = r
+        return z
+
     def resample(self, z: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray, counts: dict[int, int],
                  new_counts: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A solution for ``counts`` moved to ``new_counts``: each phase whose step count changes gets its
@@ -423,21 +500,22 @@ class GridNLP:
             kn = [k for k in new if self.slots[k].phase == ph and self.slots[k].kind == "full"]
             if len(ko) == len(kn) or not ko or not kn:
                 continue
-            n_g = N_X + self._rows(self.slots[ko[0]])
+            n_rows = self._rows(self.slots[ko[0]])
             for vec, width, starts in ((z, SLOT_VARS, lambda k: self.slots[k].u), (lam_x, SLOT_VARS, lambda k: self.slots[k].u),
-                                       (lam_g, n_g, lambda k: self.slots[k].g - N_X)):
+                                       (lam_g, N_XR, lambda k: self.slots[k].gap), (lam_g, n_rows, lambda k: self.slots[k].g)):
                 rows = np.array([vec[starts(k):starts(k) + width] for k in ko])
                 for k, r in zip(kn, _interp_rows(rows, len(kn)), strict=True):
                     vec[starts(k):starts(k) + width] = r
         # the idle slots before a phase's first step carry the state it starts from
         active = set(new.tolist())
-        for ph in self.phases[1:]:
+        for ph in self.phases:
             ks = [k for k, s in enumerate(self.slots) if s.phase == ph]
-            before = self.slots[ks[0] - 1]
+            x_before = self.slots[ks[0] - 1].x if ks[0] > 0 else 0
             for k in ks:
                 if k in active:
                     break
-                z[self.slots[k].x:self.slots[k].x + N_X] = z[before.x:before.x + N_X]
+                z[self.slots[k].x:self.slots[k].x + N_XR] = z[x_before:x_before + N_XR]
+                z[self.slots[k].u:self.slots[k].u + 3] = 0.0
         return z, lam_x, lam_g
 
     def sensitivities(self, lam_p: np.ndarray, counts: dict[int, int], dt: float) -> dict[int, float]:
@@ -447,7 +525,7 @@ class GridNLP:
         them, from the parametric sensitivities of the step lengths (CasADi's ``lam_p`` is minus dJ/dp).
         """
         active = self.active_slots(counts)
-        dJ_dh = -np.asarray(lam_p, dtype=float).ravel()[N_X + N_EST:]
+        dJ_dh = -np.asarray(lam_p, dtype=float).ravel()[self.h_offset:self._active_offset]
         out = {}
         for ph in self.phases:
             ks = [k for k in active if self.slots[k].phase == ph]

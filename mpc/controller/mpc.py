@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mpc.controller.estimator import ModelErrorEstimator
-from mpc.controller.grid import MIN_STOP_SPEED, N_X, U_SCALE, X_SCALE, GridNLP
+from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import GridSolver, IpoptSolver, Solve, grid_nlp, step_model, timed_solve
 from mpc.controller.terminal import terminal_control
@@ -85,6 +85,9 @@ class MPCConfig:
     tighten: float = 0.005
     omega_margin: float = 1.0  # rad/s the plan keeps above omega_min (fuel-optimal plans ride it)
     spare_steps: int = 3  # slots per phase beyond the first schedule's steps (room for schedule moves)
+    # The control-rate penalty (eq. (33) on the grid): g per unit of (change of U_mf / 260 mg)^2 and of
+    # (change of U_ab / 2.5 m/s^2)^2 from step to step.
+    rate_weight: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -100,6 +103,8 @@ class MPCConfig:
             raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
         if not (isinstance(self.spare_steps, int) and self.spare_steps >= 1):
             raise ValueError(f"spare_steps must be an integer >= 1, got {self.spare_steps!r}")
+        if not (len(self.rate_weight) == 2 and all(math.isfinite(w) and w >= 0 for w in self.rate_weight)):
+            raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {self.rate_weight!r}")
         if not 0.0 <= self.tighten < 0.5:
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
 
@@ -261,10 +266,10 @@ class MPCController:
     def _tail(self, sol: Solve | None, phase: int) -> Solve | None:
         if sol is None or sol.first_phase >= phase:
             return sol
-        zo, go = self._nlp(sol.first_phase).segment_offsets(phase)
+        z, lam_x, lam_g = self._nlp(sol.first_phase).tail(sol.z, sol.lam_x, sol.lam_g, phase)
         return Solve(counts={q: n for q, n in sol.counts.items() if q >= phase}, first_phase=phase, ok=sol.ok,
-                     status=sol.status, J=sol.J, misses=sol.misses, excess=sol.excess, z=sol.z[zo:], lam_x=sol.lam_x[zo:],
-                     lam_g=sol.lam_g[go:], lam_p=None)
+                     status=sol.status, J=sol.J, misses=sol.misses, excess=sol.excess, z=z, lam_x=lam_x,
+                     lam_g=lam_g, lam_p=None)
 
     # ------------------------------------------------------------------ schedule
     def _try_move(self, sol: Solve, move: tuple, phase: int, x: np.ndarray) -> Solve:
@@ -369,22 +374,20 @@ class MPCController:
         rx = np.column_stack([np.asarray(ref.states), np.asarray(ref.position)])
         ru = np.asarray(ref.controls)
         starts = np.concatenate([[0.0], np.cumsum(ref.phase_durations)])
-        z = np.zeros(nlp.n_var)
         active = nlp.active_slots(counts)
-        x_prev = np.asarray(x, dtype=float)
         per_phase = {q: [k for k in active if nlp.slots[k].phase == q] for q in nlp.phases}
-        for k_slot, s in enumerate(nlp.slots):
-            if k_slot in active:
-                ks = per_phase[s.phase]
-                frac = (ks.index(k_slot) + 1) / len(ks)
-                tr = starts[s.phase - 1] + frac * ref.phase_durations[s.phase - 1]
-                x_prev = np.array([np.interp(tr, rt, rx[:, m]) for m in range(N_X)])
-                i = int(np.clip(np.searchsorted(rt, tr - 0.5 * self.dt) - 1, 0, len(ru) - 1))
-                if rph[i] != s.phase:
-                    i = int(np.flatnonzero(rph[:-1] == s.phase)[-1]) if (rph[:-1] == s.phase).any() else i
-                z[s.u:s.u + 3] = ru[i] / U_SCALE
-            z[s.x:s.x + N_X] = x_prev / X_SCALE
-        return z
+        controls, states = {}, {}
+        for k_slot in active:
+            s = nlp.slots[k_slot]
+            ks = per_phase[s.phase]
+            frac = (ks.index(k_slot) + 1) / len(ks)
+            tr = starts[s.phase - 1] + frac * ref.phase_durations[s.phase - 1]
+            states[k_slot] = np.array([np.interp(tr, rt, rx[:, m]) for m in range(N_X)])
+            i = int(np.clip(np.searchsorted(rt, tr - 0.5 * self.dt) - 1, 0, len(ru) - 1))
+            if rph[i] != s.phase:
+                i = int(np.flatnonzero(rph[:-1] == s.phase)[-1]) if (rph[:-1] == s.phase).any() else i
+            controls[k_slot] = ru[i]
+        return nlp.initial_guess(x, counts, controls, states)
 
     # ------------------------------------------------------------------ NLP solves
     def _nlp(self, first_phase: int, symbolic: str = "SX") -> GridNLP:
@@ -396,7 +399,9 @@ class MPCController:
         nlp = self._nlp(first_phase)
         try:
             args = nlp.arguments(counts, x, self.estimator.estimate, self.dt,
-                                 tighten=(self.config.tighten, self._later_margin()))
+                                 tighten=(self.config.tighten, self._later_margin()),
+                                 u_prev=self._last[2] if self._last is not None else None,
+                                 rate_weight=self.config.rate_weight)
         except ValueError as exc:  # a schedule that does not fit the slots
             return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
         if warm is not None and warm.first_phase == first_phase and warm.z is not None:
