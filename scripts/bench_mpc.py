@@ -1,66 +1,93 @@
-"""Closed-loop MPC against the optimal control benchmark, both braking alternatives, in one run.
+"""Closed-loop MPC against the optimum of each cycle, and its solver candidates side by side, in one run.
 
-For each braking alternative:
+Per braking alternative (and per solver candidate, ``--solvers``):
 
-(a) minimum-time mode: cycle time against the OCP's minimum time (target: within 2 %);
-(b) target-time mode at several cycle times: fuel against the Pareto fuel at the cycle time reached
-    (target: within 3 %);
+(a) minimum-time mode: cycle time against the cycle's minimum time;
+(b) target-time mode at several cycle times: fuel against the minimum fuel at the cycle time reached;
 (c) model mismatch: the plant's payload +-20 % and rolling resistance +-30 % while the MPC keeps the
-    nominal model (minimum-time mode): does the cycle complete within the constraints?
-(d) per-step solve time (median, p95, max; the first step, which plans the cycle, separately) against
-    the 0.1 s control interval (target: median below it; aim 20 ms).
+    nominal model (minimum-time mode): does the cycle complete within the limits?
+(d) a sample of the ``test`` suite (``--suite-sample``), each scenario's own model and optimum, minimum
+    time and a target of 1.15 T_min; with ``--corners`` also the ``corners`` suite in mismatch mode;
+(e) per-step solve time (median, p99, max; the first step, which plans the cycle, apart) against the
+    0.1 s control interval, and the controls' total variation against the optimum's at the same cycle
+    time (:func:`mpc.benchmark.scoring.smoothness`).
 
-The violation column is the environment's own: since WheelLoader-v1 it checks the driver's limits at every
-RK4 stage and step end, so an excess within the steps is in it.
+The violation column is the environment's own (the driver's limits at every RK4 stage and step end).
 
 Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick]
+        [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
-from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
-from mpc.benchmark.scoring import score_run  # noqa: E402
-from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
+from mpc.benchmark.reference import reference_at  # noqa: E402
+from mpc.benchmark.scoring import smoothness  # noqa: E402
+from mpc.controller.mpc import MPCConfig, run_closed_loop  # noqa: E402
+from mpc.controller.solver import SOLVERS  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
+from wl_env.suites import load_suite  # noqa: E402
 
 MISMATCH = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload scale, rolling-resistance scale)
 
 
-def closed_loop(braking: str, config: MPCConfig, front: Any, plant: Any = None) -> dict[str, Any]:
-    ctrl = MPCController(braking, config=config)
+def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant: Any = None, scenario: Any = None,
+                mismatch: bool = False, target_ratio: float | None = None) -> dict[str, Any]:
+    """One cycle under the MPC with one solver candidate, and what the table reports of it."""
+    if target_ratio is not None:  # a target relative to the scenario's own minimum time
+        T_min = reference_at(10.0, braking, scenario.params())["T_min"]
+        config = dataclasses.replace(config, mode="target_time", target_time=target_ratio * T_min)
     t0 = time.perf_counter()
-    r = run_closed_loop(braking, config, plant_params=plant, score=False, controller=ctrl)
-    wall = time.perf_counter() - t0
+    r = run_closed_loop(braking, config, plant_params=plant, score=plant is None and not mismatch, scenario=scenario,
+                        mismatch=mismatch, solver=SOLVERS[solver]())
     ep = r.episode
-    row = {"braking": braking, "mode": config.mode, "target_time": config.target_time,
-           **ep.to_dict(trajectory=False), "solve_time": r.solve_time, "solve_times_s": r.solve_times_s, "wall_s": wall,
-           "steps_with_schedule_move": sum(1 for n in ctrl.step_solves[1:] if n > 1), "fallbacks": ctrl.fallbacks}
-    if ep.completed and plant is None:  # the gaps every controller gets (mpc.benchmark.scoring)
-        s = score_run(ep.T, ep.fuel_g, braking, front=front)
-        row.update(time_gap=s.time_gap, fuel_gap=s.fuel_gap, fuel_opt_g=s.fuel_opt_g)
+    row = {"braking": braking, "solver": solver, "run": label, "mode": config.mode, "target_time": config.target_time,
+           **ep.to_dict(trajectory=False), "solve_time": r.solve_time, "solve_times_s": r.solve_times_s,
+           "wall_s": time.perf_counter() - t0, "fallbacks": r.solve_time["fallbacks"]}
+    if r.score is not None:
+        row.update(time_gap=r.score.time_gap, fuel_gap=r.score.fuel_gap, T_min=r.score.T_min, fuel_opt_g=r.score.fuel_opt_g)
+        plant_params = scenario.params() if scenario is not None else None
+        row["smoothness"] = smoothness(ep.trajectory.controls, ep.T, braking, plant_params).to_dict()
     return row
+
+
+def runs(braking: str, targets: list[float], quick: bool, suite_sample: int, corners: bool, deadline_ms: float | None):
+    """(label, config, keyword arguments of closed_loop) of every run of one braking alternative."""
+    base = {"deadline_ms": deadline_ms}
+    yield "min time", MPCConfig(mode="time", **base), {}
+    for T in targets:
+        yield f"target {T:g} s", MPCConfig(mode="target_time", target_time=T, **base), {}
+    for payload, rolling in ([] if quick else MISMATCH):
+        plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
+        yield f"mismatch: payload x{payload}, rolling x{rolling}", MPCConfig(mode="time", **base), {"plant": plant}
+    for i, sc in enumerate(load_suite("test").spread(braking, suite_sample) if suite_sample else ()):
+        yield f"test[{i}] min time", MPCConfig(mode="time", **base), {"scenario": sc}
+        yield f"test[{i}] 1.15 T_min", MPCConfig(mode="time", **base), {"scenario": sc, "target_ratio": 1.15}
+    for i, sc in enumerate(load_suite("corners").of(braking) if corners else ()):
+        yield f"corners[{i}] mismatch", MPCConfig(mode="time", **base), {"scenario": sc, "mismatch": True}
 
 
 def pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:+.2f} %"
 
 
-def p95(values: list[float]) -> float:
-    return sorted(values)[int(0.95 * (len(values) - 1))]
+def ms(values: list[float], q: float | None = None) -> float:
+    return 1e3 * (float(np.max(values)) if q is None else float(np.percentile(values, q)))
 
 
 def main() -> None:
@@ -69,43 +96,38 @@ def main() -> None:
     ap.add_argument("--targets", type=float, nargs="+", default=[9.0, 10.0, 11.0, 13.0, 16.0],
                     help="cycle times (s) of the target-time runs")
     ap.add_argument("--quick", action="store_true", help="one target time, no mismatch runs")
+    ap.add_argument("--solvers", nargs="+", default=["ipopt"], choices=sorted(SOLVERS), help="the candidates to compare")
+    ap.add_argument("--suite-sample", type=int, default=0, metavar="N", help="test-suite scenarios per braking")
+    ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
+    ap.add_argument("--deadline-ms", type=float, default=None, help="MPCConfig.deadline_ms of every run")
+    ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     args = ap.parse_args()
     targets = args.targets[:1] if args.quick else args.targets
-    fronts = pareto_fronts(progress=True)
     rows: list[dict[str, Any]] = []
-    for b in ("service", "tc"):
-        print(f"[{b}] minimum time", file=sys.stderr, flush=True)
-        rows.append(closed_loop(b, MPCConfig(mode="time"), fronts[b]))
-        for T in targets:
-            print(f"[{b}] target time {T:g} s", file=sys.stderr, flush=True)
-            rows.append(closed_loop(b, MPCConfig(mode="target_time", target_time=T), fronts[b]))
-        for payload, rolling in ([] if args.quick else MISMATCH):
-            print(f"[{b}] mismatch: payload x{payload}, rolling x{rolling}", file=sys.stderr, flush=True)
-            plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
-            row = closed_loop(b, MPCConfig(mode="time"), fronts[b], plant)
-            row.update(payload_scale=payload, rolling_scale=rolling)
-            rows.append(row)
+    for solver in args.solvers:
+        for b in args.braking:
+            for label, config, kw in runs(b, targets, args.quick, args.suite_sample, args.corners, args.deadline_ms):
+                print(f"[{solver}] [{b}] {label}", file=sys.stderr, flush=True)
+                rows.append(closed_loop(b, config, solver, label, **kw))
 
-    print("\n| braking | mode | T (s) | fuel (g) | OCP reference | time gap | fuel gap | success | max violation "
-          "| solve median / p95 / max (ms) | steps with a move | planning (s) |")
-    print("|---|---|---:|---:|---|---:|---:|---|---:|---|---:|---:|")
+    print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "
+          "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) |")
+    print("|---|---|---|---:|---:|---:|---:|---|---:|---|---|---:|---:|")
     for r in rows:
-        if "payload_scale" in r:
-            mode = f"min time, plant payload x{r['payload_scale']}, rolling x{r['rolling_scale']}"
-            ref = "-"
-        elif r["mode"] == "time":
-            mode, ref = "min time", f"T_min {fronts[r['braking']].T_min:.3f} s"
-        else:
-            mode = f"target {r['target_time']:g} s"
-            ref = f"{r['fuel_opt_g']:.2f} g at {r['T']:.2f} s" if "fuel_opt_g" in r else "-"
         later = r["solve_times_s"][1:] or r["solve_times_s"]
-        print(f"| {r['braking']} | {mode} | {r['T']:.2f} | {r['fuel_g']:.2f} | {ref} | {pct(r.get('time_gap'))} | "
-              f"{pct(r.get('fuel_gap'))} | {'yes' if r['success'] else 'no'} | {100 * r['max_violation']:.2f} % | "
-              f"{1e3 * statistics.median(later):.1f} / {1e3 * p95(later):.1f} / "
-              f"{1e3 * max(later):.0f} | {r['steps_with_schedule_move']} | {r['solve_time']['planning_s']:.1f} |")
-    every = [s for r in rows for s in r["solve_times_s"][1:]]
-    print(f"\nall runs, steps after the first: median {1e3 * statistics.median(every):.1f} ms, "
-          f"p95 {1e3 * p95(every):.1f} ms, max {1e3 * max(every):.0f} ms ({len(every)} steps); control interval 100 ms")
+        sm = r.get("smoothness")
+        tv = f"{sm['ratio_fuel_injection']:.2f}x / {sm['ratio_bucket_acceleration']:.2f}x" if sm else "-"
+        print(f"| {r['solver']} | {r['braking']} | {r['run']} | {r['T']:.2f} | {r['fuel_g']:.2f} | {pct(r.get('time_gap'))} "
+              f"| {pct(r.get('fuel_gap'))} | {'yes' if r['success'] else 'no'} | {100 * r['max_violation']:.2f} % | {tv} "
+              f"| {ms(later, 50):.1f} / {ms(later, 99):.1f} / {ms(later):.0f} | {r['fallbacks']} "
+              f"| {r['solve_time']['planning_s']:.1f} |")
+    for solver in args.solvers:
+        every = [s for r in rows if r["solver"] == solver for s in r["solve_times_s"][1:]]
+        plans = [r["solve_time"]["planning_s"] for r in rows if r["solver"] == solver]
+        print(f"\n[{solver}] all runs, steps after the first: median {ms(every, 50):.1f} ms, p99 {ms(every, 99):.1f} ms, "
+              f"max {ms(every):.0f} ms ({len(every)} steps); first-step planning median {np.median(plans):.1f} s, "
+              f"max {max(plans):.1f} s; success {sum(r['success'] for r in rows if r['solver'] == solver)}"
+              f"/{sum(1 for r in rows if r['solver'] == solver)}; control interval 100 ms")
     if args.json:
         write_json_atomic(args.json, {"rows": rows, "cpu_count": os.cpu_count(), "python": platform.python_version()})
 
@@ -113,5 +135,5 @@ def main() -> None:
 if __name__ == "__main__":
     from wl_env.logs import cli_logging
 
-    with cli_logging():  # the Pareto sweep's progress, as `wl` shows it
+    with cli_logging():  # the optima's progress, as `wl` shows it
         main()

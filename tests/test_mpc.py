@@ -2,6 +2,7 @@
 constraints, it adapts to a mismatched plant, and it survives solver failures."""
 
 import math
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -161,6 +162,63 @@ def test_fallback_applies_the_shifted_plan_on_a_forced_failure():
             break
     assert flagged == 4 and ctrl.fallbacks == 4
     assert info["completed"] and info["is_success"] and info["violations"]["max_excess"] == 0.0
+
+
+class SlowSolver(IpoptSolver):
+    """IPOPT that takes ``delay`` s more at the control steps in ``slow`` (a slower CPU, a hard solve)."""
+
+    def __init__(self, slow: set[int], delay: float) -> None:
+        super().__init__()
+        self.slow, self.delay, self.step = slow, delay, -1
+
+    def solve(self, *args, **kwargs):
+        if self.step in self.slow:
+            time.sleep(self.delay)
+        return super().solve(*args, **kwargs)
+
+
+def test_deadline_returns_the_shifted_plan_in_time_and_flags_it():
+    """With deadline_ms, a step whose solve would pass the deadline returns the previous plan's next
+    control by the deadline (flagged), while the solve runs on; the step after, with the solver still busy,
+    does too; the cycle then goes on from the late solve and completes within the limits."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    deadline_ms, delay = 100.0, 0.25
+    solver = SlowSolver({20}, delay)
+    ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0, deadline_ms=deadline_ms),
+                         solver=solver)
+    obs, _ = env.reset(seed=0)
+    missed = []
+    for k in range(200):
+        solver.step = k
+        plan_before = ctrl._plan
+        t0 = time.perf_counter()
+        a = ctrl.act(obs)
+        wall = time.perf_counter() - t0
+        if k > 0:  # (a simulation faster than real time waits a late solve's control interval, see _step_outcome)
+            assert wall < 1e-3 * deadline_ms + ctrl.dt + 0.02, f"step {k}: a control after {1e3 * wall:.0f} ms"
+            assert ctrl.solve_times[-1] < 1e-3 * deadline_ms + 0.02
+        if ctrl.last_info["deadline_missed"]:
+            missed.append(k)
+            assert ctrl.last_info["fallback"] and "deadline" in ctrl.last_info["status"]
+            # the previous plan's control for this step, not a new one
+            i = k - plan_before["k_made"]
+            assert np.allclose(ctrl.codec.decode_action(*a[:3])[:2], plan_before["controls"][i][:2], rtol=1e-4, atol=1e-3)
+        obs, _, term, trunc, info = env.step(a)
+        if term or trunc:
+            break
+    # the late solve (0.25 s and its own) spans the deadlines of its step and the next (other steps may
+    # miss too on a slow machine: a solve here takes 10-150 ms)
+    assert {20, 21} <= set(missed)
+    assert ctrl.deadline_misses == len(missed) == ctrl.stats()["deadline_misses"]
+    assert info["completed"] and info["is_success"] and info["violations"]["max_excess"] == 0.0
+
+
+def test_bad_deadline_is_refused():
+    for bad in (0.0, -5.0, float("nan"), "10"):
+        with pytest.raises(ValueError, match="deadline_ms"):
+            MPCConfig(deadline_ms=bad)
+    with pytest.raises(ValueError, match="longer than the control interval"):
+        MPCController("service", config=MPCConfig(deadline_ms=150.0))
 
 
 def test_time_budget_overrun_falls_back_without_crashing():

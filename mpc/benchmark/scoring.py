@@ -61,3 +61,46 @@ def score_run(
     return Score(braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=ref["T_min"], time_gap=T / ref["T_min"] - 1.0,
                  fuel_opt_g=float(ref["fuel_opt_g"]), fuel_gap=fuel_g / ref["fuel_opt_g"] - 1.0,
                  reference=ref["reference"])
+
+
+@dataclass(frozen=True)
+class Smoothness:
+    """How much a cycle's controls move: the total variation (sum of |change| from one held value to the
+    next) of U_mf (mg) and U_ab (m/s^2), against the optimum's at the same cycle time (its OCP, whose
+    objective has the paper's control-rate penalty, eq. (33)); ratio 1.5 = 50 % more movement."""
+
+    tv_fuel_injection_mg: float
+    tv_bucket_acceleration: float
+    optimum_tv_fuel_injection_mg: float
+    optimum_tv_bucket_acceleration: float
+    ratio_fuel_injection: float
+    ratio_bucket_acceleration: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def total_variation(controls: Any) -> tuple[float, float]:
+    """Total variation of U_mf (mg) and U_ab (m/s^2) over a sequence of held controls (rows [U_mf, U_ab, ...])."""
+    import numpy as np
+
+    u = np.asarray(controls, dtype=float)
+    if u.ndim != 2 or u.shape[1] < 2 or len(u) < 1 or not np.isfinite(u[:, :2]).all():
+        raise ValueError(f"controls must be finite rows [U_mf, U_ab, ...], got shape {u.shape}")
+    tv = np.abs(np.diff(u[:, :2], axis=0)).sum(axis=0)
+    return float(tv[0]), float(tv[1])
+
+
+def smoothness(controls: Any, T: float, braking: str, params: LoaderParams | dict | None = None,
+               cache: str | os.PathLike | None = None) -> Smoothness:
+    """A cycle's control movement (:func:`total_variation`) against the optimum's at its cycle time T (s)
+    (the minimum-fuel OCP at T, :func:`mpc.benchmark.reference.direct_fuel_at`, cached)."""
+    from mpc.benchmark.reference import direct_fuel_at
+
+    p = resolve(params)
+    opt = direct_fuel_at(braking, float(T), p, cache)
+    tv_mf, tv_ab = total_variation(controls)
+    o_mf, o_ab = total_variation(opt.controls)
+    return Smoothness(tv_fuel_injection_mg=tv_mf, tv_bucket_acceleration=tv_ab, optimum_tv_fuel_injection_mg=o_mf,
+                      optimum_tv_bucket_acceleration=o_ab, ratio_fuel_injection=tv_mf / max(o_mf, 1e-9),
+                      ratio_bucket_acceleration=tv_ab / max(o_ab, 1e-9))

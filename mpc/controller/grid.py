@@ -414,6 +414,26 @@ class GridNLP:
             ubw[s.em] = max(margin, MIN_MARGIN)
         return {"p": par, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
 
+    def fix_leading_idle(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The arguments with the start state and the idle slots before the first active step fixed by
+        their bounds (at the start) and their equalities relaxed: the same solution, which IPOPT solves
+        without them (its fixed variables become parameters). A Riccati solver keeps the equalities."""
+        p = args["p"]
+        first = int(np.flatnonzero(p[self._active_offset:self._rate_offset] > 0)[0])
+        start = p[:N_XR]
+        lbx, ubx, lbg, ubg = (np.array(args[k], dtype=float) for k in ("lbx", "ubx", "lbg", "ubg"))
+        lbx[:N_XR] = ubx[:N_XR] = start
+        s0 = self.slots[0]
+        lbg[s0.gap + N_XR:s0.gap + 2 * N_XR] = -math.inf  # the start equality (slot 0's rows follow it)
+        ubg[s0.gap + N_XR:s0.gap + 2 * N_XR] = math.inf
+        for s in self.slots[:first]:
+            lbx[s.x:s.x + N_XR] = ubx[s.x:s.x + N_XR] = start
+            lbx[s.u:s.u + 3] = ubx[s.u:s.u + 3] = 0.0
+            lbx[s.ex] = ubx[s.ex] = lbx[s.em] = ubx[s.em] = 0.0
+            lbg[s.gap:s.gap + N_XR] = -math.inf
+            ubg[s.gap:s.gap + N_XR] = math.inf
+        return {**args, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
+
     def _step_of(self, s: Slot) -> StepFunction:
         return self.model.full[s.phase] if s.kind == "full" else self.model.stop[s.phase]
 

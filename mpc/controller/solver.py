@@ -7,6 +7,7 @@ object with :meth:`IpoptSolver.solve`'s signature, so a test can inject a failin
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -17,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from mpc import interrupt
-from mpc.controller.grid import GridNLP, StepModel
+from mpc.controller.grid import N_XR, GridNLP, StepModel
 from wl_env.params import LoaderParams
 
 # A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
@@ -115,6 +116,7 @@ class IpoptSolver:
               lam_g0: np.ndarray | None = None) -> SolverResult:
         warm = lam_x0 is not None and lam_g0 is not None
         fn = self._function(nlp, warm)
+        args = nlp.fix_leading_idle(args)
         extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
         sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
         stats = fn.stats()
@@ -127,6 +129,62 @@ class IpoptSolver:
         return SolverResult(ok=ok, status=status, iterations=int(stats.get("iter_count", 0)), z=z,
                             lam_x=np.array(sol["lam_x"]).ravel(), lam_g=np.array(sol["lam_g"]).ravel(),
                             lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
+
+
+@functools.lru_cache(maxsize=32)
+def _fatrop(nlp: GridNLP, max_iter: int) -> ca.Function:
+    n = len(nlp.slots)  # the stage-wise layout of GridNLP, as fatrop's manual structure states it
+    opts = {"structure_detection": "manual", "N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0],
+            "ng": [*nlp.stage_rows, 0], "print_time": False, "fatrop": {"print_level": 0, "max_iter": max_iter}}
+    return ca.nlpsol("mpc_fatrop", "fatrop", nlp.nlp, opts)
+
+
+class FatropSolver:
+    """fatrop (a structure-exploiting interior point method: a Riccati recursion over the stages) on a
+    grid NLP. Its CasADi interface takes a primal start only (no multipliers, no warm-started barrier), so
+    each solve runs the barrier down from its default."""
+
+    def __init__(self, max_iter: int = 300) -> None:
+        self.max_iter = max_iter
+
+    def prepare(self, nlp: GridNLP) -> None:
+        _fatrop(nlp, self.max_iter)
+
+    def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
+              lam_g0: np.ndarray | None = None) -> SolverResult:
+        fn = _fatrop(nlp, self.max_iter)
+        sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **args)
+        stats = fn.stats()
+        status = str(stats.get("return_status", "unknown"))
+        interrupt.check(status)
+        z = np.array(sol["x"]).ravel()
+        ok = bool(stats.get("success")) and bool(np.isfinite(z).all())
+        return SolverResult(ok=ok, status=f"fatrop: {status}", iterations=int(stats.get("iter_count", 0)), z=z,
+                            lam_x=np.array(sol["lam_x"]).ravel(), lam_g=np.array(sol["lam_g"]).ravel(),
+                            lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
+
+
+class FallbackSolver:
+    """A solver, and another for the solves it fails (their statuses both kept)."""
+
+    def __init__(self, primary: GridSolver, fallback: GridSolver) -> None:
+        self.primary, self.fallback = primary, fallback
+
+    def prepare(self, nlp: GridNLP) -> None:
+        self.primary.prepare(nlp)
+        self.fallback.prepare(nlp)
+
+    def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
+              lam_g0: np.ndarray | None = None) -> SolverResult:
+        first = self.primary.solve(nlp, args, x0, lam_x0, lam_g0)
+        if first.ok:
+            return first
+        r = self.fallback.solve(nlp, args, x0, lam_x0, lam_g0)
+        return dataclasses.replace(r, status=f"{first.status}, then {r.status}", iterations=first.iterations + r.iterations)
+
+
+# The candidates scripts/bench_mpc.py compares (each a factory of a fresh solver)
+SOLVERS = {"ipopt": IpoptSolver, "fatrop": lambda: FallbackSolver(FatropSolver(), IpoptSolver())}
 
 
 def timed_solve(solver: GridSolver, nlp: GridNLP, counts: dict[int, int], first_phase: int, args: dict[str, Any],
