@@ -311,3 +311,33 @@ def test_impossible_target_time_is_a_clear_error():
     obs, _ = env.reset(seed=0)
     with pytest.raises(ValueError, match=r"target_time 6 s is impossible: the minimum cycle time .* is 8\.\d+ s"):
         ctrl.act(obs)
+
+
+def test_controls_move_no_more_than_the_optimums():
+    """The control-rate penalty: on the TC cycle at 11 s (whose bucket speed zig-zagged between 0 and
+    0.6 m/s without it) U_mf and U_ab move at most 1.5x the optimum's total variation at the same cycle
+    time, at a fuel within 0.5 % of that optimum."""
+    from mpc.benchmark.scoring import smoothness
+
+    r = run_closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0))
+    ep = r.episode
+    assert ep.success and ep.max_violation == 0.0
+    s = smoothness(ep.trajectory.controls, ep.T, "tc")
+    assert s.ratio_fuel_injection <= 1.5 and s.ratio_bucket_acceleration <= 1.5
+    assert abs(r.score.fuel_gap) <= 0.005
+    # ... and without it they move more than that (the test would catch a penalty that does nothing)
+    loose = run_closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(0.0, 0.0)), score=False)
+    assert smoothness(loose.episode.trajectory.controls, loose.episode.T, "tc").ratio_bucket_acceleration > 1.5
+
+
+@pytest.mark.slow  # 15 s; the default run has the mismatch corners of test_model_mismatch_case_completes
+def test_a_corner_scenario_in_mismatch_mode_completes_within_the_limits():
+    """The corners suite's heaviest, slowest-rolling TC cycle, the MPC keeping the nominal payload and
+    rolling resistance (it knows the distances, the truck and the start) and learning the rest."""
+    from wl_env.suites import load_suite
+
+    corners = load_suite("corners").of("tc")
+    sc = max(corners, key=lambda s: (s.payload, s.rolling_resistance))
+    r = run_closed_loop(config=MPCConfig(mode="time"), scenario=sc, mismatch=True, score=False)
+    assert r.episode.completed and r.episode.success and r.episode.max_violation == 0.0
+    assert r.scenario["payload"] == sc.payload
