@@ -132,12 +132,13 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     out = _out_file(args.out)
     if args.cache:
         _out_dir(args.cache, "--cache")
+    rt = {"deadline_ms": args.deadline_ms, **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
-        config = MPCConfig(mode="target_time", target_time=args.target_time)
+        config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
     elif args.w_fuel is not None:
-        config = MPCConfig(mode="weighted", w_fuel=args.w_fuel)
+        config = MPCConfig(mode="weighted", w_fuel=args.w_fuel, **rt)
     else:
-        config = MPCConfig(mode="time")
+        config = MPCConfig(mode="time", **rt)
     plant = None
     if args.payload_scale != 1.0 or args.rolling_scale != 1.0:
         from wl_env.params import resolve
@@ -155,8 +156,8 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     write_json_atomic(out, r)
     st = r["solve_time"]
     line = (f"{braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
-            f"solve time median {1e3 * st['median_s']:.1f} ms, p95 {1e3 * st['p95_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
-            f"{st['fallbacks']} fallbacks")
+            f"solve time median {1e3 * st['median_s']:.1f} ms, p99 {1e3 * st['p99_s']:.1f} ms, max {1e3 * st['max_s']:.0f} ms, "
+            f"{st['fallbacks']} fallbacks ({st['deadline_misses']} past the deadline)")
     if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
     print(line + f" -> {args.out}")
@@ -388,6 +389,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
                    help="minimum fuel, finishing by T seconds, in (0, 40) (the episode ends at 40 s)")
     g.add_argument("--w-fuel", type=_unit_float, metavar="W", help="weighted fuel/time objective, fuel weight W in [0, 1]")
+    p.add_argument("--deadline-ms", type=_float_in(0, 100, open_lo=True, unit=" ms"), metavar="MS",
+                   help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
+    p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
+                   help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")
     p.add_argument("--payload-scale", type=_float_in(0, 10), default=1.0,
                    help="plant payload / model payload, in [0, 10] (mismatch study)")
