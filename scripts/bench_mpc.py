@@ -82,6 +82,17 @@ def runs(braking: str, targets: list[float], quick: bool, suite_sample: int, cor
         yield f"corners[{i}] mismatch", MPCConfig(mode="time", **base), {"scenario": sc, "mismatch": True}
 
 
+def rate_sweep(weights: list[float]) -> None:
+    """The control-rate penalty's trade: total variation against fuel, one cycle per weight."""
+    print("| rate weight | T (s) | fuel (g) | fuel gap | TV U_mf vs optimum | TV U_ab vs optimum | max violation |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for w in weights:
+        r = closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(w, w)), "ipopt", f"w {w:g}")
+        s = r["smoothness"]
+        print(f"| {w:g} | {r['T']:.2f} | {r['fuel_g']:.3f} | {pct(r['fuel_gap'])} | {s['ratio_fuel_injection']:.2f}x "
+              f"| {s['ratio_bucket_acceleration']:.2f}x | {100 * r['max_violation']:.2f} % |")
+
+
 def pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:+.2f} %"
 
@@ -101,7 +112,11 @@ def main() -> None:
     ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
     ap.add_argument("--deadline-ms", type=float, default=None, help="MPCConfig.deadline_ms of every run")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
+    ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
+                    help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
     args = ap.parse_args()
+    if args.rate_sweep:
+        return rate_sweep(args.rate_sweep)
     targets = args.targets[:1] if args.quick else args.targets
     rows: list[dict[str, Any]] = []
     for solver in args.solvers:

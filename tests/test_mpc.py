@@ -341,3 +341,16 @@ def test_a_corner_scenario_in_mismatch_mode_completes_within_the_limits():
     r = run_closed_loop(config=MPCConfig(mode="time"), scenario=sc, mismatch=True, score=False)
     assert r.episode.completed and r.episode.success and r.episode.max_violation == 0.0
     assert r.scenario["payload"] == sc.payload
+
+
+@pytest.mark.slow  # 20 s: the RTI fails every schedule move of the first plan
+def test_a_candidate_that_fails_hands_the_solve_to_its_fallback():
+    """The solver candidates of bench_mpc run with IPOPT behind them: a failed solve (the RTI's cold start
+    here: it has no previous plan; or a step whose rows it leaves unmet) is IPOPT's, both statuses kept."""
+    from mpc.controller.solver import FallbackSolver, SqpRtiSolver
+
+    ctrl = MPCController("tc", config=MPCConfig(mode="target_time", target_time=11.0),
+                         solver=FallbackSolver(SqpRtiSolver("hpipm"), IpoptSolver()))
+    x = np.array([P.omega_0, 0.0, P.H_0, 0.0, 0.0])
+    ctrl._plan_cycle(x, 1, 0)  # cold: the RTI refuses, IPOPT plans (and takes the moves the RTI fails)
+    assert ctrl._sol.ok and ctrl._sol.status.startswith("sqp-rti (hpipm): ") and ", then " in ctrl._sol.status

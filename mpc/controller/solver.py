@@ -76,13 +76,18 @@ def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, ome
     return StepModel(braking, params, dt, substeps, omega_margin)
 
 
-@functools.lru_cache(maxsize=64)
+# The NLPs one controller plans with (one per first phase, SX and its MX twin) and their solvers: a
+# suite run moves on to another scenario's model, and each NLP with its solver holds 50-200 MB.
+NLP_CACHE = 8
+
+
+@functools.lru_cache(maxsize=NLP_CACHE)
 def grid_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], symbolic: str = "SX") -> GridNLP:
     """The NLP of a model from ``first_phase`` on with ``slots`` ((phase, slots), ...)."""
     return GridNLP(model, first_phase, dict(slots), symbolic)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=NLP_CACHE)
 def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
@@ -131,7 +136,7 @@ class IpoptSolver:
                             lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
 
 
-@functools.lru_cache(maxsize=32)
+@functools.lru_cache(maxsize=NLP_CACHE)
 def _fatrop(nlp: GridNLP, max_iter: int) -> ca.Function:
     n = len(nlp.slots)  # the stage-wise layout of GridNLP, as fatrop's manual structure states it
     opts = {"structure_detection": "manual", "N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0],
@@ -164,6 +169,46 @@ class FatropSolver:
                             lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
 
 
+@functools.lru_cache(maxsize=NLP_CACHE)
+def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
+    n = len(nlp.slots)
+    structure = {"N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0], "ng": [*nlp.stage_rows, 0]}
+    qp_opts = {"hpipm": {**structure, "hpipm": {"warm_start": True}}, "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
+    opts = {"qpsol": qpsol, "qpsol_options": {**qp_opts, "error_on_fail": False}, "max_iter": 1, "print_header": False,
+            "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False}
+    return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, opts)
+
+
+class SqpRtiSolver:
+    """The real-time iteration: one SQP step per control step (CasADi's ``sqpmethod``, exact Hessian) from
+    the previous plan, its QP solved by ``qpsol`` (hpipm: a Riccati interior point on the stage structure;
+    osqp, piqp: sparse, structure-blind). A step is accepted when its plan meets the NLP's rows to
+    ``FEAS_TOL``; else it counts as failed (a fallback solver takes it)."""
+
+    FEAS_TOL = 1e-5
+
+    def __init__(self, qpsol: str = "hpipm") -> None:
+        self.qpsol = qpsol
+
+    def prepare(self, nlp: GridNLP) -> None:
+        _sqp_rti(nlp, self.qpsol)
+
+    def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
+              lam_g0: np.ndarray | None = None) -> SolverResult:
+        if lam_x0 is None or lam_g0 is None:  # a cold start is not a real-time iteration's
+            return SolverResult(ok=False, status=f"sqp-rti ({self.qpsol}): no previous plan", iterations=0)
+        fn = _sqp_rti(nlp, self.qpsol)
+        sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), lam_x0=lam_x0, lam_g0=lam_g0, **args)
+        interrupt.check("")
+        z = np.array(sol["x"]).ravel()
+        g = np.array(sol["g"]).ravel()
+        infeas = float(np.max(np.maximum(args["lbg"] - g, 0.0) + np.maximum(g - args["ubg"], 0.0), initial=0.0))
+        ok = bool(np.isfinite(z).all()) and infeas <= self.FEAS_TOL
+        return SolverResult(ok=ok, status=f"sqp-rti ({self.qpsol}): row residual {infeas:.1e}", iterations=1, z=z,
+                            lam_x=np.array(sol["lam_x"]).ravel(), lam_g=np.array(sol["lam_g"]).ravel(),
+                            lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
+
+
 class FallbackSolver:
     """A solver, and another for the solves it fails (their statuses both kept)."""
 
@@ -184,7 +229,9 @@ class FallbackSolver:
 
 
 # The candidates scripts/bench_mpc.py compares (each a factory of a fresh solver)
-SOLVERS = {"ipopt": IpoptSolver, "fatrop": lambda: FallbackSolver(FatropSolver(), IpoptSolver())}
+SOLVERS = {"ipopt": IpoptSolver, "fatrop": lambda: FallbackSolver(FatropSolver(), IpoptSolver()),
+           "sqp-rti-hpipm": lambda: FallbackSolver(SqpRtiSolver("hpipm"), IpoptSolver()),
+           "sqp-rti-osqp": lambda: FallbackSolver(SqpRtiSolver("osqp"), IpoptSolver())}
 
 
 def timed_solve(solver: GridSolver, nlp: GridNLP, counts: dict[int, int], first_phase: int, args: dict[str, Any],
