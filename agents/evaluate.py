@@ -211,15 +211,14 @@ class GuardedController:
         self.controller, self.name, self.act_timeout = controller, name, act_timeout
         self.episode, self.step = -1, 0
 
-    def reset(self, scenario: Scenario | None = None) -> None:
-        self.episode, self.step = self.episode + 1, 0
-        if hasattr(self.controller, "reset"):
-            from wl_env.rollout import takes_scenario
+    def reset(self, scenario: Scenario | None = None, target_time: float | None = None) -> None:
+        from wl_env.rollout import reset_controller, takes_scenario
 
-            if scenario is not None and takes_scenario(self.controller.reset):
-                self._call("reset(scenario=...)", lambda: self.controller.reset(scenario=scenario), timeout=None)
-            else:
-                self._call("reset()", self.controller.reset, timeout=None)
+        self.episode, self.step = self.episode + 1, 0
+        if target_time is not None and not takes_scenario(getattr(self.controller, "reset", None), "target_time"):
+            reset_controller(self.controller, scenario, target_time)  # the ValueError naming the controller
+        if hasattr(self.controller, "reset"):
+            self._call("reset()", lambda: reset_controller(self.controller, scenario, target_time), timeout=None)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         out = self._call("act()", self.controller.act, obs, timeout=self.act_timeout)
@@ -279,6 +278,20 @@ def check_act_timeout(act_timeout: float | None) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
+def check_target(target_time: float | None, target_ratio: float | None) -> None:
+    """A clear error for a target cycle time out of range (s, in (0, 40)) or a ratio to T_min out of [1, 3]."""
+    if target_time is not None and target_ratio is not None:
+        raise ValueError("give target_time or target_ratio, not both")
+    for name, v, lo, hi in (("target_time", target_time, 0.0, 40.0), ("target_ratio", target_ratio, 1.0, 3.0)):
+        if v is None:
+            continue
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
+            lo < v < hi if name == "target_time" else lo <= v <= hi)
+        if not ok:
+            span = "(0, 40) s (the episode ends at 40 s)" if name == "target_time" else "[1, 3] (times T_min)"
+            raise ValueError(f"{name} must lie in {span}, got {v!r}")
+
+
 def check_settings(episodes: int, init_noise: float, seed: int) -> None:
     """Raise ValueError for settings no evaluation can run with."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
@@ -309,6 +322,8 @@ def evaluate_controller(
     solve: bool = True,
     env_id: str | None = None,
     unknown: str = "raise",
+    target_time: float | None = None,
+    target_ratio: float | None = None,
 ) -> dict[str, Any]:
     """Run episodes of ``controller`` and score each completed one against the optimum of its own cycle.
 
@@ -326,6 +341,11 @@ def evaluate_controller(
     (``name``, default its class), the episode and the step. ``act_timeout`` (seconds, default None:
     off) fails an ``act()`` call that takes longer. ``env_id``: default the controller's ``env_id``
     attribute, else ``WheelLoader-v2``. Values that do not exist (the gaps of an unfinished cycle) are None.
+
+    A target cycle time per episode: ``target_time`` (s), or ``target_ratio`` times the episode's own
+    minimum time (its scenario and start; shipped, cached or solved as the scores are). The controller is
+    told it through ``reset(target_time=...)`` (a controller without that argument is refused); each
+    episode records it and its ``lateness``, (T - target) / target when positive, else 0.
     """
     import gymnasium as gym
 
@@ -345,6 +365,7 @@ def evaluate_controller(
         if s.braking != braking:
             raise ValueError(f"scenario {s.label()} has {s.braking} braking; this evaluation runs {braking}")
     check_settings(episodes, init_noise, seed)
+    check_target(target_time, target_ratio)
     check_act_timeout(act_timeout)
     guarded = GuardedController(controller, name or type(controller).__name__, act_timeout)
     say = progress or (lambda msg: None)
@@ -357,14 +378,22 @@ def evaluate_controller(
         for i, sc in enumerate(plan):
             noise = 0.0 if i == 0 or scenarios is not None else float(init_noise)
             env = envs[noise]
-            ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories, scenario=sc)
+            target = target_time
+            if target_ratio is not None:  # the episode's own minimum time: its start as the reset draws it
+                from mpc.benchmark.reference import min_time_of
+
+                env.reset(seed=seed + i, options={"scenario": sc})
+                target = target_ratio * min_time_of(braking, env.unwrapped.episode_params, cache, solve)
+            ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories, scenario=sc, target_time=target)
             ran = env.unwrapped.episode_params  # the cycle with its actual start
             ran_scenario = env.unwrapped.episode_scenario
             rec: dict[str, Any] = {"episode": i, "init_noise": noise,
                                    "scenario": None if ran_scenario is None else ran_scenario.to_dict(),
                                    **ep.to_dict(trajectory=trajectories),
                                    "T_min": None, "time_gap": None, "fuel_opt_g": None, "fuel_gap": None,
-                                   "reference": None}
+                                   "reference": None, "target_time": target,
+                                   "lateness": (max(ep.T - target, 0.0) / target if target is not None and ep.completed
+                                                else None)}
             if score and ep.completed:
                 from mpc.benchmark.scoring import score_run
 
@@ -419,6 +448,8 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
         "time_gap_p90": _stats(time_gaps)["p90"],
         "fuel_gap_median": _stats(fuel_gaps)["median"],
         "fuel_gap_p90": _stats(fuel_gaps)["p90"],
+        # how late the completed cycles with a target finished, relative to it (0: on time; None: no targets)
+        "lateness_median": _stats([r["lateness"] for r in done if r.get("lateness") is not None])["median"],
         "nominal": {k: nominal[k] for k in ("success", "completed", "T", "fuel_g", "max_violation", "time_gap",
                                             "fuel_gap")},
     }

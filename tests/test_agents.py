@@ -249,3 +249,32 @@ def test_shipped_policy_acts_as_before_its_conversion(braking):
     obs, expected = ref[f"obs_{braking}"], ref[f"actions_{braking}"]
     assert obs.shape == (200, 12) and 0.2 < np.mean(np.abs(expected) < 1.0)  # not only saturated actions
     np.testing.assert_array_equal(load_policy(POLICIES / f"ppo_{braking}").act(obs), expected)
+
+
+def test_a_target_ratio_sets_each_episodes_target_from_its_own_minimum_time():
+    """`--target-ratio 1.15` on a test-suite scenario: the MPC is told 1.15 x that scenario's T_min (from
+    the shipped optima), finishes by it (lateness 0) and the aggregate carries the issue's keys."""
+    from agents.evaluate import evaluate_controller, load_controller
+    from mpc.benchmark.reference import min_time_of
+    from wl_env.suites import load_suite
+
+    sc = load_suite("test").spread("tc", 1)[0]
+    r = evaluate_controller(load_controller("mpc", "tc"), scenarios=[sc], target_ratio=1.15, solve=False)
+    e, s = r["per_episode"][0], r["summary"]
+    assert e["target_time"] == pytest.approx(1.15 * min_time_of("tc", sc.params(), solve=False))
+    assert e["success"] and e["T"] <= e["target_time"] + 1e-9 and e["lateness"] == 0.0
+    assert e["T"] > e["T_min"] * 1.05  # not the minimum-time cycle: it spends the time on fuel
+    for key in ("success_rate", "time_gap_median", "fuel_gap_median", "fuel_gap_p90", "lateness_median"):
+        assert key in s
+    assert s["lateness_median"] == 0.0 and s["fuel_gap_median"] < 0.01
+
+
+def test_a_controller_that_takes_no_target_is_refused_by_name():
+    from agents.evaluate import evaluate_controller, load_controller
+
+    with pytest.raises(ValueError, match="OperatorPolicy.reset takes no target_time"):
+        evaluate_controller(load_controller("operator", "service"), "service", episodes=1, target_time=12.0)
+    for bad in ({"target_time": 0.0}, {"target_time": 45.0}, {"target_ratio": 0.9}, {"target_ratio": float("nan")},
+                {"target_time": 10.0, "target_ratio": 1.2}):
+        with pytest.raises(ValueError, match="target"):
+            evaluate_controller(load_controller("operator", "service"), "service", episodes=1, **bad)

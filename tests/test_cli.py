@@ -417,6 +417,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["ocp", "--objective", "weighted", "--w-fuel", "1.5"], "--w-fuel", "[0, 1]"),
     (["ocp", "--params", "{not json"], "--params", "JSON"),
     (["mpc", "--deadline-ms", "150", "--out", "x.json"], "--deadline-ms", "(0, 100] ms"),
+    (["evaluate", "--controller", "mpc", "--target-ratio", "0.5", "--out", "x.json"], "--target-ratio", "[1, 3]"),
+    (["evaluate", "--controller", "mpc", "--target-time", "50", "--out", "x.json"], "--target-time", "(0, 40) s"),
     (["mpc", "--deadline-ms", "0", "--out", "x.json"], "--deadline-ms", "(0, 100] ms"),
     (["mpc", "--rate-weight", "0.1", "-1", "--out", "x.json"], "--rate-weight", "[0, 1e+06]"),
     (["train", "--n-epochs", "0"], "--n-epochs", ">= 1"),

@@ -186,7 +186,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     r = evaluate_controller(controller, braking, episodes=args.episodes, init_noise=args.init_noise,
                             seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
                             name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
-                            scenarios=scenarios, solve=not args.no_solve)
+                            scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
+                            target_ratio=args.target_ratio)
     r = {"controller": args.controller, "model": args.model, "suite": args.suite, **r}
     write_json_atomic(out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
@@ -422,6 +423,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "(a sampler suite: N draws)")
     p.add_argument("--no-solve", action="store_true", help="score only against shipped or cached optima (an "
                    "episode of another cycle is an error instead of a solve)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
+                   help="each episode's target cycle time, in (0, 40) s (the controller's reset takes target_time)")
+    g.add_argument("--target-ratio", type=_float_in(1, 3, unit=" (times T_min)"), metavar="R",
+                   help="each episode's target: R times its own minimum cycle time, R in [1, 3]")
     p.add_argument("--model", metavar="PATH", help="ppo: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
                    "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>); module:Class: passed "
                    "as model=")

@@ -12,12 +12,30 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 
-def takes_scenario(fn: Any) -> bool:
-    """True if a callable (a controller's reset) takes a ``scenario`` argument."""
+def takes_scenario(fn: Any, name: str = "scenario") -> bool:
+    """True if a callable (a controller's reset) takes an argument ``name`` (``scenario``, ``target_time``)."""
     try:
-        return "scenario" in inspect.signature(fn).parameters
+        return name in inspect.signature(fn).parameters
     except (TypeError, ValueError):  # a builtin or an odd callable: call it plainly
         return False
+
+
+def reset_controller(controller: Any, scenario: Any = None, target_time: float | None = None) -> None:
+    """Start a controller's episode: told the scenario if its ``reset`` takes ``scenario``, and the
+    target cycle time (s), which its ``reset`` must take as ``target_time`` (ValueError if it does not)."""
+    if not hasattr(controller, "reset"):
+        if target_time is not None:
+            raise ValueError(f"{type(controller).__name__} has no reset(target_time=...): it cannot be given a target time")
+        return
+    kw: dict[str, Any] = {}
+    if scenario is not None and takes_scenario(controller.reset):
+        kw["scenario"] = scenario
+    if target_time is not None:
+        if not takes_scenario(controller.reset, "target_time"):
+            raise ValueError(f"{type(controller).__name__}.reset takes no target_time: it cannot be given a target "
+                             "cycle time (a target needs a controller conditioned on it, e.g. the MPC)")
+        kw["target_time"] = float(target_time)
+    controller.reset(**kw)
 
 
 @dataclass(frozen=True)
@@ -60,16 +78,13 @@ class EpisodeResult:
 
 
 def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: bool = True,
-                scenario: Any = None) -> EpisodeResult:
+                scenario: Any = None, target_time: float | None = None) -> EpisodeResult:
     """Roll one episode of ``env`` (a ``WheelLoader`` env) under ``controller`` from ``reset(seed=seed)``
     (of ``scenario``, if given: then a controller whose ``reset`` takes ``scenario`` is told it; the
-    start state it reads from the observation)."""
+    start state it reads from the observation), with a ``target_time`` (s) if given
+    (:func:`reset_controller`)."""
     obs, info = env.reset(seed=seed, options=None if scenario is None else {"scenario": scenario})
-    if hasattr(controller, "reset"):
-        if scenario is not None and takes_scenario(controller.reset):
-            controller.reset(scenario=scenario)
-        else:
-            controller.reset()
+    reset_controller(controller, scenario, target_time)
     unwrapped = env.unwrapped
     ts, states, controls, phases = [0.0], [list(map(float, unwrapped.state))], [], [int(unwrapped.phase)]
     total, term, trunc = 0.0, False, False

@@ -122,6 +122,17 @@ def direct_fuel_at(braking: str, T: float, params: LoaderParams, cache: str | os
     return r
 
 
+def min_time_of(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None, solve: bool = True) -> float:
+    """A cycle's minimum time T_min (s): the known front's, else solved directly (unless ``solve`` is
+    False: then LookupError)."""
+    known = known_front(braking, params, cache)
+    if known is not None:
+        return float(known[0].T_min)
+    if not solve:
+        raise LookupError(f"no shipped or cached optimum for this {braking} cycle (parameters {params.fingerprint()})")
+    return float(direct_min_time(braking, params, cache).T)
+
+
 def reference_at(T: float, braking: str, params: LoaderParams, cache: str | os.PathLike | None = None,
                  front: ParetoFront | None = None, solve: bool = True) -> dict[str, Any]:
     """``{"T_min", "fuel_opt_g", "reference"}`` of a cycle of time T (s): the known front's (``front``,

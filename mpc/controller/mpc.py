@@ -26,6 +26,7 @@ so in ``last_info``.
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import math
 import os
 import time
@@ -150,8 +151,15 @@ class MPCController:
         self.reset()
 
     # ------------------------------------------------------------------ protocol
-    def reset(self, scenario: Scenario | None = None) -> None:
-        """Start a cycle; ``scenario``: plan with that cycle's model and targets from now on."""
+    def reset(self, scenario: Scenario | None = None, target_time: float | None = None) -> None:
+        """Start a cycle; ``scenario``: plan with that cycle's model and targets from now on;
+        ``target_time`` (s): this cycle in target-time mode, the least fuel finishing by then (None: the
+        mode the controller was made with)."""
+        if not hasattr(self, "_made_with"):
+            self._made_with = self.config
+        self.config = self._made_with if target_time is None else dataclasses.replace(
+            self._made_with, mode="target_time", target_time=target_time, w_fuel=None)
+        self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
         if getattr(self, "_pending", None) is not None:
             self._pending.result()  # a late solve of the last cycle ends first (within its wall-time limit)
             self._pending = None
