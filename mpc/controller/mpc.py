@@ -146,6 +146,7 @@ class MPCController:
         self.solver = solver or IpoptSolver(self.config.max_iter, wall)
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: concurrent.futures.Future | None = None
+        self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
         self.reset()
@@ -155,12 +156,10 @@ class MPCController:
         """Start a cycle; ``scenario``: plan with that cycle's model and targets from now on;
         ``target_time`` (s): this cycle in target-time mode, the least fuel finishing by then (None: the
         mode the controller was made with)."""
-        if not hasattr(self, "_made_with"):
-            self._made_with = self.config
         self.config = self._made_with if target_time is None else dataclasses.replace(
             self._made_with, mode="target_time", target_time=target_time, w_fuel=None)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
-        if getattr(self, "_pending", None) is not None:
+        if self._pending is not None:
             self._pending.result()  # a late solve of the last cycle ends first (within its wall-time limit)
             self._pending = None
         if scenario is not None:
