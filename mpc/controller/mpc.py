@@ -145,7 +145,7 @@ class MPCController:
             self.config.time_budget or self._deadline_s) else None
         self.solver = solver or IpoptSolver(self.config.max_iter, wall)
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
-        self._pending: concurrent.futures.Future | None = None
+        self._pending: tuple[str, concurrent.futures.Future] | None = None  # a late solve: ("plan" or "move", its future)
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
@@ -160,7 +160,7 @@ class MPCController:
             self._made_with, mode="target_time", target_time=target_time, w_fuel=None)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
         if self._pending is not None:
-            self._pending.result()  # a late solve of the last cycle ends first (within its wall-time limit)
+            self._pending[1].result()  # a late solve of the last cycle ends first (within its wall-time limit)
             self._pending = None
         if scenario is not None:
             if scenario.braking != self.braking:
@@ -241,10 +241,12 @@ class MPCController:
                     self._iterate = sol
                 if ok:
                     self._sol = sol
-                    if move is not None:
+                    if move is not None and alt is None:  # past the deadline: it waits as a move that did not pay
+                        self.schedule.record(move, k, paid=False)
+                    elif move is not None:
                         self._accept_move(move, alt, k)
-                solve_time = sum(s.wall for s in solves)
-                status = "; ".join(s.status for s in solves)
+                solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
+                status = "; ".join(s.status for s in solves) + status
         if ok:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
@@ -315,21 +317,42 @@ class MPCController:
         return self._solve(phase, counts, x, warm=warm, **args)
 
     def _step_solves(self, x: np.ndarray, phase: int, k: int, counts: dict[int, int], warm: Solve | None,
-                     args: dict[str, Any], t0: float) -> tuple[Solve, tuple | None, Solve | None]:
-        """One step's solves, with no side effect on the controller (they may run on the deadline's
-        worker): the schedule kept, and the schedule move worth a try, if any (see
-        :meth:`_schedule_move`), with its solve."""
-        sol = self._solve(phase, counts, x, warm=warm, **args)
+                     args: dict[str, Any], t0: float) -> tuple[tuple, str]:
+        """One step's solves, within the deadline if there is one: the schedule kept, then the schedule
+        move worth a try, if any (:meth:`_schedule_move`), with its solve; ((sol, move, alt), a note).
+        They have no side effect on the controller (they may run on the deadline's worker): a move not
+        solved by the deadline runs on and is dropped, and the step keeps the plan so far, the first
+        solve's. (A first solve not done by then raises TimeoutError, its future in ``_pending``.)"""
+        sol = self._on_time(("plan", self._solve), t0, phase, counts, x, warm, None, **args)
         if not sol.ok or self._over_budget(t0, 0.5) or (self._deadline_s is not None
                                                         and time.perf_counter() - t0 > 0.5 * self._deadline_s):
-            return sol, None, None
+            return (sol, None, None), ""
         move = self._schedule_move(sol, phase, k)
-        return (sol, move, self._try_move(sol, move, phase, x, **args)) if move is not None else (sol, None, None)
+        if move is None:
+            return (sol, None, None), ""
+        try:
+            alt = self._on_time(("move", self._try_move), t0, sol, move, phase, x, **args)
+        except concurrent.futures.TimeoutError:  # (alt None: the move did not pay, as far as this step knows)
+            return (sol, move, None), "; a schedule move past the deadline (dropped)"
+        return (sol, move, alt), ""
+
+    def _on_time(self, job: tuple[str, Any], t0: float, *args: Any, **kwargs: Any) -> Any:
+        """``job`` = (kind, function) called with the arguments; with a deadline, on its worker, and
+        TimeoutError if it is not done by t0 + the deadline (it runs on, kept in ``_pending``)."""
+        kind, fn = job
+        if self._deadline_s is None:
+            return fn(*args, **kwargs)
+        future = self._deadline_pool().submit(fn, *args, **kwargs)
+        try:
+            return future.result(timeout=max(t0 + self._deadline_s - time.perf_counter(), 0.0))
+        except concurrent.futures.TimeoutError:
+            self._pending = (kind, future)
+            raise
 
     def _step_outcome(self, x: np.ndarray, phase: int, k: int, t_call: float) -> tuple[tuple | None, str, float]:
         """The step's solves (:meth:`_step_solves`), within the deadline if there is one, and the time the
-        step began: None (and why) when the deadline passed, or when the solver is still busy with a step
-        that passed it (whose result then warm-starts the next solve).
+        step began: None (and why) when the deadline passed before a plan, or when the solver is still
+        busy with a late solve (a late plan then warm-starts the next solve; a late move is dropped).
 
         A late solve runs on in the background. The step after it begins, in real time, a control
         interval after the step before; a simulation faster than real time waits for the late solve as
@@ -338,28 +361,25 @@ class MPCController:
         start = t_call
         if self._pending is not None:
             start = max(t_call, self._step_start + self.dt)
+            kind, future = self._pending
             try:
-                late = self._pending.result(timeout=max(start + self._deadline_s - time.perf_counter(), 0.0))[0]
+                late = future.result(timeout=max(start + self._deadline_s - time.perf_counter(), 0.0))
             except concurrent.futures.TimeoutError:
                 self._step_start = start
                 return None, "deadline: the solver is still busy with an earlier step; the previous plan, shifted", start
             self._pending = None
-            if late.z is not None:
+            if kind == "plan" and late.z is not None:
                 self._iterate = late
         self._step_start = start
         self._enter_phase(phase)
         # what the solves read from the controller, fixed now (a late solve runs on beside the next step)
         args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
                 "margin": self._later_margin()}
-        job = (x, phase, k, dict(self._counts), self._iterate, args, start)
-        if self._deadline_s is None:
-            return self._step_solves(*job), "", start
-        future = self._deadline_pool().submit(self._step_solves, *job)
         try:
-            return future.result(timeout=max(start + self._deadline_s - time.perf_counter(), 0.0)), "", start
+            outcome, note = self._step_solves(x, phase, k, dict(self._counts), self._iterate, args, start)
         except concurrent.futures.TimeoutError:
-            self._pending = future
             return None, f"deadline: no plan within {1e3 * self._deadline_s:g} ms; the previous plan, shifted", start
+        return outcome, note, start
 
     def _deadline_pool(self) -> concurrent.futures.ThreadPoolExecutor:
         # one worker: CasADi releases the GIL while it solves, so the controller returns at the deadline
