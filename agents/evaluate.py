@@ -211,6 +211,11 @@ class GuardedController:
         self.controller, self.name, self.act_timeout = controller, name, act_timeout
         self.episode, self.step = -1, 0
 
+    def takes_target(self) -> bool:
+        from wl_env.rollout import takes_target
+
+        return takes_target(self.controller)
+
     def reset(self, scenario: Scenario | None = None, target_time: float | None = None) -> None:
         from wl_env.rollout import reset_controller, takes_scenario
 

@@ -44,6 +44,12 @@ HEIGHT_SCALE, LENGTH_SCALE = 5.0, 6.6  # m: v2's fixed scales (the nominal H_T a
 N_SCENARIO_OBS = len(SCENARIO_OBS_NAMES)
 SCENARIO_OBS_LOW = np.concatenate([OBS_LOW, -np.ones(len(FIELDS), dtype=np.float32)])
 SCENARIO_OBS_HIGH = np.concatenate([OBS_HIGH, np.ones(len(FIELDS), dtype=np.float32)])
+# WheelLoaderTarget-v0: v2's, then the episode's target cycle time (/ 40 s) and its ratio to T_min less 1
+TARGET_OBS_NAMES = (*SCENARIO_OBS_NAMES, "target_time/(40 s)", "target_time/T_min - 1")
+N_TARGET_OBS = len(TARGET_OBS_NAMES)
+# (a target given in seconds may lie anywhere in (0, 40) s: up to ~6.3 T_min, down to ~0 T_min)
+TARGET_OBS_LOW = np.concatenate([SCENARIO_OBS_LOW, np.array([0.0, -1.0], dtype=np.float32)])
+TARGET_OBS_HIGH = np.concatenate([SCENARIO_OBS_HIGH, np.array([1.0, 6.0], dtype=np.float32)])
 
 
 @dataclass(frozen=True)
@@ -136,9 +142,9 @@ class Codec:
 
     def _checked(self, obs: Any) -> np.ndarray:
         o = np.asarray(obs, dtype=np.float64)
-        if o.shape[-1:] not in ((N_OBS,), (N_SCENARIO_OBS,)) or o.ndim > 2 or not np.isfinite(o).all():
-            raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_SCENARIO_OBS},) (v2) or "
-                             f"({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"
+        if o.shape[-1:] not in ((N_OBS,), (N_SCENARIO_OBS,), (N_TARGET_OBS,)) or o.ndim > 2 or not np.isfinite(o).all():
+            raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_TARGET_OBS},) (WheelLoaderTarget), "
+                             f"({N_SCENARIO_OBS},) (v2) or ({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"
                              f"{'' if np.isfinite(o).all() else ' with non-finite entries'}")
         return o
 
@@ -148,7 +154,7 @@ class Codec:
         p = self.params
         o = self._checked(obs)
         c = o.T
-        height, length = self._scales(o.shape[-1] == N_SCENARIO_OBS)
+        height, length = self._scales(o.shape[-1] != N_OBS)
         phase = np.argmax(c[8:12], axis=0) + 1
         values = (c[0] * p.omega_max, c[1] * p.V_max, c[2] * height, c[3], c[4] * length, c[5] * length,
                   c[6] * TIME_SCALE, c[7], phase)
@@ -159,11 +165,11 @@ class Codec:
     def decode_scenario(self, obs: Any, braking: str) -> Scenario:
         """The scenario a v2 observation (shape (n_obs,)) carries, to float32 precision."""
         o = self._checked(obs)
-        if o.shape[-1] != N_SCENARIO_OBS:
+        if o.shape[-1] == N_OBS:
             raise ValueError("a WheelLoader-v1 observation carries no scenario; use WheelLoader-v2")
         if o.ndim != 1:
             raise ValueError(f"decode_scenario takes one observation, got shape {o.shape}")
-        f = o[N_OBS:]
+        f = o[N_OBS:N_SCENARIO_OBS]
         values = {name: min(max(0.5 * (s.lo + s.hi) + v * 0.5 * (s.hi - s.lo), s.lo), s.hi)
                   for (name, s), v in zip(FIELDS.items(), f, strict=True)}
         return Scenario(braking=braking, **values)

@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
+from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
 from wl_env.scenario import Scenario, resolve_scenario
@@ -32,6 +33,53 @@ def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -
         return Scenario.from_params(params.replace(omega_0=omega, H_0=H), braking)
     except ValueError:
         return None
+
+
+TARGET_RATIOS = (1.0, 2.5)  # the target env's default: targets drawn from T_min (fastest) to ~the minimum-fuel end
+
+
+def check_target_ratios(target: Any) -> tuple[float, float]:
+    """A target ratio to T_min (one number) or a range to draw from uniformly, within [1, 3]."""
+    lo, hi = (target, target) if isinstance(target, (int, float)) and not isinstance(target, bool) else (
+        tuple(target) if isinstance(target, (tuple, list)) and len(target) == 2 else (None, None))
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 1.0 <= v <= 3.0
+               for v in (lo, hi)) or lo > hi:
+        raise ValueError(f"target must be a ratio to T_min in [1, 3] or a range (lo, hi) within it, got {target!r}")
+    return float(lo), float(hi)
+
+
+def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: np.random.Generator,
+                   target_time: float | None = None, target_ratio: float | None = None) -> tuple[float, float]:
+    """(the scenario's estimated T_min, the episode's target time) in s: ``target_time``, or
+    ``target_ratio`` (default: drawn from ``ratios``) times the estimate (:mod:`wl_env.suites.min_time`)."""
+    from wl_env.suites.min_time import estimate_min_time
+
+    if scenario is None:
+        raise ValueError("a target cycle time needs the episode's scenario within the scenario ranges")
+    T_min = estimate_min_time(scenario)
+    if target_time is not None and target_ratio is not None:
+        raise ValueError("give the option target_time or target_ratio, not both")
+    if target_time is not None:
+        ok = isinstance(target_time, (int, float)) and math.isfinite(target_time) and 0.0 < target_time < TIME_SCALE
+        if not ok:
+            raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s, got {target_time!r}")
+        return T_min, float(target_time)
+    if target_ratio is not None:
+        lo, hi = check_target_ratios(target_ratio)
+    else:
+        lo, hi = ratios
+    return T_min, float(T_min * (lo if lo == hi else rng.uniform(lo, hi)))
+
+
+def target_features(target_time: Any, min_time: Any) -> tuple[Any, Any]:
+    """WheelLoaderTarget's two observation entries: the target / 40 s and its ratio to the estimated T_min, less 1."""
+    return target_time / TIME_SCALE, target_time / min_time - 1.0
+
+
+def lateness_charge(t0: Any, t1: Any, target_time: Any, weight: float) -> Any:
+    """The reward's lateness term for a step from t0 to t1 (s): ``weight`` per unit of (t - T) / T past the
+    target, as it accrues (the episode's total is weight times its lateness)."""
+    return weight * (np.maximum(t1 - target_time, 0.0) - np.maximum(t0 - target_time, 0.0)) / target_time
 
 
 def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None, w_time: float | None) -> RewardConfig:
@@ -89,7 +137,7 @@ class WheelLoaderEnv(gym.Env):
 
     ## Observation Space
 
-    ``Box((19,), float32)`` in v2, ``Box((12,), float32)`` in v1, normalized (:class:`wl_env.codec.Codec`
+    ``Box((21,), float32)`` in WheelLoaderTarget-v0, ``Box((19,), float32)`` in v2, ``Box((12,), float32)`` in v1, normalized (:class:`wl_env.codec.Codec`
     encodes and decodes it by name):
 
     | Num  | Observation (v2; v1 where it differs)                   | Min  | Max |
@@ -104,6 +152,8 @@ class WheelLoaderEnv(gym.Env):
     | 7    | fuel used (kg)                                          | 0    | 5   |
     | 8-11 | phase one-hot (1, 2, 3, 4)                              | 0    | 1   |
     | 12-18| v2 only: the scenario's payload, reverse and forward distance, rolling resistance, dump height, start engine speed and start bucket height, each mapped from its range onto [-1, 1] | -1 | 1 |
+    | 19   | target only: the episode's target cycle time / 40 s                   | 0    | 1   |
+    | 20   | target only: target / T_min - 1 (T_min: the scenario's estimate, :mod:`wl_env.suites.min_time`) | -1 | 6 |
 
     ## Rewards
 
@@ -116,6 +166,11 @@ class WheelLoaderEnv(gym.Env):
     reverse_distance), minus ``target_height`` per metre of
     bucket-height error at the end, minus ``failure`` for a stall or leaving the site. See
     :class:`wl_env.episode.RewardConfig`; ``w_fuel``/``w_time`` trace the fuel-time trade-off.
+    WheelLoaderTarget-v0 (``observe_target``) has ``w_time`` 0 and charges ``late`` per unit of (t - T) / T past the
+    episode's target T as it accrues: a target between T_min and ~2.5 T_min traces the front. The target
+    is ``target`` (a ratio to T_min, or a range drawn from uniformly at each reset; default 1-2.5) times
+    the scenario's estimated T_min, or ``reset(options={"target_time": T})`` / ``{"target_ratio": r}``;
+    ``info["target_time"]``, and ``info["lateness"]`` ((t - T) / T when positive, else 0).
 
     ## Starting State
 
@@ -135,6 +190,8 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v0 (a task of its own): v2 with a target cycle time per episode
+      (``observe_target``): two more observation entries, the lateness term, no time term (``w_time`` 0).
     * v2: scenarios (``scenario=``, ``reset(options={"scenario": ...})``, ``info["scenario"]``), the
       scenario's features in the observation, fixed length scales (5 m, 6.6 m); the two legs' distances
       may differ. The paper's cycle runs the same numbers as in v1.
@@ -160,8 +217,14 @@ class WheelLoaderEnv(gym.Env):
         render_mode: str | None = None,
         scenario: Scenario | dict | str | None = None,
         observe_scenario: bool = True,
+        observe_target: bool = False,
+        target: float | tuple[float, float] = TARGET_RATIOS,
     ) -> None:
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
+        self.observe_target = bool(observe_target)
+        if self.observe_target and not observe_scenario:
+            raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
+        self.target_ratios = check_target_ratios(target)
         self._source, self.braking = scenario_source(scenario, braking)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
@@ -177,8 +240,11 @@ class WheelLoaderEnv(gym.Env):
                                  make_reward_config(reward, w_fuel, w_time), self.observe_scenario)
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
         codec = self.core.codec
-        self.observation_space = spaces.Box(codec.obs_low, codec.obs_high, dtype=np.float32)
+        low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
+        self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self.codec = codec
+        self.target_time = math.nan  # s, the episode's (observe_target)
+        self.min_time_estimate = math.nan
         self._gears = self.core.sim._tables_py[0]
         self._done = False
         self._renderer = None
@@ -193,8 +259,13 @@ class WheelLoaderEnv(gym.Env):
         super().reset(seed=seed)
         options = dict(options or {})
         chosen = options.pop("scenario", None)
+        target_time, target_ratio = options.pop("target_time", None), options.pop("target_ratio", None)
         if options:
-            raise ValueError(f"WheelLoaderEnv.reset takes only the option 'scenario', got {sorted(options)}")
+            allowed = "the options 'scenario', 'target_time' and 'target_ratio'" if self.observe_target else (
+                "only the option 'scenario'")
+            raise ValueError(f"WheelLoaderEnv.reset takes {allowed}, got {sorted(options)}")
+        if not self.observe_target and (target_time is not None or target_ratio is not None):
+            raise ValueError("a target cycle time is an option of WheelLoaderTarget-v0 (observe_target=True)")
         source = self._source if chosen is None else scenario_source(chosen, self.braking)[0]
         if isinstance(source, Suite):
             source = source.sample(self.np_random, self.braking)
@@ -212,9 +283,15 @@ class WheelLoaderEnv(gym.Env):
         # The cycle this episode runs, its actual start included: what it is scored against.
         self.episode_params = p.replace(omega_0=float(omega), H_0=float(H)) if self.init_noise > 0.0 else p
         self.episode_scenario = start_scenario(p, self.braking, omega, H) if self.init_noise > 0.0 else self.scenario
+        if self.observe_target:
+            self.min_time_estimate, self.target_time = episode_target(
+                self.episode_scenario or self.scenario, self.target_ratios, self.np_random, target_time, target_ratio)
         if self.render_mode == "human":
             self.render()
-        return self._obs(), {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self.episode_scenario}
+        info = {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self.episode_scenario}
+        if self.observe_target:
+            info["target_time"] = self.target_time
+        return self._obs(), info
 
     def _set_scenario(self, scenario: Scenario | None) -> None:
         """Drive ``scenario``'s cycle (None: the machine's own parameters) from now on."""
@@ -240,8 +317,11 @@ class WheelLoaderEnv(gym.Env):
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action must be finite numbers in [-1, 1], got {values}")
+        t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
+        if self.observe_target:
+            r["reward"] = r["reward"] - lateness_charge(t0, r["t"], self.target_time, self.core.reward.late)
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         self._features = r["obs"]
         terminated, truncated = bool(r["terminated"]), bool(r["truncated"])
@@ -251,6 +331,8 @@ class WheelLoaderEnv(gym.Env):
         return self._obs(), float(r["reward"]), terminated, truncated, self._info(r)
 
     def _obs(self) -> np.ndarray:
+        if self.observe_target:
+            return np.array([*self._features, *target_features(self.target_time, self.min_time_estimate)], dtype=np.float32)
         return np.array(self._features, dtype=np.float32)  # (the step computed and clipped them, flattened)
 
     def _info(self, r: dict) -> dict[str, Any]:
@@ -276,6 +358,8 @@ class WheelLoaderEnv(gym.Env):
             "stalled": bool(r["stalled"]),
             "off_site": bool(r["off_site"]),
             "scenario": self.episode_scenario,
+            **({"target_time": self.target_time, "lateness": max(self._t - self.target_time, 0.0) / self.target_time}
+               if self.observe_target else {}),
         }
 
     # ------------------------------------------------------------------ extras

@@ -43,7 +43,9 @@ class RewardConfig:
     over each limit of eq. (31) within the step (:data:`wl_env.limits.ENV_NAMES`); ``target_distance`` per metre of error
     at the reversing point and at the end; ``target_height`` per metre of bucket-height error at the end;
     ``failure`` once for an engine stall or leaving the site. ``shaping`` scales a potential-based term
-    (progress along the 13.2 m path and the lift), which leaves the optimal policy unchanged.
+    (progress along the 13.2 m path and the lift), which leaves the optimal policy unchanged. ``late``
+    (``WheelLoaderTarget-v0``, an episode with a target cycle time T): per unit of (t - T) / T past the target,
+    charged as it accrues.
     """
 
     w_fuel: float = 0.5
@@ -55,6 +57,8 @@ class RewardConfig:
     target_height: float = 5.0
     failure: float = 20.0
     shaping: float = 1.0
+    # WheelLoaderTarget, an episode with a target cycle time T: per unit of lateness (t - T) / T, as it accrues
+    late: float = 10.0
 
     def __post_init__(self) -> None:
         for f in fields(self):

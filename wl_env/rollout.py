@@ -20,6 +20,12 @@ def takes_scenario(fn: Any, name: str = "scenario") -> bool:
         return False
 
 
+def takes_target(controller: Any) -> bool:
+    """True if a controller can be told a target cycle time (a wrapper says so for what it wraps)."""
+    ask = getattr(controller, "takes_target", None)
+    return bool(ask()) if callable(ask) else takes_scenario(getattr(controller, "reset", None), "target_time")
+
+
 def reset_controller(controller: Any, scenario: Any = None, target_time: float | None = None) -> None:
     """Start a controller's episode: told the scenario if its ``reset`` takes ``scenario``, and the
     target cycle time (s), which its ``reset`` must take as ``target_time`` (ValueError if it does not)."""
@@ -81,10 +87,16 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
                 scenario: Any = None, target_time: float | None = None) -> EpisodeResult:
     """Roll one episode of ``env`` (a ``WheelLoader`` env) under ``controller`` from ``reset(seed=seed)``
     (of ``scenario``, if given: then a controller whose ``reset`` takes ``scenario`` is told it; the
-    start state it reads from the observation), with a ``target_time`` (s) if given
-    (:func:`reset_controller`)."""
-    obs, info = env.reset(seed=seed, options=None if scenario is None else {"scenario": scenario})
-    reset_controller(controller, scenario, target_time)
+    start state it reads from the observation), with a ``target_time`` (s) if given: the controller is
+    told it (:func:`reset_controller`), and an env with ``observe_target`` (``WheelLoaderTarget-v0``)
+    shows it in the observation (a controller that reads it there need not take it)."""
+    options = {} if scenario is None else {"scenario": scenario}
+    observed = getattr(env.unwrapped, "observe_target", False)
+    if observed and target_time is not None:  # the target env shows it in the observation
+        options["target_time"] = float(target_time)
+    obs, info = env.reset(seed=seed, options=options or None)
+    told = target_time if not observed or takes_target(controller) else None
+    reset_controller(controller, scenario, told)
     unwrapped = env.unwrapped
     ts, states, controls, phases = [0.0], [list(map(float, unwrapped.state))], [], [int(unwrapped.phase)]
     total, term, trunc = 0.0, False, False

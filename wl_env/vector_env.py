@@ -18,7 +18,17 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from wl_env.env import make_reward_config, scenario_source
+from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW
+from wl_env.env import (
+    TARGET_RATIOS,
+    check_target_ratios,
+    episode_target,
+    lateness_charge,
+    make_reward_config,
+    scenario_source,
+    start_scenario,
+    target_features,
+)
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
 from wl_env.scenario import Scenario
@@ -45,6 +55,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         render_mode: str | None = None,
         scenario: Scenario | dict | str | None = None,
         observe_scenario: bool = True,
+        observe_target: bool = False,
+        target: float | tuple[float, float] = TARGET_RATIOS,
     ) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -53,6 +65,11 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
+        self.observe_target = bool(observe_target)
+        if self.observe_target and not observe_scenario:
+            raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
+        self.target_ratios = check_target_ratios(target)
+        self.target_time, self.min_time_estimate = np.full(num_envs, np.nan), np.full(num_envs, np.nan)
         self.machine = resolve(params)
         self._source, self.braking = scenario_source(scenario, braking)
         self.init_noise = float(init_noise)
@@ -66,7 +83,8 @@ class WheelLoaderVectorEnv(VectorEnv):
                                  make_reward_config(reward, w_fuel, w_time), observe_scenario)
         codec = self.core.codec
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
-        self.single_observation_space = spaces.Box(codec.obs_low, codec.obs_high, dtype=np.float32)
+        low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
+        self.single_observation_space = spaces.Box(low, high, dtype=np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.render_mode = None
@@ -108,6 +126,14 @@ class WheelLoaderVectorEnv(VectorEnv):
                 du = self._rngs[i].uniform(-1.0, 1.0, size=2)
                 omega[j] += float(du[0]) * self.init_noise * 100.0 * math.pi / 30.0
                 H[j] += float(du[1]) * self.init_noise * 0.1
+        if self.observe_target:  # each loader's target, from its own start (as the single env draws it)
+            for j, i in enumerate(idx):
+                s = self.scenarios[i]
+                p_i = s.params(self.machine) if s is not None else self.machine
+                start = start_scenario(p_i, self.braking, omega[j], H[j]) if self.init_noise > 0.0 else (
+                    s or start_scenario(p_i, self.braking, p_i.omega_0, p_i.H_0))
+                self.min_time_estimate[i], self.target_time[i] = episode_target(
+                    start or s, self.target_ratios, self._rngs[i])
         y = tuple(a.copy() for a in self._y)
         for a in y:
             a[idx] = 0.0
@@ -130,10 +156,13 @@ class WheelLoaderVectorEnv(VectorEnv):
             bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1)).tolist()
             raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
         resetting = self._needs_reset.copy()
+        t0 = self._t.copy()
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         reward = np.asarray(r["reward"], dtype=np.float64)
+        if self.observe_target:
+            reward = reward - lateness_charge(t0, np.asarray(r["t"], dtype=float), self.target_time, self.core.reward.late)
         terminated = np.asarray(r["terminated"], dtype=bool)
         truncated = np.asarray(r["truncated"], dtype=bool)
         success = np.asarray(r["success"], dtype=bool)
@@ -151,11 +180,14 @@ class WheelLoaderVectorEnv(VectorEnv):
             "is_success": success,
             "reversing_error": self._rev_err.copy(),
             "violation": np.asarray(r["excess"], dtype=np.float64),
+            **({"target_time": self.target_time.copy()} if self.observe_target else {}),
         }
         return self._obs(), reward, terminated, truncated, infos
 
     def _obs(self) -> np.ndarray:
         cols = self.core.codec.encode_observation(self._y, self._phase, self._t)  # (after the autoresets)
+        if self.observe_target:
+            cols = (*cols, *target_features(self.target_time, self.min_time_estimate))
         return np.stack([np.broadcast_to(c, (self.num_envs,)) for c in cols], axis=1).astype(np.float32)  # (clipped)
 
     @property
