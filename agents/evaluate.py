@@ -217,11 +217,11 @@ class GuardedController:
         return takes_target(self.controller)
 
     def reset(self, scenario: Scenario | None = None, target_time: float | None = None) -> None:
-        from wl_env.rollout import reset_controller, takes_scenario
+        from wl_env.rollout import check_takes_target, reset_controller
 
         self.episode, self.step = self.episode + 1, 0
-        if target_time is not None and not takes_scenario(getattr(self.controller, "reset", None), "target_time"):
-            reset_controller(self.controller, scenario, target_time)  # the ValueError naming the controller
+        if target_time is not None:  # refused by name, not as the controller's own error
+            check_takes_target(self.controller)
         if hasattr(self.controller, "reset"):
             self._call("reset()", lambda: reset_controller(self.controller, scenario, target_time), timeout=None)
 
@@ -285,16 +285,15 @@ def check_act_timeout(act_timeout: float | None) -> None:
 # ---------------------------------------------------------------------------------------------- evaluation
 def check_target(target_time: float | None, target_ratio: float | None) -> None:
     """A clear error for a target cycle time out of range (s, in (0, 40)) or a ratio to T_min out of [1, 3]."""
+    from wl_env.env import check_target_time
+
     if target_time is not None and target_ratio is not None:
         raise ValueError("give target_time or target_ratio, not both")
-    for name, v, lo, hi in (("target_time", target_time, 0.0, 40.0), ("target_ratio", target_ratio, 1.0, 3.0)):
-        if v is None:
-            continue
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
-            lo < v < hi if name == "target_time" else lo <= v <= hi)
-        if not ok:
-            span = "(0, 40) s (the episode ends at 40 s)" if name == "target_time" else "[1, 3] (times T_min)"
-            raise ValueError(f"{name} must lie in {span}, got {v!r}")
+    if target_time is not None:
+        check_target_time(target_time)
+    if target_ratio is not None and not (isinstance(target_ratio, (int, float)) and not isinstance(target_ratio, bool)
+                                         and math.isfinite(target_ratio) and 1.0 <= target_ratio <= 3.0):
+        raise ValueError(f"target_ratio must lie in [1, 3] (times T_min), got {target_ratio!r}")
 
 
 def check_settings(episodes: int, init_noise: float, seed: int) -> None:

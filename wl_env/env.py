@@ -48,6 +48,15 @@ def check_target_ratios(target: Any) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def check_target_time(target_time: Any) -> float:
+    """A target cycle time in (0, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
+    if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and math.isfinite(target_time)
+            and 0.0 < target_time < TIME_SCALE):
+        raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s (the episode ends at {TIME_SCALE:g} s), "
+                         f"got {target_time!r}")
+    return float(target_time)
+
+
 def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: np.random.Generator,
                    target_time: float | None = None, target_ratio: float | None = None) -> tuple[float, float]:
     """(the scenario's estimated T_min, the episode's target time) in s: ``target_time``, or
@@ -60,10 +69,7 @@ def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: 
     if target_time is not None and target_ratio is not None:
         raise ValueError("give the option target_time or target_ratio, not both")
     if target_time is not None:
-        ok = isinstance(target_time, (int, float)) and math.isfinite(target_time) and 0.0 < target_time < TIME_SCALE
-        if not ok:
-            raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s, got {target_time!r}")
-        return T_min, float(target_time)
+        return T_min, check_target_time(target_time)
     if target_ratio is not None:
         lo, hi = check_target_ratios(target_ratio)
     else:

@@ -12,34 +12,44 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 
-def takes_scenario(fn: Any, name: str = "scenario") -> bool:
-    """True if a callable (a controller's reset) takes an argument ``name`` (``scenario``, ``target_time``)."""
+def takes_argument(fn: Any, name: str) -> bool:
+    """True if a callable (a controller's reset) takes an argument ``name``."""
     try:
         return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):  # a builtin or an odd callable: call it plainly
+    except (TypeError, ValueError):  # a builtin or an odd callable (or none): call it plainly
         return False
+
+
+def takes_scenario(fn: Any) -> bool:
+    """True if a callable (a controller's reset) takes a ``scenario`` argument."""
+    return takes_argument(fn, "scenario")
 
 
 def takes_target(controller: Any) -> bool:
     """True if a controller can be told a target cycle time (a wrapper says so for what it wraps)."""
     ask = getattr(controller, "takes_target", None)
-    return bool(ask()) if callable(ask) else takes_scenario(getattr(controller, "reset", None), "target_time")
+    return bool(ask()) if callable(ask) else takes_argument(getattr(controller, "reset", None), "target_time")
+
+
+def check_takes_target(controller: Any) -> None:
+    """ValueError naming a controller that cannot be told a target cycle time (its reset takes no
+    target_time; a wrapper's reset checks what it wraps)."""
+    if not takes_argument(getattr(controller, "reset", None), "target_time"):
+        raise ValueError(f"{type(controller).__name__}.reset takes no target_time: it cannot be given a target "
+                         "cycle time (a target needs a controller conditioned on it, e.g. the MPC)")
 
 
 def reset_controller(controller: Any, scenario: Any = None, target_time: float | None = None) -> None:
     """Start a controller's episode: told the scenario if its ``reset`` takes ``scenario``, and the
     target cycle time (s), which its ``reset`` must take as ``target_time`` (ValueError if it does not)."""
+    if target_time is not None:
+        check_takes_target(controller)
     if not hasattr(controller, "reset"):
-        if target_time is not None:
-            raise ValueError(f"{type(controller).__name__} has no reset(target_time=...): it cannot be given a target time")
         return
     kw: dict[str, Any] = {}
     if scenario is not None and takes_scenario(controller.reset):
         kw["scenario"] = scenario
     if target_time is not None:
-        if not takes_scenario(controller.reset, "target_time"):
-            raise ValueError(f"{type(controller).__name__}.reset takes no target_time: it cannot be given a target "
-                             "cycle time (a target needs a controller conditioned on it, e.g. the MPC)")
         kw["target_time"] = float(target_time)
     controller.reset(**kw)
 

@@ -13,6 +13,8 @@ import os
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import numpy as np
+
 from mpc.benchmark.pareto import ParetoFront
 from mpc.benchmark.reference import reference_at
 from wl_env.params import LoaderParams, resolve
@@ -82,8 +84,6 @@ class Smoothness:
 
 def total_variation(controls: Any) -> tuple[float, float]:
     """Total variation of U_mf (mg) and U_ab (m/s^2) over a sequence of held controls (rows [U_mf, U_ab, ...])."""
-    import numpy as np
-
     u = np.asarray(controls, dtype=float)
     if u.ndim != 2 or u.shape[1] < 2 or len(u) < 1 or not np.isfinite(u[:, :2]).all():
         raise ValueError(f"controls must be finite rows [U_mf, U_ab, ...], got shape {u.shape}")

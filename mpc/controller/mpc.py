@@ -141,9 +141,8 @@ class MPCController:
         if self._deadline_s is not None and self._deadline_s > self.dt + 1e-12:
             raise ValueError(f"deadline_ms {self.config.deadline_ms!r} is longer than the control interval "
                              f"({1e3 * self.dt:g} ms): a control must be ready before the next step begins")
-        wall = min(b for b in (self.config.time_budget, self._deadline_s) if b is not None) if (
-            self.config.time_budget or self._deadline_s) else None
-        self.solver = solver or IpoptSolver(self.config.max_iter, wall)
+        budgets = [b for b in (self.config.time_budget, self._deadline_s) if b is not None]
+        self.solver = solver or IpoptSolver(self.config.max_iter, min(budgets, default=None))
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: tuple[str, concurrent.futures.Future] | None = None  # a late solve: ("plan" or "move", its future)
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it

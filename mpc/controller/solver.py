@@ -136,11 +136,17 @@ class IpoptSolver:
                             lam_p=np.array(sol["lam_p"]).ravel(), f=float(sol["f"]))
 
 
+def stage_structure(nlp: GridNLP) -> dict[str, Any]:
+    """GridNLP's stage-wise layout as fatrop's and hpipm's structure options state it (N stages, the states,
+    controls and non-gap rows of each; the last stage is the end state alone)."""
+    n = len(nlp.slots)
+    return {"N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0], "ng": [*nlp.stage_rows, 0]}
+
+
 @functools.lru_cache(maxsize=NLP_CACHE)
 def _fatrop(nlp: GridNLP, max_iter: int) -> ca.Function:
-    n = len(nlp.slots)  # the stage-wise layout of GridNLP, as fatrop's manual structure states it
-    opts = {"structure_detection": "manual", "N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0],
-            "ng": [*nlp.stage_rows, 0], "print_time": False, "fatrop": {"print_level": 0, "max_iter": max_iter}}
+    opts = {"structure_detection": "manual", **stage_structure(nlp), "print_time": False,
+            "fatrop": {"print_level": 0, "max_iter": max_iter}}
     return ca.nlpsol("mpc_fatrop", "fatrop", nlp.nlp, opts)
 
 
@@ -171,9 +177,7 @@ class FatropSolver:
 
 @functools.lru_cache(maxsize=NLP_CACHE)
 def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
-    n = len(nlp.slots)
-    structure = {"N": n, "nx": [N_XR] * (n + 1), "nu": [*nlp.stage_controls, 0], "ng": [*nlp.stage_rows, 0]}
-    qp_opts = {"hpipm": {**structure, "hpipm": {"warm_start": True}}, "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
+    qp_opts = {"hpipm": {**stage_structure(nlp), "hpipm": {"warm_start": True}}, "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
     opts = {"qpsol": qpsol, "qpsol_options": {**qp_opts, "error_on_fail": False}, "max_iter": 1, "print_header": False,
             "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False}
     return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, opts)

@@ -37,7 +37,8 @@ def quadratic_terms(features: Any) -> np.ndarray:
 
 
 @cache
-def _model() -> dict[str, Any]:
+def _model() -> dict[str, np.ndarray]:
+    """The fit's coefficients per braking alternative, read and checked once."""
     try:
         data = json.loads(MODEL_FILE.read_text())
         coef = {b: np.asarray(data["braking"][b]["coefficients"], dtype=float) for b in BRAKING_MODES}
@@ -47,12 +48,12 @@ def _model() -> dict[str, Any]:
     for b, c in coef.items():
         if c.shape != (n_terms,) or not np.isfinite(c).all():
             raise RuntimeError(f"{MODEL_FILE}: the {b} coefficients must be {n_terms} finite numbers")
-    return {"coefficients": coef, "data": data}
+    return coef
 
 
 def estimate_min_time(scenario: Scenario) -> float:
     """The estimated minimum cycle time (s) of a scenario (its braking alternative's fit)."""
-    c = _model()["coefficients"][scenario.braking]
+    c = _model()[scenario.braking]
     T = float((quadratic_terms(scenario.features()) @ c)[0])
     if not (math.isfinite(T) and T > 0):
         raise RuntimeError(f"the T_min model gives {T!r} s for {scenario.label()}")
