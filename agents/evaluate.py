@@ -34,23 +34,31 @@ from wl_env.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
-BUILTIN_CONTROLLERS = ("ppo", "operator", "mpc")
+BUILTIN_CONTROLLERS = ("ppo", "bc", "operator", "mpc")
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
+# the shipped policies: PPO on the paper's cycle (WheelLoader-v1), and the target-conditioned PPO and
+# behaviour-cloned (imitation) policies of WheelLoaderTarget-v0, per braking alternative
+SHIPPED_POLICIES = {"ppo": "ppo_{braking}", "ppo-target": "ppo_target_{braking}", "bc": "bc_target_{braking}"}
 
 
-def default_policy_path(braking: str) -> Path:
-    """The weights file of the shipped PPO policy of a braking alternative (with its ``_vecnormalize.npz``
-    and ``.json`` beside it, :mod:`agents.policy_files`)."""
-    return POLICY_DIR / f"ppo_{cycle.check_braking(braking)}.safetensors"
+def default_policy_path(braking: str, kind: str = "ppo") -> Path:
+    """The weights file of a shipped policy of a braking alternative (with its ``_vecnormalize.npz`` and
+    ``.json`` beside it, :mod:`agents.policy_files`); ``kind`` one of :data:`SHIPPED_POLICIES`."""
+    if kind not in SHIPPED_POLICIES:
+        raise ValueError(f"kind must be one of {', '.join(SHIPPED_POLICIES)}, got {kind!r}")
+    return POLICY_DIR / f"{SHIPPED_POLICIES[kind].format(braking=cycle.check_braking(braking))}.safetensors"
 
 
 # ---------------------------------------------------------------------------------------------- loading
 def load_controller(spec: str, braking: str, model: str | None = None, *, trust_pickle: bool = False,
-                    scenario: Scenario | None = None) -> Controller:
+                    scenario: Scenario | None = None, targeted: bool = False) -> Controller:
     """The controller named by ``spec`` for ``braking``.
 
-    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``; a pickle-free policy,
-    or with ``trust_pickle`` a stable-baselines3 zip you trust, see :func:`agents.ppo.load_policy`), ``"operator"``
+    ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``, trained on the paper's
+    cycle, or with ``targeted`` (an evaluation at target cycle times) the target-conditioned
+    ``ppo_target_<braking>``; a pickle-free policy, or with ``trust_pickle`` a stable-baselines3 zip you
+    trust, see :func:`agents.ppo.load_policy`); ``"bc"`` the imitation baseline ``bc_target_<braking>``
+    (behaviour cloning of the MPC, :mod:`agents.imitation`) or ``model``; ``"operator"``
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
     that argument (and ``model=`` if a model is given), else without arguments; the result needs an
@@ -60,10 +68,11 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     """
     cycle.check_braking(braking)
     spec = spec.strip()
-    if spec == "ppo":
-        return _load_ppo(braking, model, trust_pickle)
+    if spec in ("ppo", "bc"):
+        kind = "bc" if spec == "bc" else "ppo-target" if targeted else "ppo"
+        return _load_ppo(braking, model, trust_pickle, kind)
     if trust_pickle:
-        raise ValueError(f"--trust-pickle is for --controller ppo (the policy file it loads), not {spec!r}")
+        raise ValueError(f"--trust-pickle is for --controller ppo or bc (the policy file it loads), not {spec!r}")
     if spec in ("operator", "mpc") and model is not None:
         raise ValueError(f"--model is for learned controllers (ppo, module:Class), not {spec!r}")
     if spec == "operator":
@@ -80,8 +89,8 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     return _load_user_controller(spec, braking, model, scenario)
 
 
-def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False) -> Controller:
-    path = Path(model).expanduser() if model is not None else default_policy_path(braking)
+def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind: str = "ppo") -> Controller:
+    path = Path(model).expanduser() if model is not None else default_policy_path(braking, kind)
     if model is None and not path.exists():
         raise FileNotFoundError(f"no PPO policy at {path} (train one with `wl train --braking {braking} --export PATH`, "
                                 "then pass --model PATH)")
@@ -328,6 +337,7 @@ def evaluate_controller(
     unknown: str = "raise",
     target_time: float | None = None,
     target_ratio: float | None = None,
+    min_time: str = "optimum",
 ) -> dict[str, Any]:
     """Run episodes of ``controller`` and score each completed one against the optimum of its own cycle.
 
@@ -349,7 +359,9 @@ def evaluate_controller(
     A target cycle time per episode: ``target_time`` (s), or ``target_ratio`` times the episode's own
     minimum time (its scenario and start; shipped, cached or solved as the scores are). The controller is
     told it through ``reset(target_time=...)`` (a controller without that argument is refused); each
-    episode records it and its ``lateness``, (T - target) / target when positive, else 0.
+    episode records it and its ``lateness``, (T - target) / target when positive, else 0. ``min_time``
+    ``"estimate"`` takes the ratio of the scenario's estimated T_min instead (:mod:`wl_env.suites.min_time`;
+    nothing solved, e.g. for training-time evaluations on unsolved draws).
     """
     import gymnasium as gym
 
@@ -371,6 +383,8 @@ def evaluate_controller(
     check_settings(episodes, init_noise, seed)
     check_target(target_time, target_ratio)
     check_act_timeout(act_timeout)
+    if min_time not in ("optimum", "estimate"):
+        raise ValueError(f"min_time must be 'optimum' or 'estimate', got {min_time!r}")
     guarded = GuardedController(controller, name or type(controller).__name__, act_timeout)
     say = progress or (lambda msg: None)
     env_id = env_id or getattr(controller, "env_id", "WheelLoader-v2")
@@ -385,9 +399,13 @@ def evaluate_controller(
             target = target_time
             if target_ratio is not None:  # the episode's own minimum time: its start as the reset draws it
                 from mpc.benchmark.reference import min_time_of
+                from wl_env.suites.min_time import estimate_min_time
 
                 env.reset(seed=seed + i, options={"scenario": sc})
-                target = target_ratio * min_time_of(braking, env.unwrapped.episode_params, cache, solve)
+                ran = env.unwrapped
+                T_min = (min_time_of(braking, ran.episode_params, cache, solve) if min_time == "optimum" else
+                         estimate_min_time(ran.episode_scenario or sc))
+                target = target_ratio * T_min
             ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories, scenario=sc, target_time=target)
             ran = env.unwrapped.episode_params  # the cycle with its actual start
             ran_scenario = env.unwrapped.episode_scenario

@@ -59,19 +59,22 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import PPOConfig
+from agents.ppo_config import TARGET_ENV_ID, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.atomic_io import write_atomic
-from wl_env.codec import N_OBS, N_SCENARIO_OBS
+from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
+
+ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
 
 log = logging.getLogger(__name__)
 
+EVAL_TARGET_RATIOS = (1.0, 1.15, 1.5)  # the targets of the leaderboard (#14): fastest, 1.15 and 1.5 T_min
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
     "time_gap", "fuel_gap", "reversing_error_m", "final_position_error_m", "final_height_error_m", "max_violation",
     "success_rate", "completion_rate", "mean_return", "mean_T", "mean_fuel_g", "train_w_fuel", "train_w_time",
-    "train_target_distance",
+    "train_target_distance", "lateness_median", "fuel_gap_median", "time_gap_fastest",
 )
 
 
@@ -121,7 +124,7 @@ def make_env(cfg: PPOConfig, num_envs: int | None = None, seed: int | None = Non
     """
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-    env = make_sb3_vec_env(num_envs or cfg.num_envs, seed=cfg.seed if seed is None else seed,
+    env = make_sb3_vec_env(num_envs or cfg.num_envs, seed=cfg.seed if seed is None else seed, env_id=cfg.env_id,
                            init_noise=cfg.init_noise, **cfg.env_kwargs())
     env = VecMonitor(env)
     if not (cfg.norm_obs or cfg.norm_reward):
@@ -152,7 +155,8 @@ def reward_config(cfg: PPOConfig, step: int | None = None):
     """The run's RewardConfig at a training step (``None``: the final one, after the curriculum)."""
     from wl_env.env import make_reward_config
 
-    final = make_reward_config(dict(cfg.reward), cfg.w_fuel, cfg.w_time)
+    kwargs = cfg.env_kwargs()
+    final = make_reward_config(kwargs["reward"], kwargs["w_fuel"], kwargs["w_time"])
     if step is None or not cfg.curriculum_start:
         return final
     frac = min(1.0, step / max(1.0, cfg.curriculum_fraction * cfg.total_timesteps))
@@ -175,8 +179,8 @@ class PPOPolicy:
         self.normalization = normalization
         self.meta = meta or {}
         self.braking = self.meta.get("braking")
-        # the env whose observations it takes: v1's 12 entries (the shipped policies) or v2's 19
-        self.env_id = "WheelLoader-v2" if network.observation_space.shape == (N_SCENARIO_OBS,) else "WheelLoader-v1"
+        # the env whose observations it takes: v1's 12 entries (the nominal policies), v2's 19 or the target env's 21
+        self.env_id = ENV_OF_OBS[network.observation_space.shape[0]]
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:
@@ -298,34 +302,36 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 
 def _check_spaces(network: Any, path: Path) -> None:
-    """The policy must take WheelLoader-v1's (12,) or v2's (19,) observations and give its actions (4,)."""
+    """The policy must take the observations of one of the envs (:data:`ENV_OF_OBS`) and give its actions (4,)."""
     obs, act = network.observation_space.shape, network.action_space.shape
-    if obs not in ((N_OBS,), (N_SCENARIO_OBS,)) or act != (4,):
+    if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act != (4,):
         raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
-                              f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},) and (4,)")
+                              f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},), WheelLoaderTarget-v0 ({N_TARGET_OBS},)")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
 class _Deterministic:
     """A batched ``act(obs) -> actions`` as a controller of the protocol (training-time evaluation)."""
 
-    env_id = ENV_ID  # what the policy is trained on
-
-    def __init__(self, act: Any) -> None:
+    def __init__(self, act: Any, env_id: str = ENV_ID) -> None:
         self._act = act
+        self.env_id = env_id  # what the policy is trained on
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         return np.asarray(self._act(np.asarray(obs, dtype=np.float32)[None]), dtype=np.float32).reshape(-1)
 
 
 def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 1.0, seed: int = 10_000,
-             env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None) -> dict[str, Any]:
+             env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None,
+             env_id: str = ENV_ID) -> dict[str, Any]:
     """Deterministic evaluation through the one evaluation path (:func:`agents.evaluate.evaluate_controller`):
     the nominal start (init_noise 0, what the optimum is computed for) and ``n_episodes`` perturbed starts,
     as one row of the learning curve (:data:`EVAL_FIELDS`): the nominal start's numbers and the perturbed
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
+    if env_id == TARGET_ENV_ID:
+        return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
     # own optimum would cost a solve per episode at every evaluation.
     res = evaluate_controller(_Deterministic(act), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
@@ -357,6 +363,52 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
                    max_time_gap=float(np.max([e["time_gap"] for e in scored])),
                    max_fuel_gap=float(np.max([e["fuel_gap"] for e in scored])))
     return out
+
+
+def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 10_000,
+                     env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None,
+                     ratios: tuple[float, ...] = EVAL_TARGET_RATIOS) -> dict[str, Any]:
+    """The learning-curve row of a target-conditioned policy (``WheelLoaderTarget-v0``): at each target ratio,
+    the paper's cycle (scored against its shipped front) and ``n_episodes`` validation draws of the ``train``
+    distribution (seed stream ``seed``, which no training env draws from; unscored: nothing is solved),
+    each target that ratio times the scenario's estimated T_min. ``nominal_*`` is the paper's cycle at the
+    middle ratio; rates, means and ``lateness_median`` cover every episode; ``fuel_gap_median`` the paper's
+    cycle over the ratios; ``time_gap_fastest`` its time gap at the first ratio."""
+    from agents.evaluate import evaluate_controller
+    from wl_env.scenario import Scenario
+    from wl_env.suites import TRAIN_STREAM, draw, stream
+
+    rng = stream(TRAIN_STREAM, seed)
+    plan = [Scenario.nominal(braking)] + [draw(rng, braking) for _ in range(n_episodes)]
+    runs = [evaluate_controller(_Deterministic(act, TARGET_ENV_ID), braking, scenarios=plan, seed=seed,
+                                score=with_score, front=front, env_kwargs=env_kwargs, name="policy", solve=False,
+                                unknown="skip", target_ratio=r, min_time="estimate") for r in ratios]
+    episodes = [e for run in runs for e in run["per_episode"]]
+    done = [e for e in episodes if e["completed"]]
+    nominals = [run["per_episode"][0] for run in runs]
+    nominal = nominals[len(nominals) // 2]
+
+    def nan(v: Any) -> float:
+        return math.nan if v is None else float(v)
+
+    def median(values: list[float]) -> float:
+        return float(np.median(values)) if values else math.nan
+
+    return {
+        "nominal_success": float(nominal["success"]), "nominal_completed": float(nominal["completed"]),
+        "nominal_return": nominal["episode_return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
+        "time_gap": nan(nominal["time_gap"]), "fuel_gap": nan(nominal["fuel_gap"]),
+        "reversing_error_m": nan(nominal["reversing_error_m"]), "final_position_error_m": nominal["final_position_error_m"],
+        "final_height_error_m": nominal["final_height_error_m"], "max_violation": max(e["max_violation"] for e in episodes),
+        "success_rate": float(np.mean([e["success"] for e in episodes])),
+        "completion_rate": len(done) / len(episodes),
+        "mean_return": float(np.mean([e["episode_return"] for e in episodes])),
+        "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
+        "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
+        "lateness_median": median([e["lateness"] for e in done]),
+        "fuel_gap_median": median([e["fuel_gap"] for e in nominals if e["success"] and e["fuel_gap"] is not None]),
+        "time_gap_fastest": nan(nominals[0]["time_gap"]),
+    }
 
 
 # ---------------------------------------------------------------------------------------------- training
@@ -430,7 +482,7 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]) -> tuple[An
 
             res = evaluate(act, cfg.braking, cfg.eval_episodes, cfg.eval_init_noise, seed=10_000,
                            env_kwargs=cfg.env_kwargs(), with_score=cfg.score and self.front is not None,
-                           front=self.front)
+                           front=self.front, env_id=cfg.env_id)
             rc = reward_config(cfg, step)
             row = {"step": step, "wall_time": state["wall_time"] + time.time() - state["t0"],
                    "train_w_time": rc.w_time, "train_w_fuel": rc.w_fuel, "train_target_distance": rc.target_distance,
@@ -505,7 +557,9 @@ def _eval_line(row: dict[str, Any]) -> str:
             f"  T {f('T', '.2f')} s  fuel {f('fuel_g', '.1f')} g  gaps {f('time_gap', '+.3f')}/{f('fuel_gap', '+.3f')}"
             f"  errors rev {f('reversing_error_m', '+.3f')} end {f('final_position_error_m', '+.3f')} "
             f"H {f('final_height_error_m', '+.3f')}"
-            f"  return {f('nominal_return', '.3f')}")
+            f"  return {f('nominal_return', '.3f')}"
+            + (f"  lateness {f('lateness_median', '.3f')} fuel gap over targets {f('fuel_gap_median', '+.3f')}"
+               if "lateness_median" in row else ""))
 
 
 def _append_eval_row(path: Path, row: dict[str, Any]) -> None:
@@ -614,6 +668,27 @@ def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
     return model
 
 
+def start_from(model: Any, env: Any, cfg: PPOConfig) -> None:
+    """Fine-tuning: the weights and observation statistics of the pickle-free policy ``cfg.init_policy``
+    (the same network as ``cfg``'s), with the exploration noise reset to ``cfg.log_std_init``."""
+    stem = _safe_stem(Path(cfg.init_policy).expanduser())
+    if stem is None:
+        raise PolicyFileError(f"init_policy {cfg.init_policy}: not a pickle-free policy (STEM{WEIGHTS_SUFFIX} with "
+                              f"its normalization and metadata)")
+    network, normalization, _ = read_policy(stem)
+    try:
+        model.policy.load_state_dict(network.state_dict(), strict=True)
+    except RuntimeError as exc:
+        raise PolicyFileError(f"init_policy {stem}: its network does not fit the run's (net_arch {list(cfg.net_arch)}, "
+                              f"{cfg.env_id}): {' '.join(str(exc).split())[:300]}") from None
+    with th.no_grad():
+        model.policy.log_std.fill_(cfg.log_std_init)
+    vn = _vecnorm_of(env)
+    if vn is not None and normalization is not None:
+        vn.obs_rms.mean, vn.obs_rms.var = normalization.mean.copy(), normalization.var.copy()
+        vn.obs_rms.count = 1e6  # held: statistics from many demonstrations, not from the first rollout alone
+
+
 def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, callbacks: list | None = None) -> dict[str, Any]:
     """Train (or, with ``resume``, continue) the run ``cfg.run_dir``; returns the run's summary.
 
@@ -668,6 +743,8 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         shutil.rmtree(tb_dir, ignore_errors=True)
         env = make_env(cfg)
         model = build_model(cfg, env, tb_dir)
+        if cfg.init_policy:
+            start_from(model, env, cfg)
 
     remaining = cfg.total_timesteps - step
     if remaining > 0:
@@ -713,7 +790,7 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
         except Exception as e:  # noqa: BLE001
             log.warning("no Pareto front, the evaluation is not scored (%s)", e)
     ev = evaluate(policy.act, cfg.braking, n_episodes, init_noise, env_kwargs=cfg.env_kwargs(),
-                  with_score=front is not None, front=front)
+                  with_score=front is not None, front=front, env_id=cfg.env_id)
     if front is not None:
         ev["optimum"] = {"T_min": front.T_min, "fuel_at_T_g": front.fuel_at(ev["T"]) if front.T_min <= ev["T"]
                          < front.T_fuel_opt else None, "T_fuel_opt": front.T_fuel_opt, "fuel_min_g": front.fuel_min_g}

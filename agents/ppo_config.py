@@ -11,6 +11,11 @@ from typing import Any
 
 from wl_env import cycle
 
+# the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
+# built without importing gymnasium
+ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0")
+TARGET_ENV_ID = "WheelLoaderTarget-v0"
+SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
 
 
@@ -32,6 +37,11 @@ def _is_num(v: Any) -> bool:
 
 # field -> (requirement as said in the error, test); a value is a number only if finite and not a bool
 _RULES: dict[str, tuple[str, Any]] = {
+    "env_id": (f"one of {', '.join(ENV_IDS)}", lambda v: v in ENV_IDS),
+    "scenario": (f"'' (the paper's cycle) or a suite name ({', '.join(SUITE_NAMES)})", lambda v: v in ("", *SUITE_NAMES)),
+    "target": ("a range (lo, hi) of target ratios to T_min within [1, 3]",
+               lambda v: len(v) == 2 and all(_is_num(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
+    "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
     "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "num_envs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
@@ -90,6 +100,13 @@ class PPOConfig:
 
     # --- run
     braking: str = field(default="service", metadata={"help": "braking alternative: 'service' or 'tc'"})
+    env_id: str = field(default="WheelLoader-v1", metadata={
+        "help": "environment: WheelLoader-v1 (the paper's cycle, the shipped nominal policies), WheelLoader-v2 "
+                "(scenarios observed) or WheelLoaderTarget-v0 (v2 with a target cycle time per episode)"})
+    scenario: str = field(default="", metadata={
+        "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
+    target: tuple[float, float] = field(default=(1.0, 2.5), metadata={
+        "help": "WheelLoaderTarget-v0: range of the target cycle time, as ratios to the scenario's T_min"})
     seed: int = field(default=0, metadata={"help": "seed of PPO, torch and the environments"})
     total_timesteps: int = field(default=12_000_000, metadata={"help": "environment steps to train for"})
     num_envs: int = field(default=64, metadata={"help": "loaders stepped together (native vector env)"})
@@ -99,9 +116,13 @@ class PPOConfig:
         default=0.0, metadata={"help": "stop after this much training wall time (s, summed over resumes; 0: off)"})
     torch_threads: int = field(default=1, metadata={"help": "torch.set_num_threads (1 is fastest for small MLPs)"})
     progress_bar: bool = field(default=True, metadata={"help": "show a tqdm/rich progress bar"})
+    init_policy: str = field(default="", metadata={
+        "help": "start from this pickle-free policy's weights and normalization (e.g. a behaviour-cloned one, "
+                "scripts/train_bc.py; the same network; '': a fresh network)"})
     # --- environment and reward (RewardConfig fields by name; see wl_env.episode.RewardConfig)
     w_fuel: float = field(default=2.0, metadata={"help": "fuel weight of the reward (RewardConfig.w_fuel)"})
-    w_time: float = field(default=3.0, metadata={"help": "time weight of the reward (RewardConfig.w_time)"})
+    w_time: float = field(default=3.0, metadata={
+        "help": "time weight of the reward (RewardConfig.w_time; WheelLoaderTarget-v0: unused, its lateness term replaces it)"})
     reward: dict[str, float] = field(
         default_factory=lambda: {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0},
         metadata={"help": "other RewardConfig fields, e.g. --reward target_distance=30 shaping=1"},
@@ -158,6 +179,9 @@ class PPOConfig:
         if isinstance(self.net_arch, (str, bytes)) or not hasattr(self.net_arch, "__iter__"):
             raise ConfigError("net_arch", _RULES["net_arch"][0], self.net_arch)
         self.net_arch = tuple(self.net_arch)
+        if isinstance(self.target, (str, bytes)) or not hasattr(self.target, "__iter__"):
+            raise ConfigError("target", _RULES["target"][0], self.target)
+        self.target = tuple(self.target)
         for name in ("reward", "curriculum_start"):
             value = getattr(self, name)
             if not isinstance(value, dict):
@@ -166,6 +190,10 @@ class PPOConfig:
         for name, (requirement, ok) in _RULES.items():
             if not ok(getattr(self, name)):
                 raise ConfigError(name, requirement, getattr(self, name))
+        if self.scenario and self.env_id == "WheelLoader-v1":
+            raise ConfigError("scenario", "'' with WheelLoader-v1 (it does not observe the scenario; use "
+                              "WheelLoader-v2 or WheelLoaderTarget-v0)", self.scenario)
+        self.target = tuple(float(x) for x in self.target)
         self.reward = {k: float(v) for k, v in self.reward.items()}
         self.curriculum_start = {k: float(v) for k, v in self.curriculum_start.items()}
         from wl_env.episode import RewardConfig
@@ -182,14 +210,25 @@ class PPOConfig:
     def run_dir(self) -> Path:
         return Path(self.log_dir) / self.name
 
+    @property
+    def targeted(self) -> bool:
+        """Whether the run's env gives each episode a target cycle time (WheelLoaderTarget-v0)."""
+        return self.env_id == TARGET_ENV_ID
+
     def env_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of ``WheelLoader-v1`` (single or vector) for this run, without init_noise."""
-        return {"braking": self.braking, "max_time": self.max_time, "reward": dict(self.reward),
-                "w_fuel": self.w_fuel, "w_time": self.w_time}
+        """Keyword arguments of the run's env (``env_id``, single or vector), without init_noise."""
+        kwargs: dict[str, Any] = {"braking": self.braking, "max_time": self.max_time, "reward": dict(self.reward),
+                                  "w_fuel": self.w_fuel, "w_time": 0.0 if self.targeted else self.w_time}
+        if self.scenario:
+            kwargs["scenario"] = self.scenario
+        if self.targeted:
+            kwargs["target"] = tuple(self.target)
+        return kwargs
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["net_arch"] = list(self.net_arch)
+        d["target"] = list(self.target)
         return d
 
     @classmethod

@@ -1,4 +1,4 @@
-"""The native vectorized ``WheelLoader-v1`` as a stable-baselines3 ``VecEnv``.
+"""The native vectorized ``WheelLoader-v1`` (or v2, WheelLoaderTarget-v0) as a stable-baselines3 ``VecEnv``.
 
 Gymnasium's vector env (``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``) autoresets
 on the *next* step: the step that ends an episode returns the final observation, and the following
@@ -94,12 +94,12 @@ class WheelLoaderSB3VecEnv(VecEnv):
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
         if list(self._get_indices(indices)) != list(range(self.num_envs)):
-            raise ValueError("attributes of the vector WheelLoader-v1 can only be set for all loaders at once")
+            raise ValueError("attributes of the vector WheelLoader env can only be set for all loaders at once")
         setattr(self.venv, attr_name, value)
 
     def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs) -> list[Any]:
         if list(self._get_indices(indices)) != list(range(self.num_envs)):
-            raise ValueError("methods of the vector WheelLoader-v1 can only be called for all loaders at once")
+            raise ValueError("methods of the vector WheelLoader env can only be called for all loaders at once")
         return [getattr(self.venv, method_name)(*method_args, **method_kwargs)]
 
     def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
@@ -120,10 +120,12 @@ class WheelLoaderSB3VecEnv(VecEnv):
         return infos
 
 
-def make_sb3_vec_env(num_envs: int, braking: str = "service", seed: int | None = None, **env_kwargs: Any) -> WheelLoaderSB3VecEnv:
-    """``gymnasium.make_vec("WheelLoader-v1", num_envs, vectorization_mode="vector_entry_point", ...)`` as an
-    SB3 ``VecEnv``; ``seed`` (loader i gets ``seed + i``) is applied at the first ``reset``."""
-    venv = gym.make_vec(ENV_ID, num_envs=num_envs, vectorization_mode="vector_entry_point", braking=braking, **env_kwargs)
+def make_sb3_vec_env(num_envs: int, braking: str = "service", seed: int | None = None, env_id: str = ENV_ID,
+                     **env_kwargs: Any) -> WheelLoaderSB3VecEnv:
+    """``gymnasium.make_vec(env_id, num_envs, vectorization_mode="vector_entry_point", ...)`` (default
+    ``WheelLoader-v1``; any of the registered WheelLoader ids) as an SB3 ``VecEnv``; ``seed`` (loader i gets
+    ``seed + i``) is applied at the first ``reset``."""
+    venv = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", braking=braking, **env_kwargs)
     env = WheelLoaderSB3VecEnv(venv)
     if seed is not None:
         env.seed(seed)

@@ -108,6 +108,16 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
                         help="after training, ship the policy pickle-free as PATH.safetensors, PATH_vecnormalize.npz, "
                         "PATH.json")
     parser.add_argument("--export-episodes", type=_count, default=100, help="evaluation episodes of --export (>= 0)")
+    parser.add_argument("--seeds", type=_count, nargs="+", default=None, metavar="SEED",
+                        help="several runs, one per seed, each in <log-dir>/<run-name or ppo_<braking>>_s<seed>; a "
+                        "finished run is skipped, an interrupted one resumed (agents.seeds)")
+    parser.add_argument("--sweep", nargs="+", default=None, metavar="FIELD=V1,V2",
+                        help="a hyperparameter grid: a run per combination (and per seed of --seeds)")
+    parser.add_argument("--workers", type=_count, default=1,
+                        help="with --seeds/--sweep: runs trained at once on this machine, each in its own process")
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="with --seeds/--sweep: run them as Ray tasks on the cluster at ADDRESS (no ADDRESS: a "
+                        "local Ray instance); the run directories are the same")
     parser.add_argument("--cache", metavar="DIR", default=None,
                         help="cache folder of the Pareto front the evaluations are scored against (default "
                         "$WL_CACHE_DIR or ~/.cache/wheel-loader-gym); a front not cached there is solved first")
@@ -141,7 +151,12 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
     previous_cache = os.environ.get(CACHE_ENV)
     if getattr(ns, "cache", None):
         os.environ[CACHE_ENV] = str(ns.cache)
+    many = bool(getattr(ns, "seeds", None) or getattr(ns, "sweep", None))
+    if not many and (getattr(ns, "ray", None) or getattr(ns, "workers", 1) != 1):
+        raise ValueError("--ray and --workers run several runs: give --seeds and/or --sweep")
     try:
+        if many:
+            return _run_many(cfg, ns, command, prog)
         try:
             summary = train(cfg, resume=ns.resume, command=command)
         except KeyboardInterrupt:
@@ -159,3 +174,26 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
             os.environ.pop(CACHE_ENV, None)
         else:
             os.environ[CACHE_ENV] = previous_cache
+
+
+def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -> int:
+    """``--seeds``/``--sweep``: every run (agents.seeds), then each exported as ``<--export>_<run name>``."""
+    from agents.ppo import export_policy
+    from agents.seeds import SUMMARY_FILE, expand, parse_sweep, train_runs
+
+    if ns.workers < 1:
+        raise ValueError(f"--workers must be an integer >= 1, got {ns.workers}")
+    cfgs = expand(cfg, ns.seeds or [cfg.seed], parse_sweep(ns.sweep or []))
+    try:
+        results = train_runs(cfgs, command=command, workers=ns.workers, ray_address=ns.ray)
+    except KeyboardInterrupt:
+        log.info("\ninterrupted; the same command resumes every run from its newest checkpoint")
+        return 130
+    print(json.dumps({name: {k: s.get(k) for k in ("num_timesteps", "wall_time")} for name, s in results.items()},
+                     indent=2))
+    log.info("spread over the seeds: %s", Path(cfg.log_dir) / SUMMARY_FILE)
+    if ns.export:
+        export = Path(ns.export)
+        for c in cfgs:
+            export_policy(c.run_dir, export.parent, f"{export.name}_{c.name}", n_episodes=ns.export_episodes)
+    return 0

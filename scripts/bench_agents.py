@@ -8,6 +8,14 @@ the mean gaps over the successful episodes, and for PPO the training wall time a
 the shipped policy (``agents/policies/ppo_<braking>.json``). Usage::
 
     python scripts/bench_agents.py [--episodes 100] [--json PATH]
+    python scripts/bench_agents.py --suite test [--mpc-sample 10] [--json PATH]
+
+``--suite test``: every scenario of the held-out suite per braking alternative, each scored against its own
+optimum (shipped: nothing is solved). The target-conditioned PPO and the behaviour-cloned MPC (imitation)
+run at three targets per scenario (fastest, 1.15 and 1.5 T_min, :data:`wl.report.TARGETS`); the operator at
+its own pace; the MPC in minimum-time mode and at the 1.15 and 1.5 targets, on ``--mpc-sample`` scenarios
+spread over the suite (it takes 5-20 s a cycle). Printed per row: success, median and p90 of both gaps,
+median lateness, largest violation.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -29,13 +38,40 @@ def pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:+.1f} %"
 
 
+def suite_mode(args: argparse.Namespace) -> None:
+    from mpc.controller.mpc import MPCController
+    from wl.report import TARGETS, collect_suite, suite_table, target_controllers
+
+    t0 = time.perf_counter()
+    learned = collect_suite(args.suite, sample=None, controllers=lambda b: [
+        ("operator", lambda: load_controller("operator", b))], at_targets=target_controllers)
+    mpc = collect_suite(args.suite, sample=args.mpc_sample, controllers=lambda b: [
+        ("mpc (min time)", lambda: load_controller("mpc", b))], at_targets=lambda b: [("mpc", lambda: MPCController(b))],
+        targets=TARGETS[1:])
+    for r in learned["rows"]:
+        kind = {"ppo (target-conditioned)": "ppo-target", "bc (imitation)": "bc"}.get(r["controller"])
+        if kind:
+            meta = json.loads(default_policy_path(r["braking"], kind).with_suffix(".json").read_text())
+            r.update(training_wall_time_s=meta.get("training_wall_time_s"), num_timesteps=meta.get("num_timesteps"))
+    rows = sorted(learned["rows"] + mpc["rows"], key=lambda r: (r["braking"], r["controller"]))
+    print("\n".join(suite_table({**learned, "rows": rows})))
+    print(f"\n{time.perf_counter() - t0:.0f} s")
+    if args.json:
+        write_json_atomic(args.json, {"suite": args.suite, "rows": rows, "episodes": learned["episodes"] + mpc["episodes"],
+                                      "mpc_sample": args.mpc_sample, "wall_time_s": time.perf_counter() - t0})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--init-noise", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=10_000)
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
+    ap.add_argument("--suite", choices=["test", "corners"], help="run the suite mode (see above)")
+    ap.add_argument("--mpc-sample", type=int, default=10, help="--suite: scenarios per braking the MPC runs")
     args = ap.parse_args()
+    if args.suite:
+        return suite_mode(args)
     fronts = pareto_fronts(progress=True)
     rows: list[dict[str, Any]] = []
     for braking in ("service", "tc"):

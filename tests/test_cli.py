@@ -445,6 +445,13 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
      "contradicts"),
     (["evaluate", "--controller", "operator", "--sample", "3"], "--sample", "--suite"),
     (["mpc", "--mismatch"], "--mismatch", "--scenario"),
+    (["train", "--env-id", "WheelLoader-v7"], "--env-id", "WheelLoaderTarget-v0"),
+    (["train", "--scenario", "train"], "--scenario", "WheelLoader-v1"),
+    (["train", "--env-id", "WheelLoaderTarget-v0", "--target", "0.5", "2"], "--target", "[1, 3]"),
+    (["train", "--ray"], "--ray", "--seeds"),
+    (["train", "--seeds", "0", "0"], "seeds", "repeat"),
+    (["train", "--seeds", "0", "--sweep", "gamma=high"], "--sweep gamma", "float"),
+    (["train", "--seeds", "0", "--workers", "0"], "--workers", ">= 1"),
 ]
 
 

@@ -172,6 +172,24 @@ def test_the_vector_env_draws_a_scenario_per_loader_and_matches_single_envs():
             break
 
 
+def test_the_vector_env_on_drawn_scenarios_cuts_a_substep_for_some_loaders_only():
+    """Loaders of different scenarios reach the reversing point in different steps: the substep cut then runs
+    on those loaders alone, with their own scenario's parameters (it once took all loaders' and failed)."""
+    n = 4
+    vec = gym.make_vec("WheelLoader-v2", num_envs=n, vectorization_mode="vector_entry_point", scenario="train")
+    singles = [gym.make("WheelLoader-v2", scenario="train") for _ in range(n)]
+    vec.reset(seed=3)
+    for i, e in enumerate(singles):
+        e.reset(seed=3 + i)
+    for k in range(50):  # reverse, shift at step 22, brake gently to the reversing point, drive on
+        a = np.array([0.3, 0.5, 0.3 if k >= 22 else -1.0, 1.0 if k >= 22 else -1.0], np.float32)
+        obs, rew, term, trunc, info = vec.step(np.tile(a, (n, 1)))
+        res = [e.step(a) for e in singles]
+        assert np.allclose(obs, np.array([r[0] for r in res]), atol=1e-6), k
+        assert np.allclose(rew, [r[1] for r in res], atol=1e-9), k
+    assert (info["phase"] >= 3).all()  # every loader passed its reversing point
+
+
 # ---------------------------------------------------------------------------------------------- controllers
 def test_the_operator_and_the_mpc_drive_the_scenarios_cycle():
     """Told the episode's scenario, both stop on its own marks (5 m legs, a 4 m truck, 12 t): the operator

@@ -180,7 +180,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
         raise ValueError("--sample N takes N scenarios of a --suite: give --suite")
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
-                                 scenario=scenario or (scenarios[0] if scenarios else None))
+                                 scenario=scenario or (scenarios[0] if scenarios else None),
+                                 targeted=args.target_time is not None or args.target_ratio is not None)
     what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{args.episodes} episode(s)"
     log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
     r = evaluate_controller(controller, braking, episodes=args.episodes, init_noise=args.init_noise,
@@ -412,8 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "aggregated: success (cycle completed, end targets met), cycle time, fuel, constraint "
                        "violation, time gap to the minimum cycle time and fuel gap to the Pareto fuel at the "
                        "same cycle time.")
-    p.add_argument("--controller", required=True, metavar="{ppo,operator,mpc,module:Class}",
-                   help="a built-in controller, or your class as module:Class or path/to/file.py:Class "
+    p.add_argument("--controller", required=True, metavar="{ppo,bc,operator,mpc,module:Class}",
+                   help="a built-in controller (ppo: with a target, the target-conditioned policy; bc: the "
+                   "behaviour-cloned MPC), or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
     p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
@@ -428,9 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="each episode's target cycle time, in (0, 40) s (the controller's reset takes target_time)")
     g.add_argument("--target-ratio", type=_float_in(1, 3, unit=" (times T_min)"), metavar="R",
                    help="each episode's target: R times its own minimum cycle time, R in [1, 3]")
-    p.add_argument("--model", metavar="PATH", help="ppo: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
-                   "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>); module:Class: passed "
-                   "as model=")
+    p.add_argument("--model", metavar="PATH", help="ppo, bc: the policy, PATH.safetensors with PATH_vecnormalize.npz and "
+                   "PATH.json beside it, or a run folder (default agents/policies/ppo_<braking>, with a target "
+                   "ppo_target_<braking>; bc: bc_target_<braking>); module:Class: passed as model=")
     p.add_argument("--trust-pickle", action="store_true", help="ppo: also load a stable-baselines3 .zip (+ .pkl), "
                    "which unpickles and can run code: for trusted input only, e.g. your own training runs")
     p.add_argument("--episodes", type=_positive_int, default=10, metavar="N", help="episodes (default 10)")

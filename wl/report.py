@@ -63,11 +63,30 @@ def suite_controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
     return out
 
 
+# the suite leaderboard's targets of the target-conditioned controllers (#14): label, ratio to the episode's T_min
+TARGETS = (("fastest", 1.0), ("1.15 T_min", 1.15), ("1.5 T_min", 1.5))
+
+
+def target_controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
+    """(name, factory) of the shipped target-conditioned controllers (the learned ones), run at each of
+    :data:`TARGETS`: the target-conditioned PPO and the behaviour-cloned MPC, where shipped."""
+    from agents.evaluate import default_policy_path, load_controller
+
+    out: list[tuple[str, Callable[[], Any]]] = []
+    for name, spec, kind in (("ppo (target-conditioned)", "ppo", "ppo-target"), ("bc (imitation)", "bc", "bc")):
+        if default_policy_path(braking, kind).exists():
+            out.append((name, lambda spec=spec: load_controller(spec, braking, targeted=True)))
+    return out
+
+
 def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: str | None = None,
                   controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = suite_controllers,
-                  brakings: tuple[str, ...] = BRAKINGS) -> dict[str, Any]:
+                  brakings: tuple[str, ...] = BRAKINGS,
+                  at_targets: Callable[[str], list[tuple[str, Callable[[], Any]]]] | None = target_controllers,
+                  targets: tuple[tuple[str, float], ...] = TARGETS) -> dict[str, Any]:
     """Every controller on ``sample`` scenarios of the suite per braking alternative (None: all of them),
-    each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes."""
+    each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes.
+    ``at_targets``' controllers run at each of ``targets`` (a row each, with its lateness)."""
     from agents.evaluate import evaluate_controller
     from wl_env.suites import load_suite
 
@@ -75,17 +94,23 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
     rows, episodes = [], []
     for b in brakings:
         scenarios = list(s.spread(b, sample))
-        for name, factory in controllers(b):
-            log.info(f"[{suite} suite, {b}] {name}: {len(scenarios)} scenarios")
-            ev = evaluate_controller(factory(), b, scenarios=scenarios, cache=cache, name=name)
+        runs = [(name, factory, None, None) for name, factory in controllers(b)]
+        runs += [(name, factory, label, ratio) for name, factory in (at_targets(b) if at_targets else [])
+                 for label, ratio in targets]
+        for name, factory, label, ratio in runs:
+            log.info(f"[{suite} suite, {b}] {name}{'' if label is None else ', target ' + label}: "
+                     f"{len(scenarios)} scenarios")
+            ev = evaluate_controller(factory(), b, scenarios=scenarios, cache=cache, name=name, target_ratio=ratio)
             sm = ev["summary"]
-            rows.append({"controller": name, "braking": b, "scenarios": len(scenarios), "success_rate": sm["success_rate"],
+            rows.append({"controller": name, "braking": b, "target": label, "scenarios": len(scenarios),
+                         "success_rate": sm["success_rate"],
                          "time_gap_median": sm["time_gap_median"], "time_gap_p90": sm["time_gap_p90"],
                          "fuel_gap_median": sm["fuel_gap_median"], "fuel_gap_p90": sm["fuel_gap_p90"],
-                         "max_violation": sm["max_violation"]})
-            episodes += [{"controller": name, "braking": b, "scenario": e["scenario"], "success": e["success"],
-                          "T": e["T"], "fuel_g": e["fuel_g"], "T_min": e["T_min"], "fuel_opt_g": e["fuel_opt_g"],
-                          "time_gap": e["time_gap"], "fuel_gap": e["fuel_gap"]} for e in ev["per_episode"]]
+                         "lateness_median": sm["lateness_median"], "max_violation": sm["max_violation"]})
+            episodes += [{"controller": name, "braking": b, "target": label, "scenario": e["scenario"],
+                          "success": e["success"], "T": e["T"], "fuel_g": e["fuel_g"], "T_min": e["T_min"],
+                          "fuel_opt_g": e["fuel_opt_g"], "time_gap": e["time_gap"], "fuel_gap": e["fuel_gap"],
+                          "target_time": e["target_time"], "lateness": e["lateness"]} for e in ev["per_episode"]]
     n_list = len(s.of(brakings[0]))
     return {"suite": suite, "version": s.version, "sample": sample, "full": sample is None or sample >= n_list,
             "scenarios_per_braking": n_list, "rows": rows, "episodes": episodes}
@@ -301,6 +326,10 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     return written
 
 
+def _share(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
 def suite_table(suite: dict[str, Any]) -> list[str]:
     """The suite leaderboard's lines (markdown)."""
     which = (f"all {suite['scenarios_per_braking']} scenarios" if suite["full"] else
@@ -309,12 +338,18 @@ def suite_table(suite: dict[str, Any]) -> list[str]:
     lines = ["", f"## The `{suite['suite']}` suite (v{suite['version']}): {which} per braking alternative", "",
              "Each episode from its scenario's own start, scored against that scenario's own optimum (shipped with "
              "the package). Gaps over the successful episodes (median, p90); the success rate beside them.", "",
-             "| controller | braking | scenarios | success | time gap median | time gap p90 | fuel gap median | "
-             "fuel gap p90 | max violation |", "|---|---|---|---|---|---|---|---|---|"]
+             "The target-conditioned controllers run at three targets per scenario (fastest: T_min itself; 1.15 "
+             "and 1.5 times the scenario's T_min); lateness: by how much the cycle ran past its target, as a "
+             "share of it (median over the completed cycles).", "",
+             "| controller | braking | target | scenarios | success | time gap median | time gap p90 | "
+             "fuel gap median | fuel gap p90 | lateness median | max violation |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in suite["rows"]:
-        lines.append(f"| {r['controller']} | {r['braking']} | {r['scenarios']} | {100 * r['success_rate']:.0f} % | "
-                     f"{_gap(r['time_gap_median'])} | {_gap(r['time_gap_p90'])} | {_gap(r['fuel_gap_median'])} | "
-                     f"{_gap(r['fuel_gap_p90'])} | {100 * r['max_violation']:.1f} % |")
+        lines.append(f"| {r['controller']} | {r['braking']} | {r.get('target') or '-'} | {r['scenarios']} | "
+                     f"{100 * r['success_rate']:.0f} % | {_gap(r['time_gap_median'])} | {_gap(r['time_gap_p90'])} | "
+                     f"{_gap(r['fuel_gap_median'])} | {_gap(r['fuel_gap_p90'])} | "
+                     f"{_share(r.get('lateness_median'))} | "
+                     f"{100 * r['max_violation']:.1f} % |")
     return lines
 
 
@@ -323,10 +358,13 @@ def suite_figure(suite: dict[str, Any], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
-    names = sorted({e["controller"] for e in suite["episodes"]})
+    def label(e: dict[str, Any]) -> str:
+        return e["controller"] if not e.get("target") else f"{e['controller']} at {e['target']}"
+
+    names = sorted({label(e) for e in suite["episodes"]})
     for k, name in enumerate(names):
         for b, marker in (("service", "o"), ("tc", "^")):
-            eps = [e for e in suite["episodes"] if e["controller"] == name and e["braking"] == b
+            eps = [e for e in suite["episodes"] if label(e) == name and e["braking"] == b
                    and e["success"] and e["fuel_gap"] is not None and e["scenario"]]
             if not eps:
                 continue

@@ -13,13 +13,14 @@ flattened by :mod:`wl_env.physics.flatten` into straight-line float arithmetic: 
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
 import numpy as np
 
 from wl_env import cycle, limits, step
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import LoaderParams, ParamsView, resolve
 from wl_env.physics.backend import ops_for
 from wl_env.physics.flatten import Flattened, Sym, config_key, flatten_cached, take
 from wl_env.step import State
@@ -103,7 +104,7 @@ class Simulator(Flattened):
                 return y1, phase, s_rev, excess
             sub = tuple(a[idx] for a in y)
             sub_u = tuple(a[idx] if isinstance(a, np.ndarray) else a for a in u)
-            ys, ph, sr, ex = self._cut(sub, tuple(a[idx] for a in y1), phase[idx], sub_u, h)
+            ys, ph, sr, ex = self._of_loaders(idx)._cut(sub, tuple(a[idx] for a in y1), phase[idx], sub_u, h)
             y1 = tuple(a.copy() for a in y1)
             for a, b in zip(y1, ys, strict=True):
                 a[idx] = b
@@ -118,6 +119,16 @@ class Simulator(Flattened):
             cut = self._flattened()[2] if type(y[0]) is float else self._cut  # one loader: the cut flattened too
             return cut(y, y1, phase, u, h)
         return y1, phase, math.nan, excess
+
+    def _of_loaders(self, idx: np.ndarray) -> Simulator:
+        """This simulator for the loaders ``idx`` of a batch: a scenario's per-loader parameters (a ParamsView
+        of arrays, the vector env on drawn scenarios) cut down to theirs, so they line up with the states."""
+        p = self.params
+        if not isinstance(p, ParamsView) or not any(np.ndim(v) for v in p.values.values()):
+            return self
+        sub = copy.copy(self)
+        sub.params = ParamsView(p.base, **{k: (v[idx] if np.ndim(v) else v) for k, v in p.values.items()})
+        return sub
 
     def _excess(self, stages: list, y1: State, u: tuple, gear: Any, d: Any, held: Any) -> dict[str, Any]:
         """The limits within a substep: at its RK4 stages and its end (the control still held)."""

@@ -113,12 +113,13 @@ class WheelLoaderVectorEnv(VectorEnv):
     def _reset_where(self, mask: np.ndarray) -> None:
         p = self.params
         idx = np.flatnonzero(mask)
+        drawn: dict[int, LoaderParams] = {}
         if isinstance(self._source, Suite):
             for i in idx:
                 s = self.scenarios[i] = self._source.sample(self._rngs[i], self.braking)
-                drawn = s.params(self.machine)
+                drawn[i] = s.params(self.machine)
                 for f in SCENARIO_FIELDS:
-                    p.values[f][i] = getattr(drawn, f)
+                    p.values[f][i] = getattr(drawn[i], f)
         omega = np.broadcast_to(p.omega_0, (self.num_envs,))[idx].astype(float)
         H = np.broadcast_to(p.H_0, (self.num_envs,))[idx].astype(float)
         if self.init_noise > 0.0:
@@ -129,9 +130,12 @@ class WheelLoaderVectorEnv(VectorEnv):
         if self.observe_target:  # each loader's target, from its own start (as the single env draws it)
             for j, i in enumerate(idx):
                 s = self.scenarios[i]
-                p_i = s.params(self.machine) if s is not None else self.machine
-                start = start_scenario(p_i, self.braking, omega[j], H[j]) if self.init_noise > 0.0 else (
-                    s or start_scenario(p_i, self.braking, p_i.omega_0, p_i.H_0))
+                if self.init_noise > 0.0 or s is None:
+                    p_i = drawn.get(i) or (s.params(self.machine) if s is not None else self.machine)
+                    start = start_scenario(p_i, self.braking, omega[j], H[j]) if self.init_noise > 0.0 else (
+                        start_scenario(p_i, self.braking, p_i.omega_0, p_i.H_0))
+                else:
+                    start = s
                 self.min_time_estimate[i], self.target_time[i] = episode_target(
                     start or s, self.target_ratios, self._rngs[i])
         y = tuple(a.copy() for a in self._y)

@@ -1,0 +1,276 @@
+"""The imitation baseline: behaviour cloning of MPC demonstrations on ``train`` scenarios (``scripts/train_bc.py``).
+
+* :func:`collect_demos` - MPC episodes in ``WheelLoaderTarget-v0`` on fresh draws of the ``train``
+  distribution, each at a target cycle time (a ratio to the scenario's estimated T_min; a share of them
+  as fast as possible, the MPC's minimum-time mode, observed at ratio 1), one file per episode, written
+  atomically: a killed collection resumes with the episodes it has. Only episodes the expert completes
+  with its targets met and no violation are imitated.
+* :func:`clone` - the policy network of a PPO run (same architecture, so PPO can fine-tune it:
+  ``PPOConfig.init_policy``) regressed onto the expert's actions, observations normalized by the demos'
+  statistics; written as a run's ``final/`` folder (pickle-free policy and summary), so ``wl evaluate
+  --model``, :func:`agents.ppo.load_policy` and :func:`agents.ppo.export_policy` take it as they take a
+  trained run.
+
+Demonstration files are ``.npz`` read with ``allow_pickle=False``: nothing in them is executed.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.ppo_config import TARGET_ENV_ID, PPOConfig
+from wl_env.atomic_io import write_atomic
+from wl_env.codec import N_TARGET_OBS
+
+log = logging.getLogger(__name__)
+
+EXPERTS = ("mpc", "operator")
+DEMO_STREAM_SEED = 1_000_000  # train-stream seeds of the demos: apart from training (env rngs) and evaluation (10_000)
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    """What one collection draws: its seed, the target ratios (uniform in ``target``) and the share of
+    episodes run as fast as possible (``fast_share``)."""
+
+    braking: str
+    seed: int = 0
+    target: tuple[float, float] = (1.05, 2.5)
+    fast_share: float = 0.2
+    expert: str = "mpc"  # "mpc" (the optimum's stand-in), or "operator" (rule-based: quick demonstrations for tests)
+
+    def __post_init__(self) -> None:
+        if self.expert not in EXPERTS:
+            raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
+        from wl_env.cycle import check_braking
+        from wl_env.env import check_target_ratios
+
+        check_braking(self.braking)
+        check_target_ratios(self.target)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if not (isinstance(self.fast_share, (int, float)) and 0.0 <= self.fast_share <= 1.0):
+            raise ValueError(f"fast_share must lie in [0, 1], got {self.fast_share!r}")
+
+
+def demo_path(out: str | Path, index: int) -> Path:
+    return Path(out) / f"episode_{index:05d}.npz"
+
+
+def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
+    """Episode ``index`` of a collection: its scenario, target, the expert's observations and actions."""
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+    from mpc.controller.mpc import MPCController
+    from wl_env.suites import TRAIN_STREAM, draw, stream
+
+    rng = stream(TRAIN_STREAM, DEMO_STREAM_SEED + 10_000 * settings.seed + index)
+    scenario = draw(rng, settings.braking)
+    fast = bool(rng.uniform() < settings.fast_share)
+    ratio = 1.0 if fast else float(rng.uniform(*settings.target))
+    env = gym.make(TARGET_ENV_ID, braking=settings.braking)
+    obs, info = env.reset(seed=index, options={"scenario": scenario, "target_ratio": ratio})
+    target_time = float(info["target_time"])
+    if settings.expert == "mpc":
+        expert: Any = MPCController(settings.braking)
+        expert.reset(scenario=scenario, target_time=None if fast else target_time)  # fast: minimum-time mode
+    else:
+        from agents.operator import OperatorPolicy
+
+        expert = OperatorPolicy(settings.braking, params=scenario.params())
+    observations, actions = [], []
+    done = False
+    while not done:
+        a = np.asarray(expert.act(obs), dtype=np.float32)
+        observations.append(obs)
+        actions.append(a)
+        obs, _, term, trunc, info = env.step(a)
+        done = term or trunc
+    env.close()
+    return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
+            "scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
+            "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
+            "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"])}
+
+
+def _write_demo(path: Path, demo: dict[str, Any]) -> None:
+    buf = io.BytesIO()
+    meta = {k: v for k, v in demo.items() if k not in ("obs", "actions")}
+    np.savez(buf, obs=demo["obs"], actions=demo["actions"], meta=np.array(json.dumps(meta)))
+    write_atomic(path, buf.getvalue())
+
+
+def read_demo(path: str | Path) -> dict[str, Any]:
+    """One demonstration file, checked (ValueError naming the file if it is not one)."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            obs, actions, meta = f["obs"], f["actions"], json.loads(str(f["meta"]))
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path} is not a demonstration file: {exc}") from None
+    if obs.ndim != 2 or obs.shape[1] != N_TARGET_OBS or actions.shape != (len(obs), 4) or not (
+            np.isfinite(obs).all() and np.isfinite(actions).all()):
+        raise ValueError(f"{path}: expected finite obs ({len(obs)}, {N_TARGET_OBS}) and actions ({len(obs)}, 4), "
+                         f"got {obs.shape} and {actions.shape}")
+    return {"obs": obs, "actions": actions, **meta}
+
+
+def collect_chunk(settings: dict[str, Any], indices: list[int], out: str) -> list[int]:
+    """Episodes ``indices`` into ``out`` (skipping those on disk); a worker's job. Returns those it ran."""
+    s = DemoSettings(**{**settings, "target": tuple(settings["target"])})
+    ran = []
+    for i in indices:
+        path = demo_path(out, i)
+        if path.exists():
+            continue
+        t0 = time.perf_counter()
+        demo = demo_episode(s, i)
+        _write_demo(path, demo)
+        ran.append(i)
+        log.info("demo %d: T %.1f s (target %.1f s%s), %.1f g, success %s, %.0f s", i, demo["T"], demo["target_time"],
+                 ", fastest" if demo["fast"] else "", demo["fuel_g"], demo["success"], time.perf_counter() - t0)
+    return ran
+
+
+def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, workers: int = 1) -> list[dict[str, Any]]:
+    """``episodes`` demonstrations into the folder ``out`` (resumed: episodes on disk are kept), in
+    ``workers`` processes; all of them, read back."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    d = {"braking": settings.braking, "seed": settings.seed, "target": list(settings.target),
+         "fast_share": settings.fast_share, "expert": settings.expert}
+    todo = [i for i in range(episodes) if not demo_path(out, i).exists()]
+    if workers == 1 or len(todo) <= 1:
+        collect_chunk(d, todo, str(out))
+    else:
+        from mpc.workers import run_in_workers
+
+        run_in_workers({f"demos{w}": ("agents.imitation:collect_chunk", (d, todo[w::workers], str(out)))
+                        for w in range(min(workers, len(todo)))}, log_level=logging.INFO)
+    return [read_demo(demo_path(out, i)) for i in range(episodes)]
+
+
+def usable(demo: dict[str, Any]) -> bool:
+    """An episode worth imitating: completed with its targets met, no violation."""
+    return bool(demo["success"]) and demo["max_violation"] == 0.0
+
+
+SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
+
+
+def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Per-sample weights of the squared action errors. The shift request matters only in phases 1 and 3,
+    where the expert asks for it once per phase: its few "shift now" samples are weighted up to balance the
+    many "hold" ones, or the clone would learn to hold forever (and drive off the site)."""
+    from wl_env.codec import Codec
+
+    phase = Codec().decode_observation(obs).phase
+    weights = np.ones_like(actions, dtype=np.float32)
+    shifting = np.isin(phase, (1, 3))
+    weights[~shifting, SHIFT] = 0.0
+    positive = shifting & (actions[:, SHIFT] > 0.0)
+    if positive.any():
+        weights[positive, SHIFT] = float((shifting & ~positive).sum()) / float(positive.sum())
+    return weights
+
+
+@dataclass
+class CloneResult:
+    """What :func:`clone` did: the demos used, the fit, and where the policy is."""
+
+    episodes: int  # usable demonstration episodes
+    episodes_dropped: int  # expert episodes not imitated (targets missed or a violation)
+    samples: int
+    train_loss: float  # weighted mean squared error of the actions in [-1, 1] (action_weights), training episodes
+    validation_loss: float  # the same on the held-out episodes
+    wall_time_s: float
+    policy: str  # the stem of the pickle-free policy
+
+
+def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learning_rate: float = 1e-3,
+          batch_size: int = 1024, validation_share: float = 0.1) -> CloneResult:
+    """Regress the mean action of ``cfg``'s PPO policy network onto the demos' actions; the policy is saved
+    as ``cfg.run_dir/final/`` (the layout of a trained run). Episodes are split, not samples: the
+    validation loss is measured on whole held-out cycles."""
+    import torch as th
+
+    from agents.policy_files import ObsNormalization
+    from agents.ppo import build_model, make_env, save_model_files, write_json_atomic
+
+    if cfg.env_id != TARGET_ENV_ID:
+        raise ValueError(f"the demonstrations are {TARGET_ENV_ID} episodes; the config's env is {cfg.env_id}")
+    if not cfg.norm_obs:
+        raise ValueError("behaviour cloning normalizes the observations by the demos' statistics: norm_obs must be true")
+    good = [d for d in demos if usable(d)]
+    if len(good) < 2:
+        raise ValueError(f"{len(good)} usable demonstration episodes (of {len(demos)}): need at least 2")
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    order = rng.permutation(len(good))
+    n_val = max(1, int(round(validation_share * len(good))))
+    parts = {"val": [good[i] for i in order[:n_val]], "train": [good[i] for i in order[n_val:]]}
+    obs = {k: np.concatenate([d["obs"] for d in v]) for k, v in parts.items()}
+    act = {k: np.clip(np.concatenate([d["actions"] for d in v]), -1.0, 1.0) for k, v in parts.items()}
+    norm = ObsNormalization(obs["train"].mean(0).astype(np.float64), obs["train"].var(0).astype(np.float64))
+
+    th.manual_seed(cfg.seed)
+    th.set_num_threads(max(1, cfg.torch_threads))
+    env = make_env(cfg, num_envs=1)
+    model = build_model(cfg, env, cfg.run_dir / "tb")
+    policy = model.policy
+    x = {k: th.as_tensor(norm.apply(v)) for k, v in obs.items()}
+    y = {k: th.as_tensor(v) for k, v in act.items()}
+    w = {k: th.as_tensor(action_weights(obs[k], act[k])) for k in obs}
+    params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
+    optimizer = th.optim.Adam(params, lr=learning_rate)
+
+    def mean_action(z: th.Tensor) -> th.Tensor:
+        latent_pi, _ = policy.mlp_extractor(policy.extract_features(z, policy.pi_features_extractor))
+        return policy.action_net(latent_pi)
+
+    n = len(x["train"])
+    for epoch in range(epochs):
+        perm = th.randperm(n)
+        for i in range(0, n, batch_size):
+            b = perm[i:i + batch_size]
+            loss = th.mean(w["train"][b] * (mean_action(x["train"][b]) - y["train"][b]) ** 2)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        if epoch % 50 == 0 or epoch == epochs - 1:
+            with th.no_grad():
+                val = float(th.mean(w["val"] * (mean_action(x["val"]) - y["val"]) ** 2))
+            log.info("[bc] epoch %d: train loss %.5f, validation loss %.5f", epoch, float(loss.detach()), val)
+    with th.no_grad():
+        train_loss = float(th.mean(w["train"] * (mean_action(x["train"]) - y["train"]) ** 2))
+        val_loss = float(th.mean(w["val"] * (mean_action(x["val"]) - y["val"]) ** 2))
+    vecnorm = env  # the VecNormalize: its statistics become the demos', so PPO fine-tuning starts from them
+    vecnorm.obs_rms.mean, vecnorm.obs_rms.var, vecnorm.obs_rms.count = norm.mean.copy(), norm.var.copy(), float(n)
+    wall = time.perf_counter() - t0
+    result = CloneResult(episodes=len(good), episodes_dropped=len(demos) - len(good), samples=n + len(x["val"]),
+                         train_loss=train_loss, validation_loss=val_loss, wall_time_s=wall,
+                         policy=str(cfg.run_dir / "final" / "policy"))
+    extra = {"num_timesteps": 0, "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed, "config": cfg.to_dict(),
+             "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": "behaviour cloning (MPC)",
+             "clone": result.__dict__, "epochs": epochs, "learning_rate": learning_rate, "batch_size": batch_size}
+    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    final = save_model_files(model, vecnorm, cfg.run_dir / "final", extra, export=True)
+    write_json_atomic(final / "summary.json", extra)
+    write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": []})
+    env.close()
+    if not math.isfinite(val_loss):
+        raise ValueError(f"behaviour cloning diverged: validation loss {val_loss}")
+    return result

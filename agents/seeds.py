@@ -1,0 +1,186 @@
+"""Several PPO runs: seeds and hyperparameter sweeps, on this machine or on a Ray cluster (``wl train --seeds``).
+
+:func:`expand` turns one :class:`~agents.ppo_config.PPOConfig` into a run per (sweep point, seed), each
+in its own run directory ``<log_dir>/<base>[_<field><value>...]_s<seed>``, the layout of a single run.
+:func:`train_runs` trains them: one after another here, in ``workers`` processes at once, or as Ray tasks
+(``ray_address``; ``"local"`` starts a Ray instance on this machine) writing to the same folders (a shared
+filesystem on a cluster). A finished run is skipped, an interrupted one resumes from its newest
+checkpoint, so a killed sweep rerun with the same command loses at most a checkpoint interval per run.
+:func:`spread` gives each metric's median and interquartile range over the runs of a sweep point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.ppo_config import PPOConfig
+
+log = logging.getLogger(__name__)
+
+SUMMARY_FILE = "runs_summary.json"  # in log_dir: every run's last evaluation and the spread over seeds
+
+
+def parse_sweep(items: Sequence[str]) -> dict[str, list[Any]]:
+    """``["learning_rate=1e-4,3e-4", "n_epochs=5,10"]`` as ``{field: [values]}``; each value is parsed as
+    the field's default is typed (ValueError naming the field otherwise)."""
+    fields = {f.name: f for f in dataclasses.fields(PPOConfig)}
+    sweep: dict[str, list[Any]] = {}
+    for item in items:
+        name, sep, values = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or not values.strip():
+            raise ValueError(f"--sweep expects FIELD=V1,V2,..., got {item!r}")
+        if name not in fields or name in ("seed", "run_name", "log_dir"):
+            raise ValueError(f"--sweep {name}: not a PPOConfig field that can be swept")
+        default = PPOConfig().__getattribute__(name)
+        kind = type(default) if default is not None else float
+        if kind in (dict, tuple, list):
+            raise ValueError(f"--sweep {name}: only fields with a single value (number, text, flag) can be swept")
+        parsed = []
+        for text in values.split(","):
+            text = text.strip()
+            try:
+                parsed.append({"true": True, "false": False}[text.lower()] if kind is bool else kind(text))
+            except (KeyError, ValueError):
+                raise ValueError(f"--sweep {name}: {text!r} is not a {kind.__name__}") from None
+        sweep[name] = parsed
+    return sweep
+
+
+def expand(cfg: PPOConfig, seeds: Sequence[int], sweep: dict[str, list[Any]] | None = None) -> list[PPOConfig]:
+    """One config per sweep point and seed, each with its own run name (validated as PPOConfig is)."""
+    if not seeds:
+        raise ValueError("seeds is empty: give at least one seed")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds repeat: {list(seeds)}")
+    base = cfg.run_name or f"ppo_{cfg.braking}"
+    names = list((sweep or {}).keys())
+    out = []
+    for point in itertools.product(*[(sweep or {})[n] for n in names]):
+        tag = "".join(f"_{n}{v:g}" if isinstance(v, float) else f"_{n}{v}" for n, v in zip(names, point, strict=True))
+        for seed in seeds:
+            d = {**cfg.to_dict(), **dict(zip(names, point, strict=True)), "seed": int(seed),
+                 "run_name": f"{base}{tag}_s{seed}"}
+            out.append(PPOConfig.from_dict(d))
+    return out
+
+
+def run_state(cfg: PPOConfig) -> str:
+    """``"done"`` (final/summary.json), ``"started"`` (config or checkpoints on disk) or ``"new"``."""
+    if (cfg.run_dir / "final" / "summary.json").exists():
+        return "done"
+    return "started" if (cfg.run_dir / "config.json").exists() else "new"
+
+
+def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str, Any]:
+    """Train (or resume, or just read back) one run; its summary. Plain data in and out: a worker's or a
+    Ray task's entry point."""
+    from agents.ppo import train
+
+    cfg = PPOConfig.from_dict(cfg_dict)
+    state = run_state(cfg)
+    if state == "done":
+        return json.loads((cfg.run_dir / "final" / "summary.json").read_text())
+    return train(cfg, resume=state == "started", command=command)
+
+
+def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: int = 1,
+               ray_address: str | None = None) -> dict[str, dict[str, Any]]:
+    """Train every run (skipping finished ones, resuming started ones); ``{run name: summary}``.
+
+    Writes ``<log_dir>/runs_summary.json`` (:func:`spread`) once all are done. KeyboardInterrupt stops
+    every run; each resumes from its newest checkpoint when the same command is run again.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    names = [c.name for c in cfgs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two runs share a name: {names}")
+    for c in cfgs:
+        log.info("%s: %s", c.name, run_state(c))
+    if ray_address is not None:
+        results = _on_ray(cfgs, command, ray_address)
+    elif workers > 1:
+        from mpc.workers import run_in_workers
+
+        results = {}
+        for i in range(0, len(cfgs), workers):  # ``workers`` runs at a time, each in its own process
+            batch = cfgs[i:i + workers]
+            results.update(run_in_workers({c.name: ("agents.seeds:train_one", (c.to_dict(), command)) for c in batch},
+                                          log_level=logging.INFO))
+    else:
+        results = {c.name: train_one(c.to_dict(), command) for c in cfgs}
+    log_dirs = {c.log_dir for c in cfgs}
+    for d in log_dirs:
+        from wl_env.atomic_io import write_json_atomic
+
+        mine = [c for c in cfgs if c.log_dir == d]
+        write_json_atomic(Path(d) / SUMMARY_FILE, spread(mine, results), indent=2, nan_as_null=True)
+    return results
+
+
+def _on_ray(cfgs: Sequence[PPOConfig], command: str | None, address: str) -> dict[str, dict[str, Any]]:
+    """The runs as Ray tasks (one CPU each) writing to their run directories; their summaries."""
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=None if address == "local" else address, include_dashboard=False,
+                 logging_level=logging.WARNING, log_to_driver=False)
+    refs: dict[Any, str] = {}
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(train_one)
+        refs = {task.remote(c.to_dict(), command): c.name for c in cfgs}
+        results: dict[str, dict[str, Any]] = {}
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            results[refs[ready[0]]] = ray.get(ready[0])
+            log.info("%s: done (%d of %d)", refs[ready[0]], len(results), len(refs))
+        return results
+    except KeyboardInterrupt:
+        for ref in refs:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+METRICS = ("success_rate", "time_gap", "fuel_gap", "lateness_median", "fuel_gap_median", "time_gap_fastest",
+           "mean_return", "max_violation")
+
+
+def spread(cfgs: Sequence[PPOConfig], results: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per sweep point (the runs that differ only in their seed): the seeds, and each metric of the runs' last
+    evaluations as median, 25th and 75th percentile (``n`` says over how many runs)."""
+    groups: dict[str, list[PPOConfig]] = {}
+    for c in cfgs:
+        groups.setdefault(c.name.rsplit("_s", 1)[0], []).append(c)
+    out: dict[str, Any] = {"runs": {}, "points": {}}
+    for point, members in groups.items():
+        evals = []
+        for c in members:
+            summary = results.get(c.name, {})
+            last = summary.get("last_eval") or {}
+            out["runs"][c.name] = {"seed": c.seed, "num_timesteps": summary.get("num_timesteps"),
+                                   "wall_time_s": summary.get("wall_time"), "last_eval": last}
+            evals.append(last)
+        stats = {}
+        for m in METRICS:
+            values = [float(e[m]) for e in evals if isinstance(e.get(m), (int, float)) and math.isfinite(e[m])]
+            stats[m] = ({"median": float(np.median(values)), "q25": float(np.percentile(values, 25)),
+                         "q75": float(np.percentile(values, 75)), "n": len(values)} if values else None)
+        out["points"][point] = {"seeds": [c.seed for c in members], **stats}
+    return out

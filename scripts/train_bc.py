@@ -1,0 +1,90 @@
+"""The imitation baseline: behaviour cloning of the MPC on ``train`` scenarios, at target cycle times.
+
+    python scripts/train_bc.py --braking tc --episodes 40 --workers 2 --export agents/policies/bc_tc
+
+1. MPC demonstrations in ``WheelLoaderTarget-v0`` (``agents.imitation.collect_demos``): fresh draws of the
+   ``train`` distribution, targets uniform in ``--target`` times the scenario's estimated T_min, a
+   ``--fast-share`` of them as fast as possible. One file per episode in ``--demos`` (default
+   ``<log-dir>/demos_<braking>_s<demo-seed>``): a killed run resumes with the episodes it has.
+2. The PPO policy network (``--net-arch``) regressed onto the expert's actions (``agents.imitation.clone``),
+   written as the run ``<log-dir>/<run-name>/final`` (the layout of a PPO run: ``wl evaluate --model``
+   takes it; ``wl train --init-policy <run>/final/policy`` fine-tunes it with PPO).
+3. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from wl_env.logs import cli_logging  # noqa: E402
+
+log = logging.getLogger("train_bc")
+
+
+@dataclass
+class Options:
+    braking: str = "service"  # 'service' or 'tc'
+    episodes: int = 40  # MPC demonstration episodes
+    demo_seed: int = 0  # seed of the demonstrations' scenario and target draws
+    target: tuple[float, float] = (1.05, 2.5)  # target ratios to T_min the demonstrations are drawn from
+    fast_share: float = 0.2  # share of demonstrations as fast as possible (the MPC's minimum-time mode)
+    workers: int = 1  # processes collecting demonstrations
+    demos: str = ""  # demonstration folder (default <log-dir>/demos_<braking>_s<demo-seed>)
+    seed: int = 0  # seed of the network's initialization and the training/validation split
+    epochs: int = 300  # passes over the demonstrations
+    learning_rate: float = 1e-3  # Adam step size
+    batch_size: int = 1024
+    net_arch: tuple[int, ...] = (64, 64)  # hidden layers (the PPO runs' default, so PPO can fine-tune it)
+    log_dir: str = "runs"
+    run_name: str = ""  # default bc_<braking>_s<seed>
+    export: str = ""  # ship as PATH.safetensors, PATH_vecnormalize.npz, PATH.json
+    export_episodes: int = 16  # validation draws per target of the export's evaluation
+
+
+def main(o: Options, command: str) -> int:
+    from agents.imitation import DemoSettings, clone, collect_demos
+    from agents.ppo import export_policy
+    from agents.ppo_config import TARGET_ENV_ID, PPOConfig
+
+    cfg = PPOConfig(braking=o.braking, env_id=TARGET_ENV_ID, scenario="train", init_noise=0.0, seed=o.seed,
+                    net_arch=o.net_arch, log_dir=o.log_dir, run_name=o.run_name or f"bc_{o.braking}_s{o.seed}",
+                    progress_bar=False)
+    settings = DemoSettings(o.braking, o.demo_seed, tuple(o.target), o.fast_share)
+    folder = o.demos or str(Path(o.log_dir) / f"demos_{o.braking}_s{o.demo_seed}")
+    try:
+        demos = collect_demos(settings, o.episodes, folder, workers=o.workers)
+    except KeyboardInterrupt:
+        log.info("interrupted; the episodes in %s are kept, the same command goes on from them", folder)
+        return 130
+    result = clone(demos, cfg, epochs=o.epochs, learning_rate=o.learning_rate, batch_size=o.batch_size)
+    log.info("cloned %d episodes (%d dropped), %d samples: validation loss %.5f -> %s", result.episodes,
+             result.episodes_dropped, result.samples, result.validation_loss, result.policy)
+    summary = cfg.run_dir / "final" / "summary.json"
+    meta = json.loads(summary.read_text())
+    meta["commands"] = [command]
+    meta["demos"] = {"folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
+                     "fast_share": o.fast_share}
+    from wl_env.atomic_io import write_json_atomic
+
+    write_json_atomic(summary, meta, indent=2, nan_as_null=True)
+    if o.export:
+        out = Path(o.export)
+        shipped = export_policy(cfg.run_dir, out.parent, out.name, n_episodes=o.export_episodes,
+                                extra={"method": meta["method"], "clone": meta["clone"], "demos": meta["demos"]})
+        print(json.dumps(shipped["evaluation"], indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    argv = sys.argv[1:]
+    with cli_logging():
+        sys.exit(main(tyro.cli(Options, args=argv), "python scripts/train_bc.py " + shlex.join(argv)))

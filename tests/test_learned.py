@@ -1,0 +1,167 @@
+"""The learned controllers of scenarios and target cycle times (#14): training on WheelLoaderTarget-v0, the
+behaviour-cloning baseline, fine-tuning from it, and the shipped target-conditioned policies."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.imitation import DemoSettings, action_weights, clone, collect_demos, read_demo
+from agents.policy_files import PolicyFileError
+from agents.ppo import (
+    PPOConfig,
+    build_model,
+    latest_checkpoint,
+    load_policy,
+    make_env,
+    read_eval_csv,
+    start_from,
+    train,
+)
+from agents.ppo_config import TARGET_ENV_ID
+
+POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
+
+
+def _tiny(tmp_path: Path, **kw) -> PPOConfig:
+    base = dict(env_id=TARGET_ENV_ID, scenario="train", init_noise=0.0, total_timesteps=2048, num_envs=8, n_steps=64,
+                batch_size=256, n_epochs=1, eval_freq=1024, eval_episodes=1, checkpoint_freq=1024, score=False,
+                progress_bar=False, log_dir=str(tmp_path), run_name="tiny", net_arch=(16, 16))
+    base.update(kw)
+    return PPOConfig(**base)
+
+
+# ---------------------------------------------------------------------------------------------- config
+def test_the_config_names_the_env_the_suite_and_the_target_range():
+    cfg = PPOConfig(env_id=TARGET_ENV_ID, scenario="train", target=(1.0, 2.0), w_time=3.0)
+    kw = cfg.env_kwargs()
+    assert kw["scenario"] == "train" and kw["target"] == (1.0, 2.0)
+    assert kw["w_time"] == 0.0  # the lateness term replaces the time term
+    from agents.ppo import reward_config
+
+    assert reward_config(cfg, 0).w_time == 0.0 and reward_config(cfg).w_time == 0.0
+    for bad, field in ((dict(env_id="WheelLoader-v9"), "env_id"), (dict(scenario="moon"), "scenario"),
+                       (dict(scenario="train"), "scenario"),  # v1 does not observe the scenario
+                       (dict(env_id=TARGET_ENV_ID, target=(0.5, 2.0)), "target"),
+                       (dict(env_id=TARGET_ENV_ID, target=(2.0, 1.5)), "target"),
+                       (dict(env_id=TARGET_ENV_ID, target=(1.0,)), "target")):
+        with pytest.raises(ValueError, match=field):
+            PPOConfig(**bad)
+
+
+# ---------------------------------------------------------------------------------------------- training
+def test_a_target_run_resumes_and_continues_its_step_count(tmp_path):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    cfg = _tiny(tmp_path, total_timesteps=4096)
+
+    class Stop(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= 2500:
+                raise KeyboardInterrupt
+            return True
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, callbacks=[Stop()])
+    done = json.loads((latest_checkpoint(cfg.run_dir) / "progress.json").read_text())["num_timesteps"]
+    assert 1024 <= done < 2500
+    summary = train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True)
+    assert 4096 <= summary["num_timesteps"] < 4096 + 64 * 8
+    rows = read_eval_csv(cfg.run_dir / "eval.csv")
+    assert [r["step"] for r in rows] == sorted({r["step"] for r in rows}) and rows[-1]["step"] == summary["num_timesteps"]
+    assert summary["config"]["env_id"] == TARGET_ENV_ID  # the saved config, not the naming one
+    assert load_policy(cfg.run_dir).env_id == TARGET_ENV_ID  # a 21-entry policy
+
+
+# ---------------------------------------------------------------------------------------------- imitation
+def test_shift_samples_are_weighted_to_balance_the_hold_samples():
+    from wl_env.codec import N_TARGET_OBS
+
+    obs = np.zeros((6, N_TARGET_OBS), np.float32)
+    obs[:, 8:12] = np.eye(4)[[0, 0, 0, 0, 1, 2]]  # phases 1 1 1 1 2 3
+    actions = np.full((6, 4), -1.0, np.float32)
+    actions[3, 3] = 1.0  # the one shift of phase 1
+    w = action_weights(obs, actions)
+    assert w[:, :3].tolist() == np.ones((6, 3)).tolist()
+    assert w[4, 3] == 0.0  # phase 2: the shift request does nothing
+    assert w[3, 3] == pytest.approx(4.0)  # 4 holds (phases 1 and 3) against one shift
+    assert w[[0, 1, 2, 5], 3].tolist() == [1.0] * 4
+
+
+def test_demonstrations_resume_and_reject_a_foreign_file(tmp_path):
+    s = DemoSettings("service", seed=3, expert="operator")
+    demos = collect_demos(s, 2, tmp_path)
+    assert len(demos) == 2 and all(d["obs"].shape[1] == 21 and len(d["obs"]) == len(d["actions"]) for d in demos)
+    assert demos[0]["scenario"] != demos[1]["scenario"]
+    stamp = (tmp_path / "episode_00000.npz").stat().st_mtime_ns
+    again = collect_demos(s, 3, tmp_path)  # resumed: the two on disk are read, one more is run
+    assert (tmp_path / "episode_00000.npz").stat().st_mtime_ns == stamp and len(again) == 3
+    np.testing.assert_array_equal(again[1]["actions"], demos[1]["actions"])
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        read_demo(tmp_path / "bad.npz")
+    for bad in (dict(expert="oracle"), dict(target=(0.5, 1.0)), dict(fast_share=2.0), dict(seed=-1)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            DemoSettings("service", **bad)
+
+
+def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_path):
+    demos = collect_demos(DemoSettings("service", seed=5, expert="operator"), 6, tmp_path / "demos")
+    cfg = _tiny(tmp_path, run_name="bc", net_arch=(64, 64))
+    result = clone(demos, cfg, epochs=150)
+    assert result.episodes + result.episodes_dropped == 6 and result.samples > 300
+    obs = np.concatenate([d["obs"] for d in demos])
+    acts = np.clip(np.concatenate([d["actions"] for d in demos]), -1, 1)
+    constant = float(np.mean(action_weights(obs, acts) * (acts - acts.mean(0)) ** 2))  # the best constant action's
+    assert result.train_loss < 0.2 * constant and result.validation_loss < 0.5 * constant, (result, constant)
+    policy = load_policy(cfg.run_dir)
+    d = demos[0]
+    err = np.abs(policy.act(d["obs"])[:, :3] - np.clip(d["actions"][:, :3], -1, 1))
+    assert np.median(err) < 0.1
+    # PPO fine-tuning starts from the clone: the same deterministic actions before any update
+    tune = _tiny(tmp_path, run_name="tune", net_arch=(64, 64), init_policy=str(cfg.run_dir / "final" / "policy"))
+    env = make_env(tune, num_envs=1)
+    model = build_model(tune, env, tmp_path / "tb")
+    start_from(model, env, tune)
+    z = env.normalize_obs(d["obs"])
+    np.testing.assert_allclose(model.predict(z, deterministic=True)[0], policy.act(d["obs"]), atol=1e-5)
+    wrong = _tiny(tmp_path, run_name="wrong", init_policy=str(cfg.run_dir / "final" / "policy"))  # (16, 16)
+    with pytest.raises(PolicyFileError, match="net_arch"):
+        start_from(build_model(wrong, env, tmp_path / "tb2"), env, wrong)
+
+
+# ---------------------------------------------------------------------------------------------- shipped
+SHIPPED = [(kind, b) for kind in ("ppo_target", "bc_target") for b in ("service", "tc")]
+
+
+@pytest.mark.parametrize("kind,braking", SHIPPED)
+def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, braking):
+    from agents.evaluate import evaluate_controller
+    from wl_env.suites import load_suite
+
+    policy = load_policy(POLICIES / f"{kind}_{braking}")
+    assert policy.env_id == TARGET_ENV_ID and policy.braking == braking
+    scenario = load_suite("test").of(braking)[0]
+    r = evaluate_controller(policy, braking, scenarios=[scenario], target_ratio=1.5, solve=False)
+    e = r["per_episode"][0]
+    assert e["completed"] and e["success"], e
+    assert e["max_violation"] == 0.0
+
+
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_a_later_target_gives_a_slower_leaner_cycle(braking):
+    """Target conditioning: the same scenario at 1.0 and at 1.5 T_min: the later target's cycle takes longer
+    and burns less fuel."""
+    from agents.evaluate import evaluate_controller
+    from wl_env.suites import load_suite
+
+    policy = load_policy(POLICIES / f"ppo_target_{braking}")
+    scenarios = list(load_suite("test").of(braking)[:3])
+    fast, slow = (evaluate_controller(policy, braking, scenarios=scenarios, target_ratio=r, solve=False)["per_episode"]
+                  for r in (1.0, 1.5))
+    for f, s in zip(fast, slow, strict=True):
+        assert f["completed"] and s["completed"]
+        assert s["T"] > f["T"] + 0.5 and s["fuel_g"] < f["fuel_g"], (f["T"], s["T"], f["fuel_g"], s["fuel_g"])

@@ -1,0 +1,85 @@
+"""Several PPO runs (agents.seeds): seeds and sweeps with one run directory each, locally and on a local Ray
+instance with the same layout; a finished run is not trained again, an interrupted one resumes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from agents.ppo import PPOConfig, latest_checkpoint, read_eval_csv, train
+from agents.seeds import SUMMARY_FILE, expand, parse_sweep, train_runs
+
+
+def _tiny(tmp_path: Path, **kw) -> PPOConfig:
+    base = dict(total_timesteps=2048, num_envs=8, n_steps=64, batch_size=256, n_epochs=1, eval_freq=1024,
+                eval_episodes=1, checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path),
+                run_name="tiny", net_arch=(8, 8))
+    base.update(kw)
+    return PPOConfig(**base)
+
+
+def test_sweep_and_seeds_expand_to_one_named_run_each(tmp_path):
+    cfgs = expand(_tiny(tmp_path), [0, 3], parse_sweep(["learning_rate=1e-4,3e-4", "n_epochs=2"]))
+    assert [c.name for c in cfgs] == ["tiny_learning_rate0.0001_n_epochs2_s0", "tiny_learning_rate0.0001_n_epochs2_s3",
+                                      "tiny_learning_rate0.0003_n_epochs2_s0", "tiny_learning_rate0.0003_n_epochs2_s3"]
+    assert [(c.learning_rate, c.n_epochs, c.seed) for c in cfgs][1] == (1e-4, 2, 3)
+    for bad, word in ((["learning_rate"], "FIELD=V1"), (["nope=1"], "nope"), (["n_epochs=two"], "two"),
+                      (["reward=1"], "single value"), (["seed=1,2"], "seed")):
+        with pytest.raises(ValueError, match=word):
+            parse_sweep(bad)
+    with pytest.raises(ValueError, match="repeat"):
+        expand(_tiny(tmp_path), [1, 1])
+    with pytest.raises(Exception, match="n_epochs"):
+        expand(_tiny(tmp_path), [0], parse_sweep(["n_epochs=0"]))  # each point validated as a PPOConfig
+
+
+def test_seeds_train_locally_report_their_spread_and_are_not_trained_twice(tmp_path):
+    cfgs = expand(_tiny(tmp_path), [0, 1])
+    results = train_runs(cfgs)
+    assert set(results) == {"tiny_s0", "tiny_s1"}
+    for c in cfgs:
+        assert (c.run_dir / "final" / "policy.safetensors").exists()
+    summary = json.loads((tmp_path / SUMMARY_FILE).read_text())
+    point = summary["points"]["tiny"]
+    assert point["seeds"] == [0, 1] and point["mean_return"]["n"] == 2
+    assert point["mean_return"]["q25"] <= point["mean_return"]["median"] <= point["mean_return"]["q75"]
+    # different seeds, different runs
+    r0, r1 = (summary["runs"][n]["last_eval"]["mean_return"] for n in ("tiny_s0", "tiny_s1"))
+    assert r0 != r1
+    stamp = (cfgs[0].run_dir / "final" / "summary.json").stat().st_mtime_ns
+    assert train_runs(cfgs) == results  # finished: read back, not trained again
+    assert (cfgs[0].run_dir / "final" / "summary.json").stat().st_mtime_ns == stamp
+
+
+def test_an_interrupted_run_of_a_sweep_resumes_its_step_count(tmp_path):
+    (cfg,) = expand(_tiny(tmp_path, total_timesteps=4096), [0])
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Stop(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= 2500:
+                raise KeyboardInterrupt
+            return True
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, callbacks=[Stop()])
+    done = json.loads((latest_checkpoint(cfg.run_dir) / "progress.json").read_text())["num_timesteps"]
+    assert 1024 <= done < 2500
+    summary = train_runs([cfg])[cfg.name]
+    assert 4096 <= summary["num_timesteps"] < 4096 + 64 * 8
+    steps = [r["step"] for r in read_eval_csv(cfg.run_dir / "eval.csv")]
+    assert steps == sorted(set(steps)) and steps[-1] == summary["num_timesteps"]
+
+
+def test_seeds_train_on_a_local_ray_instance_with_the_local_layout(tmp_path):
+    pytest.importorskip("ray")
+    cfgs = expand(_tiny(tmp_path, total_timesteps=1024, eval_freq=512), [0, 1])
+    results = train_runs(cfgs, ray_address="local")
+    assert set(results) == {"tiny_s0", "tiny_s1"}
+    for c in cfgs:
+        for f in ("config.json", "eval.csv", "final/summary.json", "final/policy.safetensors"):
+            assert (c.run_dir / f).exists(), f
+        assert json.loads((c.run_dir / "final" / "summary.json").read_text())["seed"] == c.seed
+    assert json.loads((tmp_path / SUMMARY_FILE).read_text())["points"]["tiny"]["seeds"] == [0, 1]
