@@ -47,6 +47,8 @@ class DemoSettings:
     target: tuple[float, float] = (1.05, 2.5)
     fast_share: float = 0.2
     expert: str = "mpc"  # "mpc" (the optimum's stand-in), or "operator" (rule-based: quick demonstrations for tests)
+    learner: str = ""  # DAgger: a pickle-free policy that drives (the expert only labels its states); '': the expert drives
+    beta: float = 0.0  # DAgger: the chance per step that the expert's own action is applied instead
 
     def __post_init__(self) -> None:
         if self.expert not in EXPERTS:
@@ -60,6 +62,8 @@ class DemoSettings:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not (isinstance(self.fast_share, (int, float)) and 0.0 <= self.fast_share <= 1.0):
             raise ValueError(f"fast_share must lie in [0, 1], got {self.fast_share!r}")
+        if not (isinstance(self.beta, (int, float)) and 0.0 <= self.beta <= 1.0):
+            raise ValueError(f"beta must lie in [0, 1], got {self.beta!r}")
 
 
 def demo_path(out: str | Path, index: int) -> Path:
@@ -88,19 +92,29 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         from agents.operator import OperatorPolicy
 
         expert = OperatorPolicy(settings.braking, params=scenario.params())
+    learner = None
+    if settings.learner:
+        from agents.ppo import load_policy
+
+        learner = load_policy(settings.learner)
     observations, actions = [], []
     done = False
     while not done:
         a = np.asarray(expert.act(obs), dtype=np.float32)
         observations.append(obs)
         actions.append(a)
+        if learner is not None and rng.uniform() >= settings.beta:  # the learner drives; the expert labels
+            a = np.asarray(learner.act(obs), dtype=np.float32)
+            if hasattr(expert, "applied"):
+                expert.applied(a)
         obs, _, term, trunc, info = env.step(a)
         done = term or trunc
     env.close()
     return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
             "scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
             "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
-            "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"])}
+            "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
+            "learner": settings.learner}
 
 
 def _write_demo(path: Path, demo: dict[str, Any]) -> None:
@@ -151,7 +165,8 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     d = {"braking": settings.braking, "seed": settings.seed, "target": list(settings.target),
-         "fast_share": settings.fast_share, "expert": settings.expert}
+         "fast_share": settings.fast_share, "expert": settings.expert, "learner": settings.learner,
+         "beta": settings.beta}
     todo = [i for i in range(episodes) if not demo_path(out, i).exists()]
     if workers == 1 or len(todo) <= 1:
         collect_chunk(d, todo, str(out))
@@ -164,8 +179,9 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
 
 
 def usable(demo: dict[str, Any]) -> bool:
-    """An episode worth imitating: completed with its targets met, no violation."""
-    return bool(demo["success"]) and demo["max_violation"] == 0.0
+    """An episode worth imitating: the expert's own, completed with its targets met and no violation; or a
+    DAgger episode (the learner drove: its outcome is the learner's, the labels the expert's)."""
+    return bool(demo.get("learner")) or (bool(demo["success"]) and demo["max_violation"] == 0.0)
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3

@@ -130,32 +130,23 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
 
 def _on_ray(cfgs: Sequence[PPOConfig], command: str | None, address: str) -> dict[str, dict[str, Any]]:
     """The runs as Ray tasks (one CPU each) writing to their run directories; their summaries."""
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=None if address == "local" else address, include_dashboard=False,
-                 logging_level=logging.WARNING, log_to_driver=False)
-    refs: dict[Any, str] = {}
-    try:
+    from mpc.workers import ray_session
+
+    with ray_session(address) as ray:
         task = ray.remote(num_cpus=1, max_retries=0)(train_one)
         refs = {task.remote(c.to_dict(), command): c.name for c in cfgs}
         results: dict[str, dict[str, Any]] = {}
         pending = list(refs)
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            results[refs[ready[0]]] = ray.get(ready[0])
-            log.info("%s: done (%d of %d)", refs[ready[0]], len(results), len(refs))
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                results[refs[ready[0]]] = ray.get(ready[0])
+                log.info("%s: done (%d of %d)", refs[ready[0]], len(results), len(refs))
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
         return results
-    except KeyboardInterrupt:
-        for ref in refs:
-            ray.cancel(ref, force=True)
-        raise
-    finally:
-        if started:
-            ray.shutdown()
 
 
 METRICS = ("success_rate", "time_gap", "fuel_gap", "lateness_median", "fuel_gap_median", "time_gap_fastest",

@@ -38,6 +38,25 @@ from mpc import interrupt
 WATCHDOG_PERIOD = 0.5  # s between the watchdog's looks at the parent
 
 
+@contextmanager
+def ray_session(address: str) -> Iterator[Any]:
+    """The ``ray`` module, connected to the cluster at ``address`` (``"local"``: a Ray instance started on this
+    machine) for the block, and disconnected after it if this call connected it."""
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=None if address == "local" else address, include_dashboard=False,
+                 logging_level=logging.WARNING, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
 class WorkerTraceback(Exception):
     """The traceback of an exception raised in a worker (set as that exception's cause)."""
 

@@ -9,11 +9,15 @@
 2. The PPO policy network (``--net-arch``) regressed onto the expert's actions (``agents.imitation.clone``),
    written as the run ``<log-dir>/<run-name>/final`` (the layout of a PPO run: ``wl evaluate --model``
    takes it; ``wl train --init-policy <run>/final/policy`` fine-tunes it with PPO).
-3. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
+3. ``--dagger-rounds N``: DAgger. Each round the clone drives ``--dagger-episodes`` new draws (the
+   expert's own action applied with probability ``--beta`` per step), the MPC labels every state it
+   visits, and the clone is fitted again on all demonstrations so far.
+4. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shlex
@@ -48,6 +52,17 @@ class Options:
     run_name: str = ""  # default bc_<braking>_s<seed>
     export: str = ""  # ship as PATH.safetensors, PATH_vecnormalize.npz, PATH.json
     export_episodes: int = 16  # validation draws per target of the export's evaluation
+    dagger_rounds: int = 0  # DAgger rounds after the first clone (0: behaviour cloning only)
+    dagger_episodes: int = 20  # episodes the clone drives per round
+    beta: float = 0.2  # DAgger: the chance per step that the expert's action is applied instead of the clone's
+
+
+def write_policy_copy(stem: str | Path, out: Path) -> None:
+    """The pickle-free policy ``stem`` written again as ``out`` (read and checked, then its three files)."""
+    from agents.policy_files import read_policy, write_policy
+
+    network, normalization, meta = read_policy(stem)
+    write_policy(network, normalization, out, meta)
 
 
 def main(o: Options, command: str) -> int:
@@ -68,11 +83,25 @@ def main(o: Options, command: str) -> int:
     result = clone(demos, cfg, epochs=o.epochs, learning_rate=o.learning_rate, batch_size=o.batch_size)
     log.info("cloned %d episodes (%d dropped), %d samples: validation loss %.5f -> %s", result.episodes,
              result.episodes_dropped, result.samples, result.validation_loss, result.policy)
+    for r in range(1, o.dagger_rounds + 1):
+        # each round's learner is a copy of the clone it starts from (the clone is refitted into final/)
+        learner = Path(o.log_dir) / f"{cfg.name}_dagger{r}_learner"
+        write_policy_copy(result.policy, learner)
+        round_settings = dataclasses.replace(settings, seed=o.demo_seed + 1000 * r, learner=str(learner), beta=o.beta)
+        try:
+            demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}", workers=o.workers)
+        except KeyboardInterrupt:
+            log.info("interrupted; the same command goes on from the episodes on disk")
+            return 130
+        result = clone(demos, cfg, epochs=o.epochs, learning_rate=o.learning_rate, batch_size=o.batch_size)
+        log.info("DAgger round %d: %d episodes, %d samples: validation loss %.5f", r, result.episodes, result.samples,
+                 result.validation_loss)
     summary = cfg.run_dir / "final" / "summary.json"
     meta = json.loads(summary.read_text())
     meta["commands"] = [command]
     meta["demos"] = {"folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
-                     "fast_share": o.fast_share}
+                     "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds,
+                     "dagger_episodes": o.dagger_episodes, "beta": o.beta}
     from wl_env.atomic_io import write_json_atomic
 
     write_json_atomic(summary, meta, indent=2, nan_as_null=True)

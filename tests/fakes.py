@@ -8,6 +8,16 @@ from mpc.benchmark.ocp import OCPResult
 from wl_env.params import resolve
 
 
+def tiny_ppo_config(tmp_path, **changes):
+    """A PPOConfig that trains in seconds (8 loaders, a 16x16 network, no scoring) in ``tmp_path``."""
+    from agents.ppo_config import PPOConfig
+
+    base = dict(total_timesteps=4096, num_envs=8, n_steps=64, batch_size=256, n_epochs=2, eval_freq=1024,
+                eval_episodes=2, checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path),
+                run_name="tiny", net_arch=(16, 16))
+    return PPOConfig(**{**base, **changes})
+
+
 def fake_solve(braking: str = "service", objective: str = "time", T: float | None = None, w_fuel=None,
                params=None, settings=None, **_: object) -> OCPResult:
     """A stand-in for ``solve_ocp``: T_min 7 s, the fuel optimum 47 g at 21 s, a convex front between.

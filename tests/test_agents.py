@@ -12,6 +12,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+from fakes import tiny_ppo_config
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -77,11 +78,7 @@ def test_adapter_matches_dummy_vec_env(braking, max_time):
 
 # ------------------------------------------------------------------------------------------ training
 def _tiny(tmp_path: Path, **kw) -> PPOConfig:
-    base = dict(total_timesteps=4096, num_envs=8, n_steps=64, batch_size=256, n_epochs=2, eval_freq=1024,
-                eval_episodes=2, checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path),
-                run_name="tiny", net_arch=(16, 16))
-    base.update(kw)
-    return PPOConfig(**base)
+    return tiny_ppo_config(tmp_path, **kw)
 
 
 class _Interrupt(BaseCallback):

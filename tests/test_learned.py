@@ -3,35 +3,30 @@ behaviour-cloning baseline, fine-tuning from it, and the shipped target-conditio
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from fakes import tiny_ppo_config
 
 from agents.imitation import DemoSettings, action_weights, clone, collect_demos, read_demo
 from agents.policy_files import PolicyFileError
 from agents.ppo import (
     PPOConfig,
     build_model,
-    latest_checkpoint,
     load_policy,
     make_env,
-    read_eval_csv,
     start_from,
-    train,
 )
 from agents.ppo_config import TARGET_ENV_ID
+from wl_env import Scenario
 
 POLICIES = Path(__file__).resolve().parents[1] / "agents" / "policies"
 
 
 def _tiny(tmp_path: Path, **kw) -> PPOConfig:
-    base = dict(env_id=TARGET_ENV_ID, scenario="train", init_noise=0.0, total_timesteps=2048, num_envs=8, n_steps=64,
-                batch_size=256, n_epochs=1, eval_freq=1024, eval_episodes=1, checkpoint_freq=1024, score=False,
-                progress_bar=False, log_dir=str(tmp_path), run_name="tiny", net_arch=(16, 16))
-    base.update(kw)
-    return PPOConfig(**base)
+    return tiny_ppo_config(tmp_path, **{"env_id": TARGET_ENV_ID, "scenario": "train", "init_noise": 0.0,
+                                        "total_timesteps": 2048, "n_epochs": 1, "eval_episodes": 1, **kw})
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -50,30 +45,6 @@ def test_the_config_names_the_env_the_suite_and_the_target_range():
                        (dict(env_id=TARGET_ENV_ID, target=(1.0,)), "target")):
         with pytest.raises(ValueError, match=field):
             PPOConfig(**bad)
-
-
-# ---------------------------------------------------------------------------------------------- training
-def test_a_target_run_resumes_and_continues_its_step_count(tmp_path):
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    cfg = _tiny(tmp_path, total_timesteps=4096)
-
-    class Stop(BaseCallback):
-        def _on_step(self) -> bool:
-            if self.num_timesteps >= 2500:
-                raise KeyboardInterrupt
-            return True
-
-    with pytest.raises(KeyboardInterrupt):
-        train(cfg, callbacks=[Stop()])
-    done = json.loads((latest_checkpoint(cfg.run_dir) / "progress.json").read_text())["num_timesteps"]
-    assert 1024 <= done < 2500
-    summary = train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True)
-    assert 4096 <= summary["num_timesteps"] < 4096 + 64 * 8
-    rows = read_eval_csv(cfg.run_dir / "eval.csv")
-    assert [r["step"] for r in rows] == sorted({r["step"] for r in rows}) and rows[-1]["step"] == summary["num_timesteps"]
-    assert summary["config"]["env_id"] == TARGET_ENV_ID  # the saved config, not the naming one
-    assert load_policy(cfg.run_dir).env_id == TARGET_ENV_ID  # a 21-entry policy
 
 
 # ---------------------------------------------------------------------------------------------- imitation
@@ -103,7 +74,7 @@ def test_demonstrations_resume_and_reject_a_foreign_file(tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         read_demo(tmp_path / "bad.npz")
-    for bad in (dict(expert="oracle"), dict(target=(0.5, 1.0)), dict(fast_share=2.0), dict(seed=-1)):
+    for bad in (dict(expert="oracle"), dict(target=(0.5, 1.0)), dict(fast_share=2.0), dict(seed=-1), dict(beta=1.5)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             DemoSettings("service", **bad)
 
@@ -128,6 +99,16 @@ def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_pat
     start_from(model, env, tune)
     z = env.normalize_obs(d["obs"])
     np.testing.assert_allclose(model.predict(z, deterministic=True)[0], policy.act(d["obs"]), atol=1e-5)
+    # DAgger: the clone drives, the expert labels the states it visits
+    (dagger,) = collect_demos(DemoSettings("service", seed=6, expert="operator", learner=str(cfg.run_dir / "final" / "policy")),
+                              1, tmp_path / "dagger")
+    assert dagger["learner"] and len(dagger["obs"]) > 10
+    from agents.imitation import usable
+    from agents.operator import OperatorPolicy
+
+    assert usable({**dagger, "success": False})  # the learner's outcome; the labels are the expert's
+    expert = OperatorPolicy("service", params=Scenario.from_dict(dagger["scenario"]).params())
+    np.testing.assert_allclose(dagger["actions"], expert.act(dagger["obs"]), atol=1e-6)
     wrong = _tiny(tmp_path, run_name="wrong", init_policy=str(cfg.run_dir / "final" / "policy"))  # (16, 16)
     with pytest.raises(PolicyFileError, match="net_arch"):
         start_from(build_model(wrong, env, tmp_path / "tb2"), env, wrong)
@@ -165,3 +146,21 @@ def test_a_later_target_gives_a_slower_leaner_cycle(braking):
     for f, s in zip(fast, slow, strict=True):
         assert f["completed"] and s["completed"]
         assert s["T"] > f["T"] + 0.5 and s["fuel_g"] < f["fuel_g"], (f["T"], s["T"], f["fuel_g"], s["fuel_g"])
+
+
+def test_a_shadow_mpc_takes_the_applied_action_as_its_last_control():
+    """DAgger's expert labels states another controller drives: its estimator and rate penalty must see the
+    control that was applied, and the phase its shift request gave."""
+    import gymnasium as gym
+
+    from mpc.controller.mpc import MPCController
+
+    env = gym.make(TARGET_ENV_ID, braking="tc")
+    obs, _ = env.reset(seed=0)
+    mpc = MPCController("tc")
+    mpc.act(obs)
+    other = np.array([0.2, -0.5, -1.0, 1.0], np.float32)  # and a shift in phase 1
+    mpc.applied(other)
+    x, phase, u = mpc._last
+    np.testing.assert_allclose(u, mpc.codec.decode_action(0.2, -0.5, -1.0))
+    assert phase == 2

@@ -7,17 +7,16 @@ import json
 from pathlib import Path
 
 import pytest
+from fakes import tiny_ppo_config
 
-from agents.ppo import PPOConfig, latest_checkpoint, read_eval_csv, train
+from agents.ppo import PPOConfig, latest_checkpoint, load_policy, read_eval_csv, train
+from agents.ppo_config import TARGET_ENV_ID
 from agents.seeds import SUMMARY_FILE, expand, parse_sweep, train_runs
 
 
 def _tiny(tmp_path: Path, **kw) -> PPOConfig:
-    base = dict(total_timesteps=2048, num_envs=8, n_steps=64, batch_size=256, n_epochs=1, eval_freq=1024,
-                eval_episodes=1, checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path),
-                run_name="tiny", net_arch=(8, 8))
-    base.update(kw)
-    return PPOConfig(**base)
+    return tiny_ppo_config(tmp_path, **{"total_timesteps": 2048, "n_epochs": 1, "eval_episodes": 1,
+                                        "net_arch": (8, 8), **kw})
 
 
 def test_sweep_and_seeds_expand_to_one_named_run_each(tmp_path):
@@ -53,8 +52,10 @@ def test_seeds_train_locally_report_their_spread_and_are_not_trained_twice(tmp_p
     assert (cfgs[0].run_dir / "final" / "summary.json").stat().st_mtime_ns == stamp
 
 
-def test_an_interrupted_run_of_a_sweep_resumes_its_step_count(tmp_path):
-    (cfg,) = expand(_tiny(tmp_path, total_timesteps=4096), [0])
+def test_an_interrupted_target_run_of_a_sweep_resumes_its_step_count(tmp_path):
+    """A WheelLoaderTarget-v0 run on train draws, killed by Ctrl-C after its first checkpoint: the same
+    command (train_runs) resumes it from there with its saved config and ends on the step budget."""
+    (cfg,) = expand(_tiny(tmp_path, total_timesteps=4096, env_id=TARGET_ENV_ID, scenario="train", init_noise=0.0), [0])
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Stop(BaseCallback):
@@ -71,6 +72,8 @@ def test_an_interrupted_run_of_a_sweep_resumes_its_step_count(tmp_path):
     assert 4096 <= summary["num_timesteps"] < 4096 + 64 * 8
     steps = [r["step"] for r in read_eval_csv(cfg.run_dir / "eval.csv")]
     assert steps == sorted(set(steps)) and steps[-1] == summary["num_timesteps"]
+    assert summary["config"]["env_id"] == TARGET_ENV_ID
+    assert load_policy(cfg.run_dir).env_id == TARGET_ENV_ID  # a 21-entry policy
 
 
 def test_seeds_train_on_a_local_ray_instance_with_the_local_layout(tmp_path):

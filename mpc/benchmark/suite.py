@@ -183,35 +183,27 @@ def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.P
                 address: str, chunk: int, job: str = JOB) -> dict[str, str]:
     """The chains as Ray tasks of ``chunk`` scenarios each; the driver writes each task's entries as it ends.
     Returns the scenarios no solve could do."""
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=None if address == "local" else address, include_dashboard=False,
-                 logging_level=logging.WARNING, log_to_driver=False)
-    try:
+    from mpc.workers import ray_session
+
+    with ray_session(address) as ray:
         task = ray.remote(_ray_chain)
         pieces = [chain[i:i + chunk] for chain in todo.values() for i in range(0, len(chain), chunk)]
         pending = [task.remote([sc.to_dict() for sc in p], None if cache is None else str(cache), n_points, job)
                    for p in pieces]
         failed: dict[str, str] = {}
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            for key, e in ray.get(ready[0]):
-                if isinstance(e, str):
-                    failed[key] = e
-                else:
-                    store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                for key, e in ray.get(ready[0]):
+                    if isinstance(e, str):
+                        failed[key] = e
+                    else:
+                        store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
         return failed
-    except KeyboardInterrupt:
-        for ref in pending:
-            ray.cancel(ref, force=True)
-        raise
-    finally:
-        if started:
-            ray.shutdown()
 
 
 def _ray_chain(scenarios: list[dict[str, Any]], cache: str | None, n_points: int,

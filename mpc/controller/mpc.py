@@ -191,11 +191,23 @@ class MPCController:
         self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
         self._last = (x, phase + 1 if shift else phase, u)
+        self._obs_phase = phase
         theta = self.estimator.theta
         info["accel_gain"], info["accel_offset"] = float(theta[0]), float(theta[1])
         info["lift_gain"] = float(self.estimator.lift_gain)
         self.last_info = info
         return self.action(u, shift)
+
+    def applied(self, action: np.ndarray) -> None:
+        """The env applied ``action`` instead of this controller's last one (a shadow expert labelling another
+        controller's states, e.g. DAgger): the estimator and the rate penalty take that one as the last
+        control, and its shift request (> 0 in phase 1 or 3) as the phase change."""
+        if self._last is None:
+            return
+        a = np.asarray(action, dtype=float)
+        x, phase = self._last[0], self._obs_phase
+        u = np.array(self.codec.decode_action(float(a[0]), float(a[1]), float(a[2])))
+        self._last = (x, phase + 1 if a[3] > 0.0 and phase in (1, 3) else phase, u)
 
     def action(self, u: np.ndarray, shift: bool) -> np.ndarray:
         """The env's normalized action for the control [U_mf, U_ab, U_b] and a shift request."""
