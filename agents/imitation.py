@@ -187,19 +187,36 @@ def usable(demo: dict[str, Any]) -> bool:
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
 
 
-def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """Per-sample weights of the squared action errors. The shift request matters only in phases 1 and 3,
-    where the expert asks for it once per phase: its few "shift now" samples are weighted up to balance the
-    many "hold" ones, or the clone would learn to hold forever (and drive off the site)."""
+SHIFT_RAMP = 0.4  # per step: the shift label's slope before the expert's shift (see shift_labels)
+
+
+def _phases(obs: np.ndarray) -> np.ndarray:
     from wl_env.codec import Codec
 
-    phase = Codec().decode_observation(obs).phase
+    return np.asarray(Codec().decode_observation(obs).phase)
+
+
+def shift_labels(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """One episode's actions with the shift request relabelled as a ramp to the expert's shift. The expert
+    asks for it once per phase (+1 once, -1 before): a regression of that pulse predicts "hold" everywhere
+    (or, weighted up, "shift" too early). The ramp, ``SHIFT_RAMP`` per step, crosses 0 half a step before
+    the expert's shift, so the clone's threshold (> 0) shifts where the expert did."""
+    out = actions.copy()
+    phase = _phases(obs)
+    for ph in (1, 3):
+        steps = np.flatnonzero(phase == ph)
+        shifted = steps[actions[steps, SHIFT] > 0.0]
+        if shifted.size:
+            k = shifted[0]
+            out[steps, SHIFT] = np.clip(SHIFT_RAMP * (steps - k + 0.5), -1.0, 1.0)
+    return out
+
+
+def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Per-sample weights of the squared action errors: 1, but 0 for the shift request outside phases 1 and
+    3, where it does nothing."""
     weights = np.ones_like(actions, dtype=np.float32)
-    shifting = np.isin(phase, (1, 3))
-    weights[~shifting, SHIFT] = 0.0
-    positive = shifting & (actions[:, SHIFT] > 0.0)
-    if positive.any():
-        weights[positive, SHIFT] = float((shifting & ~positive).sum()) / float(positive.sum())
+    weights[~np.isin(_phases(obs), (1, 3)), SHIFT] = 0.0
     return weights
 
 
@@ -210,7 +227,7 @@ class CloneResult:
     episodes: int  # usable demonstration episodes
     episodes_dropped: int  # expert episodes not imitated (targets missed or a violation)
     samples: int
-    train_loss: float  # weighted mean squared error of the actions in [-1, 1] (action_weights), training episodes
+    train_loss: float  # weighted mean squared error of the actions in [-1, 1] (shift_labels, action_weights), training episodes
     validation_loss: float  # the same on the held-out episodes
     wall_time_s: float
     policy: str  # the stem of the pickle-free policy
@@ -239,7 +256,8 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     n_val = max(1, int(round(validation_share * len(good))))
     parts = {"val": [good[i] for i in order[:n_val]], "train": [good[i] for i in order[n_val:]]}
     obs = {k: np.concatenate([d["obs"] for d in v]) for k, v in parts.items()}
-    act = {k: np.clip(np.concatenate([d["actions"] for d in v]), -1.0, 1.0) for k, v in parts.items()}
+    act = {k: np.clip(np.concatenate([shift_labels(d["obs"], d["actions"]) for d in v]), -1.0, 1.0)
+           for k, v in parts.items()}
     norm = ObsNormalization(obs["train"].mean(0).astype(np.float64), obs["train"].var(0).astype(np.float64))
 
     th.manual_seed(cfg.seed)

@@ -15,7 +15,8 @@ optimum (shipped: nothing is solved). The target-conditioned PPO and the behavio
 run at three targets per scenario (fastest, 1.15 and 1.5 T_min, :data:`wl.report.TARGETS`); the operator at
 its own pace; the MPC in minimum-time mode and at the 1.15 and 1.5 targets, on ``--mpc-sample`` scenarios
 spread over the suite (it takes 5-20 s a cycle). Printed per row: success, median and p90 of both gaps,
-median lateness, largest violation.
+median lateness, largest violation. ``--suite test --runs RUN_DIR ...``: those runs' policies instead (e.g.
+one per seed), with each metric's median and interquartile range over them.
 """
 
 from __future__ import annotations
@@ -36,6 +37,37 @@ from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
 
 def pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:+.1f} %"
+
+
+def runs_mode(args: argparse.Namespace) -> None:
+    """Each run's final policy on the suite at the three targets; the spread over the runs per braking and target."""
+    import numpy as np
+
+    from agents.ppo import load_policy
+    from wl.report import collect_suite, suite_table
+
+    policies = {run: load_policy(run) for run in args.runs}
+    suite = collect_suite(args.suite, sample=None, controllers=lambda b: [], at_targets=lambda b: [
+        (run, lambda p=p: p) for run, p in policies.items() if p.braking == b])
+    print("\n".join(suite_table(suite)))
+    keys = ("success_rate", "fuel_gap_median", "fuel_gap_p90", "time_gap_median", "lateness_median", "max_violation")
+    spread = []
+    for b in sorted({r["braking"] for r in suite["rows"]}):
+        for target in dict.fromkeys(r["target"] for r in suite["rows"]):
+            rows = [r for r in suite["rows"] if r["braking"] == b and r["target"] == target]
+            line = {"braking": b, "target": target, "runs": len(rows)}
+            for k in keys:
+                v = [r[k] for r in rows if r[k] is not None]
+                line[k] = ({"median": float(np.median(v)), "q25": float(np.percentile(v, 25)),
+                            "q75": float(np.percentile(v, 75))} if v else None)
+            spread.append(line)
+    print("\n| braking | target | runs | " + " | ".join(keys) + " |\n|---|---|---|" + "---|" * len(keys))
+    for line in spread:
+        cells = ["-" if line[k] is None else f"{100 * line[k]['median']:.1f} ({100 * line[k]['q25']:.1f}-"
+                 f"{100 * line[k]['q75']:.1f}) %" for k in keys]
+        print(f"| {line['braking']} | {line['target']} | {line['runs']} | " + " | ".join(cells) + " |")
+    if args.json:
+        write_json_atomic(args.json, {"suite": args.suite, "runs": args.runs, "rows": suite["rows"], "spread": spread})
 
 
 def suite_mode(args: argparse.Namespace) -> None:
@@ -69,9 +101,13 @@ def main() -> None:
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
     ap.add_argument("--suite", choices=["test", "corners"], help="run the suite mode (see above)")
     ap.add_argument("--mpc-sample", type=int, default=10, help="--suite: scenarios per braking the MPC runs")
+    ap.add_argument("--runs", nargs="+", metavar="RUN_DIR", help="--suite: instead, these runs' policies (e.g. one per "
+                    "seed) at the three targets, and each metric's median and interquartile range over them")
     args = ap.parse_args()
+    if args.runs and not args.suite:
+        ap.error("--runs needs --suite")
     if args.suite:
-        return suite_mode(args)
+        return runs_mode(args) if args.runs else suite_mode(args)
     fronts = pareto_fronts(progress=True)
     rows: list[dict[str, Any]] = []
     for braking in ("service", "tc"):
