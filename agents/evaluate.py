@@ -92,8 +92,9 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
 def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind: str = "ppo") -> Controller:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking, kind)
     if model is None and not path.exists():
-        raise FileNotFoundError(f"no PPO policy at {path} (train one with `wl train --braking {braking} --export PATH`, "
-                                "then pass --model PATH)")
+        how = (f"python scripts/train_bc.py --braking {braking} --export PATH" if kind == "bc" else
+               f"wl train --braking {braking}{' --env-id WheelLoaderTarget-v0 --scenario train' if kind == 'ppo-target' else ''} --export PATH")
+        raise FileNotFoundError(f"no shipped policy at {path} (make one with `{how}`, then pass --model PATH)")
     from agents.ppo import load_policy
 
     policy = load_policy(path, trust_pickle=trust_pickle)

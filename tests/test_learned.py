@@ -115,7 +115,9 @@ def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_pat
 
 
 # ---------------------------------------------------------------------------------------------- shipped
-SHIPPED = [(kind, b) for kind in ("ppo-target", "bc") for b in ("service", "tc")]  # agents.evaluate.SHIPPED_POLICIES
+# the shipped target-conditioned policies (agents.evaluate.SHIPPED_POLICIES; the imitation baseline is not shipped:
+# its clones stalled or missed the targets in every test cycle, docs/benchmarks.md section 7)
+SHIPPED = [("ppo-target", b) for b in ("service", "tc")]
 
 
 @pytest.mark.parametrize("kind,braking", SHIPPED)
@@ -136,7 +138,7 @@ def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, bra
 IGNORES_TARGET = pytest.mark.xfail(strict=True, reason=(
     "measured: PPO from scratch (10 M steps) drives one cycle per scenario whatever the target, e.g. 9.7 s "
     "at 1.0 and 9.8 s at 1.5 T_min (service), 13.7 and 14.3 s (TC); docs/benchmarks.md section 7"))
-CONDITIONED = [pytest.param(kind, b, marks=IGNORES_TARGET) if kind == "ppo-target" else (kind, b) for kind, b in SHIPPED]
+CONDITIONED = [pytest.param(kind, b, marks=IGNORES_TARGET) for kind, b in SHIPPED]
 
 
 @pytest.mark.parametrize("kind,braking", CONDITIONED)
