@@ -240,12 +240,13 @@ def test_shipped_policy_completes_the_cycle(braking):
 
 @pytest.mark.parametrize("braking", ["tc"])  # (the service policy was retrained on v1, exported pickle-free)
 def test_shipped_policy_acts_as_before_its_conversion(braking):
-    """The pickle-free shipped policy gives exactly the actions the stable-baselines3 zip gave before the
-    conversion (recorded with the old loader on 100 uniform and 100 on-trajectory observations)."""
+    """The pickle-free shipped policy gives the actions the stable-baselines3 zip gave before the conversion
+    (recorded with the old loader on 100 uniform and 100 on-trajectory observations), to float32 rounding:
+    torch's CPU kernels differ between processors in the last bits (seen: 3.6e-7 on an AMD EPYC)."""
     ref = np.load(Path(__file__).parent / "data" / "shipped_policy_actions.npz", allow_pickle=False)
     obs, expected = ref[f"obs_{braking}"], ref[f"actions_{braking}"]
     assert obs.shape == (200, 12) and 0.2 < np.mean(np.abs(expected) < 1.0)  # not only saturated actions
-    np.testing.assert_array_equal(load_policy(POLICIES / f"ppo_{braking}").act(obs), expected)
+    np.testing.assert_allclose(load_policy(POLICIES / f"ppo_{braking}").act(obs), expected, rtol=0, atol=1e-5)
 
 
 def test_a_target_ratio_sets_each_episodes_target_from_its_own_minimum_time():

@@ -48,18 +48,21 @@ def test_the_config_names_the_env_the_suite_and_the_target_range():
 
 
 # ---------------------------------------------------------------------------------------------- imitation
-def test_shift_samples_are_weighted_to_balance_the_hold_samples():
+def test_the_shift_label_is_a_ramp_crossing_zero_at_the_experts_shift():
+    from agents.imitation import SHIFT_RAMP, shift_labels
     from wl_env.codec import N_TARGET_OBS
 
-    obs = np.zeros((6, N_TARGET_OBS), np.float32)
-    obs[:, 8:12] = np.eye(4)[[0, 0, 0, 0, 1, 2]]  # phases 1 1 1 1 2 3
-    actions = np.full((6, 4), -1.0, np.float32)
-    actions[3, 3] = 1.0  # the one shift of phase 1
+    obs = np.zeros((7, N_TARGET_OBS), np.float32)
+    obs[:, 8:12] = np.eye(4)[[0, 0, 0, 0, 1, 2, 2]]  # phases 1 1 1 1 2 3 3
+    actions = np.full((7, 4), -1.0, np.float32)
+    actions[3, 3] = 1.0  # the shift of phase 1, at step 3; none in phase 3
+    labels = shift_labels(obs, actions)
+    np.testing.assert_allclose(labels[:4, 3], SHIFT_RAMP * (np.arange(4) - 3 + 0.5))
+    assert (labels[:3, 3] < 0).all() and labels[3, 3] > 0  # the clone's threshold shifts at the expert's step
+    assert labels[5:, 3].tolist() == [-1.0, -1.0]  # no shift in the phase: held
+    np.testing.assert_array_equal(labels[:, :3], actions[:, :3])
     w = action_weights(obs, actions)
-    assert w[:, :3].tolist() == np.ones((6, 3)).tolist()
-    assert w[4, 3] == 0.0  # phase 2: the shift request does nothing
-    assert w[3, 3] == pytest.approx(4.0)  # 4 holds (phases 1 and 3) against one shift
-    assert w[[0, 1, 2, 5], 3].tolist() == [1.0] * 4
+    assert w[:, :3].tolist() == np.ones((7, 3)).tolist() and w[:, 3].tolist() == [1, 1, 1, 1, 0, 1, 1]
 
 
 def test_demonstrations_resume_and_reject_a_foreign_file(tmp_path):
