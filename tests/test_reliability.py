@@ -222,7 +222,9 @@ def test_wl_mpc_interrupted_exits_130_without_a_result(tmp_path):
             continue
         code, latency, err = _interrupt(proc)
         assert code == 130, err
-        assert latency < 2.0 and not out.exists()
+        # 5 s: a signal landing in CasADi's build of one of the MPC's NLPs waits for it (one C++ call that
+        # checks no signal; seen: 3.7 s on a 2-core AMD EPYC)
+        assert latency < 5.0 and not out.exists()
         if "KeyboardInterruptException" in err:
             hit_ipopt = True
             break
