@@ -92,8 +92,9 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
 def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind: str = "ppo") -> Controller:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking, kind)
     if model is None and not path.exists():
-        how = (f"python scripts/train_bc.py --braking {braking} --export PATH" if kind == "bc" else
-               f"wl train --braking {braking}{' --env-id WheelLoaderTarget-v0 --scenario train' if kind == 'ppo-target' else ''} --export PATH")
+        how = {"ppo": f"wl train --braking {braking} --export PATH",
+               "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v0 --scenario train --export PATH",
+               "bc": f"python scripts/train_bc.py --braking {braking} --export PATH"}[kind]
         raise FileNotFoundError(f"no shipped policy at {path} (make one with `{how}`, then pass --model PATH)")
     from agents.ppo import load_policy
 
@@ -403,9 +404,9 @@ def evaluate_controller(
                 from wl_env.suites.min_time import estimate_min_time
 
                 env.reset(seed=seed + i, options={"scenario": sc})
-                ran = env.unwrapped
-                T_min = (min_time_of(braking, ran.episode_params, cache, solve) if min_time == "optimum" else
-                         estimate_min_time(ran.episode_scenario or sc))
+                start = env.unwrapped
+                T_min = (min_time_of(braking, start.episode_params, cache, solve) if min_time == "optimum" else
+                         estimate_min_time(start.episode_scenario or sc))
                 target = target_ratio * T_min
             ep = run_episode(env, guarded, seed=seed + i, trajectory=trajectories, scenario=sc, target_time=target)
             ran = env.unwrapped.episode_params  # the cycle with its actual start

@@ -16,6 +16,7 @@ Demonstration files are ``.npz`` read with ``allow_pickle=False``: nothing in th
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -164,9 +165,7 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    d = {"braking": settings.braking, "seed": settings.seed, "target": list(settings.target),
-         "fast_share": settings.fast_share, "expert": settings.expert, "learner": settings.learner,
-         "beta": settings.beta}
+    d = dataclasses.asdict(settings)  # plain data for the workers
     todo = [i for i in range(episodes) if not demo_path(out, i).exists()]
     if workers == 1 or len(todo) <= 1:
         collect_chunk(d, todo, str(out))
@@ -185,8 +184,6 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
-
-
 SHIFT_RAMP = 0.4  # per step: the shift label's slope before the expert's shift (see shift_labels)
 
 
@@ -234,10 +231,10 @@ class CloneResult:
 
 
 def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learning_rate: float = 1e-3,
-          batch_size: int = 1024, validation_share: float = 0.1) -> CloneResult:
+          batch_size: int = 1024, validation_share: float = 0.1, extra: dict[str, Any] | None = None) -> CloneResult:
     """Regress the mean action of ``cfg``'s PPO policy network onto the demos' actions; the policy is saved
-    as ``cfg.run_dir/final/`` (the layout of a trained run). Episodes are split, not samples: the
-    validation loss is measured on whole held-out cycles."""
+    as ``cfg.run_dir/final/`` (the layout of a trained run), with ``extra`` in its metadata (e.g. the
+    command). Episodes are split, not samples: the validation loss is measured on whole held-out cycles."""
     import torch as th
 
     from agents.policy_files import ObsNormalization
@@ -275,35 +272,38 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
         latent_pi, _ = policy.mlp_extractor(policy.extract_features(z, policy.pi_features_extractor))
         return policy.action_net(latent_pi)
 
+    def loss_of(part: str, b: Any = slice(None)) -> th.Tensor:
+        return th.mean(w[part][b] * (mean_action(x[part][b]) - y[part][b]) ** 2)
+
     n = len(x["train"])
     for epoch in range(epochs):
         perm = th.randperm(n)
         for i in range(0, n, batch_size):
             b = perm[i:i + batch_size]
-            loss = th.mean(w["train"][b] * (mean_action(x["train"][b]) - y["train"][b]) ** 2)
+            loss = loss_of("train", b)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
         if epoch % 50 == 0 or epoch == epochs - 1:
             with th.no_grad():
-                val = float(th.mean(w["val"] * (mean_action(x["val"]) - y["val"]) ** 2))
+                val = float(loss_of("val"))
             log.info("[bc] epoch %d: train loss %.5f, validation loss %.5f", epoch, float(loss.detach()), val)
     with th.no_grad():
-        train_loss = float(th.mean(w["train"] * (mean_action(x["train"]) - y["train"]) ** 2))
-        val_loss = float(th.mean(w["val"] * (mean_action(x["val"]) - y["val"]) ** 2))
+        train_loss, val_loss = float(loss_of("train")), float(loss_of("val"))
     vecnorm = env  # the VecNormalize: its statistics become the demos', so PPO fine-tuning starts from them
     vecnorm.obs_rms.mean, vecnorm.obs_rms.var, vecnorm.obs_rms.count = norm.mean.copy(), norm.var.copy(), float(n)
     wall = time.perf_counter() - t0
     result = CloneResult(episodes=len(good), episodes_dropped=len(demos) - len(good), samples=n + len(x["val"]),
                          train_loss=train_loss, validation_loss=val_loss, wall_time_s=wall,
                          policy=str(cfg.run_dir / "final" / "policy"))
-    extra = {"num_timesteps": 0, "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed, "config": cfg.to_dict(),
-             "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": "behaviour cloning (MPC)",
-             "clone": result.__dict__, "epochs": epochs, "learning_rate": learning_rate, "batch_size": batch_size}
+    meta = {"num_timesteps": 0, "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed, "config": cfg.to_dict(),
+            "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": "behaviour cloning (MPC)",
+            "clone": result.__dict__, "epochs": epochs, "learning_rate": learning_rate, "batch_size": batch_size,
+            **(extra or {})}
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    final = save_model_files(model, vecnorm, cfg.run_dir / "final", extra, export=True)
-    write_json_atomic(final / "summary.json", extra)
-    write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": []})
+    final = save_model_files(model, vecnorm, cfg.run_dir / "final", meta, export=True)
+    write_json_atomic(final / "summary.json", meta)
+    write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": meta["commands"]})
     env.close()
     if not math.isfinite(val_loss):
         raise ValueError(f"behaviour cloning diverged: validation loss {val_loss}")

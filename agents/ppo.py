@@ -339,24 +339,8 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
                               unknown="skip")
     nominal = res["per_episode"][0]
     perturbed = res["per_episode"][1:] or res["per_episode"]
-    done = [e for e in perturbed if e["completed"]]
-    scored = [e for e in done if e["time_gap"] is not None]
-
-    def nan(v: Any) -> float:
-        return math.nan if v is None else float(v)
-
-    out = {
-        "nominal_success": float(nominal["success"]), "nominal_completed": float(nominal["completed"]),
-        "nominal_return": nominal["episode_return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
-        "time_gap": nan(nominal["time_gap"]), "fuel_gap": nan(nominal["fuel_gap"]),
-        "reversing_error_m": nan(nominal["reversing_error_m"]), "final_position_error_m": nominal["final_position_error_m"],
-        "final_height_error_m": nominal["final_height_error_m"], "max_violation": nominal["max_violation"],
-        "success_rate": float(np.mean([e["success"] for e in perturbed])),
-        "completion_rate": len(done) / len(perturbed),
-        "mean_return": float(np.mean([e["episode_return"] for e in perturbed])),
-        "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
-        "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
-    }
+    scored = [e for e in perturbed if e["completed"] and e["time_gap"] is not None]
+    out = _curve_row(nominal, perturbed)
     if scored:
         out.update(mean_time_gap=float(np.mean([e["time_gap"] for e in scored])),
                    mean_fuel_gap=float(np.mean([e["fuel_gap"] for e in scored])),
@@ -384,30 +368,39 @@ def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 1
                                 score=with_score, front=front, env_kwargs=env_kwargs, name="policy", solve=False,
                                 unknown="skip", target_ratio=r, min_time="estimate") for r in ratios]
     episodes = [e for run in runs for e in run["per_episode"]]
-    done = [e for e in episodes if e["completed"]]
     nominals = [run["per_episode"][0] for run in runs]
-    nominal = nominals[len(nominals) // 2]
-
-    def nan(v: Any) -> float:
-        return math.nan if v is None else float(v)
 
     def median(values: list[float]) -> float:
         return float(np.median(values)) if values else math.nan
 
     return {
+        **_curve_row(nominals[len(nominals) // 2], episodes),
+        "max_violation": max(e["max_violation"] for e in episodes),
+        "lateness_median": median([e["lateness"] for e in episodes if e["completed"]]),
+        "fuel_gap_median": median([e["fuel_gap"] for e in nominals if e["success"] and e["fuel_gap"] is not None]),
+        "time_gap_fastest": _nan(nominals[0]["time_gap"]),
+    }
+
+
+def _nan(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _curve_row(nominal: dict[str, Any], episodes: list[dict[str, Any]]) -> dict[str, Any]:
+    """A learning-curve row: one episode's numbers (``nominal_*``, T, fuel, gaps, errors, violation) and the
+    rates and means over ``episodes`` (evaluation records of :func:`agents.evaluate.evaluate_controller`)."""
+    done = [e for e in episodes if e["completed"]]
+    return {
         "nominal_success": float(nominal["success"]), "nominal_completed": float(nominal["completed"]),
         "nominal_return": nominal["episode_return"], "T": nominal["T"], "fuel_g": nominal["fuel_g"],
-        "time_gap": nan(nominal["time_gap"]), "fuel_gap": nan(nominal["fuel_gap"]),
-        "reversing_error_m": nan(nominal["reversing_error_m"]), "final_position_error_m": nominal["final_position_error_m"],
-        "final_height_error_m": nominal["final_height_error_m"], "max_violation": max(e["max_violation"] for e in episodes),
+        "time_gap": _nan(nominal["time_gap"]), "fuel_gap": _nan(nominal["fuel_gap"]),
+        "reversing_error_m": _nan(nominal["reversing_error_m"]), "final_position_error_m": nominal["final_position_error_m"],
+        "final_height_error_m": nominal["final_height_error_m"], "max_violation": nominal["max_violation"],
         "success_rate": float(np.mean([e["success"] for e in episodes])),
         "completion_rate": len(done) / len(episodes),
         "mean_return": float(np.mean([e["episode_return"] for e in episodes])),
         "mean_T": float(np.mean([e["T"] for e in done])) if done else math.nan,
         "mean_fuel_g": float(np.mean([e["fuel_g"] for e in done])) if done else math.nan,
-        "lateness_median": median([e["lateness"] for e in done]),
-        "fuel_gap_median": median([e["fuel_gap"] for e in nominals if e["success"] and e["fuel_gap"] is not None]),
-        "time_gap_fastest": nan(nominals[0]["time_gap"]),
     }
 
 

@@ -41,7 +41,7 @@ def parse_sweep(items: Sequence[str]) -> dict[str, list[Any]]:
             raise ValueError(f"--sweep expects FIELD=V1,V2,..., got {item!r}")
         if name not in fields or name in ("seed", "run_name", "log_dir"):
             raise ValueError(f"--sweep {name}: not a PPOConfig field that can be swept")
-        default = PPOConfig().__getattribute__(name)
+        default = getattr(PPOConfig(), name)
         kind = type(default) if default is not None else float
         if kind in (dict, tuple, list):
             raise ValueError(f"--sweep {name}: only fields with a single value (number, text, flag) can be swept")
@@ -119,10 +119,9 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
                                           log_level=logging.INFO))
     else:
         results = {c.name: train_one(c.to_dict(), command) for c in cfgs}
-    log_dirs = {c.log_dir for c in cfgs}
-    for d in log_dirs:
-        from wl_env.atomic_io import write_json_atomic
+    from wl_env.atomic_io import write_json_atomic
 
+    for d in {c.log_dir for c in cfgs}:
         mine = [c for c in cfgs if c.log_dir == d]
         write_json_atomic(Path(d) / SUMMARY_FILE, spread(mine, results), indent=2, nan_as_null=True)
     return results
@@ -153,6 +152,15 @@ METRICS = ("success_rate", "time_gap", "fuel_gap", "lateness_median", "fuel_gap_
            "mean_return", "max_violation")
 
 
+def quartiles(values: Sequence[float]) -> dict[str, float] | None:
+    """Median, 25th and 75th percentile and count of the finite values (None if there are none)."""
+    v = [float(x) for x in values if x is not None and math.isfinite(x)]
+    if not v:
+        return None
+    return {"median": float(np.median(v)), "q25": float(np.percentile(v, 25)), "q75": float(np.percentile(v, 75)),
+            "n": len(v)}
+
+
 def spread(cfgs: Sequence[PPOConfig], results: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Per sweep point (the runs that differ only in their seed): the seeds, and each metric of the runs' last
     evaluations as median, 25th and 75th percentile (``n`` says over how many runs)."""
@@ -168,10 +176,6 @@ def spread(cfgs: Sequence[PPOConfig], results: dict[str, dict[str, Any]]) -> dic
             out["runs"][c.name] = {"seed": c.seed, "num_timesteps": summary.get("num_timesteps"),
                                    "wall_time_s": summary.get("wall_time"), "last_eval": last}
             evals.append(last)
-        stats = {}
-        for m in METRICS:
-            values = [float(e[m]) for e in evals if isinstance(e.get(m), (int, float)) and math.isfinite(e[m])]
-            stats[m] = ({"median": float(np.median(values)), "q25": float(np.percentile(values, 25)),
-                         "q75": float(np.percentile(values, 75)), "n": len(values)} if values else None)
+        stats = {m: quartiles([e[m] for e in evals if isinstance(e.get(m), (int, float))]) for m in METRICS}
         out["points"][point] = {"seeds": [c.seed for c in members], **stats}
     return out

@@ -41,9 +41,8 @@ def pct(v: float | None) -> str:
 
 def runs_mode(args: argparse.Namespace) -> None:
     """Each run's final policy on the suite at the three targets; the spread over the runs per braking and target."""
-    import numpy as np
-
     from agents.ppo import load_policy
+    from agents.seeds import quartiles
     from wl.report import collect_suite, suite_table
 
     policies = {run: load_policy(run) for run in args.runs}
@@ -55,12 +54,8 @@ def runs_mode(args: argparse.Namespace) -> None:
     for b in sorted({r["braking"] for r in suite["rows"]}):
         for target in dict.fromkeys(r["target"] for r in suite["rows"]):
             rows = [r for r in suite["rows"] if r["braking"] == b and r["target"] == target]
-            line = {"braking": b, "target": target, "runs": len(rows)}
-            for k in keys:
-                v = [r[k] for r in rows if r[k] is not None]
-                line[k] = ({"median": float(np.median(v)), "q25": float(np.percentile(v, 25)),
-                            "q75": float(np.percentile(v, 75))} if v else None)
-            spread.append(line)
+            spread.append({"braking": b, "target": target, "runs": len(rows),
+                           **{k: quartiles([r[k] for r in rows]) for k in keys}})
     print("\n| braking | target | runs | " + " | ".join(keys) + " |\n|---|---|---|" + "---|" * len(keys))
     for line in spread:
         cells = ["-" if line[k] is None else f"{100 * line[k]['median']:.1f} ({100 * line[k]['q25']:.1f}-"

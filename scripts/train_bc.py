@@ -80,7 +80,12 @@ def main(o: Options, command: str) -> int:
     except KeyboardInterrupt:
         log.info("interrupted; the episodes in %s are kept, the same command goes on from them", folder)
         return 130
-    result = clone(demos, cfg, epochs=o.epochs, learning_rate=o.learning_rate, batch_size=o.batch_size)
+    meta = {"commands": [command], "demos": {
+        "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
+        "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds, "dagger_episodes": o.dagger_episodes,
+        "beta": o.beta}}
+    fit = {"epochs": o.epochs, "learning_rate": o.learning_rate, "batch_size": o.batch_size, "extra": meta}
+    result = clone(demos, cfg, **fit)
     log.info("cloned %d episodes (%d dropped), %d samples: validation loss %.5f -> %s", result.episodes,
              result.episodes_dropped, result.samples, result.validation_loss, result.policy)
     for r in range(1, o.dagger_rounds + 1):
@@ -93,22 +98,14 @@ def main(o: Options, command: str) -> int:
         except KeyboardInterrupt:
             log.info("interrupted; the same command goes on from the episodes on disk")
             return 130
-        result = clone(demos, cfg, epochs=o.epochs, learning_rate=o.learning_rate, batch_size=o.batch_size)
+        result = clone(demos, cfg, **fit)
         log.info("DAgger round %d: %d episodes, %d samples: validation loss %.5f", r, result.episodes, result.samples,
                  result.validation_loss)
-    summary = cfg.run_dir / "final" / "summary.json"
-    meta = json.loads(summary.read_text())
-    meta["commands"] = [command]
-    meta["demos"] = {"folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
-                     "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds,
-                     "dagger_episodes": o.dagger_episodes, "beta": o.beta}
-    from wl_env.atomic_io import write_json_atomic
-
-    write_json_atomic(summary, meta, indent=2, nan_as_null=True)
     if o.export:
         out = Path(o.export)
         shipped = export_policy(cfg.run_dir, out.parent, out.name, n_episodes=o.export_episodes,
-                                extra={"method": meta["method"], "clone": meta["clone"], "demos": meta["demos"]})
+                                extra={"method": "behaviour cloning (MPC)", "clone": result.__dict__,
+                                       "demos": meta["demos"]})
         print(json.dumps(shipped["evaluation"], indent=2, default=str))
     return 0
 
