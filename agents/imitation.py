@@ -290,6 +290,9 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
             log.info("[bc] epoch %d: train loss %.5f, validation loss %.5f", epoch, float(loss.detach()), val)
     with th.no_grad():
         train_loss, val_loss = float(loss_of("train")), float(loss_of("val"))
+    if not (math.isfinite(train_loss) and math.isfinite(val_loss)):
+        env.close()
+        raise ValueError(f"behaviour cloning diverged: train loss {train_loss}, validation loss {val_loss}; nothing saved")
     vecnorm = env  # the VecNormalize: its statistics become the demos', so PPO fine-tuning starts from them
     vecnorm.obs_rms.mean, vecnorm.obs_rms.var, vecnorm.obs_rms.count = norm.mean.copy(), norm.var.copy(), float(n)
     wall = time.perf_counter() - t0
@@ -305,6 +308,4 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     write_json_atomic(final / "summary.json", meta)
     write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": meta["commands"]})
     env.close()
-    if not math.isfinite(val_loss):
-        raise ValueError(f"behaviour cloning diverged: validation loss {val_loss}")
     return result
