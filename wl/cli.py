@@ -350,6 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
         "its optimal control benchmark, and controllers scored against it.",
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="also log each solver call (debug lines on stderr), e.g. to see where a slow run spends its time")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("params", help="print the model parameters with units and provenance")
@@ -530,7 +532,7 @@ def _run_command(args: argparse.Namespace) -> int:
     from mpc import interrupt
     from wl_env.logs import cli_logging
 
-    with cli_logging(), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
+    with cli_logging(logging.DEBUG if args.verbose else logging.INFO), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
         try:
             return int(args.func(args) or 0)
         except KeyboardInterrupt:

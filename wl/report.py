@@ -88,6 +88,7 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
     each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes.
     ``at_targets``' controllers run at each of ``targets`` (a row each, with its lateness)."""
     from agents.evaluate import evaluate_controller
+    from mpc.controller.solver import release_solvers
     from wl_env.suites import load_suite
 
     s = load_suite(suite)
@@ -101,6 +102,7 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
             log.info(f"[{suite} suite, {b}] {name}{'' if label is None else ', target ' + label}: "
                      f"{len(scenarios)} scenarios")
             ev = evaluate_controller(factory(), b, scenarios=scenarios, cache=cache, name=name, target_ratio=ratio)
+            release_solvers()  # the next controller plans with other NLPs (a mode's slot layout, a model)
             sm = ev["summary"]
             rows.append({"controller": name, "braking": b, "target": label, "scenarios": len(scenarios),
                          "success_rate": sm["success_rate"],
@@ -131,6 +133,7 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     """
     from agents.evaluate import evaluate_controller
     from mpc.benchmark.pareto import min_time_result, pareto_fronts
+    from mpc.controller.solver import release_solvers
     from mpc.benchmark.reference import known_front
     from wl_env.atomic_io import write_json_atomic
     from wl_env.params import DEFAULT_PARAMS
@@ -161,6 +164,7 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
         for name, factory in controllers(b):
             log.info(f"[{b}] {name}")
             ev = evaluate_controller(factory(), b, episodes=1, seed=0, front=front, cache=cache, trajectories=True)
+            release_solvers()
             ep = ev["per_episode"][0]
             rows.append({"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"],
                          "time_gap": ep["time_gap"], "fuel_gap": ep["fuel_gap"], "max_violation": ep["max_violation"],

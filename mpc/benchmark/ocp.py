@@ -15,6 +15,7 @@ homotopies and a suite's scenarios reuse the built solver and warm-start from a 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import numbers
 import os
@@ -32,6 +33,8 @@ from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: resu
 from wl_env.model import derivatives
 from wl_env.params import DEFAULT_PARAMS, SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
 from wl_env.physics import lift
+
+log = logging.getLogger(__name__)
 
 OBJECTIVES = ("time", "fuel", "weighted", "fuel_at_time")
 LINEAR_SOLVERS = ("mumps", "spral")  # IPOPT's linear solvers in CasADi's wheels (HSL's need a licensed library)
@@ -454,6 +457,7 @@ class CycleOCP:
                         ubx=self._ubw, lbg=lbg, ubg=ubg)
             if lam_x is not None:
                 args.update(lam_x0=lam_x, lam_g0=lam_g)
+            log.debug("IPOPT: the %s %s OCP, smoothing k = %g", self.braking, objective, k)
             sol = self._solver(**args)
             stats = self._solver.stats()
             iterations += int(stats.get("iter_count", 0) or 0)

@@ -38,7 +38,8 @@ import numpy as np
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
-from mpc.controller.solver import GridSolver, IpoptSolver, Solve, grid_nlp, step_model, timed_solve
+from mpc.controller.solver import (GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, step_model,
+                                   timed_solve)
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
@@ -165,7 +166,8 @@ class MPCController:
             if scenario.braking != self.braking:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
             params = scenario.params(self.params)
-            if params != self.params:
+            if params != self.params:  # the old model's NLPs are of no further use: their memory goes back
+                release_solvers()
                 self.params = params
                 self.codec = Codec(params)
                 self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))

@@ -7,8 +7,11 @@ object with :meth:`IpoptSolver.solve`'s signature, so a test can inject a failin
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import functools
+import gc
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -20,6 +23,8 @@ import numpy as np
 from mpc import interrupt
 from mpc.controller.grid import N_XR, GridNLP, StepModel
 from wl_env.params import LoaderParams
+
+log = logging.getLogger(__name__)
 
 # A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
 MISS_TOL = 1e-3
@@ -123,6 +128,7 @@ class IpoptSolver:
         fn = self._function(nlp, warm)
         args = nlp.fix_leading_idle(args)
         extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
+        log.debug("IPOPT: a %s grid NLP solve from phase %d", "warm" if warm else "cold", nlp.first_phase)
         sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
         stats = fn.stats()
         status = str(stats.get("return_status", "unknown"))
@@ -230,6 +236,21 @@ class FallbackSolver:
             return first
         r = self.fallback.solve(nlp, args, x0, lam_x0, lam_g0)
         return dataclasses.replace(r, status=f"{first.status}, then {r.status}", iterations=first.iterations + r.iterations)
+
+
+def release_solvers() -> None:
+    """Drop every grid NLP and solver this process has built, and hand the freed heap back to the OS.
+
+    For a long run that moves on to another model or slot layout (another scenario, another mode), whose
+    NLPs it cannot reuse: glibc keeps freed pages otherwise, and the process held its peak (measured:
+    440 MB after one cycle, 110 MB after this)."""
+    for cache in (step_model, grid_nlp, _ipopt, _fatrop, _sqp_rti):
+        cache.cache_clear()
+    gc.collect()
+    try:  # glibc only (elsewhere the memory is still freed, just not returned at once)
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 # The candidates scripts/bench_mpc.py compares (each a factory of a fresh solver)
