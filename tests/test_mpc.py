@@ -72,7 +72,7 @@ def test_apportion_keeps_the_steps_and_the_shape():
     assert min(apportion({1: 0.01, 2: 0.01, 3: 5.0, 4: 0.01}, 20, 0.1).values()) >= 0
 
 
-@functools.lru_cache(maxsize=None)  # several tests check one run (a cycle takes 10-15 s)
+@functools.cache  # several tests check one run (a cycle takes 10-15 s)
 def closed_loop(braking, mode, **kw):
     config = MPCConfig(mode=mode, target_time=11.0 if mode == "target_time" else None, **kw)
     ctrl = MPCController(braking, config=config)

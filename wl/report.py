@@ -133,8 +133,8 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     """
     from agents.evaluate import evaluate_controller
     from mpc.benchmark.pareto import min_time_result, pareto_fronts
-    from mpc.controller.solver import release_solvers
     from mpc.benchmark.reference import known_front
+    from mpc.controller.solver import release_solvers
     from wl_env.atomic_io import write_json_atomic
     from wl_env.params import DEFAULT_PARAMS
 

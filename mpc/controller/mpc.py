@@ -38,8 +38,7 @@ import numpy as np
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
-from mpc.controller.solver import (GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, step_model,
-                                   timed_solve)
+from mpc.controller.solver import GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, step_model, timed_solve
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
