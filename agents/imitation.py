@@ -184,6 +184,7 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
+METHOD = "behaviour cloning (MPC)"  # the method a clone's metadata names
 SHIFT_RAMP = 0.4  # per step: the shift label's slope before the expert's shift (see shift_labels)
 
 
@@ -300,7 +301,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
                          train_loss=train_loss, validation_loss=val_loss, wall_time_s=wall,
                          policy=str(cfg.run_dir / "final" / "policy"))
     meta = {"num_timesteps": 0, "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed, "config": cfg.to_dict(),
-            "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": "behaviour cloning (MPC)",
+            "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": METHOD,
             "clone": result.__dict__, "epochs": epochs, "learning_rate": learning_rate, "batch_size": batch_size,
             **(extra or {})}
     cfg.run_dir.mkdir(parents=True, exist_ok=True)

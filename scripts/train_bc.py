@@ -66,7 +66,7 @@ def write_policy_copy(stem: str | Path, out: Path) -> None:
 
 
 def main(o: Options, command: str) -> int:
-    from agents.imitation import DemoSettings, clone, collect_demos
+    from agents.imitation import METHOD, DemoSettings, clone, collect_demos
     from agents.ppo import export_policy
     from agents.ppo_config import TARGET_ENV_ID, PPOConfig
 
@@ -104,8 +104,7 @@ def main(o: Options, command: str) -> int:
     if o.export:
         out = Path(o.export)
         shipped = export_policy(cfg.run_dir, out.parent, out.name, n_episodes=o.export_episodes,
-                                extra={"method": "behaviour cloning (MPC)", "clone": result.__dict__,
-                                       "demos": meta["demos"]})
+                                extra={"method": METHOD, "clone": result.__dict__, "demos": meta["demos"]})
         print(json.dumps(shipped["evaluation"], indent=2, default=str))
     return 0
 

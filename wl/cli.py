@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     parser.add_argument("-v", "--verbose", action="store_true",
-                        help="also log each solver call (debug lines on stderr), e.g. to see where a slow run spends its time")
+                        help="also log each solver call (debug lines on stderr): where a slow run spends its time")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("params", help="print the model parameters with units and provenance")
@@ -532,7 +532,8 @@ def _run_command(args: argparse.Namespace) -> int:
     from mpc import interrupt
     from wl_env.logs import cli_logging
 
-    with cli_logging(logging.DEBUG if args.verbose else logging.INFO), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
+    level = logging.DEBUG if args.verbose else logging.INFO
+    with cli_logging(level), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
         try:
             return int(args.func(args) or 0)
         except KeyboardInterrupt:
