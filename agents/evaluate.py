@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 BUILTIN_CONTROLLERS = ("ppo", "bc", "operator", "mpc")
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
 # the shipped policies: PPO on the paper's cycle (WheelLoader-v1), and the target-conditioned PPO and
-# behaviour-cloned (imitation) policies of WheelLoaderTarget-v0, per braking alternative
+# behaviour-cloned (imitation) policies of the target task (the env each was trained on is in its metadata)
 SHIPPED_POLICIES = {"ppo": "ppo_{braking}", "ppo-target": "ppo_target_{braking}", "bc": "bc_target_{braking}"}
 
 
@@ -93,7 +93,7 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking, kind)
     if model is None and not path.exists():
         how = {"ppo": f"wl train --braking {braking} --export PATH",
-               "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v0 --scenario train --export PATH",
+               "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v1 --scenario train --export PATH",
                "bc": f"python scripts/train_bc.py --braking {braking} --export PATH"}[kind]
         raise FileNotFoundError(f"no shipped policy at {path} (make one with `{how}`, then pass --model PATH)")
     from agents.ppo import load_policy

@@ -1,10 +1,12 @@
 """The imitation baseline: behaviour cloning of MPC demonstrations on ``train`` scenarios (``scripts/train_bc.py``).
 
-* :func:`collect_demos` - MPC episodes in ``WheelLoaderTarget-v0`` on fresh draws of the ``train``
+* :func:`collect_demos` - MPC episodes in ``WheelLoaderTarget-v1`` (or v0) on fresh draws of the ``train``
   distribution, each at a target cycle time (a ratio to the scenario's estimated T_min; a share of them
   as fast as possible, the MPC's minimum-time mode, observed at ratio 1), one file per episode, written
   atomically: a killed collection resumes with the episodes it has. Only episodes the expert completes
-  with its targets met and no violation are imitated.
+  with its targets met and no violation are imitated. In v1 the expert's injection is labelled as the
+  engine-speed request for which the governor injects it (``CycleStepper.translate_fuel_action``): the
+  same cycle, and a label that is the engine speed the expert drives to.
 * :func:`clone` - the policy network of a PPO run (same architecture, so PPO can fine-tune it:
   ``PPOConfig.init_policy``) regressed onto the expert's actions, observations normalized by the demos'
   statistics; written as a run's ``final/`` folder (pickle-free policy and summary), so ``wl evaluate
@@ -28,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.ppo_config import TARGET_ENV_ID, PPOConfig
+from agents.ppo_config import TARGET_ENV_IDS, PPOConfig
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_TARGET_OBS
 
@@ -50,8 +52,11 @@ class DemoSettings:
     expert: str = "mpc"  # "mpc" (the optimum's stand-in), or "operator" (rule-based: quick demonstrations for tests)
     learner: str = ""  # DAgger: a pickle-free policy that drives (the expert only labels its states); '': the expert drives
     beta: float = 0.0  # DAgger: the chance per step that the expert's own action is applied instead
+    env_id: str = "WheelLoaderTarget-v1"  # v1: action 0 an engine-speed request (the governor's); v0: the injection
 
     def __post_init__(self) -> None:
+        if self.env_id not in TARGET_ENV_IDS:
+            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS)}, got {self.env_id!r}")
         if self.expert not in EXPERTS:
             raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         from wl_env.cycle import check_braking
@@ -83,7 +88,8 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
     scenario = draw(rng, settings.braking)
     fast = bool(rng.uniform() < settings.fast_share)
     ratio = 1.0 if fast else float(rng.uniform(*settings.target))
-    env = gym.make(TARGET_ENV_ID, braking=settings.braking)
+    env = gym.make(settings.env_id, braking=settings.braking)
+    governed = env.unwrapped.core.fuel_action == "engine_speed"
     obs, info = env.reset(seed=index, options={"scenario": scenario, "target_ratio": ratio})
     target_time = float(info["target_time"])
     if settings.expert == "mpc":
@@ -100,14 +106,20 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         learner = load_policy(settings.learner)
     observations, actions = [], []
     done = False
+    core = env.unwrapped
     while not done:
-        a = np.asarray(expert.act(obs), dtype=np.float32)
+        a = np.asarray(expert.act(obs), dtype=np.float32)  # (an injection action: the experts' own space)
+        if governed:
+            a[0] = core.core.translate_fuel_action(core.state, core.phase, a, to="engine_speed")
         observations.append(obs)
         actions.append(a)
         if learner is not None and rng.uniform() >= settings.beta:  # the learner drives; the expert labels
             a = np.asarray(learner.act(obs), dtype=np.float32)
-            if hasattr(expert, "applied"):
-                expert.applied(a)
+            if hasattr(expert, "applied"):  # what was applied, in the expert's space
+                injection = a.copy()
+                if governed:
+                    injection[0] = core.core.translate_fuel_action(core.state, core.phase, a, to="injection")
+                expert.applied(injection)
         obs, _, term, trunc, info = env.step(a)
         done = term or trunc
     env.close()
@@ -115,7 +127,7 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
             "scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
             "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
             "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
-            "learner": settings.learner}
+            "learner": settings.learner, "env_id": settings.env_id}
 
 
 def _write_demo(path: Path, demo: dict[str, Any]) -> None:
@@ -174,7 +186,12 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
 
         run_in_workers({f"demos{w}": ("agents.imitation:collect_chunk", (d, todo[w::workers], str(out)))
                         for w in range(min(workers, len(todo)))}, log_level=logging.INFO)
-    return [read_demo(demo_path(out, i)) for i in range(episodes)]
+    demos = [read_demo(demo_path(out, i)) for i in range(episodes)]
+    for i, d in enumerate(demos):  # a folder resumed with other settings' episodes would mix two action spaces
+        if d.get("env_id", TARGET_ENV_IDS[0]) != settings.env_id:
+            raise ValueError(f"{demo_path(out, i)} is a {d.get('env_id', TARGET_ENV_IDS[0])} episode; this collection "
+                             f"is of {settings.env_id} (use another folder)")
+    return demos
 
 
 def usable(demo: dict[str, Any]) -> bool:
@@ -241,8 +258,9 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     from agents.policy_files import ObsNormalization
     from agents.ppo import build_model, make_env, save_model_files, write_json_atomic
 
-    if cfg.env_id != TARGET_ENV_ID:
-        raise ValueError(f"the demonstrations are {TARGET_ENV_ID} episodes; the config's env is {cfg.env_id}")
+    envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
+    if envs != {cfg.env_id}:
+        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; the config's env is {cfg.env_id}")
     if not cfg.norm_obs:
         raise ValueError("behaviour cloning normalizes the observations by the demos' statistics: norm_obs must be true")
     good = [d for d in demos if usable(d)]

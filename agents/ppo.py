@@ -59,13 +59,14 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import TARGET_ENV_ID, PPOConfig
+from agents.ppo_config import TARGET_ENV_IDS, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
+N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, "WheelLoaderTarget-v1": N_TARGET_OBS}
 
 log = logging.getLogger(__name__)
 
@@ -179,8 +180,13 @@ class PPOPolicy:
         self.normalization = normalization
         self.meta = meta or {}
         self.braking = self.meta.get("braking")
-        # the env whose observations it takes: v1's 12 entries (the nominal policies), v2's 19 or the target env's 21
-        self.env_id = ENV_OF_OBS[network.observation_space.shape[0]]
+        # the env it was trained on (its config), else the one whose observations it takes: v1's 12 entries
+        # (the nominal policies), v2's 19 or the target env's 21
+        n_obs = network.observation_space.shape[0]
+        self.env_id = (self.meta.get("config") or {}).get("env_id") or ENV_OF_OBS[n_obs]
+        if N_OBS_OF_ENV.get(self.env_id) != n_obs:
+            raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} has "
+                                  f"{N_OBS_OF_ENV.get(self.env_id, 'no known number of')}")
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:
@@ -330,8 +336,8 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
-    if env_id == TARGET_ENV_ID:
-        return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front)
+    if env_id in TARGET_ENV_IDS:
+        return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
     # own optimum would cost a solve per episode at every evaluation.
     res = evaluate_controller(_Deterministic(act), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
@@ -351,8 +357,8 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
 
 def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 10_000,
                      env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None,
-                     ratios: tuple[float, ...] = EVAL_TARGET_RATIOS) -> dict[str, Any]:
-    """The learning-curve row of a target-conditioned policy (``WheelLoaderTarget-v0``): at each target ratio,
+                     ratios: tuple[float, ...] = EVAL_TARGET_RATIOS, env_id: str = TARGET_ENV_IDS[0]) -> dict[str, Any]:
+    """The learning-curve row of a target-conditioned policy (``env_id``, WheelLoaderTarget-v0 or v1): at each target ratio,
     the paper's cycle (scored against its shipped front) and ``n_episodes`` validation draws of the ``train``
     distribution (seed stream ``seed``, which no training env draws from; unscored: nothing is solved),
     each target that ratio times the scenario's estimated T_min. ``nominal_*`` is the paper's cycle at the
@@ -364,7 +370,7 @@ def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 1
 
     rng = stream(TRAIN_STREAM, seed)
     plan = [Scenario.nominal(braking)] + [draw(rng, braking) for _ in range(n_episodes)]
-    runs = [evaluate_controller(_Deterministic(act, TARGET_ENV_ID), braking, scenarios=plan, seed=seed,
+    runs = [evaluate_controller(_Deterministic(act, env_id), braking, scenarios=plan, seed=seed,
                                 score=with_score, front=front, env_kwargs=env_kwargs, name="policy", solve=False,
                                 unknown="skip", target_ratio=r, min_time="estimate") for r in ratios]
     episodes = [e for run in runs for e in run["per_episode"]]

@@ -13,8 +13,9 @@ from wl_env import cycle
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
-ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0")
-TARGET_ENV_ID = "WheelLoaderTarget-v0"
+ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1")
+TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
+TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1")  # v1: action 0 is the engine-speed governor's request
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
 
@@ -102,11 +103,12 @@ class PPOConfig:
     braking: str = field(default="service", metadata={"help": "braking alternative: 'service' or 'tc'"})
     env_id: str = field(default="WheelLoader-v1", metadata={
         "help": "environment: WheelLoader-v1 (the paper's cycle, the shipped nominal policies), WheelLoader-v2 "
-                "(scenarios observed) or WheelLoaderTarget-v0 (v2 with a target cycle time per episode)"})
+                "(scenarios observed), WheelLoaderTarget-v0 (v2 with a target cycle time per episode) or "
+                "WheelLoaderTarget-v1 (v0 with an engine-speed request as action 0, through the engine's governor)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={
-        "help": "WheelLoaderTarget-v0: range of the target cycle time, as ratios to the scenario's T_min"})
+        "help": "WheelLoaderTarget-v0/v1: range of the target cycle time, as ratios to the scenario's T_min"})
     seed: int = field(default=0, metadata={"help": "seed of PPO, torch and the environments"})
     total_timesteps: int = field(default=12_000_000, metadata={"help": "environment steps to train for"})
     num_envs: int = field(default=64, metadata={"help": "loaders stepped together (native vector env)"})
@@ -192,7 +194,7 @@ class PPOConfig:
                 raise ConfigError(name, requirement, getattr(self, name))
         if self.scenario and self.env_id == "WheelLoader-v1":
             raise ConfigError("scenario", "'' with WheelLoader-v1 (it does not observe the scenario; use "
-                              "WheelLoader-v2 or WheelLoaderTarget-v0)", self.scenario)
+                              "WheelLoader-v2 or WheelLoaderTarget-v0/v1)", self.scenario)
         self.target = tuple(float(x) for x in self.target)
         self.reward = {k: float(v) for k, v in self.reward.items()}
         self.curriculum_start = {k: float(v) for k, v in self.curriculum_start.items()}
@@ -212,8 +214,8 @@ class PPOConfig:
 
     @property
     def targeted(self) -> bool:
-        """Whether the run's env gives each episode a target cycle time (WheelLoaderTarget-v0)."""
-        return self.env_id == TARGET_ENV_ID
+        """Whether the run's env gives each episode a target cycle time (WheelLoaderTarget-v0/v1)."""
+        return self.env_id in TARGET_ENV_IDS
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of the run's env (``env_id``, single or vector), without init_noise."""

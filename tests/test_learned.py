@@ -83,7 +83,7 @@ def test_demonstrations_resume_and_reject_a_foreign_file(tmp_path):
 
 
 def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_path):
-    demos = collect_demos(DemoSettings("service", seed=5, expert="operator"), 6, tmp_path / "demos")
+    demos = collect_demos(DemoSettings("service", seed=5, expert="operator", env_id=TARGET_ENV_ID), 6, tmp_path / "demos")
     cfg = _tiny(tmp_path, run_name="bc", net_arch=(64, 64))
     result = clone(demos, cfg, epochs=150)
     assert result.episodes + result.episodes_dropped == 6 and result.samples > 300
@@ -103,8 +103,8 @@ def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_pat
     z = env.normalize_obs(d["obs"])
     np.testing.assert_allclose(model.predict(z, deterministic=True)[0], policy.act(d["obs"]), atol=1e-5)
     # DAgger: the clone drives, the expert labels the states it visits
-    (dagger,) = collect_demos(DemoSettings("service", seed=6, expert="operator", learner=str(cfg.run_dir / "final" / "policy")),
-                              1, tmp_path / "dagger")
+    (dagger,) = collect_demos(DemoSettings("service", seed=6, expert="operator", learner=str(cfg.run_dir / "final" / "policy"),
+                                           env_id=TARGET_ENV_ID), 1, tmp_path / "dagger")
     assert dagger["learner"] and len(dagger["obs"]) > 10
     from agents.imitation import usable
     from agents.operator import OperatorPolicy
@@ -115,6 +115,24 @@ def test_a_clone_acts_like_its_expert_and_ppo_fine_tuning_starts_from_it(tmp_pat
     wrong = _tiny(tmp_path, run_name="wrong", init_policy=str(cfg.run_dir / "final" / "policy"))  # (16, 16)
     with pytest.raises(PolicyFileError, match="net_arch"):
         start_from(build_model(wrong, env, tmp_path / "tb2"), env, wrong)
+
+
+def test_governed_demonstrations_replay_the_experts_cycle_and_clone_only_into_their_env(tmp_path):
+    """WheelLoaderTarget-v1 demos (the default): the expert's injections labelled as engine-speed requests
+    drive the same cycle as in v0, and a clone refuses demonstrations of another env."""
+    runs = {env: collect_demos(DemoSettings("service", seed=3, expert="operator", env_id=env), 1, tmp_path / env)[0]
+            for env in ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1")}
+    v0, v1 = runs.values()
+    assert v1["env_id"] == "WheelLoaderTarget-v1" and v1["success"]
+    assert v1["T"] == pytest.approx(v0["T"], abs=1e-9) and v1["fuel_g"] == pytest.approx(v0["fuel_g"], rel=1e-5)
+    np.testing.assert_array_equal(v1["actions"][:, 1:], v0["actions"][:, 1:])
+    assert not np.allclose(v1["actions"][:, 0], v0["actions"][:, 0])  # requests, not injections
+    with pytest.raises(ValueError, match="WheelLoaderTarget-v1 episodes; the config's env is WheelLoaderTarget-v0"):
+        clone([v1, v1], _tiny(tmp_path, run_name="mixed"))
+    with pytest.raises(ValueError, match="env_id"):
+        DemoSettings("service", env_id="WheelLoader-v2")
+    with pytest.raises(ValueError, match="is a WheelLoaderTarget-v0 episode; this collection is of WheelLoaderTarget-v1"):
+        collect_demos(DemoSettings("service", seed=3, expert="operator"), 1, tmp_path / "WheelLoaderTarget-v0")
 
 
 # ---------------------------------------------------------------------------------------------- shipped

@@ -1,4 +1,4 @@
-"""WheelLoaderTarget-v0: a target cycle time per episode, in the observation and the reward."""
+"""WheelLoaderTarget-v0/v1: a target cycle time per episode, in the observation and the reward; v1's governor."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the envs)
 from wl_env.scenario import Scenario
@@ -97,3 +99,101 @@ def test_evaluation_at_a_target_reaches_the_target_env_through_its_observation()
     e = r["per_episode"][0]
     assert e["target_time"] == 6.0 and e["completed"]
     assert e["lateness"] == pytest.approx((e["T"] - 6.0) / 6.0) and r["summary"]["lateness_median"] == e["lateness"]
+
+
+# ---------------------------------------------------------------- WheelLoaderTarget-v1: the engine-speed governor
+@settings(max_examples=60, deadline=None)
+@given(omega=st.floats(60.0, 230.0), V=st.floats(-2.0, 2.0), H=st.floats(0.7, 4.0), V_b=st.floats(0.0, 0.8),
+       request=st.floats(60.0, 230.0), U_ab=st.floats(-2.5, 2.5), gear=st.sampled_from((-60.0, 0.0, 60.0)),
+       tau=st.floats(0.02, 1.0))
+def test_the_governor_inverts_the_engine_model(omega, V, H, V_b, request, U_ab, gear, tau):
+    """The injection the governor commands gives d omega/dt = (request - omega) / tau, exactly, at the state
+    it sees (eq. (1) is affine in U_mf)."""
+    from wl_env.model import derivatives, governed_injection
+    from wl_env.params import DEFAULT_PARAMS as p
+
+    d = 1.0 if V >= 0 else -1.0
+    u_mf = governed_injection(omega, V, H, V_b, request, U_ab, gear, d, p, tau)
+    d_omega = derivatives(omega, V, H, V_b, u_mf, U_ab, 0.0, gear, d, p)[0]
+    assert d_omega == pytest.approx((request - omega) / tau, rel=1e-9, abs=1e-7)
+
+
+def test_the_governed_target_env_tracks_its_engine_speed_request():
+    """WheelLoaderTarget-v1: action 0 maps [-1, 1] onto [omega_min + margin, omega_max]; under a held request
+    the engine settles within 3 rad/s of it (the load moves within the interval the governor holds its
+    injection over), and the injection applied is what the governor commanded, clipped by the machine."""
+    from wl_env.codec import GOVERNOR_FLOOR_MARGIN
+
+    env = gym.make("WheelLoaderTarget-v1", braking="tc")
+    check_env(env.unwrapped, skip_render_check=True)
+    core = env.unwrapped
+    p = core.params
+    assert core.codec.decode_speed_request(-1.0) == pytest.approx(p.omega_min + GOVERNOR_FLOOR_MARGIN)
+    assert core.codec.decode_speed_request(1.0) == pytest.approx(p.omega_max)
+    env.reset(seed=0, options={"target_ratio": 1.2})
+    for request in (100.0, 160.0, 80.0):
+        a0 = float(2.0 * (request - p.omega_min - GOVERNOR_FLOOR_MARGIN) / (p.omega_max - p.omega_min - GOVERNOR_FLOOR_MARGIN) - 1.0)
+        for _ in range(6):  # reverse slowly while lifting (phase 1)
+            _, _, term, trunc, info = env.step(np.array([a0, 0.3, -1.0, -1.0], np.float32))
+            assert not (term or trunc)
+            assert 0.0 <= info["controls"][0] <= p.U_mf_max
+        assert abs(core._y[0] - request) < 3.0
+    # the same actions in v0 are injections: another engine speed
+    v0 = gym.make("WheelLoaderTarget-v0", braking="tc")
+    v0.reset(seed=0, options={"target_ratio": 1.2})
+    for _ in range(6):
+        v0.step(np.array([-0.3, 0.3, -1.0, -1.0], np.float32))
+    assert abs(v0.unwrapped._y[0] - 100.0) > 3.0
+
+
+def test_the_vector_governed_env_steps_as_single_envs_do():
+    n, seed = 3, 5
+    venv = gym.make_vec("WheelLoaderTarget-v1", num_envs=n, vectorization_mode="vector_entry_point", braking="service",
+                        scenario="train")
+    envs = [gym.make("WheelLoaderTarget-v1", braking="service", scenario="train") for _ in range(n)]
+    venv.reset(seed=seed)
+    for i, e in enumerate(envs):
+        e.reset(seed=seed + i)
+    rng = np.random.default_rng(1)
+    for _ in range(30):
+        a = rng.uniform(-1, 1, size=(n, 4)).astype(np.float32)
+        a[:, 3] = -1.0
+        obs_v, rew_v, *_ = venv.step(a)
+        for i, e in enumerate(envs):
+            o, r, *_ = e.step(a[i])
+            np.testing.assert_allclose(obs_v[i], o, rtol=0, atol=1e-6)
+            assert rew_v[i] == pytest.approx(r, rel=1e-9, abs=1e-12)
+
+
+def test_a_fuel_action_other_than_the_two_is_refused():
+    with pytest.raises(ValueError, match="fuel_action must be one of"):
+        gym.make("WheelLoaderTarget-v0", fuel_action="throttle")
+
+
+def test_an_injection_expert_drives_the_governed_env_as_it_drives_v0():
+    """translate_fuel_action: the operator's injection actions, translated into requests, drive
+    WheelLoaderTarget-v1 through the same cycle as v0 (the governor injects what the operator asked,
+    within the request's range), and a request translates back into the injection the governor made."""
+    from agents.evaluate import load_controller
+
+    runs = {}
+    for env_id in ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1"):
+        env = gym.make(env_id, braking="service")
+        obs, _ = env.reset(seed=0, options={"target_ratio": 1.3})
+        ctrl = load_controller("operator", "service")
+        core, done, fuel = env.unwrapped, False, []
+        while not done:
+            a = ctrl.act(obs)
+            if env_id.endswith("v1"):
+                a0 = a[0]
+                a[0] = core.core.translate_fuel_action(core.state, core.phase, a, to="engine_speed")
+                back = core.core.translate_fuel_action(core.state, core.phase, a, to="injection")
+                if -0.999 < a[0] < 0.999:  # (a request at its range's end is clipped: another injection)
+                    assert back == pytest.approx(float(a0), abs=1e-6)
+            obs, _, term, trunc, info = env.step(a)
+            fuel.append(info["controls"][0])
+            done = term or trunc
+        runs[env_id] = (info, np.array(fuel))
+    (i0, f0), (i1, f1) = runs.values()
+    assert i0["completed"] and i1["completed"]
+    assert i1["t"] == pytest.approx(i0["t"], abs=1e-9) and i1["fuel_g"] == pytest.approx(i0["fuel_g"], rel=1e-5)

@@ -34,6 +34,11 @@ OBS_NAMES = (
 OBS_LOW = np.array([0, -1.5, 0, 0, -2.5, -1.5, 0, 0, 0, 0, 0, 0], dtype=np.float32)
 OBS_HIGH = np.array([1.5, 1.5, 1.5, 2.0, 1.5, 2.5, 1.5, 5.0, 1, 1, 1, 1], dtype=np.float32)
 ACTION_NAMES = ("fuel_injection", "bucket_acceleration", "service_brake", "shift")
+# fuel_action="engine_speed" (WheelLoaderTarget-v1): action 0 is the governor's engine-speed request, -1 at
+# this much above the stall speed omega_min (rad/s; the lean optimum rides omega_min, and a request right at
+# it stalls on the smallest load step within the interval), +1 at omega_max
+GOVERNOR_FLOOR_MARGIN = 5.0
+FUEL_ACTIONS = ("injection", "engine_speed")
 N_OBS, N_ACTIONS = len(OBS_NAMES), len(ACTION_NAMES)
 # WheelLoader-v2: fixed length scales, then the scenario's features
 SCENARIO_OBS_NAMES = (
@@ -101,6 +106,12 @@ class Codec:
             self._ab_mid + a_bucket * self._ab_half,
             (a_brake + 1.0) * (0.5 * p.U_b_max),
         )
+
+    def decode_speed_request(self, a_fuel: Any) -> Any:
+        """Action 0 in [-1, 1] -> the engine-speed governor's request (rad/s), ``fuel_action="engine_speed"``."""
+        p = self.params
+        lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
+        return lo + (a_fuel + 1.0) * (0.5 * (p.omega_max - lo))
 
     def encode_action(self, u_mf: float, u_ab: float, u_b: float, shift: bool) -> np.ndarray:
         """Commanded (U_mf mg, U_ab m/s^2, U_b N m) and a shift request -> the action vector, clipped to

@@ -138,6 +138,13 @@ class WheelLoaderEnv(gym.Env):
 
     The brake acts only in the phases that use it (phase 2 with service braking, phase 4). Phase 2 ends
     by itself at the reversing point (V = 0). Values outside [-1, 1] are clipped; NaN raises.
+
+    WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
+    engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
+    engine to the request within the interval under the load at its start (the model inverted in U_mf,
+    :func:`wl_env.model.governed_injection`); the machine clips it as any injection. Fuel is then a
+    monotone function of the requested speed, where an injection command above what a neutral engine
+    needs is capped at omega_max and shows a learner no gain from less.
     The machine saturates what it cannot do (torque limit, governor at omega_max, relief pressure, pump
     flow, no lowering of the bucket); ``info["saturations"]`` says which were active.
 
@@ -196,6 +203,7 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v1: v0 with action 0 the governor's engine-speed request (``fuel_action``).
     * WheelLoaderTarget-v0 (a task of its own): v2 with a target cycle time per episode
       (``observe_target``): two more observation entries, the lateness term, no time term (``w_time`` 0).
     * v2: scenarios (``scenario=``, ``reset(options={"scenario": ...})``, ``info["scenario"]``), the
@@ -225,6 +233,7 @@ class WheelLoaderEnv(gym.Env):
         observe_scenario: bool = True,
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
+        fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
     ) -> None:
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = bool(observe_target)
@@ -243,7 +252,8 @@ class WheelLoaderEnv(gym.Env):
         self.params = fixed.params(self.machine) if fixed is not None else self.machine
         self.scenario = fixed or start_scenario(self.machine, self.braking, self.machine.omega_0, self.machine.H_0)
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
-                                 make_reward_config(reward, w_fuel, w_time), self.observe_scenario)
+                                 make_reward_config(reward, w_fuel, w_time), self.observe_scenario,
+                                 fuel_action)
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
         codec = self.core.codec
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
@@ -309,7 +319,8 @@ class WheelLoaderEnv(gym.Env):
         if params != self.params:
             c = self.core
             self.params = params
-            self.core = CycleStepper(params, self.braking, c.dt, c.substeps, c.max_time, c.reward, self.observe_scenario)
+            self.core = CycleStepper(params, self.braking, c.dt, c.substeps, c.max_time, c.reward, self.observe_scenario,
+                                     c.fuel_action)
             self.codec = self.core.codec
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from wl_env import cycle, limits
-from wl_env.codec import Codec
+from wl_env.codec import FUEL_ACTIONS, GOVERNOR_FLOOR_MARGIN, Codec
+from wl_env.model import governed_injection, governor_request
 from wl_env.params import LoaderParams
 from wl_env.physics import torque_converter
 from wl_env.physics.backend import ops_for
@@ -91,7 +92,10 @@ class CycleStepper(Flattened):
         max_time: float,
         reward: RewardConfig,
         observe_scenario: bool = False,
+        fuel_action: str = "injection",
     ) -> None:
+        if fuel_action not in FUEL_ACTIONS:
+            raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
         if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
@@ -107,6 +111,7 @@ class CycleStepper(Flattened):
         self.max_time = float(max_time)
         self.reward = reward
         self.codec = Codec(params, observe_scenario)
+        self.fuel_action = fuel_action
 
     # -------------------------------------------------------------- progress
     def potential(self, y: Any, phase: Any) -> Any:
@@ -151,6 +156,34 @@ class CycleStepper(Flattened):
         object.__setattr__(self, "_flat", (through, cut, self.sim._flattened()))  # (sim's part tells when it goes stale)
         return self._flat
 
+    def _governor_view(self, y: Any, phase: Any, u_ab: Any) -> tuple[Any, ...]:
+        """What the engine's governor sees at an interval's start, as :func:`wl_env.model.governed_injection`
+        takes it after the state's four: (U_ab, gear, direction, params, tau), where phase is the one after
+        the shift request. It reaches the request within the interval (deadbeat: tau = dt)."""
+        ops = ops_for(y[0])
+        gear, d = self.sim.phase_constants(phase)[:2]
+        return (ops.fmax(y[0], OMEGA_FLOOR), y[1], y[2], y[3], ops.clip(u_ab, *self.params.U_ab_bounds), gear, d,
+                self.params, self.dt)
+
+    def translate_fuel_action(self, y: Any, phase: Any, action: Any, to: str) -> Any:
+        """Action 0 of one fuel action's space in the other's, at this state: ``to="engine_speed"`` the
+        request for which the governor injects what an injection action asks (an expert of the injection
+        driving the governed env), ``to="injection"`` the injection the governor makes of a request.
+        Clipped to [-1, 1]. ``action`` is the 4-vector (its shift request and U_ab count)."""
+        if to not in FUEL_ACTIONS:
+            raise ValueError(f"to must be one of {FUEL_ACTIONS}, got {to!r}")
+        p, c = self.params, self.codec
+        a = [min(max(float(v), -1.0), 1.0) for v in action]
+        phase = phase + 1 if phase in (1, 3) and a[3] > 0.0 else 3 if phase == 2 and y[1] == 0.0 else phase  # (as _step)
+        u_mf, u_ab, _ = c.decode_action(a[0], a[1], a[2])
+        view = self._governor_view(y, phase, u_ab)
+        if to == "engine_speed":
+            lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
+            request = governor_request(*view[:4], u_mf, *view[4:])
+            return min(max(2.0 * (request - lo) / (p.omega_max - lo) - 1.0, -1.0), 1.0)
+        u_mf = governed_injection(*view[:4], c.decode_speed_request(a[0]), *view[4:])
+        return min(max(2.0 * u_mf / p.U_mf_max - 1.0, -1.0), 1.0)
+
     def _step(self, y: Any, phase: Any, t: Any, rev_err: Any, violation: Any, action: tuple[Any, Any, Any, Any]) -> dict[str, Any]:
         p, rw, sim = self.params, self.reward, self.sim
         ops = ops_for(y[0])
@@ -164,6 +197,9 @@ class CycleStepper(Flattened):
         phase = ops.where(at_rev, 3, phase)
         if isinstance(phase, np.ndarray):
             phase = phase.astype(np.int64)
+        if self.fuel_action == "engine_speed":
+            view = self._governor_view(y, phase, u_cmd[1])
+            u_cmd = (governed_injection(*view[:4], self.codec.decode_speed_request(action[0]), *view[4:]), u_cmd[1], u_cmd[2])
 
         phi0 = self.potential(y, phase)
         m_f0 = y[5]

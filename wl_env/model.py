@@ -57,6 +57,23 @@ def estimated_derivatives(x: Any, u: Any, gear: Any, direction: Any, p: LoaderPa
     return d_om, d_v, d_h, d_vb, m_dot
 
 
+def governed_injection(omega: Any, V: Any, H: Any, V_b: Any, speed_request: Any, U_ab: Any, gear: Any, direction: Any,
+                       p: LoaderParams, tau: Any) -> Any:
+    """The fuel injection U_mf (mg, unclipped) an engine-speed governor commands: the one that takes omega
+    to ``speed_request`` (rad/s) in ``tau`` seconds under the present load (the converter's pump torque,
+    the lift's power under U_ab, the friction). d omega/dt is affine in U_mf (eq. (1), (6)), so this
+    inverts the model exactly at the state it is given; the machine then clips it to [0, U_mf,max] and
+    the torque curve (:func:`wl_env.step.effective_controls`)."""
+    d_omega_unfuelled = derivatives(omega, V, H, V_b, 0.0, U_ab, 0.0, gear, direction, p)[0]
+    return p.J_ice * ((speed_request - omega) / tau - d_omega_unfuelled) / p.T_ig_per_mg
+
+
+def governor_request(omega: Any, V: Any, H: Any, V_b: Any, U_mf: Any, U_ab: Any, gear: Any, direction: Any,
+                     p: LoaderParams, tau: Any) -> Any:
+    """The inverse of :func:`governed_injection`: the request (rad/s) for which the governor injects U_mf."""
+    return omega + tau * derivatives(omega, V, H, V_b, U_mf, U_ab, 0.0, gear, direction, p)[0]
+
+
 def dynamics(x: Any, u: Any, gear: float, direction: float, params: LoaderParams | dict | None = None) -> Any:
     """x' = f(x, u) for the given gear and travel direction.
 

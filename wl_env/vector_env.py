@@ -57,6 +57,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         observe_scenario: bool = True,
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
+        fuel_action: str = "injection",
     ) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -80,7 +81,7 @@ class WheelLoaderVectorEnv(VectorEnv):
             self.params = self._source.params(self.machine) if self._source is not None else self.machine
         self.scenarios: list[Scenario | None] = [self._source if isinstance(self._source, Scenario) else None] * num_envs
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
-                                 make_reward_config(reward, w_fuel, w_time), observe_scenario)
+                                 make_reward_config(reward, w_fuel, w_time), observe_scenario, fuel_action)
         codec = self.core.codec
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
