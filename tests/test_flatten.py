@@ -46,10 +46,11 @@ def test_flattened_simulator_equals_the_traced_code(braking):
         assert same(advance(y, u[:3], gear, d, h), sim._advance(y, u[:3], gear, d, h))
 
 
+@pytest.mark.parametrize("fuel_action", ["injection", "engine_speed"])  # (engine_speed: WheelLoaderTarget-v1's governor)
 @pytest.mark.parametrize("substeps", [1, 3])
 @pytest.mark.parametrize("braking", ["service", "tc"])
-def test_flattened_step_equals_the_traced_code(braking, substeps):
-    core = CycleStepper(P, braking, 0.1, substeps, 40.0, RewardConfig())
+def test_flattened_step_equals_the_traced_code(braking, substeps, fuel_action):
+    core = CycleStepper(P, braking, 0.1, substeps, 40.0, RewardConfig(), fuel_action=fuel_action)
     rng = np.random.default_rng(1)
     cut = 0
     for y in random_states(rng, 400):
