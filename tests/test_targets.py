@@ -70,11 +70,13 @@ def test_finishing_late_costs_the_lateness_times_its_weight():
     assert r_met - r_late == pytest.approx(env.unwrapped.core.reward.late * (T - 6.0) / 6.0, rel=1e-9)
 
 
-def test_the_vector_target_env_draws_targets_as_single_envs_do():
-    n, seed = 3, 11
-    venv = gym.make_vec("WheelLoaderTarget-v0", num_envs=n, vectorization_mode="vector_entry_point", braking="tc",
-                        scenario="train", init_noise=0.5)
-    envs = [gym.make("WheelLoaderTarget-v0", braking="tc", scenario="train", init_noise=0.5) for _ in range(n)]
+@pytest.mark.parametrize("env_id,braking,init_noise,seed", [("WheelLoaderTarget-v0", "tc", 0.5, 11),
+                                                          ("WheelLoaderTarget-v1", "service", 0.0, 5)])
+def test_the_vector_target_env_draws_targets_and_steps_as_single_envs_do(env_id, braking, init_noise, seed):
+    n = 3
+    venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", braking=braking,
+                        scenario="train", init_noise=init_noise)
+    envs = [gym.make(env_id, braking=braking, scenario="train", init_noise=init_noise) for _ in range(n)]
     obs_v, _ = venv.reset(seed=seed)
     singles = [e.reset(seed=seed + i)[0] for i, e in enumerate(envs)]
     np.testing.assert_array_equal(obs_v, np.stack(singles))
@@ -144,25 +146,6 @@ def test_the_governed_target_env_tracks_its_engine_speed_request():
     for _ in range(6):
         v0.step(np.array([-0.3, 0.3, -1.0, -1.0], np.float32))
     assert abs(v0.unwrapped._y[0] - 100.0) > 3.0
-
-
-def test_the_vector_governed_env_steps_as_single_envs_do():
-    n, seed = 3, 5
-    venv = gym.make_vec("WheelLoaderTarget-v1", num_envs=n, vectorization_mode="vector_entry_point", braking="service",
-                        scenario="train")
-    envs = [gym.make("WheelLoaderTarget-v1", braking="service", scenario="train") for _ in range(n)]
-    venv.reset(seed=seed)
-    for i, e in enumerate(envs):
-        e.reset(seed=seed + i)
-    rng = np.random.default_rng(1)
-    for _ in range(30):
-        a = rng.uniform(-1, 1, size=(n, 4)).astype(np.float32)
-        a[:, 3] = -1.0
-        obs_v, rew_v, *_ = venv.step(a)
-        for i, e in enumerate(envs):
-            o, r, *_ = e.step(a[i])
-            np.testing.assert_allclose(obs_v[i], o, rtol=0, atol=1e-6)
-            assert rew_v[i] == pytest.approx(r, rel=1e-9, abs=1e-12)
 
 
 def test_a_fuel_action_other_than_the_two_is_refused():

@@ -113,6 +113,12 @@ class Codec:
         lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
         return lo + (a_fuel + 1.0) * (0.5 * (p.omega_max - lo))
 
+    def encode_speed_request(self, speed_request: float) -> float:
+        """The inverse of :meth:`decode_speed_request`, clipped to [-1, 1]."""
+        p = self.params
+        lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
+        return min(max(2.0 * (speed_request - lo) / (p.omega_max - lo) - 1.0, -1.0), 1.0)
+
     def encode_action(self, u_mf: float, u_ab: float, u_b: float, shift: bool) -> np.ndarray:
         """Commanded (U_mf mg, U_ab m/s^2, U_b N m) and a shift request -> the action vector, clipped to
         [-1, 1] (a NaN control becomes the range's low end: no fuel, no brake)."""

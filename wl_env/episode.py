@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from wl_env import cycle, limits
-from wl_env.codec import FUEL_ACTIONS, GOVERNOR_FLOOR_MARGIN, Codec
+from wl_env.codec import FUEL_ACTIONS, Codec
 from wl_env.model import governed_injection, governor_request
 from wl_env.params import LoaderParams
 from wl_env.physics import torque_converter
@@ -156,6 +156,14 @@ class CycleStepper(Flattened):
         object.__setattr__(self, "_flat", (through, cut, self.sim._flattened()))  # (sim's part tells when it goes stale)
         return self._flat
 
+    def _interval_phase(self, y: Any, phase: Any, shift: Any) -> tuple[Any, Any]:
+        """The phase an interval runs in, and whether the machine stands at its reversing point: shift
+        requests end phases 1 and 3; a machine standing in phase 2 is at its reversing point (phase 3)."""
+        ops = ops_for(y[0])
+        phase = ops.where(((phase == 1) | (phase == 3)) & (shift > 0.0), phase + 1, phase)
+        at_rev = (phase == 2) & (y[1] == 0.0)
+        return ops.where(at_rev, 3, phase), at_rev
+
     def _governor_view(self, y: Any, phase: Any, u_ab: Any) -> tuple[Any, ...]:
         """What the engine's governor sees at an interval's start, as :func:`wl_env.model.governed_injection`
         takes it after the state's four: (U_ab, gear, direction, params, tau), where phase is the one after
@@ -172,17 +180,15 @@ class CycleStepper(Flattened):
         Clipped to [-1, 1]. ``action`` is the 4-vector (its shift request and U_ab count)."""
         if to not in FUEL_ACTIONS:
             raise ValueError(f"to must be one of {FUEL_ACTIONS}, got {to!r}")
-        p, c = self.params, self.codec
+        c = self.codec
         a = [min(max(float(v), -1.0), 1.0) for v in action]
-        phase = phase + 1 if phase in (1, 3) and a[3] > 0.0 else 3 if phase == 2 and y[1] == 0.0 else phase  # (as _step)
+        y = [float(v) for v in y[:4]]
         u_mf, u_ab, _ = c.decode_action(a[0], a[1], a[2])
-        view = self._governor_view(y, phase, u_ab)
+        view = self._governor_view(y, self._interval_phase(y, phase, a[3])[0], u_ab)
         if to == "engine_speed":
-            lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
-            request = governor_request(*view[:4], u_mf, *view[4:])
-            return min(max(2.0 * (request - lo) / (p.omega_max - lo) - 1.0, -1.0), 1.0)
-        u_mf = governed_injection(*view[:4], c.decode_speed_request(a[0]), *view[4:])
-        return min(max(2.0 * u_mf / p.U_mf_max - 1.0, -1.0), 1.0)
+            return c.encode_speed_request(governor_request(*view[:4], u_mf, *view[4:]))
+        return float(c.encode_action(governed_injection(*view[:4], c.decode_speed_request(a[0]), *view[4:]), u_ab, 0.0,
+                                     False)[0])
 
     def _step(self, y: Any, phase: Any, t: Any, rev_err: Any, violation: Any, action: tuple[Any, Any, Any, Any]) -> dict[str, Any]:
         p, rw, sim = self.params, self.reward, self.sim
@@ -190,11 +196,8 @@ class CycleStepper(Flattened):
         action = tuple(ops.clip(action[i], -1.0, 1.0) for i in range(4))  # values outside [-1, 1] are clipped
         u_cmd = self.codec.decode_action(action[0], action[1], action[2])
         rev_pending = ops.isnan(rev_err)  # reversing point not reached yet
-        # Shift requests end phases 1 and 3; a machine standing in phase 2 is at its reversing point.
-        phase = ops.where(((phase == 1) | (phase == 3)) & (action[3] > 0.0), phase + 1, phase)
-        at_rev = (phase == 2) & (y[1] == 0.0)
+        phase, at_rev = self._interval_phase(y, phase, action[3])
         rev_err = ops.where(at_rev, y[4] + p.reverse_distance, rev_err)
-        phase = ops.where(at_rev, 3, phase)
         if isinstance(phase, np.ndarray):
             phase = phase.astype(np.int64)
         if self.fuel_action == "engine_speed":
