@@ -12,12 +12,16 @@ Per braking alternative (and per solver candidate, ``--solvers``):
     0.1 s control interval, and the controls' total variation against the optimum's at the same cycle
     time (:func:`mpc.benchmark.scoring.smoothness`).
 
+``--realtime both`` runs each candidate also as the real-time controller (``MPCConfig.realtime``): its
+per-step time is then the time to the control, and the worker's solves (plan and schedule move, one
+interval ahead) and the oldest plan a step applied are reported beside it.
+
 The violation column is the environment's own (the driver's limits at every RK4 stage and step end).
 
 Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick]
-        [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100]
+        [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
     ep = r.episode
     row = {"braking": braking, "solver": solver, "run": label, "mode": config.mode, "target_time": config.target_time,
            **ep.to_dict(trajectory=False), "solve_time": r.solve_time, "solve_times_s": r.solve_times_s,
+           "worker_solve_times_s": r.worker_solve_times_s,
            "wall_s": time.perf_counter() - t0, "fallbacks": r.solve_time["fallbacks"]}
     if r.score is not None:
         row.update(time_gap=r.score.time_gap, fuel_gap=r.score.fuel_gap, T_min=r.score.T_min, fuel_opt_g=r.score.fuel_opt_g)
@@ -94,6 +99,14 @@ def rate_sweep(weights: list[float]) -> None:
               f"| {s['ratio_bucket_acceleration']:.2f}x | {100 * r['max_violation']:.2f} % |")
 
 
+def worker(row: dict[str, Any]) -> str:
+    st = row["solve_time"]
+    if not row["solver"].endswith("realtime"):
+        return "-"
+    return (f"{1e3 * st['background_median_s']:.1f} / {1e3 * st['background_p99_s']:.1f} / "
+            f"{1e3 * st['background_max_s']:.0f}, {st['plan_age_max']}")
+
+
 def pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:+.2f} %"
 
@@ -112,6 +125,8 @@ def main() -> None:
     ap.add_argument("--suite-sample", type=int, default=0, metavar="N", help="test-suite scenarios per braking")
     ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
     ap.add_argument("--deadline-ms", type=float, default=None, help="MPCConfig.deadline_ms of every run")
+    ap.add_argument("--realtime", choices=["off", "on", "both"], default="off",
+                    help="MPCConfig.realtime: the synchronous controller (off), the real-time one (on), or both side by side")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
@@ -120,15 +135,22 @@ def main() -> None:
         return rate_sweep(args.rate_sweep)
     targets = args.targets[:1] if args.quick else args.targets
     rows: list[dict[str, Any]] = []
+    realtime = {"off": [False], "on": [True], "both": [False, True]}[args.realtime]
+    if args.deadline_ms is not None and True in realtime:
+        ap.error("--deadline-ms applies to the synchronous controller (a real-time step's deadline is its interval)")
     for solver in args.solvers:
-        for b in args.braking:
-            for label, config, kw in runs(b, targets, args.quick, args.suite_sample, args.corners, args.deadline_ms):
-                print(f"[{solver}] [{b}] {label}", file=sys.stderr, flush=True)
-                rows.append(closed_loop(b, config, solver, label, **kw))
+        for rt in realtime:
+            name = f"{solver} realtime" if rt else solver
+            for b in args.braking:
+                for label, config, kw in runs(b, targets, args.quick, args.suite_sample, args.corners, args.deadline_ms):
+                    print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
+                    row = closed_loop(b, dataclasses.replace(config, realtime=rt), solver, label, **kw)
+                    rows.append({**row, "solver": name})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "
-          "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) |")
-    print("|---|---|---|---:|---:|---:|---:|---|---:|---|---|---:|---:|")
+          "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) "
+          "| realtime: worker median / p99 / max (ms), oldest plan (steps) |")
+    print("|---|---|---|---:|---:|---:|---:|---|---:|---|---|---:|---:|---|")
     for r in rows:
         later = r["solve_times_s"][1:] or r["solve_times_s"]
         sm = r.get("smoothness")
@@ -136,14 +158,19 @@ def main() -> None:
         print(f"| {r['solver']} | {r['braking']} | {r['run']} | {r['T']:.2f} | {r['fuel_g']:.2f} | {pct(r.get('time_gap'))} "
               f"| {pct(r.get('fuel_gap'))} | {'yes' if r['success'] else 'no'} | {100 * r['max_violation']:.2f} % | {tv} "
               f"| {ms(later, 50):.1f} / {ms(later, 99):.1f} / {ms(later):.0f} | {r['fallbacks']} "
-              f"| {r['solve_time']['planning_s']:.1f} |")
-    for solver in args.solvers:
+              f"| {r['solve_time']['planning_s']:.1f} | {worker(r)} |")
+    for solver in dict.fromkeys(r["solver"] for r in rows):
         every = [s for r in rows if r["solver"] == solver for s in r["solve_times_s"][1:]]
         plans = [r["solve_time"]["planning_s"] for r in rows if r["solver"] == solver]
         print(f"\n[{solver}] all runs, steps after the first: median {ms(every, 50):.1f} ms, p99 {ms(every, 99):.1f} ms, "
               f"max {ms(every):.0f} ms ({len(every)} steps); first-step planning median {np.median(plans):.1f} s, "
               f"max {max(plans):.1f} s; success {sum(r['success'] for r in rows if r['solver'] == solver)}"
               f"/{sum(1 for r in rows if r['solver'] == solver)}; control interval 100 ms")
+        jobs = [s for r in rows if r["solver"] == solver for s in r["worker_solve_times_s"]]
+        if jobs:
+            print(f"[{solver}] the worker's solves (one interval ahead): median {ms(jobs, 50):.1f} ms, p99 "
+                  f"{ms(jobs, 99):.1f} ms, max {ms(jobs):.0f} ms ({len(jobs)} jobs); steps applying a plan older than "
+                  f"one interval: {sum(r['solve_time']['fallbacks'] for r in rows if r['solver'] == solver)}")
     if args.json:
         write_json_atomic(args.json, {"rows": rows, "cpu_count": os.cpu_count(), "python": platform.python_version()})
 

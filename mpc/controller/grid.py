@@ -434,6 +434,26 @@ class GridNLP:
             ubg[s.gap:s.gap + N_XR] = math.inf
         return {**args, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
 
+    def fix_first_controls(self, args: dict[str, Any], controls: np.ndarray) -> dict[str, Any]:
+        """The arguments with the first active steps' controls fixed at ``controls`` (one [U_mf, U_ab, U_b]
+        per step, clipped to its bounds) and those steps' own rows and end-state bounds relaxed: controls
+        already committed, whose limits nothing can change any more (a stop step's target rows stay). The plan then starts
+        that many steps later (a real-time controller solves while it applies them, see
+        ``MPCConfig.realtime``)."""
+        p = args["p"]
+        active = np.flatnonzero(p[self._active_offset:self._rate_offset] > 0)
+        controls = np.atleast_2d(np.asarray(controls, dtype=float))
+        if len(controls) > len(active):
+            raise ValueError(f"{len(controls)} controls to fix, but the schedule has {len(active)} steps")
+        lbx, ubx, lbg, ubg = (np.array(args[k], dtype=float) for k in ("lbx", "ubx", "lbg", "ubg"))
+        for k, u in zip(active, controls):
+            s = self.slots[int(k)]
+            lbx[s.u:s.u + 3] = ubx[s.u:s.u + 3] = np.clip(u[:3] / U_SCALE, lbx[s.u:s.u + 3], ubx[s.u:s.u + 3])
+            n = self._rows(s)
+            lbg[s.g:s.g + n], ubg[s.g:s.g + n] = -math.inf, math.inf
+            lbx[s.x:s.x + N_X], ubx[s.x:s.x + N_X] = -math.inf, math.inf  # (where it ends is committed too)
+        return {**args, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
+
     def _step_of(self, s: Slot) -> StepFunction:
         return self.model.full[s.phase] if s.kind == "full" else self.model.stop[s.phase]
 

@@ -29,6 +29,7 @@ import concurrent.futures
 import dataclasses
 import math
 import os
+import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
@@ -38,7 +39,8 @@ import numpy as np
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
-from mpc.controller.solver import GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, step_model, timed_solve
+from mpc.controller.solver import (GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, solve_until, step_model,
+                                   timed_solve)
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
@@ -63,8 +65,29 @@ SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared bet
 # point by 9.9 cm, 0.16 met it (and every other corner); a nominal plant keeps MPCConfig.tighten.
 MARGIN_PER_RAD_S = 0.16
 MAX_MARGIN = 0.03
+# Real time: a step's solve must be done this long before the next step begins (its plan is then read
+# off), and a schedule move may run on for this many intervals (plans wait meanwhile).
+REALTIME_MARGIN_S = 0.005
+MOVE_INTERVALS = 4
+MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
+
+
+@dataclass
+class AheadJob:
+    """A real-time solve on the worker: from the state ``x`` measured at step ``k`` (in ``phase``), the
+    controls of its first ``lead`` steps fixed. ``sol``, the plan's solve, is set (and ``plan_ready``) as soon as it is
+    done; a schedule move's solve may run on after it (the future's result: None, or (move, its solve))."""
+
+    k: int
+    x: np.ndarray
+    phase: int
+    lead: int  # steps whose controls it fixed: its plan is due at step k + lead
+    future: concurrent.futures.Future
+    plan_ready: threading.Event = dataclasses.field(default_factory=threading.Event)
+    sol: Solve | None = None
+    collected: bool = False  # its plan was taken up (or found stale)
 
 
 @dataclass(frozen=True)
@@ -83,6 +106,11 @@ class MPCConfig:
     # A hard deadline per step (ms, after the first): a solve not done by then runs on in the background
     # and the step applies the previous plan, shifted (flagged in ``last_info``); never a late control.
     deadline_ms: float | None = None
+    # Real time (advanced step): each step applies the plan solved during the interval before it, from the
+    # state measured then with that step's control fixed, and hands its own solve (and any schedule move)
+    # to the solver's worker; the control is ready in about a millisecond. A solve not done within its
+    # interval leaves the previous plan, shifted, in use (flagged in ``last_info``). Timing-dependent.
+    realtime: bool = False
     # Fraction of the deceleration limit a plan keeps free (it may use the margin at a price, see
     # grid.DECEL_MARGIN_WEIGHT). The plan is the plant's own step, so a nominal plant needs only the
     # solver's tolerance; after the first step the margin grows as the plans mispredict the engine speed
@@ -107,6 +135,8 @@ class MPCConfig:
         if self.deadline_ms is not None and not (isinstance(self.deadline_ms, (int, float))
                                                  and math.isfinite(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {self.deadline_ms!r}")
+        if self.realtime and self.deadline_ms is not None:
+            raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError(f"time_budget must be > 0 s or None, got {self.time_budget!r}")
         if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
@@ -145,6 +175,7 @@ class MPCController:
         self.solver = solver or IpoptSolver(self.config.max_iter, min(budgets, default=None))
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: tuple[str, concurrent.futures.Future] | None = None  # a late solve: ("plan" or "move", its future)
+        self._ahead: AheadJob | None = None  # realtime: the solve running for the next step
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
@@ -161,6 +192,9 @@ class MPCController:
         if self._pending is not None:
             self._pending[1].result()  # a late solve of the last cycle ends first (within its wall-time limit)
             self._pending = None
+        if self._ahead is not None:
+            self._ahead.future.result()
+            self._ahead = None
         if scenario is not None:
             if scenario.braking != self.braking:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
@@ -178,7 +212,9 @@ class MPCController:
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self.estimator.reset()
         self.schedule.reset()
-        self.solve_times: list[float] = []
+        self.solve_times: list[float] = []  # per step: the time to its control (realtime: the foreground's)
+        self.solve_walls: list[float] = []  # realtime: each background job's solves (s)
+        self.plan_ages: list[int] = []  # realtime: per step, the steps since the plan it applies was solved
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.fallbacks = 0
         self.deadline_misses = 0
@@ -235,6 +271,8 @@ class MPCController:
             return self._terminal(x), False, info
         t0 = time.perf_counter()
         x_plan = self.project_state(x, phase)
+        if self._counts is not None and self.config.realtime:
+            return self._control_ahead(x_plan, phase, k, t0)
         if self._counts is None:  # the first step plans the cycle (a real controller would before it starts)
             self._plan_cycle(x_plan, phase, k)
             solves, ok, over_budget = [self._sol], True, False
@@ -264,7 +302,11 @@ class MPCController:
             self._iterate = self._sol
         else:
             self.fallbacks += 1
+        counts = dict(self._counts)
         u, shift = self._from_plan(k, phase)
+        if self.config.realtime:  # the first step: the next one's solve starts now
+            self._step_start, self._lead = time.perf_counter(), 1
+            self._submit_ahead(x_plan, phase, k, counts, u[None, :])
         self.solve_times.append(solve_time)
         self.step_solves.append(len(solves))
         info = {"solve_time": solve_time, "status": status, "fallback": not ok, "over_budget": over_budget,
@@ -318,6 +360,129 @@ class MPCController:
         return Solve(counts={q: n for q, n in sol.counts.items() if q >= phase}, first_phase=phase, ok=sol.ok,
                      status=sol.status, J=sol.J, misses=sol.misses, excess=sol.excess, z=z, lam_x=lam_x,
                      lam_g=lam_g, lam_p=None)
+
+    # ------------------------------------------------------------------ real time (MPCConfig.realtime)
+    def _control_ahead(self, x: np.ndarray, phase: int, k: int, t_call: float) -> tuple[np.ndarray, bool, dict[str, Any]]:
+        """A real-time step: the control from the plan solved while the steps before it ran, and, if the
+        worker is free, the next solve handed to it: from this step's state, with the controls of the
+        steps it will take to solve (its lead) fixed at the current plan's, so that its plan starts when
+        it is done. The lead doubles after a solve that ran out of time (up to MAX_LEAD) and shrinks to
+        what the last one took. In a simulation faster than real time a step first waits for the worker
+        as long as real time would let it run (one interval), so the outcome does not depend on the
+        simulator's speed; the step's time counts from then."""
+        note = self._collect_ahead(k)
+        t0 = time.perf_counter()  # the measurement arrives (in real time: one interval after the last one)
+        self._step_start = t0
+        self._enter_phase(phase)
+        counts = dict(self._counts)
+        i = k - self._plan["k_made"]
+        u, shift = self._from_plan(k, phase)
+        job = self._ahead
+        late = job is not None and (job.collected or k >= job.k + job.lead)  # the plan in use is overdue
+        if job is None:
+            later = np.asarray(self._plan["controls"][i + 1:i + self._lead], dtype=float).reshape(-1, 3)
+            self._submit_ahead(x, phase, k, counts, np.vstack([u, later]))
+        if late:
+            self.fallbacks += 1
+            self.deadline_misses += 1
+        latency = time.perf_counter() - t0
+        self.solve_times.append(latency)
+        self.plan_ages.append(k - self._plan["k_made"])
+        self.step_solves.append(0)
+        status = (f"the plan of step {self._plan['k_made']}" + ("; overdue, shifted" if late else "")) + note
+        info = {"solve_time": latency, "status": status, "fallback": late, "over_budget": False,
+                "deadline_missed": late, "solves": 0, "iterations": 0, "plan_age": k - self._plan["k_made"],
+                "lead": self._lead, "schedule": dict(self._counts),
+                "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
+        return u, shift, info
+
+    def _submit_ahead(self, x: np.ndarray, phase: int, k: int, counts: dict[int, int], controls: np.ndarray) -> None:
+        """Hand the solve from step k to the worker, the ``controls`` of its first steps fixed (the lead),
+        then the schedule move worth a try, if any. What they read from the controller is fixed now."""
+        lead = len(controls)
+        args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
+                "margin": self._later_margin(), "u_fixed": controls}
+        warm, start = self._iterate, self._step_start
+
+        def solves() -> tuple | None:
+            try:
+                with solve_until(start + lead * self.dt - REALTIME_MARGIN_S):
+                    job.sol = sol = self._solve(phase, counts, x, warm, **args)
+            finally:
+                job.plan_ready.set()  # (an error leaves sol None: the future raises it)
+            # a move holds the worker for up to MOVE_INTERVALS: only while the plans keep up
+            move = self._schedule_move(sol, phase, k) if sol.ok and sol.wall < self.dt - REALTIME_MARGIN_S else None
+            if move is None:
+                return None
+            with solve_until(start + (lead + MOVE_INTERVALS) * self.dt - REALTIME_MARGIN_S):
+                return move, self._try_move(sol, move, phase, x, **args)
+
+        job = AheadJob(k=k, x=np.array(x), phase=phase, lead=lead, future=concurrent.futures.Future())
+        job.future = self._deadline_pool().submit(solves)
+        self._ahead = job
+
+    def _collect_ahead(self, k: int) -> str:
+        """Take up the worker's plan if it is done by this step and still of use (the steps since its
+        start were the ones it fixed), and a schedule move's outcome once that is done; a note."""
+        job, note = self._ahead, ""
+        if job is None:
+            return note
+        bound = self._step_start + self.dt  # when this step begins in real time
+        if not job.collected:
+            if not job.plan_ready.wait(timeout=max(bound - time.perf_counter(), 0.0)):
+                return f"; the solve from step {job.k} runs on"
+            job.collected = True
+            sol = job.sol
+            if sol is None:  # the solve raised: a bug, not a solver failure
+                job.future.result()
+            if sol.z is not None:  # the next solve goes on from here, converged or not
+                self._iterate = sol
+            if sol.ok and k - job.k <= job.lead:
+                self._sol = sol
+                self._plan = self._make_plan(sol, job.x, job.k)
+            elif sol.ok:
+                note = f"; the solve from step {job.k} came too late"
+            else:
+                note = f"; the solve from step {job.k} failed ({sol.status})"
+            self._lead = (max(1, math.ceil((sol.wall + REALTIME_MARGIN_S) / self.dt)) if sol.ok
+                          else min(2 * job.lead, MAX_LEAD))
+        try:  # a move under way: real time would let it run till then too
+            outcome = job.future.result(timeout=max(bound - time.perf_counter(), 0.0))
+        except concurrent.futures.TimeoutError:
+            return note + "; a schedule move under way"
+        self._ahead = None
+        self.solve_walls.append(job.sol.wall + (outcome[1].wall if outcome else 0.0))
+        if outcome is not None:
+            note += self._take_move(job, *outcome, in_time=k - job.k <= job.lead)
+        return note
+
+    def _take_move(self, job: AheadJob, move: tuple, alt: Solve, in_time: bool) -> str:
+        """A schedule move solved on the worker: kept if it ranks better than the plan it moved and still
+        fits the steps left; its plan is the one in use if it came in time, else the next solve's warm
+        start."""
+        paid = alt.ok and self.schedule.cost(alt, job.k) < self.schedule.cost(job.sol, job.k)
+        counts = moved(self._counts, move) if paid and all(q is None or q in self._counts for q in move) else None
+        if counts is not None:
+            try:
+                self._nlp(min(counts)).active_slots(counts)
+            except ValueError:
+                counts = None
+        self.schedule.record(move, job.k, counts is not None)
+        if counts is None:
+            return ""
+        self._counts = counts
+        if in_time:
+            self._sol = self._iterate = alt
+            self._plan = self._make_plan(alt, job.x, job.k)
+            return f"; schedule move {move} kept"
+        it = self._iterate  # the plant has moved on: the next solve starts from the move's schedule
+        new = moved(it.counts, move)
+        try:
+            z, lam_x, lam_g = self._nlp(it.first_phase).resample(it.z, it.lam_x, it.lam_g, it.counts, new)
+        except (ValueError, KeyError):
+            return f"; schedule move {move} kept (warm start not moved)"
+        self._iterate = Solve(counts=new, first_phase=it.first_phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
+        return f"; schedule move {move} kept"
 
     # ------------------------------------------------------------------ schedule
     def _try_move(self, sol: Solve, move: tuple, phase: int, x: np.ndarray, **args: Any) -> Solve:
@@ -513,10 +678,10 @@ class MPCController:
 
     def _solve(self, first_phase: int, counts: dict[int, int], x: np.ndarray, warm: Solve | None,
                guess: np.ndarray | None = None, est: np.ndarray | None = None, u_prev: np.ndarray | None = None,
-               margin: float | None = None) -> Solve:
+               margin: float | None = None, u_fixed: np.ndarray | None = None) -> Solve:
         """Solve the schedule ``counts`` from state x (no side effects but timing). ``est``, ``u_prev``
         (the control applied before) and ``margin`` (the later steps' deceleration margin) default to the
-        controller's now."""
+        controller's now; ``u_fixed``: the first steps' controls, fixed (a real-time solve's lead)."""
         nlp = self._nlp(first_phase)
         if est is None:
             est = self.estimator.estimate
@@ -527,6 +692,8 @@ class MPCController:
                                  rate_weight=self.config.rate_weight)
         except ValueError as exc:  # a schedule that does not fit the slots
             return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
+        if u_fixed is not None:
+            args = nlp.fix_first_controls(args, u_fixed)
         if warm is not None and warm.first_phase == first_phase and warm.z is not None:
             return timed_solve(self.solver, nlp, counts, first_phase, args, warm.z, warm)
         # a cold solve (the first of a cycle): on the MX twin (the same variables and rows), which builds
@@ -566,12 +733,17 @@ class MPCController:
                                 self.dt)
 
     def stats(self) -> dict[str, float]:
-        """Per-step solve times (s; the first step's planning apart) and the fallback count."""
+        """Per-step solve times (s; the first step's planning apart; realtime: the time to the control, the
+        worker's solves apart) and the fallback count."""
         st = np.asarray(self.solve_times[1:] or self.solve_times or [0.0])
+        bg = np.asarray(self.solve_walls or [0.0])
         return {"median_s": float(np.median(st)), "p95_s": float(np.percentile(st, 95)),
                 "p99_s": float(np.percentile(st, 99)), "max_s": float(st.max()),
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
-                "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time)}
+                "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time),
+                # realtime: the worker's solves per step (plan and schedule move), and how old the plans applied were
+                "background_median_s": float(np.median(bg)), "background_p99_s": float(np.percentile(bg, 99)),
+                "background_max_s": float(bg.max()), "plan_age_max": int(max(self.plan_ages, default=0))}
 
 
 @dataclass(frozen=True)
@@ -587,6 +759,7 @@ class ClosedLoopResult:
     solve_times_s: list[float]
     plant_params: dict[str, Any] | None  # the simulated machine where it differs from the model
     scenario: dict[str, Any] | None = None  # the plant's cycle (wl_env.scenario.Scenario; None: outside its ranges)
+    worker_solve_times_s: list[float] = dataclasses.field(default_factory=list)  # realtime: the worker's solves per job
 
     def to_dict(self) -> dict[str, Any]:
         """As written to JSON: the episode's fields at the top level (with its trajectory's t, states,
@@ -596,7 +769,8 @@ class ClosedLoopResult:
         return {"controller": "mpc", "braking": self.braking, "mode": self.config.mode, "scenario": self.scenario,
                 "target_time": self.config.target_time, **ep, **traj,
                 "score": self.score.to_dict() if self.score is not None else None,
-                "solve_time": self.solve_time, "solve_times_s": self.solve_times_s, "plant_params": self.plant_params}
+                "solve_time": self.solve_time, "solve_times_s": self.solve_times_s,
+                "worker_solve_times_s": self.worker_solve_times_s, "plant_params": self.plant_params}
 
 
 def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
@@ -645,4 +819,4 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
 
     return ClosedLoopResult(braking=braking, config=config, episode=ep, score=s, solve_time=ctrl.stats(),
                             solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None,
-                            scenario=scenario_of(plant, braking))
+                            scenario=scenario_of(plant, braking), worker_solve_times_s=list(ctrl.solve_walls))

@@ -7,13 +7,16 @@ object with :meth:`IpoptSolver.solve`'s signature, so a test can inject a failin
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
 import functools
 import gc
 import logging
 import math
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -92,6 +95,64 @@ def grid_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], .
     return GridNLP(model, first_phase, dict(slots), symbolic)
 
 
+# A wall-clock deadline per solve call (time.perf_counter() s), per thread: IPOPT's own max_wall_time is
+# fixed when its solver is built, and a real-time controller's solves each have their own.
+_CALL = threading.local()
+
+
+@contextlib.contextmanager
+def solve_until(deadline: float | None) -> Iterator[None]:
+    """Warm IPOPT solves in this thread, within the block, stop at ``deadline`` (time.perf_counter()
+    seconds; None: no limit) with the iterate so far (status ``Deadline_Exceeded``)."""
+    before = getattr(_CALL, "deadline", None)
+    _CALL.deadline, _CALL.stopped = deadline, False
+    try:
+        yield
+    finally:
+        _CALL.deadline = before
+
+
+class _DeadlineCallback(ca.Callback):
+    """IPOPT's intermediate callback: stop once the calling thread's deadline (:func:`solve_until`) passed."""
+
+    def __init__(self, n_var: int, n_con: int) -> None:
+        ca.Callback.__init__(self)
+        self.n_var, self.n_con = n_var, n_con
+        self.construct("deadline", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "stop"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        name = ca.nlpsol_out(i)
+        if name == "f":
+            return ca.Sparsity.scalar()
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.n_var)
+        if name in ("g", "lam_g"):
+            return ca.Sparsity.dense(self.n_con)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg: Any) -> list[int]:
+        deadline = getattr(_CALL, "deadline", None)
+        stop = deadline is not None and time.perf_counter() > deadline
+        if stop:
+            _CALL.stopped = True
+        return [int(stop)]
+
+
+_CALLBACKS: dict[tuple[int, int], _DeadlineCallback] = {}  # per NLP size, kept alive beside the solvers calling them
+
+
 @functools.lru_cache(maxsize=NLP_CACHE)
 def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
@@ -103,6 +164,9 @@ def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None)
                      "ipopt.warm_start_slack_bound_push": 1e-6})
         if max_wall_time is not None:
             opts["ipopt.max_wall_time"] = max_wall_time
+        size = (nlp.n_var, nlp.n_con)
+        callback = _CALLBACKS[size] if size in _CALLBACKS else _CALLBACKS.setdefault(size, _DeadlineCallback(*size))
+        opts.update({"iteration_callback": callback, "iteration_callback_ignore_errors": False})
     return ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
 
 
@@ -129,9 +193,12 @@ class IpoptSolver:
         args = nlp.fix_leading_idle(args)
         extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
         log.debug("IPOPT: a %s grid NLP solve from phase %d", "warm" if warm else "cold", nlp.first_phase)
+        _CALL.stopped = False
         sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
         stats = fn.stats()
         status = str(stats.get("return_status", "unknown"))
+        if status == "User_Requested_Stop" and getattr(_CALL, "stopped", False):
+            status = "Deadline_Exceeded"  # (solve_until's, not an interrupt)
         interrupt.check(status)  # Ctrl-C inside IPOPT stops the run, not just this plan
         z = np.array(sol["x"]).ravel()
         ok = (bool(stats.get("success")) or status == "Solved_To_Acceptable_Level") and bool(np.isfinite(z).all())
@@ -246,6 +313,7 @@ def release_solvers() -> None:
     440 MB after one cycle, 110 MB after this)."""
     for cache in (step_model, grid_nlp, _ipopt, _fatrop, _sqp_rti):
         cache.cache_clear()
+    _CALLBACKS.clear()
     gc.collect()
     try:  # glibc only (elsewhere the memory is still freed, just not returned at once)
         ctypes.CDLL(None).malloc_trim(0)
