@@ -296,9 +296,12 @@ def test_fixed_first_controls_and_a_solve_deadline():
     first = ctrl._nlp(1).plan(moved.z, moved.counts, x, ctrl.dt)["controls"][0]
     assert moved.ok and np.allclose(first, other, rtol=1e-9, atol=1e-12)
     assert moved.J >= sol.J - 1e-3 * abs(sol.J)  # (IPOPT's acceptable tolerance; the first step's rows are relaxed)
-    with solve_until(time.perf_counter() - 1.0):
-        late = ctrl._solve(1, sol.counts, x, sol)
-    assert not late.ok and late.status == "Deadline_Exceeded" and late.z is not None
+    with solve_until(time.perf_counter() - 1.0):  # stopped at once: the warm start, with another first step
+        late = ctrl._solve(1, sol.counts, x, sol, u_fixed=other[None, :])
+    assert late.status.startswith("Deadline_Exceeded (an infeasible iterate") and not late.ok and late.z is not None
+    with solve_until(time.perf_counter() - 1.0):  # ... with the same: the plan, feasible
+        again = ctrl._solve(1, sol.counts, x, sol)
+    assert again.status.startswith("Deadline_Exceeded (a feasible iterate") and again.ok
 
 
 def test_bad_deadline_is_refused():

@@ -72,6 +72,10 @@ MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
+# The last first plan per model, first phase and slot layout, with the mode it was for: the next cycle's
+# first solve starts there.
+_FIRST_PLANS: dict[tuple, tuple[Solve, tuple]] = {}
+FIRST_PLANS_KEPT = 16
 
 
 @dataclass
@@ -210,6 +214,7 @@ class MPCController:
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
         self._last: tuple | None = None  # (state, phase, control) of the previous step
+        self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self.estimator.reset()
         self.schedule.reset()
         self.solve_times: list[float] = []  # per step: the time to its control (realtime: the foreground's)
@@ -223,7 +228,9 @@ class MPCController:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
-        if self._last is not None:
+        if self._last is not None and self._ahead is not None:
+            self._transitions.append((*self._last, x, phase))  # the worker's to learn from, before its next solve
+        elif self._last is not None:
             self.estimator.update(*self._last, x, phase)
         self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
@@ -398,14 +405,21 @@ class MPCController:
 
     def _submit_ahead(self, x: np.ndarray, phase: int, k: int, counts: dict[int, int], controls: np.ndarray) -> None:
         """Hand the solve from step k to the worker, the ``controls`` of its first steps fixed (the lead),
-        then the schedule move worth a try, if any. What they read from the controller is fixed now."""
+        then the schedule move worth a try, if any; the worker first updates the model-error estimate
+        with the steps since its last solve."""
         lead = len(controls)
-        args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
-                "margin": self._later_margin(), "u_fixed": controls}
+        u_prev = None if self._last is None else np.array(self._last[2])
         warm, start = self._iterate, self._step_start
+        transitions, self._transitions = self._transitions, []
 
         def solves() -> tuple | None:
             try:
+                # every CasADi call of a real-time controller runs here, on the worker: CasADi's objects
+                # are not safe to create in two threads at once
+                for transition in transitions:
+                    self.estimator.update(*transition)
+                args = {"est": np.array(self.estimator.estimate), "u_prev": u_prev, "margin": self._later_margin(),
+                        "u_fixed": controls}
                 with solve_until(start + lead * self.dt - REALTIME_MARGIN_S):
                     job.sol = sol = self._solve(phase, counts, x, warm, **args)
             finally:
@@ -588,14 +602,32 @@ class MPCController:
 
     def _plan_cycle(self, x: np.ndarray, phase: int, k: int) -> None:
         """The first step: the schedule from the continuous optimum, then improved by single-step moves
-        (the predicted best first; it ends after SEARCH_FAILURES moves in a row that did not pay)."""
-        ref = self.reference()
+        (the predicted best first; it ends after SEARCH_FAILURES moves in a row that did not pay; a
+        real-time controller leaves them to its worker during the cycle). A cycle this process planned
+        before (the same model, mode and start phase) starts from that first plan, its schedule and
+        multipliers; another of the same slot layout from its plan, stretched; else the first solve is
+        cold, from the continuous optimum."""
         cfg = self.config
+        if cfg.mode == "target_time":
+            self.schedule.target_steps = int(math.floor(cfg.target_time / self.dt + 1e-6))
+        m = self.model  # (by value: the model's NLPs may have been released and built again since)
+        model_key = (m.braking, m.params.fingerprint(), m.dt, m.substeps, m.omega_margin, phase)
+        mode_key = (cfg.mode, cfg.target_time, cfg.w_fuel, k)
+        again = [(key, last) for key, (last, mk) in _FIRST_PLANS.items() if key[0] == model_key and mk == mode_key]
+        if again:
+            key, last = again[-1]
+            self._slots = dict(key[1])
+            for q in range(phase, 5):
+                self.solver.prepare(self._nlp(q))
+            sol = self._solve(phase, last.counts, x, warm=last)
+            if sol.ok:
+                self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+                return
+        ref = self.reference()
         durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
         if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
             durations = {q: d for q, d in durations.items() if q >= phase}
         if cfg.mode == "target_time":
-            self.schedule.target_steps = int(math.floor(cfg.target_time / self.dt + 1e-6))
             n = max(self.schedule.target_steps - k, len(durations))
         else:
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
@@ -603,9 +635,17 @@ class MPCController:
         self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
         for q in range(phase, 5):  # build them all now, not in the middle of the cycle
             self.solver.prepare(self._nlp(q))
-        sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
+        key = (model_key, tuple(sorted(self._slots.items())))
+        sol = None
+        if key in _FIRST_PLANS:
+            last = _FIRST_PLANS[key][0]
+            z, lam_x, lam_g = self._nlp(phase).resample(last.z, last.lam_x, last.lam_g, last.counts, counts)
+            warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
+            sol = self._solve(phase, counts, x, warm=warm)
+        if sol is None or not sol.ok:
+            sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
-        for _ in range(SEARCH_SOLVES):
+        for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
             # a step fewer that did not hold the targets will not from another phase either
             removals = sum(1 for m in failed if m[1] is None) < 1
             move = (self.schedule.candidate(sol, self._nlp(sol.first_phase), phase, k, failed, removals, MIN_GAIN)
@@ -620,6 +660,10 @@ class MPCController:
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+        _FIRST_PLANS.pop(key, None)
+        _FIRST_PLANS[key] = (sol, mode_key)
+        while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
+            del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
 
     def reference(self):
         """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""
@@ -690,10 +734,10 @@ class MPCController:
         try:
             args = nlp.arguments(counts, x, est, self.dt, tighten=(self.config.tighten, margin), u_prev=u_prev,
                                  rate_weight=self.config.rate_weight)
-        except ValueError as exc:  # a schedule that does not fit the slots
+            if u_fixed is not None:
+                args = nlp.fix_first_controls(args, u_fixed)
+        except ValueError as exc:  # a schedule that does not fit the slots (or is shorter than the fixed steps)
             return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
-        if u_fixed is not None:
-            args = nlp.fix_first_controls(args, u_fixed)
         if warm is not None and warm.first_phase == first_phase and warm.z is not None:
             return timed_solve(self.solver, nlp, counts, first_phase, args, warm.z, warm)
         # a cold solve (the first of a cycle): on the MX twin (the same variables and rows), which builds

@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 # A schedule meets the targets if no relative miss exceeds this (6.6 mm at the reversing point, 5 mm in height).
 MISS_TOL = 1e-3
 EXCESS_TOL = 1e-4  # ... and no planned deceleration exceeds the limit by more than this (relative)
+# A solve stopped at its deadline (solve_until) is a plan if its iterate meets the rows to this (IPOPT's
+# primal infeasibility, max norm): feasible, if not yet optimal, as a real-time iteration's.
+DEADLINE_FEASIBLE_TOL = 1e-4  # (the acceptable level the solves here stop at, ipopt.acceptable_tol)
 
 
 @dataclass
@@ -103,7 +106,8 @@ _CALL = threading.local()
 @contextlib.contextmanager
 def solve_until(deadline: float | None) -> Iterator[None]:
     """Warm IPOPT solves in this thread, within the block, stop at ``deadline`` (time.perf_counter()
-    seconds; None: no limit) with the iterate so far (status ``Deadline_Exceeded``)."""
+    seconds; None: no limit) with the iterate so far (status ``Deadline_Exceeded``; ok if the iterate is
+    feasible, DEADLINE_FEASIBLE_TOL)."""
     before = getattr(_CALL, "deadline", None)
     _CALL.deadline, _CALL.stopped = deadline, False
     try:
@@ -113,11 +117,11 @@ def solve_until(deadline: float | None) -> Iterator[None]:
 
 
 class _DeadlineCallback(ca.Callback):
-    """IPOPT's intermediate callback: stop once the calling thread's deadline (:func:`solve_until`) passed."""
+    """IPOPT's intermediate callback: stop once the calling thread's deadline (:func:`solve_until`) passed.
+    It takes the objective only (empty inputs otherwise: no copy of the iterate per iteration)."""
 
-    def __init__(self, n_var: int, n_con: int) -> None:
+    def __init__(self) -> None:
         ca.Callback.__init__(self)
-        self.n_var, self.n_con = n_var, n_con
         self.construct("deadline", {})
 
     def get_n_in(self) -> int:
@@ -133,14 +137,7 @@ class _DeadlineCallback(ca.Callback):
         return "stop"
 
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        name = ca.nlpsol_out(i)
-        if name == "f":
-            return ca.Sparsity.scalar()
-        if name in ("x", "lam_x"):
-            return ca.Sparsity.dense(self.n_var)
-        if name in ("g", "lam_g"):
-            return ca.Sparsity.dense(self.n_con)
-        return ca.Sparsity(0, 0)
+        return ca.Sparsity.scalar() if ca.nlpsol_out(i) == "f" else ca.Sparsity(0, 0)
 
     def eval(self, arg: Any) -> list[int]:
         deadline = getattr(_CALL, "deadline", None)
@@ -150,7 +147,7 @@ class _DeadlineCallback(ca.Callback):
         return [int(stop)]
 
 
-_CALLBACKS: dict[tuple[int, int], _DeadlineCallback] = {}  # per NLP size, kept alive beside the solvers calling them
+_DEADLINE_CALLBACK: _DeadlineCallback | None = None  # one for every solver (built on first use)
 
 
 @functools.lru_cache(maxsize=NLP_CACHE)
@@ -164,9 +161,9 @@ def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None)
                      "ipopt.warm_start_slack_bound_push": 1e-6})
         if max_wall_time is not None:
             opts["ipopt.max_wall_time"] = max_wall_time
-        size = (nlp.n_var, nlp.n_con)
-        callback = _CALLBACKS[size] if size in _CALLBACKS else _CALLBACKS.setdefault(size, _DeadlineCallback(*size))
-        opts.update({"iteration_callback": callback, "iteration_callback_ignore_errors": False})
+        global _DEADLINE_CALLBACK
+        _DEADLINE_CALLBACK = _DEADLINE_CALLBACK or _DeadlineCallback()
+        opts.update({"iteration_callback": _DEADLINE_CALLBACK, "iteration_callback_ignore_errors": False})
     return ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
 
 
@@ -201,7 +198,12 @@ class IpoptSolver:
             status = "Deadline_Exceeded"  # (solve_until's, not an interrupt)
         interrupt.check(status)  # Ctrl-C inside IPOPT stops the run, not just this plan
         z = np.array(sol["x"]).ravel()
-        ok = (bool(stats.get("success")) or status == "Solved_To_Acceptable_Level") and bool(np.isfinite(z).all())
+        ok = bool(stats.get("success")) or status == "Solved_To_Acceptable_Level"
+        if status == "Deadline_Exceeded":
+            inf_pr = stats.get("iterations", {}).get("inf_pr") or [math.inf]
+            ok = inf_pr[-1] <= DEADLINE_FEASIBLE_TOL
+            status += f" ({'a feasible' if ok else 'an infeasible'} iterate, {int(stats.get('iter_count', 0))} iterations)"
+        ok = ok and bool(np.isfinite(z).all())
         if not np.isfinite(z).all():
             status += " (non-finite iterate)"
         return SolverResult(ok=ok, status=status, iterations=int(stats.get("iter_count", 0)), z=z,
@@ -313,7 +315,6 @@ def release_solvers() -> None:
     440 MB after one cycle, 110 MB after this)."""
     for cache in (step_model, grid_nlp, _ipopt, _fatrop, _sqp_rti):
         cache.cache_clear()
-    _CALLBACKS.clear()
     gc.collect()
     try:  # glibc only (elsewhere the memory is still freed, just not returned at once)
         ctypes.CDLL(None).malloc_trim(0)
