@@ -284,7 +284,7 @@ def test_fixed_first_controls_and_a_solve_deadline():
     tolerance); a solve past its
     deadline (solve_until) returns a failed solve with its iterate, not an interrupt."""
     ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0))
-    env = gym.make("WheelLoader-v1", braking="service")
+    env = gym.make("WheelLoader-v2", braking="service")
     obs, _ = env.reset(seed=0)
     ctrl.act(obs)
     sol, x = ctrl._sol, ctrl.project_state(ctrl.state_from_obs(obs)[0], 1)
