@@ -450,6 +450,7 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
      "contradicts"),
     (["evaluate", "--controller", "operator", "--sample", "3"], "--sample", "--suite"),
     (["mpc", "--mismatch"], "--mismatch", "--scenario"),
+    (["mpc", "--realtime", "--deadline-ms", "50"], "--realtime", "--deadline-ms"),
     (["train", "--env-id", "WheelLoader-v7"], "--env-id", "WheelLoaderTarget-v0"),
     (["train", "--scenario", "train"], "--scenario", "WheelLoader-v1"),
     (["train", "--env-id", "WheelLoaderTarget-v0", "--target", "0.5", "2"], "--target", "[1, 3]"),

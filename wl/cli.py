@@ -132,7 +132,10 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     out = _out_file(args.out)
     if args.cache:
         _out_dir(args.cache, "--cache")
-    rt = {"deadline_ms": args.deadline_ms, **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
+    if args.realtime and args.deadline_ms is not None:
+        raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
+    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime,
+          **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
     elif args.w_fuel is not None:
@@ -395,6 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--w-fuel", type=_unit_float, metavar="W", help="weighted fuel/time objective, fuel weight W in [0, 1]")
     p.add_argument("--deadline-ms", type=_float_in(0, 100, open_lo=True, unit=" ms"), metavar="MS",
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
+    p.add_argument("--realtime", action="store_true", help="real-time MPC: each step applies the plan solved while "
+                   "the steps before ran and hands its own solve to a worker thread (a control in about 0.1 ms)")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
                    help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")

@@ -110,10 +110,11 @@ class MPCConfig:
     # A hard deadline per step (ms, after the first): a solve not done by then runs on in the background
     # and the step applies the previous plan, shifted (flagged in ``last_info``); never a late control.
     deadline_ms: float | None = None
-    # Real time (advanced step): each step applies the plan solved during the interval before it, from the
-    # state measured then with that step's control fixed, and hands its own solve (and any schedule move)
-    # to the solver's worker; the control is ready in about a millisecond. A solve not done within its
-    # interval leaves the previous plan, shifted, in use (flagged in ``last_info``). Timing-dependent.
+    # Real time (advanced step): each step applies the plan solved while the steps before it ran (from the
+    # state measured then, the controls of the steps the solve takes fixed) and hands its own solve (and
+    # any schedule move) to the solver's worker; the control is ready in about 0.1 ms. A plan older than
+    # the solves take is flagged in ``last_info``. The first plan skips the schedule search (the worker's
+    # moves do it during the cycle). Timing-dependent, as any real-time controller.
     realtime: bool = False
     # Fraction of the deceleration limit a plan keeps free (it may use the margin at a price, see
     # grid.DECEL_MARGIN_WEIGHT). The plan is the plant's own step, so a nominal plant needs only the
@@ -218,7 +219,7 @@ class MPCController:
         self.estimator.reset()
         self.schedule.reset()
         self.solve_times: list[float] = []  # per step: the time to its control (realtime: the foreground's)
-        self.solve_walls: list[float] = []  # realtime: each background job's solves (s)
+        self.worker_solve_times: list[float] = []  # realtime: each worker job's solves, plan and move (s)
         self.plan_ages: list[int] = []  # realtime: per step, the steps since the plan it applies was solved
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.fallbacks = 0
@@ -279,7 +280,7 @@ class MPCController:
         t0 = time.perf_counter()
         x_plan = self.project_state(x, phase)
         if self._counts is not None and self.config.realtime:
-            return self._control_ahead(x_plan, phase, k, t0)
+            return self._control_ahead(x_plan, phase, k)
         if self._counts is None:  # the first step plans the cycle (a real controller would before it starts)
             self._plan_cycle(x_plan, phase, k)
             solves, ok, over_budget = [self._sol], True, False
@@ -369,7 +370,7 @@ class MPCController:
                      lam_g=lam_g, lam_p=None)
 
     # ------------------------------------------------------------------ real time (MPCConfig.realtime)
-    def _control_ahead(self, x: np.ndarray, phase: int, k: int, t_call: float) -> tuple[np.ndarray, bool, dict[str, Any]]:
+    def _control_ahead(self, x: np.ndarray, phase: int, k: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """A real-time step: the control from the plan solved while the steps before it ran, and, if the
         worker is free, the next solve handed to it: from this step's state, with the controls of the
         steps it will take to solve (its lead) fixed at the current plan's, so that its plan starts when
@@ -384,9 +385,8 @@ class MPCController:
         counts = dict(self._counts)
         i = k - self._plan["k_made"]
         u, shift = self._from_plan(k, phase)
-        job = self._ahead
-        late = job is not None and (job.collected or k >= job.k + job.lead)  # the plan in use is overdue
-        if job is None:
+        late = k - self._plan["k_made"] > self._lead  # older than the solves take: a newer one is overdue
+        if self._ahead is None:
             later = np.asarray(self._plan["controls"][i + 1:i + self._lead], dtype=float).reshape(-1, 3)
             self._submit_ahead(x, phase, k, counts, np.vstack([u, later]))
         if late:
@@ -465,7 +465,7 @@ class MPCController:
         except concurrent.futures.TimeoutError:
             return note + "; a schedule move under way"
         self._ahead = None
-        self.solve_walls.append(job.sol.wall + (outcome[1].wall if outcome else 0.0))
+        self.worker_solve_times.append(job.sol.wall + (outcome[1].wall if outcome else 0.0))
         if outcome is not None:
             note += self._take_move(job, *outcome, in_time=k - job.k <= job.lead)
         return note
@@ -780,7 +780,7 @@ class MPCController:
         """Per-step solve times (s; the first step's planning apart; realtime: the time to the control, the
         worker's solves apart) and the fallback count."""
         st = np.asarray(self.solve_times[1:] or self.solve_times or [0.0])
-        bg = np.asarray(self.solve_walls or [0.0])
+        bg = np.asarray(self.worker_solve_times or [0.0])
         return {"median_s": float(np.median(st)), "p95_s": float(np.percentile(st, 95)),
                 "p99_s": float(np.percentile(st, 99)), "max_s": float(st.max()),
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
@@ -863,4 +863,4 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
 
     return ClosedLoopResult(braking=braking, config=config, episode=ep, score=s, solve_time=ctrl.stats(),
                             solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None,
-                            scenario=scenario_of(plant, braking), worker_solve_times_s=list(ctrl.solve_walls))
+                            scenario=scenario_of(plant, braking), worker_solve_times_s=list(ctrl.worker_solve_times))
