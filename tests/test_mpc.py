@@ -267,8 +267,9 @@ def test_realtime_never_waits_for_a_slow_solver():
         if ctrl.last_info["fallback"]:
             overdue.append(k)
             assert "overdue" in ctrl.last_info["status"]
-            if ctrl._plan is plan_before:  # the plan in use, one step further on
-                i = k - plan_before["k_made"]
+            i = k - plan_before["k_made"]
+            if ctrl._plan is plan_before and i < len(plan_before["stop"]) and not plan_before["stop"][i]:
+                # the plan in use, one step further on (a stop step at the truck brakes the bucket instead)
                 assert np.allclose(ctrl.codec.decode_action(*a[:3])[:2], plan_before["controls"][i][:2],
                                    rtol=1e-4, atol=1e-3)
         obs, _, term, trunc, info = env.step(a)
@@ -302,6 +303,22 @@ def test_fixed_first_controls_and_a_solve_deadline():
     with solve_until(time.perf_counter() - 1.0):  # ... with the same: the plan, feasible
         again = ctrl._solve(1, sol.counts, x, sol)
     assert again.status.startswith("Deadline_Exceeded (a feasible iterate") and again.ok
+
+
+def test_the_same_cycle_again_plans_within_a_second_and_alike():
+    """A cycle planned before in the process (same model, mode and start) starts from its first plan:
+    under a second (measured 0.13-0.16 s against 13-17 s with the NLP builds), the same schedule and
+    controls to the solver's tolerance."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    plans = []
+    for _ in range(2):
+        ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0))
+        ctrl.act(obs)
+        plans.append((ctrl.planning_time, ctrl._counts, np.asarray(ctrl._plan["controls"])))
+    (_, counts_1, u_1), (t_2, counts_2, u_2) = plans
+    assert t_2 < 1.0 and counts_2 == counts_1
+    assert np.allclose(u_2, u_1, rtol=1e-3, atol=1e-3 * np.abs(u_1).max(axis=0))
 
 
 def test_bad_deadline_is_refused():

@@ -446,7 +446,7 @@ class GridNLP:
         if len(controls) > len(active):
             raise ValueError(f"{len(controls)} controls to fix, but the schedule has {len(active)} steps")
         lbx, ubx, lbg, ubg = (np.array(args[k], dtype=float) for k in ("lbx", "ubx", "lbg", "ubg"))
-        for k, u in zip(active, controls):
+        for k, u in zip(active[:len(controls)], controls, strict=True):
             s = self.slots[int(k)]
             lbx[s.u:s.u + 3] = ubx[s.u:s.u + 3] = np.clip(u[:3] / U_SCALE, lbx[s.u:s.u + 3], ubx[s.u:s.u + 3])
             n = self._rows(s)

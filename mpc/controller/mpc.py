@@ -39,8 +39,16 @@ import numpy as np
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
-from mpc.controller.solver import (GridSolver, IpoptSolver, Solve, grid_nlp, release_solvers, solve_until, step_model,
-                                   timed_solve)
+from mpc.controller.solver import (
+    GridSolver,
+    IpoptSolver,
+    Solve,
+    grid_nlp,
+    release_solvers,
+    solve_until,
+    step_model,
+    timed_solve,
+)
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
@@ -72,9 +80,9 @@ MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
-# The last first plan per model, first phase and slot layout, with the mode it was for: the next cycle's
-# first solve starts there.
-_FIRST_PLANS: dict[tuple, tuple[Solve, tuple]] = {}
+# The first plans of the cycles planned in this process, with their slot layouts: the same cycle again
+# starts from its plan (MPCController._plan_cycle).
+_FIRST_PLANS: dict[tuple, tuple[Solve, dict[int, int]]] = {}
 FIRST_PLANS_KEPT = 16
 
 
@@ -603,20 +611,18 @@ class MPCController:
     def _plan_cycle(self, x: np.ndarray, phase: int, k: int) -> None:
         """The first step: the schedule from the continuous optimum, then improved by single-step moves
         (the predicted best first; it ends after SEARCH_FAILURES moves in a row that did not pay; a
-        real-time controller leaves them to its worker during the cycle). A cycle this process planned
-        before (the same model, mode and start phase) starts from that first plan, its schedule and
-        multipliers; another of the same slot layout from its plan, stretched; else the first solve is
-        cold, from the continuous optimum."""
+        real-time controller leaves them to its worker during the cycle). The same cycle planned before
+        in this process (model, mode, start state and step) starts from that first plan, its schedule
+        and multipliers: the plan a fresh process would make, to the solver's tolerance, in a tenth of
+        the time. Only the same: another start would skip the search a fresh process makes."""
         cfg = self.config
         if cfg.mode == "target_time":
             self.schedule.target_steps = int(math.floor(cfg.target_time / self.dt + 1e-6))
         m = self.model  # (by value: the model's NLPs may have been released and built again since)
-        model_key = (m.braking, m.params.fingerprint(), m.dt, m.substeps, m.omega_margin, phase)
-        mode_key = (cfg.mode, cfg.target_time, cfg.w_fuel, k)
-        again = [(key, last) for key, (last, mk) in _FIRST_PLANS.items() if key[0] == model_key and mk == mode_key]
-        if again:
-            key, last = again[-1]
-            self._slots = dict(key[1])
+        key = (m.braking, m.params.fingerprint(), m.dt, m.substeps, m.omega_margin, phase, cfg.mode, cfg.target_time,
+               cfg.w_fuel, cfg.realtime, k, np.asarray(x, dtype=float).tobytes())
+        if key in _FIRST_PLANS:
+            last, self._slots = _FIRST_PLANS[key]
             for q in range(phase, 5):
                 self.solver.prepare(self._nlp(q))
             sol = self._solve(phase, last.counts, x, warm=last)
@@ -635,15 +641,7 @@ class MPCController:
         self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
         for q in range(phase, 5):  # build them all now, not in the middle of the cycle
             self.solver.prepare(self._nlp(q))
-        key = (model_key, tuple(sorted(self._slots.items())))
-        sol = None
-        if key in _FIRST_PLANS:
-            last = _FIRST_PLANS[key][0]
-            z, lam_x, lam_g = self._nlp(phase).resample(last.z, last.lam_x, last.lam_g, last.counts, counts)
-            warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
-            sol = self._solve(phase, counts, x, warm=warm)
-        if sol is None or not sol.ok:
-            sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
+        sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
         for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
             # a step fewer that did not hold the targets will not from another phase either
@@ -661,7 +659,7 @@ class MPCController:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         _FIRST_PLANS.pop(key, None)
-        _FIRST_PLANS[key] = (sol, mode_key)
+        _FIRST_PLANS[key] = (sol, dict(self._slots))
         while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
             del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
 
