@@ -437,9 +437,9 @@ class GridNLP:
     def fix_first_controls(self, args: dict[str, Any], controls: np.ndarray) -> dict[str, Any]:
         """The arguments with the first active steps' controls fixed at ``controls`` (one [U_mf, U_ab, U_b]
         per step, clipped to its bounds) and those steps' own rows and end-state bounds relaxed: controls
-        already committed, whose limits nothing can change any more (a stop step's target rows stay). The plan then starts
-        that many steps later (a real-time controller solves while it applies them, see
-        ``MPCConfig.realtime``)."""
+        already committed, whose limits nothing can change any more (a stop step's target rows stay).
+        The plan then starts that many steps later (a real-time controller solves while it applies them,
+        see ``MPCConfig.realtime``)."""
         p = args["p"]
         active = np.flatnonzero(p[self._active_offset:self._rate_offset] > 0)
         controls = np.atleast_2d(np.asarray(controls, dtype=float))
