@@ -229,6 +229,7 @@ def test_realtime_controls_come_at_once_and_keep_the_optimum():
     # the worker's solves kept up: most steps applied the plan due for them
     assert len(r.worker_solve_times_s) > 0.5 * len(r.solve_times_s)
     assert ctrl.fallbacks < 0.5 * len(r.solve_times_s)
+    assert ctrl._ahead is None  # the worker's last solve ended with the episode (run_episode -> end_episode)
 
 
 class ToggledSlowSolver(IpoptSolver):

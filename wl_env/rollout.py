@@ -110,14 +110,19 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
     unwrapped = env.unwrapped
     ts, states, controls, phases = [0.0], [list(map(float, unwrapped.state))], [], [int(unwrapped.phase)]
     total, term, trunc = 0.0, False, False
-    while not (term or trunc):
-        obs, r, term, trunc, info = env.step(controller.act(obs))
-        total += float(r)
-        if trajectory:
-            ts.append(float(info["t"]))
-            states.append([float(v) for v in info["state"]])
-            controls.append([float(v) for v in info["controls"]])
-            phases.append(int(info["phase"]))
+    try:
+        while not (term or trunc):
+            obs, r, term, trunc, info = env.step(controller.act(obs))
+            total += float(r)
+            if trajectory:
+                ts.append(float(info["t"]))
+                states.append([float(v) for v in info["state"]])
+                controls.append([float(v) for v in info["controls"]])
+                phases.append(int(info["phase"]))
+    finally:  # a controller with work in the background (the MPC's worker) ends it with the episode
+        end = getattr(controller, "end_episode", None)
+        if callable(end):
+            end()
     rev = info["reversing_error"]
     return EpisodeResult(
         seed=seed, T=float(info["t"]), fuel_g=float(info["fuel_g"]), success=bool(info["is_success"]),

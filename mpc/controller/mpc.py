@@ -202,12 +202,7 @@ class MPCController:
         self.config = self._made_with if target_time is None else dataclasses.replace(
             self._made_with, mode="target_time", target_time=target_time, w_fuel=None)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
-        if self._pending is not None:
-            self._pending[1].result()  # a late solve of the last cycle ends first (within its wall-time limit)
-            self._pending = None
-        if self._ahead is not None:
-            self._ahead.future.result()
-            self._ahead = None
+        self.end_episode()
         if scenario is not None:
             if scenario.braking != self.braking:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
@@ -234,6 +229,16 @@ class MPCController:
         self.deadline_misses = 0
         self.planning_time = 0.0
         self.last_info: dict[str, Any] = {}
+
+    def end_episode(self) -> None:
+        """The cycle is over: wait for the worker's solve, if one still runs (a late one, or a real-time
+        step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
+        controller's plan) would run beside it, and CasADi's objects are not safe to create from two
+        threads at once (seen: heap corruption)."""
+        pending, self._pending = self._pending, None
+        ahead, self._ahead = self._ahead, None
+        for future in [f for f in (pending and pending[1], ahead and ahead.future) if f is not None]:
+            future.result()
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
