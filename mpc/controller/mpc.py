@@ -235,17 +235,18 @@ class MPCController:
         step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
         controller's plan) would run beside it, and CasADi's objects are not safe to create from two
         threads at once (seen: heap corruption)."""
-        pending, self._pending = self._pending, None
-        ahead, self._ahead = self._ahead, None
-        for future in [f for f in (pending and pending[1], ahead and ahead.future) if f is not None]:
+        futures = ([self._pending[1]] if self._pending else []) + ([self._ahead.future] if self._ahead else [])
+        self._pending = self._ahead = None
+        for future in futures:
             future.result()
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
-        if self._last is not None and self._ahead is not None:
-            self._transitions.append((*self._last, x, phase))  # the worker's to learn from, before its next solve
-        elif self._last is not None:
-            self.estimator.update(*self._last, x, phase)
+        if self._last is not None:
+            if self._ahead is not None:  # (the worker's to learn from, before its next solve)
+                self._transitions.append((*self._last, x, phase))
+            else:
+                self.estimator.update(*self._last, x, phase)
         self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
         self._last = (x, phase + 1 if shift else phase, u)
@@ -324,7 +325,7 @@ class MPCController:
         else:
             self.fallbacks += 1
         counts = dict(self._counts)
-        u, shift = self._from_plan(k, phase)
+        u, shift, _ = self._from_plan(k, phase)
         if self.config.realtime:  # the first step: the next one's solve starts now
             self._step_start, self._lead = time.perf_counter(), 1
             self._submit_ahead(x_plan, phase, k, counts, u[None, :])
@@ -345,13 +346,13 @@ class MPCController:
         plan["k_made"] = k
         return plan
 
-    def _from_plan(self, k: int, phase: int) -> tuple[np.ndarray, bool]:
-        """Control and shift request now, from the last good plan (its step ``k - k_made``), and the
-        schedule advanced past the step applied."""
+    def _from_plan(self, k: int, phase: int) -> tuple[np.ndarray, bool, int]:
+        """Control and shift request now, from the last good plan (its step ``k - k_made``, or the first of
+        ``phase`` if the plant is ahead of it), and the plan's step applied; the schedule advanced past it."""
         plan = self._plan
         i = k - plan["k_made"]
         if i >= len(plan["phase"]):  # the plan is used up: hold still (brakes where allowed, bucket stopped)
-            return self._terminal(None), False
+            return self._terminal(None), False, i
         step_phase, stop = int(plan["phase"][i]), bool(plan["stop"][i])
         if step_phase < phase:  # the plant is ahead of the plan (a phase ended early): its first step there
             later = np.flatnonzero(plan["phase"][i:] >= phase)
@@ -365,7 +366,7 @@ class MPCController:
         for q in range(phase, step_phase):
             self._counts[q] = 0
         shift = phase in (1, 3) and step_phase > phase
-        return u, shift
+        return u, shift, i
 
     def _enter_phase(self, phase: int) -> None:
         """The plant is in ``phase``: drop what the schedule had left of the phases before (the plant
@@ -396,10 +397,10 @@ class MPCController:
         self._step_start = t0
         self._enter_phase(phase)
         counts = dict(self._counts)
-        i = k - self._plan["k_made"]
-        u, shift = self._from_plan(k, phase)
-        late = k - self._plan["k_made"] > self._lead  # older than the solves take: a newer one is overdue
-        if self._ahead is None:
+        made, age = self._plan["k_made"], k - self._plan["k_made"]
+        u, shift, i = self._from_plan(k, phase)
+        late = age > self._lead  # older than the solves take: a newer one is overdue
+        if self._ahead is None:  # (the lead's later controls: the plan's steps after the one applied now)
             later = np.asarray(self._plan["controls"][i + 1:i + self._lead], dtype=float).reshape(-1, 3)
             self._submit_ahead(x, phase, k, counts, np.vstack([u, later]))
         if late:
@@ -407,11 +408,11 @@ class MPCController:
             self.deadline_misses += 1
         latency = time.perf_counter() - t0
         self.solve_times.append(latency)
-        self.plan_ages.append(k - self._plan["k_made"])
+        self.plan_ages.append(age)
         self.step_solves.append(0)
-        status = (f"the plan of step {self._plan['k_made']}" + ("; overdue, shifted" if late else "")) + note
+        status = (f"the plan of step {made}" + ("; overdue, shifted" if late else "")) + note
         info = {"solve_time": latency, "status": status, "fallback": late, "over_budget": False,
-                "deadline_missed": late, "solves": 0, "iterations": 0, "plan_age": k - self._plan["k_made"],
+                "deadline_missed": late, "solves": 0, "iterations": 0, "plan_age": age,
                 "lead": self._lead, "schedule": dict(self._counts),
                 "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
         return u, shift, info
@@ -628,8 +629,7 @@ class MPCController:
                cfg.w_fuel, cfg.realtime, k, np.asarray(x, dtype=float).tobytes())
         if key in _FIRST_PLANS:
             last, self._slots = _FIRST_PLANS[key]
-            for q in range(phase, 5):
-                self.solver.prepare(self._nlp(q))
+            self._prepare_nlps(phase)
             sol = self._solve(phase, last.counts, x, warm=last)
             if sol.ok:
                 self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
@@ -644,8 +644,7 @@ class MPCController:
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
         counts = apportion(durations, n, self.dt)
         self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
-        for q in range(phase, 5):  # build them all now, not in the middle of the cycle
-            self.solver.prepare(self._nlp(q))
+        self._prepare_nlps(phase)
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
         for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
@@ -667,6 +666,11 @@ class MPCController:
         _FIRST_PLANS[key] = (sol, dict(self._slots))
         while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
             del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
+
+    def _prepare_nlps(self, phase: int) -> None:
+        """Build the NLPs (and solvers) of the slot layout from ``phase`` on now, not in the middle of the cycle."""
+        for q in range(phase, 5):
+            self.solver.prepare(self._nlp(q))
 
     def reference(self):
         """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""

@@ -109,7 +109,7 @@ def solve_until(deadline: float | None) -> Iterator[None]:
     seconds; None: no limit) with the iterate so far (status ``Deadline_Exceeded``; ok if the iterate is
     feasible, DEADLINE_FEASIBLE_TOL)."""
     before = getattr(_CALL, "deadline", None)
-    _CALL.deadline, _CALL.stopped = deadline, False
+    _CALL.deadline = deadline
     try:
         yield
     finally:
