@@ -302,6 +302,21 @@ def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsy
     assert code == 0 and (tmp_path / "elsewhere" / "leaderboard.md").read_text() == first
 
 
+def test_isolated_evaluation_is_the_in_process_one(tmp_path):
+    """`wl run` runs each controller in a worker process of its own (its memory goes back to the OS when it
+    ends): the same episodes as in this process, and an error comes back as itself."""
+    from wl_env.suites import load_suite
+
+    scenarios = list(load_suite("test").spread("service", 2))  # (their optima are shipped: nothing is solved)
+    kwargs = {"scenarios": scenarios, "cache": str(tmp_path / "cache"), "name": "operator"}
+    here = wl.report.evaluation(wl.report.suite_controllers, "service", "operator", **kwargs)
+    there = wl.report.evaluation(wl.report.suite_controllers, "service", "operator", isolate=True, **kwargs)
+    assert [e["success"] for e in here["per_episode"]] == [True, True]
+    assert json.dumps(there["per_episode"], sort_keys=True) == json.dumps(here["per_episode"], sort_keys=True)
+    with pytest.raises(ValueError, match="controller must be one of .*'operator'.*, got 'no such controller'"):
+        wl.report.evaluation(wl.report.suite_controllers, "service", "no such controller", isolate=True, **kwargs)
+
+
 def _broken(results: dict, what: str) -> dict:
     results = json.loads(json.dumps(results))
     if what == "trajectories":

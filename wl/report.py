@@ -83,26 +83,24 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
                   controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = suite_controllers,
                   brakings: tuple[str, ...] = BRAKINGS,
                   at_targets: Callable[[str], list[tuple[str, Callable[[], Any]]]] | None = target_controllers,
-                  targets: tuple[tuple[str, float], ...] = TARGETS) -> dict[str, Any]:
+                  targets: tuple[tuple[str, float], ...] = TARGETS, isolate: bool = False) -> dict[str, Any]:
     """Every controller on ``sample`` scenarios of the suite per braking alternative (None: all of them),
     each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes.
-    ``at_targets``' controllers run at each of ``targets`` (a row each, with its lateness)."""
-    from agents.evaluate import evaluate_controller
-    from mpc.controller.solver import release_solvers
+    ``at_targets``' controllers run at each of ``targets`` (a row each, with its lateness). ``isolate``:
+    each controller's run in a worker process of its own (:func:`evaluation`)."""
     from wl_env.suites import load_suite
 
     s = load_suite(suite)
     rows, episodes = [], []
     for b in brakings:
         scenarios = list(s.spread(b, sample))
-        runs = [(name, factory, None, None) for name, factory in controllers(b)]
-        runs += [(name, factory, label, ratio) for name, factory in (at_targets(b) if at_targets else [])
+        runs = [(controllers, name, None, None) for name, _ in controllers(b)]
+        runs += [(at_targets, name, label, ratio) for name, _ in (at_targets(b) if at_targets else [])
                  for label, ratio in targets]
-        for name, factory, label, ratio in runs:
+        for listing, name, label, ratio in runs:
             log.info(f"[{suite} suite, {b}] {name}{'' if label is None else ', target ' + label}: "
                      f"{len(scenarios)} scenarios")
-            ev = evaluate_controller(factory(), b, scenarios=scenarios, cache=cache, name=name, target_ratio=ratio)
-            release_solvers()  # the next controller plans with other NLPs (a mode's slot layout, a model)
+            ev = evaluation(listing, b, name, isolate, scenarios=scenarios, cache=cache, name=name, target_ratio=ratio)
             sm = ev["summary"]
             rows.append({"controller": name, "braking": b, "target": label, "scenarios": len(scenarios),
                          "success_rate": sm["success_rate"],
@@ -118,20 +116,52 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
             "scenarios_per_braking": n_list, "rows": rows, "episodes": episodes}
 
 
+def evaluation(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], braking: str, controller: str,
+               isolate: bool = False, **kwargs: Any) -> dict[str, Any]:
+    """:func:`agents.evaluate.evaluate_controller` of the ``controller`` so named in ``listing(braking)``, with
+    ``kwargs``; every solver it built is dropped after it (the next controller plans with other NLPs).
+
+    ``isolate``: in a worker process of its own (:func:`mpc.workers.run_in_workers`: Ctrl-C and a failure
+    come back here), so that one controller's solvers and another's torch never share a heap, and each
+    one's memory goes back to the OS when it ends: the main job's peak is then the largest controller's
+    plus this process's, not their sum (measured in docs/benchmarks.md). ``listing`` must then be a
+    module-level function (the worker imports it by name)."""
+    if not isolate:
+        return _evaluate(listing, braking, controller, kwargs)
+    from mpc.workers import run_in_workers
+
+    job = ("wl.report:_evaluate", (listing, braking, controller, kwargs))
+    return run_in_workers({controller: job}, log_level=log.getEffectiveLevel())[controller]  # (its progress, as here)
+
+
+def _evaluate(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], braking: str, controller: str,
+              kwargs: dict[str, Any]) -> dict[str, Any]:
+    from agents.evaluate import evaluate_controller
+    from mpc.controller.solver import release_solvers
+
+    named = dict(listing(braking))
+    if controller not in named:
+        raise ValueError(f"controller must be one of {sorted(named)} ({braking} braking), got {controller!r}")
+    try:
+        return evaluate_controller(named[controller](), braking, **kwargs)
+    finally:
+        release_solvers()
+
+
 # ---------------------------------------------------------------------------------------------- collect
 def collect(out_dir: str | Path = "results", cache: str | None = None,
             controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = controllers,
             brakings: tuple[str, ...] = BRAKINGS, suite_sample: int | None = SUITE_SAMPLE,
             suite_controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] | None = suite_controllers,
-            ) -> dict[str, Any]:
+            isolate: bool = False) -> dict[str, Any]:
     """Load (shipped) or solve the nominal fronts, run each controller from the nominal start and on a
     sample of the ``test`` suite (``suite_sample`` per braking alternative, None: all; ``suite_controllers``
     None: no suite), save ``results.json``.
 
     Every controller runs through :func:`agents.evaluate.evaluate_controller`, the same evaluation as
-    ``wl evaluate``. Returns what was saved.
+    ``wl evaluate``; with ``isolate``, each in a worker process of its own (:func:`evaluation`). Returns
+    what was saved.
     """
-    from agents.evaluate import evaluate_controller
     from mpc.benchmark.pareto import min_time_result, pareto_fronts
     from mpc.benchmark.reference import known_front
     from mpc.controller.solver import release_solvers
@@ -161,17 +191,18 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
         rows.append({"controller": "optimum (min fuel at 1.001 T_min)", "braking": b, "T": front.T[0],
                      "fuel_g": front.fuel_g[0], "time_gap": front.T[0] / front.T_min - 1.0, "fuel_gap": 0.0,
                      "max_violation": 0.0, "success": True})
-        for name, factory in controllers(b):
+        release_solvers()  # (the optima's OCPs, if solved here)
+        for name, _ in controllers(b):
             log.info(f"[{b}] {name}")
-            ev = evaluate_controller(factory(), b, episodes=1, seed=0, front=front, cache=cache, trajectories=True)
-            release_solvers()
+            ev = evaluation(controllers, b, name, isolate, episodes=1, seed=0, front=front, cache=cache, trajectories=True)
             ep = ev["per_episode"][0]
             rows.append({"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"],
                          "time_gap": ep["time_gap"], "fuel_gap": ep["fuel_gap"], "max_violation": ep["max_violation"],
                          "success": ep["success"], "completed": ep["completed"]})
             traj = ep["trajectory"]
             trajectories.append({"controller": name, "braking": b, "t": traj["t"], "states": traj["states"]})
-    suite = (collect_suite(sample=suite_sample, cache=cache, controllers=suite_controllers, brakings=brakings)
+    suite = (collect_suite(sample=suite_sample, cache=cache, controllers=suite_controllers, brakings=brakings,
+                           isolate=isolate)
              if suite_controllers is not None else None)
     results = {"format": RESULTS_FORMAT, "brakings": list(brakings), "rows": rows, "fronts": fronts,
                "optima": optima, "trajectories": trajectories, "suite": suite,
@@ -391,9 +422,10 @@ def suite_figure(suite: dict[str, Any], path: Path) -> Path:
 
 
 def run_all(out_dir: str | Path = "results", cache: str | None = None, full_suite: bool = False) -> dict[str, Any]:
-    """``wl run``: :func:`collect` then :func:`render` into ``out_dir``; returns the results."""
+    """``wl run``: :func:`collect` (each controller in a worker process of its own) then :func:`render` into
+    ``out_dir``; returns the results."""
     t_start = time.perf_counter()
-    results = collect(out_dir, cache=cache, suite_sample=None if full_suite else SUITE_SAMPLE)
+    results = collect(out_dir, cache=cache, suite_sample=None if full_suite else SUITE_SAMPLE, isolate=True)
     render(results, out_dir)
     log.info(f"report written to {out_dir}/ in {time.perf_counter() - t_start:.0f} s")
     return results

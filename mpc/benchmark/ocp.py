@@ -163,6 +163,11 @@ _NLP_CACHE: dict[tuple, dict[str, Any]] = {}
 NLP_CACHE_SIZE = int(os.environ.get("WL_NLP_CACHE_SIZE", "12"))
 
 
+def release_nlps() -> None:
+    """Drop the OCP NLPs this process has built (see mpc.controller.solver.release_solvers)."""
+    _NLP_CACHE.clear()
+
+
 class CycleOCP:
     """The collocation NLP for one braking alternative, parameter set and mesh, from the scenario's start
     state in phase 1. The NLP and its solver are built once per machine and mesh (:func:`machine_key`) and

@@ -677,7 +677,10 @@ class MPCController:
         key = (self.braking, self.params.fingerprint(), self.config.mode, self.config.target_time,
                self.config.w_fuel, self.dt)
         if key not in _REFERENCES:
+            from mpc.benchmark.ocp import release_nlps
+
             _REFERENCES[key] = self._solve_reference()
+            release_nlps()  # its NLP (30-40 MB) is of no use in the cycle; the heap it held takes the MPC's own next
         return _REFERENCES[key]
 
     def _solve_reference(self):
