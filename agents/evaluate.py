@@ -30,6 +30,7 @@ import numpy as np
 
 from wl_env import cycle
 from wl_env.controller import Controller
+from wl_env.params import LoaderParams
 from wl_env.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -340,6 +341,7 @@ def evaluate_controller(
     target_time: float | None = None,
     target_ratio: float | None = None,
     min_time: str = "optimum",
+    deferred: bool = False,
 ) -> dict[str, Any]:
     """Run episodes of ``controller`` and score each completed one against the optimum of its own cycle.
 
@@ -364,6 +366,10 @@ def evaluate_controller(
     episode records it and its ``lateness``, (T - target) / target when positive, else 0. ``min_time``
     ``"estimate"`` takes the ratio of the scenario's estimated T_min instead (:mod:`wl_env.suites.min_time`;
     nothing solved, e.g. for training-time evaluations on unsolved draws).
+
+    ``deferred``: the completed episodes are scored later, by :func:`score_evaluation` (e.g. in another
+    process than the controller's: an optimum solved for a score then never shares a heap with torch);
+    each record keeps its cycle's parameters (``params``) until then.
     """
     import gymnasium as gym
 
@@ -418,18 +424,10 @@ def evaluate_controller(
                                    "reference": None, "target_time": target,
                                    "lateness": (max(ep.T - target, 0.0) / target if target is not None and ep.completed
                                                 else None)}
-            if score and ep.completed:
-                from mpc.benchmark.scoring import score_run
-
-                own = front if front is not None and front.params_fingerprint == ran.fingerprint() else None
-                try:
-                    s = score_run(ep.T, ep.fuel_g, braking, params=ran, front=own, cache=cache, solve=solve)
-                except LookupError:
-                    if unknown != "skip":
-                        raise
-                else:
-                    rec.update(T_min=s.T_min, time_gap=s.time_gap, fuel_opt_g=s.fuel_opt_g, fuel_gap=s.fuel_gap,
-                               reference=s.reference)
+            if score and ep.completed and deferred:
+                rec["params"] = ran.to_dict()
+            elif score and ep.completed:
+                _score(rec, braking, ran, front, cache, solve, unknown)
             records.append(rec)
             say(_episode_line(rec))
     finally:
@@ -437,12 +435,43 @@ def evaluate_controller(
             signal.signal(signal.SIGALRM, signal.SIG_DFL if previous_alarm is None else previous_alarm)
         for env in envs.values():
             env.close()
-    first = records[0]
-    optimum = None if first["T_min"] is None else {k: first[k] for k in ("T_min", "fuel_opt_g", "reference")}
     return {"braking": braking, "episodes": episodes, "init_noise": float(init_noise), "seed": seed,
             "env_id": env_id, "scenario": None if scenarios is not None else plan[0].to_dict(),
-            "optimum": optimum,  # episode 0's (each episode records its own: T_min, fuel_opt_g)
+            "optimum": _optimum(records),  # episode 0's (each episode records its own: T_min, fuel_opt_g)
             "summary": summarize(records), "per_episode": records}
+
+
+def score_evaluation(result: dict[str, Any], front: Any = None, cache: str | os.PathLike | None = None,
+                     solve: bool = True, unknown: str = "raise") -> dict[str, Any]:
+    """``result`` of :func:`evaluate_controller` with ``deferred=True``, its completed episodes scored here
+    (the arguments as there) and its optimum and summary updated; returned."""
+    for rec in result["per_episode"]:
+        params = rec.pop("params", None)
+        if params is not None:
+            _score(rec, result["braking"], LoaderParams.from_dict(params), front, cache, solve, unknown)
+    result["optimum"], result["summary"] = _optimum(result["per_episode"]), summarize(result["per_episode"])
+    return result
+
+
+def _score(rec: dict[str, Any], braking: str, ran: LoaderParams, front: Any, cache: str | os.PathLike | None,
+           solve: bool, unknown: str) -> None:
+    """A completed episode's record scored against its own cycle's optimum (``ran``: its parameters)."""
+    from mpc.benchmark.scoring import score_run
+
+    own = front if front is not None and front.params_fingerprint == ran.fingerprint() else None
+    try:
+        s = score_run(rec["T"], rec["fuel_g"], braking, params=ran, front=own, cache=cache, solve=solve)
+    except LookupError:
+        if unknown != "skip":
+            raise
+    else:
+        rec.update(T_min=s.T_min, time_gap=s.time_gap, fuel_opt_g=s.fuel_opt_g, fuel_gap=s.fuel_gap,
+                   reference=s.reference)
+
+
+def _optimum(records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    first = records[0]
+    return None if first["T_min"] is None else {k: first[k] for k in ("T_min", "fuel_opt_g", "reference")}
 
 
 def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:

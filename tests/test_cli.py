@@ -303,8 +303,9 @@ def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsy
 
 
 def test_isolated_evaluation_is_the_in_process_one(tmp_path):
-    """`wl run` runs each controller in a worker process of its own (its memory goes back to the OS when it
-    ends): the same episodes as in this process, and an error comes back as itself."""
+    """`wl run` runs each controller's episodes in a worker process of its own (its memory goes back to the
+    OS when it ends) and scores them after (deferred): the same episodes and scores as in this process, and
+    an error comes back as itself."""
     from wl_env.suites import load_suite
 
     scenarios = list(load_suite("test").spread("service", 2))  # (their optima are shipped: nothing is solved)
@@ -313,6 +314,7 @@ def test_isolated_evaluation_is_the_in_process_one(tmp_path):
     there = wl.report.evaluation(wl.report.suite_controllers, "service", "operator", isolate=True, **kwargs)
     assert [e["success"] for e in here["per_episode"]] == [True, True]
     assert json.dumps(there["per_episode"], sort_keys=True) == json.dumps(here["per_episode"], sort_keys=True)
+    assert there["summary"] == here["summary"] and there["optimum"] == here["optimum"] is not None
     with pytest.raises(ValueError, match="controller must be one of .*'operator'.*, got 'no such controller'"):
         wl.report.evaluation(wl.report.suite_controllers, "service", "no such controller", isolate=True, **kwargs)
 

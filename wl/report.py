@@ -121,17 +121,24 @@ def evaluation(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], br
     """:func:`agents.evaluate.evaluate_controller` of the ``controller`` so named in ``listing(braking)``, with
     ``kwargs``; every solver it built is dropped after it (the next controller plans with other NLPs).
 
-    ``isolate``: in a worker process of its own (:func:`mpc.workers.run_in_workers`: Ctrl-C and a failure
-    come back here), so that one controller's solvers and another's torch never share a heap, and each
-    one's memory goes back to the OS when it ends: the main job's peak is then the largest controller's
-    plus this process's, not their sum (measured in docs/benchmarks.md). ``listing`` must then be a
-    module-level function (the worker imports it by name)."""
+    ``isolate``: the episodes in a worker process of its own (:func:`mpc.workers.run_in_workers`: Ctrl-C
+    and a failure come back here), then their scores here, so that one controller's solvers, another's
+    torch and the optima solved for their scores never share a heap, and each one's memory goes back to
+    the OS when it is done: the main job's peak is then the largest of them plus this process's, not
+    their sum (measured in docs/benchmarks.md). ``listing`` must then be a module-level function (the
+    worker imports it by name)."""
     if not isolate:
         return _evaluate(listing, braking, controller, kwargs)
+    from agents.evaluate import score_evaluation
+    from mpc.controller.solver import release_solvers
     from mpc.workers import run_in_workers
 
-    job = ("wl.report:_evaluate", (listing, braking, controller, kwargs))
-    return run_in_workers({controller: job}, log_level=log.getEffectiveLevel())[controller]  # (its progress, as here)
+    job = ("wl.report:_evaluate", (listing, braking, controller, {**kwargs, "deferred": True}))
+    result = run_in_workers({controller: job}, log_level=log.getEffectiveLevel())[controller]  # (its progress, as here)
+    try:
+        return score_evaluation(result, **{k: kwargs[k] for k in ("front", "cache", "solve", "unknown") if k in kwargs})
+    finally:
+        release_solvers()
 
 
 def _evaluate(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], braking: str, controller: str,
