@@ -317,6 +317,9 @@ def test_isolated_evaluation_is_the_in_process_one(tmp_path):
     assert there["summary"] == here["summary"] and there["optimum"] == here["optimum"] is not None
     with pytest.raises(ValueError, match="controller must be one of .*'operator'.*, got 'no such controller'"):
         wl.report.evaluation(wl.report.suite_controllers, "service", "no such controller", isolate=True, **kwargs)
+    with pytest.raises(ValueError, match="module-level function"):
+        wl.report.evaluation(lambda b: [("operator", lambda: OperatorPolicy(b))], "service", "operator", isolate=True,
+                             **kwargs)
 
 
 def _broken(results: dict, what: str) -> dict:

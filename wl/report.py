@@ -129,6 +129,8 @@ def evaluation(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], br
     worker imports it by name)."""
     if not isolate:
         return _evaluate(listing, braking, controller, kwargs)
+    if "<" in getattr(listing, "__qualname__", "<"):  # a lambda or a nested function: not importable by name
+        raise ValueError(f"isolate=True needs listing to be a module-level function (the worker imports it), got {listing!r}")
     from agents.evaluate import score_evaluation
     from mpc.controller.solver import release_solvers
     from mpc.workers import run_in_workers
