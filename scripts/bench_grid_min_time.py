@@ -34,18 +34,11 @@ def main() -> None:
     env = gym.make("WheelLoader-v2", braking=braking)
     core = env.unwrapped.core
     ctrl = M.MPCController(braking, config=M.MPCConfig(mode="time"), dt=core.dt, substeps=core.substeps)
-    start = {}
-    plan_cycle = M.MPCController._plan_cycle
-
-    def recording(self: M.MPCController, x: np.ndarray, phase: int, k: int) -> None:  # (the grid's start state)
-        start["x"] = np.array(x)
-        plan_cycle(self, x, phase, k)
-
-    M.MPCController._plan_cycle = recording
     obs, _ = env.reset(seed=0)
     ctrl.reset()
-    ctrl.act(obs)
-    sol, x = ctrl._sol, start["x"]
+    ctrl.act(obs)  # plans the cycle
+    x, _, phase = ctrl.state_from_obs(obs)
+    sol, x = ctrl._sol, ctrl.project_state(x, phase)  # (the start state the plan was made from)
     n0 = steps_of(sol.counts)
     print(f"{braking}: the plan's schedule {sol.counts} = {n0} steps ({n0 * ctrl.dt:.1f} s), feasible {sol.feasible}, "
           f"fuel {sol.fuel_g:.3f} g; the MPC's target tolerance {MISS_TOL:g} (relative)", flush=True)
@@ -69,7 +62,7 @@ def main() -> None:
         print(f"  {new}: ok {alt.ok}, feasible {alt.feasible}, misses {({k: round(v, 4) for k, v in alt.misses.items()})}, "
               f"deceleration excess {alt.excess:.1e}", flush=True)
     print(f"{braking}: {tried} schedules of {n0 - 1} steps solved in {time.perf_counter() - t0:.0f} s, {feasible} meet the "
-          f"targets; the closest {closest[1]} misses by {closest[0]:.4f} (relative)")
+          "targets" + (f"; the closest {closest[1]} misses by {closest[0]:.4f} (relative)" if closest else ""))
 
 
 if __name__ == "__main__":
