@@ -73,7 +73,7 @@ def full_solves(repeats: int) -> list[dict[str, Any]]:
         for objective in ("time", "fuel"):
             walls = []
             for _ in range(repeats):
-                ocp_module._NLP_CACHE.clear()  # each repeat builds its NLPs, as a fresh process does
+                ocp_module.release_nlps()  # each repeat builds its NLPs, as a fresh process does
                 dt, r = timed(functools.partial(solve_ocp, braking, objective))
                 walls.append(dt)
             rows.append({"braking": braking, "objective": objective, "wall_median_s": statistics.median(walls),
@@ -90,7 +90,7 @@ def pareto_sweeps(repeats: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
             dt, fronts = timed(functools.partial(pareto_fronts, cache=cache))
         rows.append({"mode": "parallel", "wall_s": dt, **{f"{b}_s": f.wall_time for b, f in fronts.items()}})
         print(rows[-1], file=sys.stderr, flush=True)
-        ocp_module._NLP_CACHE.clear()
+        ocp_module.release_nlps()
         with tempfile.TemporaryDirectory() as cache:
             walls = {b: timed(functools.partial(pareto_front, b, cache=cache))[0] for b in BRAKINGS}
         rows.append({"mode": "sequential", "wall_s": sum(walls.values()), **{f"{b}_s": w for b, w in walls.items()}})
