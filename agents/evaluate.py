@@ -212,15 +212,15 @@ def _on_alarm(signum: int, frame: Any) -> None:
 
 class GuardedController:
     """``controller`` as :func:`wl_env.rollout.run_episode` drives it, with every call checked: an exception,
-    ``sys.exit()``, an action that is not 4 finite numbers or (with ``act_timeout``) an ``act()`` slower
+    ``sys.exit()``, an action that is not ``n_actions`` finite numbers (4; WheelLoaderTarget-v2's driver: 3) or (with ``act_timeout``) an ``act()`` slower
     than ``act_timeout`` seconds is a :class:`ControllerError` naming ``name``, the episode and the step.
 
     The timeout is a SIGALRM timer (``signal.setitimer``) around each ``act()`` on the main thread: it
     interrupts Python code and sleeps, not a C extension call that never returns to the interpreter.
     """
 
-    def __init__(self, controller: Controller, name: str, act_timeout: float | None = None) -> None:
-        self.controller, self.name, self.act_timeout = controller, name, act_timeout
+    def __init__(self, controller: Controller, name: str, act_timeout: float | None = None, n_actions: int = 4) -> None:
+        self.controller, self.name, self.act_timeout, self.n_actions = controller, name, act_timeout, n_actions
         self.episode, self.step = -1, 0
 
     def takes_target(self) -> bool:
@@ -243,10 +243,11 @@ class GuardedController:
             raw = np.asarray(out) if isinstance(out, (np.ndarray, list, tuple)) or hasattr(out, "__array__") else None
         except Exception:  # noqa: BLE001 - ragged lists, tensors that refuse conversion
             raw = None
+        names = "[engine-speed request, bucket, braking fraction]" if self.n_actions == 3 else "[fuel, bucket, brake, shift]"
         if raw is None or raw.dtype.kind not in "iuf":
-            self._fail(f"act() returned {_short(out)} ({type(out).__name__}), not 4 numbers [fuel, bucket, brake, shift]")
-        if raw.shape != (4,):
-            self._fail(f"act() returned an action of shape {raw.shape}, expected (4,) [fuel, bucket, brake, shift]")
+            self._fail(f"act() returned {_short(out)} ({type(out).__name__}), not {self.n_actions} numbers {names}")
+        if raw.shape != (self.n_actions,):
+            self._fail(f"act() returned an action of shape {raw.shape}, expected ({self.n_actions},) {names}")
         action = raw.astype(np.float64)
         if not np.all(np.isfinite(action)):
             self._fail(f"act() returned a non-finite action {action.tolist()}")
@@ -393,11 +394,12 @@ def evaluate_controller(
     check_act_timeout(act_timeout)
     if min_time not in ("optimum", "estimate"):
         raise ValueError(f"min_time must be 'optimum' or 'estimate', got {min_time!r}")
-    guarded = GuardedController(controller, name or type(controller).__name__, act_timeout)
     say = progress or (lambda msg: None)
     env_id = env_id or getattr(controller, "env_id", "WheelLoader-v2")
     kwargs = {**(env_kwargs or {}), "braking": braking}
     envs = {noise: gym.make(env_id, **{**kwargs, "init_noise": noise}) for noise in {0.0, float(init_noise)}}
+    guarded = GuardedController(controller, name or type(controller).__name__, act_timeout,
+                                n_actions=envs[0.0].action_space.shape[0])
     records: list[dict[str, Any]] = []
     previous_alarm = signal.signal(signal.SIGALRM, _on_alarm) if act_timeout is not None else None
     try:

@@ -55,8 +55,8 @@ class DemoSettings:
     env_id: str = "WheelLoaderTarget-v1"  # v1: action 0 an engine-speed request (the governor's); v0: the injection
 
     def __post_init__(self) -> None:
-        if self.env_id not in TARGET_ENV_IDS:
-            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS)}, got {self.env_id!r}")
+        if self.env_id not in TARGET_ENV_IDS[:2]:  # (v2's driver actions are not the MPC's controls)
+            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])}, got {self.env_id!r}")
         if self.expert not in EXPERTS:
             raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         from wl_env.cycle import check_braking

@@ -6,7 +6,8 @@ to forward gear instead of using the service brakes while reversing, as drivers 
 the throttle shortly before the braking point (the converter would brake far too hard with the engine
 at full speed), shift, and meter the deceleration with the throttle. The driver's "feel" for the machine
 is the model itself: the deceleration the converter gives at an engine speed. It reads only the
-environment's observation.
+environment's observation. Its stopping laws are :mod:`wl_env.assist`'s, which WheelLoaderTarget-v2 puts
+under a learned driver.
 """
 
 from __future__ import annotations
@@ -14,6 +15,14 @@ from __future__ import annotations
 import numpy as np
 
 from wl_env import cycle
+from wl_env.assist import (
+    brake_torque,
+    braking_point,
+    bucket_command,
+    stopping_deceleration,
+    stopping_distance,
+    tc_braking_speed,
+)
 from wl_env.codec import Codec
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
@@ -63,51 +72,27 @@ class OperatorPolicy:
         omega, V, H, V_b, to_go, phase = o.engine_speed, o.vehicle_speed, o.bucket_height, o.bucket_speed, o.distance_to_go, o.phase
         omega = max(omega, OMEGA_FLOOR)  # (a stalled engine reads 0: the model divides by it)
         speed = abs(V)
-        stop_dist = speed * speed / (2.0 * self.a_plan)
-
-        fuel, brake, shift = p.U_mf_max, 0.0, False
-        if phase in (1, 3) and speed > 0.05 and stop_dist >= to_go - speed * self.dt:
-            shift = True  # braking from the next step on would stop past the mark: brake now
+        fuel, brake = p.U_mf_max, 0.0
+        shift = bool(braking_point(phase, speed, to_go, self.a_plan, self.dt))
         braking_phase = phase + 1 if shift else phase
         if braking_phase in (2, 4):
-            # The deceleration that stops the machine on the mark, within the limit.
-            a_req = min(speed * speed / (2.0 * max(to_go, 1e-3)), 0.98 * self.a_limit) if speed > 1e-3 else 0.0
+            a_req = float(stopping_deceleration(speed, to_go, p))  # stops the machine on the mark
             if self._specs[braking_phase - 1].brake_allowed:
-                brake = min(max((p.M_tot * a_req - p.F_roll) * p.r_w, 0.0), p.U_b_max)
+                brake = float(brake_torque(a_req, p))
                 fuel = (0.45 if braking_phase == 2 else 0.35) * p.U_mf_max  # keep the engine up for the lift
             else:  # TC braking: the throttle sets the engine speed, the engine speed the converter's braking
                 fuel = self._tc_throttle(omega, V, H, V_b, a_req, 2)
-        elif phase == 1 and self.braking == "tc" and stop_dist + speed * self.lift_off_time >= to_go:
+        elif phase == 1 and self.braking == "tc" and stopping_distance(speed, self.a_plan) + speed * self.lift_off_time >= to_go:
             # ease off before the braking point, to the engine speed at which the shift brakes as planned
             fuel = self._tc_throttle(omega, V, H, V_b, self.a_plan, 1)
-
-        # Bucket: lift at lift_accel up to the speed from which 80 % of the strongest bucket deceleration
-        # stops it at H_T, then follow that stopping curve down (the height left counted from the end of
-        # the coming step, which the command holds for).
-        h_left = max(p.H_T - H - V_b * self.dt, 0.0)
-        v_stop = np.sqrt(2.0 * 0.8 * -self._ab_lo * h_left)
-        u_ab = min(max((v_stop - V_b) / self.dt, self._ab_lo), min(self.lift_accel, self._ab_hi))
+        u_ab = float(bucket_command(H, V_b, self.lift_accel, p, self.dt))  # lift, and stop at H_T
         return self.codec.encode_action(fuel, u_ab, brake, shift)
-
-    def _tc_decel(self, omega: float, V: float, H: float, V_b: float) -> float:
-        """Deceleration (m/s^2) of the reversing machine in forward gear at engine speed omega."""
-        spec = self._specs[1]
-        return float(derivatives(omega, V, H, V_b, 0.0, 0.0, 0.0, spec.gear, spec.direction, self.params)[1])
 
     def _tc_throttle(self, omega: float, V: float, H: float, V_b: float, a_req: float, phase: int) -> float:
         """Injection (mg) that moves the engine towards the speed at which the converter, in forward gear,
         brakes with a_req; the engine's load is that of ``phase`` (the gear it is in now)."""
         p = self.params
-        lo, hi = p.omega_min * 1.3, p.omega_max  # keep well clear of a stall
-        if self._tc_decel(lo, V, H, V_b) >= a_req:
-            target = lo
-        elif self._tc_decel(hi, V, H, V_b) <= a_req:
-            target = hi
-        else:  # the converter brakes harder the faster the engine turns: bisect
-            for _ in range(20):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if self._tc_decel(mid, V, H, V_b) < a_req else (lo, mid)
-            target = 0.5 * (lo + hi)
+        target = float(tc_braking_speed(V, H, V_b, a_req, p, self.braking))
         spec = self._specs[phase - 1]
         # with no injection the engine decelerates by d_omega0 (friction, converter, lift); add the torque
         # that moves it to the target in ~0.2 s

@@ -62,11 +62,13 @@ from agents.policy_files import (
 from agents.ppo_config import TARGET_ENV_IDS, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
+from wl_env.assist import N_ASSIST_ACTIONS
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
-N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, "WheelLoaderTarget-v1": N_TARGET_OBS}
+N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, "WheelLoaderTarget-v1": N_TARGET_OBS,
+                "WheelLoaderTarget-v2": N_TARGET_OBS}
 
 log = logging.getLogger(__name__)
 
@@ -308,11 +310,14 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 
 def _check_spaces(network: Any, path: Path) -> None:
-    """The policy must take the observations of one of the envs (:data:`ENV_OF_OBS`) and give its actions (4,)."""
+    """The policy must take the observations of one of the envs (:data:`ENV_OF_OBS`) and give its actions: (4,),
+    or (3,) for WheelLoaderTarget-v2's driver (the target env's observations)."""
     obs, act = network.observation_space.shape, network.action_space.shape
-    if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act != (4,):
+    if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act not in ((4,), (N_ASSIST_ACTIONS,)) or (
+            act == (N_ASSIST_ACTIONS,) and obs[0] != N_TARGET_OBS):
         raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
-                              f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},), WheelLoaderTarget-v0 ({N_TARGET_OBS},)")
+                              f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},), WheelLoaderTarget-v0 ({N_TARGET_OBS},), "
+                              f"WheelLoaderTarget-v2 ({N_TARGET_OBS},) and ({N_ASSIST_ACTIONS},)")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation
@@ -663,7 +668,8 @@ def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
     with th.no_grad():
         model.policy.action_net.bias[0] = raw(cfg.fuel_bias_init)
         model.policy.action_net.bias[1] = raw(cfg.bucket_bias_init)
-        model.policy.action_net.bias[3] = raw(cfg.shift_bias_init)
+        if model.policy.action_net.bias.shape[0] == 4:  # (WheelLoaderTarget-v2's assist shifts by itself)
+            model.policy.action_net.bias[3] = raw(cfg.shift_bias_init)
     return model
 
 

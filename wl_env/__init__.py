@@ -1,6 +1,8 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
-``import wl_env`` registers ``WheelLoaderTarget-v1`` (v0 with action 0 an engine-speed request to the
+``import wl_env`` registers ``WheelLoaderTarget-v2`` (v1 driven through a stopping assist: the driver
+sets the engine-speed request, the bucket and the braking point; the assist stops on the marks),
+``WheelLoaderTarget-v1`` (v0 with action 0 an engine-speed request to the
 engine's governor), ``WheelLoaderTarget-v0`` (v2 with a target cycle time per episode, observed,
 its lateness charged), ``WheelLoader-v2`` (scenarios, the scenario in the observation) and
 ``WheelLoader-v1`` (the 12-entry observation the shipped policies were trained on), each a single env and
@@ -16,6 +18,9 @@ __version__ = "0.2.0"
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
+    # the target task driven through the stopping assist (wl_env.assist): 3 actions, the marks the assist's
+    "WheelLoaderTarget-v2": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
+                             "assist": True},
     # the target task with an engine-speed governor: action 0 requests the engine speed (v0: the injection)
     "WheelLoaderTarget-v1": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed"},
     # a task of its own (not v2's successor: Gymnasium would call v2 out of date): a target cycle time per

@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
+from wl_env.assist import N_ASSIST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
@@ -46,6 +47,16 @@ def check_target_ratios(target: Any) -> tuple[float, float]:
                for v in (lo, hi)) or lo > hi:
         raise ValueError(f"target must be a ratio to T_min in [1, 3] or a range (lo, hi) within it, got {target!r}")
     return float(lo), float(hi)
+
+
+def check_assist(assist: Any, fuel_action: str) -> bool:
+    """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor."""
+    if not isinstance(assist, bool):
+        raise ValueError(f"assist must be True or False, got {assist!r}")
+    if assist and fuel_action != "engine_speed":
+        raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
+                         f"got fuel_action={fuel_action!r}")
+    return assist
 
 
 def check_target_time(target_time: Any) -> float:
@@ -234,7 +245,9 @@ class WheelLoaderEnv(gym.Env):
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
         fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
+        assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
     ) -> None:
+        self.assist = check_assist(assist, fuel_action)
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = bool(observe_target)
         if self.observe_target and not observe_scenario:
@@ -254,7 +267,7 @@ class WheelLoaderEnv(gym.Env):
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
                                  make_reward_config(reward, w_fuel, w_time), self.observe_scenario,
                                  fuel_action)
-        self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (N_ASSIST_ACTIONS if self.assist else 4,), np.float32)
         codec = self.core.codec
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -329,11 +342,16 @@ class WheelLoaderEnv(gym.Env):
         if self._done:
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = action if type(action) is np.ndarray and action.dtype.kind == "f" else np.asarray(action, dtype=np.float64)
-        if a.shape != (4,):
-            raise ValueError(f"action must have shape (4,) [fuel, bucket, brake, shift], got shape {a.shape}")
+        if a.shape != self.action_space.shape:
+            names = "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]"
+            raise ValueError(f"action must have shape {self.action_space.shape} {names}, got shape {a.shape}")
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action must be finite numbers in [-1, 1], got {values}")
+        if self.assist:
+            y, phase = self._y, self._phase
+            values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
+                                                        self.params, self.braking, self.core.dt)]
         t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]

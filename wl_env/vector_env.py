@@ -18,9 +18,11 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from wl_env.assist import N_ASSIST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW
 from wl_env.env import (
     TARGET_RATIOS,
+    check_assist,
     check_target_ratios,
     episode_target,
     lateness_charge,
@@ -58,6 +60,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
         fuel_action: str = "injection",
+        assist: bool = False,
     ) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -66,6 +69,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
+        self.assist = check_assist(assist, fuel_action)
         self.observe_target = bool(observe_target)
         if self.observe_target and not observe_scenario:
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
@@ -83,7 +87,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
                                  make_reward_config(reward, w_fuel, w_time), observe_scenario, fuel_action)
         codec = self.core.codec
-        self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (N_ASSIST_ACTIONS if self.assist else 4,), np.float32)
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
         self.single_observation_space = spaces.Box(low, high, dtype=np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
@@ -155,14 +159,21 @@ class WheelLoaderVectorEnv(VectorEnv):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (self.num_envs, 4):
-            raise ValueError(f"actions must have shape ({self.num_envs}, 4), got {a.shape}")
+        n_act = self.single_action_space.shape[0]
+        if a.shape != (self.num_envs, n_act):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {n_act}), got {a.shape}")
         if not np.all(np.isfinite(a)):
             bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1)).tolist()
             raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
         resetting = self._needs_reset.copy()
         t0 = self._t.copy()
-        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, (a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
+        if self.assist:
+            y, phase = self._y, self._phase
+            action = assisted_action(y, phase, self.core.codec.distance_to_go(y[4], phase), a.T, self.params,
+                                     self.braking, self.core.dt)
+        else:
+            action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         reward = np.asarray(r["reward"], dtype=np.float64)

@@ -1,0 +1,129 @@
+"""The driving assist of ``WheelLoaderTarget-v2``: an operator's stopping laws under a learned driver.
+
+A driver (a policy) picks how to drive; the assist stops the machine on the marks. The assist's laws are
+the rule-based operator's (:mod:`agents.operator` calls the same functions):
+
+* **braking point**: in phases 1 and 3 the assist shifts (ends the leg) at the step after which braking
+  at the chosen fraction of the deceleration limit would stop the machine past its mark;
+* **braking**: in phases 2 and 4 it asks the deceleration that stops the machine on the mark (at most
+  98 % of the limit): the service brakes' torque where they act, else (TC braking, phase 2) the engine
+  speed at which the converter in forward gear brakes with it (the model, bisected in omega);
+* **TC lift-off**: with TC braking the engine is brought to that speed ``TC_LIFT_OFF_TIME`` before the
+  braking point, since the converter would brake far too hard from a racing engine;
+* **bucket**: never faster than the speed from which 80 % of the strongest bucket deceleration stops it
+  at the dump height, so it stops there whatever the driver asks.
+
+What the driver sets (each in [-1, 1]): the engine-speed request (as action 0 of WheelLoaderTarget-v1,
+through the governor, wherever the assist does not meter the converter), the bucket acceleration it asks
+(as action 1; the stopping curve caps it) and the braking deceleration as a fraction of the limit
+(-1: 50 %, +1: 95 %), which sets where the leg ends. Written for floats and numpy arrays of loaders (the
+vector env's :class:`~wl_env.params.ParamsView`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from wl_env import cycle
+from wl_env.codec import GOVERNOR_FLOOR_MARGIN
+from wl_env.model import derivatives
+from wl_env.params import LoaderParams
+
+N_ASSIST_ACTIONS = 3  # engine-speed request, bucket acceleration, braking fraction of the deceleration limit
+BRAKING_FRACTION = (0.5, 0.95)  # of the deceleration limit, the range of the driver's third action
+MAX_BRAKING_FRACTION = 0.98  # the braking itself asks at most this fraction of the limit
+TC_LIFT_OFF_TIME = 1.2  # s before the braking point a TC-braking driver brings the engine down
+BUCKET_STOP_FRACTION = 0.8  # of the strongest bucket deceleration, the stopping curve's
+MIN_MOVING_SPEED = 0.05  # m/s: below it a leg is not ended by the braking point (the machine is starting)
+TC_SPEED_FLOOR = 1.3  # the converter's braking speed stays above this times omega_min (clear of a stall)
+_BISECTIONS = 20
+
+
+def stopping_distance(speed: Any, deceleration: Any) -> Any:
+    """m to stand still from ``speed`` (m/s) at ``deceleration`` (m/s^2)."""
+    return speed * speed / (2.0 * deceleration)
+
+
+def braking_point(phase: Any, speed: Any, distance_to_go: Any, deceleration: Any, dt: float) -> Any:
+    """Whether to end the leg now (phases 1 and 3): braking from the next step on at ``deceleration``
+    would stop past the mark."""
+    return (((phase == 1) | (phase == 3)) & (speed > MIN_MOVING_SPEED)
+            & (stopping_distance(speed, deceleration) >= distance_to_go - speed * dt))
+
+
+def stopping_deceleration(speed: Any, distance_to_go: Any, p: LoaderParams) -> Any:
+    """m/s^2 that stops the machine on the mark, at most ``MAX_BRAKING_FRACTION`` of the limit (0 standing)."""
+    a_limit = p.decel_max * p.g
+    a = np.minimum(speed * speed / (2.0 * np.maximum(distance_to_go, 1e-3)), MAX_BRAKING_FRACTION * a_limit)
+    return np.where(speed > 1e-3, a, 0.0)
+
+
+def brake_torque(deceleration: Any, p: LoaderParams) -> Any:
+    """N m of service brake that decelerates the machine by ``deceleration`` (rolling resistance helps)."""
+    return np.clip((p.M_tot * deceleration - p.F_roll) * p.r_w, 0.0, p.U_b_max)
+
+
+def tc_braking_speed(V: Any, H: Any, V_b: Any, deceleration: Any, p: LoaderParams, braking: str = "tc") -> Any:
+    """rad/s: the engine speed at which the converter in forward gear decelerates the reversing machine by
+    ``deceleration`` (it brakes harder the faster the engine turns: bisected), within
+    [TC_SPEED_FLOOR omega_min, omega_max]."""
+    spec = cycle.phase_specs(braking, p)[1]
+
+    def decel(omega: Any) -> Any:
+        return derivatives(omega, V, H, V_b, 0.0, 0.0, 0.0, spec.gear, spec.direction, p)[1]
+
+    lo0, hi0 = p.omega_min * TC_SPEED_FLOOR + 0.0 * V, p.omega_max + 0.0 * V
+    lo, hi = lo0, hi0
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        below = decel(mid) < deceleration
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    inner = 0.5 * (lo + hi)
+    return np.where(decel(lo0) >= deceleration, lo0, np.where(decel(hi0) <= deceleration, hi0, inner))
+
+
+def bucket_command(H: Any, V_b: Any, asked: Any, p: LoaderParams, dt: float) -> Any:
+    """m/s^2: the bucket acceleration ``asked``, capped by the curve on which ``BUCKET_STOP_FRACTION`` of
+    the strongest bucket deceleration stops the bucket at the dump height (the height left counted from
+    the end of the coming step, which the command holds for)."""
+    ab_lo, ab_hi = p.U_ab_bounds
+    h_left = np.maximum(p.H_T - H - V_b * dt, 0.0)
+    v_stop = np.sqrt(2.0 * BUCKET_STOP_FRACTION * -ab_lo * h_left)
+    return np.clip((v_stop - V_b) / dt, ab_lo, np.minimum(asked, ab_hi))
+
+
+def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: LoaderParams, braking: str,
+                    dt: float) -> tuple[Any, Any, Any, Any]:
+    """The machine's action (WheelLoaderTarget-v1's: engine-speed request, bucket, brake, shift, each in
+    [-1, 1]) for the driver's (request, bucket, braking fraction) at state ``y`` = (omega, V, H, V_b, ...)
+    in ``phase``. Floats or arrays of loaders."""
+    request_action, bucket_action, fraction_action = (np.clip(np.asarray(a, dtype=float), -1.0, 1.0) for a in driver)
+    V, H, V_b = y[1], y[2], y[3]
+    speed = np.abs(V)
+    a_limit = p.decel_max * p.g
+    lo_f, hi_f = BRAKING_FRACTION
+    a_plan = (lo_f + 0.5 * (fraction_action + 1.0) * (hi_f - lo_f)) * a_limit
+    shift = braking_point(phase, speed, distance_to_go, a_plan, dt)
+    braking_phase = np.where(shift, phase + 1, phase)
+    in_braking = (braking_phase == 2) | (braking_phase == 4)
+    a_req = np.where(in_braking, stopping_deceleration(speed, distance_to_go, p), 0.0)
+    brake_acts = (braking_phase == 4) | ((braking_phase == 2) & (braking == "service"))
+    brake = np.where(brake_acts, brake_torque(a_req, p), 0.0)
+
+    request = request_action
+    if braking == "tc":  # the converter metered by the engine speed: in phase 2, and eased into before it
+        lift_off = (phase == 1) & ~shift & (stopping_distance(speed, a_plan) + speed * TC_LIFT_OFF_TIME >= distance_to_go)
+        metered = (braking_phase == 2) | lift_off
+        if np.any(metered):
+            omega = tc_braking_speed(V, H, V_b, np.where(braking_phase == 2, a_req, a_plan), p, braking)
+            floor = p.omega_min + GOVERNOR_FLOOR_MARGIN
+            metered_request = np.clip(2.0 * (omega - floor) / (p.omega_max - floor) - 1.0, -1.0, 1.0)
+            request = np.where(metered, metered_request, request)
+
+    ab_lo, ab_hi = p.U_ab_bounds
+    asked = 0.5 * (ab_hi + ab_lo) + bucket_action * 0.5 * (ab_hi - ab_lo)
+    u_ab = bucket_command(H, V_b, asked, p, dt)
+    bucket = (u_ab - 0.5 * (ab_hi + ab_lo)) / (0.5 * (ab_hi - ab_lo))
+    return request, bucket, 2.0 * brake / p.U_b_max - 1.0, np.where(shift, 1.0, -1.0)
