@@ -150,6 +150,20 @@ class WheelLoaderEnv(gym.Env):
     The brake acts only in the phases that use it (phase 2 with service braking, phase 4). Phase 2 ends
     by itself at the reversing point (V = 0). Values outside [-1, 1] are clipped; NaN raises.
 
+    WheelLoaderTarget-v2 (``assist=True``): ``Box(-1, 1, (3,), float32)``, a driver's actions through the
+    stopping assist (:mod:`wl_env.assist`, the rule-based operator's laws), which computes the 4 above:
+
+    | Num | Action                                   | -1                    | +1                  |
+    |-----|------------------------------------------|-----------------------|---------------------|
+    | 0   | engine-speed request (as v1's action 0)  | omega_min + 5 rad/s   | omega_max           |
+    | 1   | bucket acceleration asked (capped by the curve that stops the bucket at the dump height) | -2.5 m/s^2 | +2.5 m/s^2 |
+    | 2   | braking deceleration, of the 0.18 g limit (sets where the legs end) | 50 % | 95 % |
+
+    The assist ends phases 1 and 3 at the braking point, brakes to stop on the marks (service brakes, or in
+    TC braking the engine speed at which the converter brakes as needed, eased into 1.2 s before the
+    braking point) and stops the bucket at the dump height; the driver's request sets the engine speed
+    everywhere else.
+
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
     engine to the request within the interval under the load at its start (the model inverted in U_mf,
@@ -214,6 +228,7 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v2: v1 driven through the stopping assist (``assist``): three driver actions.
     * WheelLoaderTarget-v1: v0 with action 0 the governor's engine-speed request (``fuel_action``).
     * WheelLoaderTarget-v0 (a task of its own): v2 with a target cycle time per episode
       (``observe_target``): two more observation entries, the lateness term, no time term (``w_time`` 0).
