@@ -198,8 +198,6 @@ def _drive(env, driver, seed=0, options=None):
 
 
 def test_the_assisted_env_passes_check_env_and_refuses_a_four_action():
-    from gymnasium.utils.env_checker import check_env
-
     env = gym.make("WheelLoaderTarget-v2", braking="tc", scenario="train")
     check_env(env.unwrapped, skip_render_check=True)
     assert env.action_space.shape == (3,)
@@ -244,3 +242,27 @@ def test_the_operator_drives_with_the_assists_laws():
     operated = _run(gym.make("WheelLoader-v2", braking="service"), op, 0, None)[1]
     assert assisted["is_success"] and operated["is_success"]
     assert assisted["t"] == pytest.approx(operated["t"]) and assisted["fuel_g"] == pytest.approx(operated["fuel_g"], rel=0.01)
+
+
+@settings(max_examples=200, deadline=None)
+@given(braking=st.sampled_from(["service", "tc"]), phase=st.integers(1, 4),
+       state=st.tuples(st.floats(57.0, 240.0), st.floats(-3.0, 3.0), st.floats(0.0, 6.0), st.floats(-0.5, 1.5)),
+       to_go=st.floats(-1.0, 12.0), driver=st.tuples(*[st.floats(-3.0, 3.0)] * 3))
+def test_the_assist_gives_a_machine_action_in_range_at_any_state(braking, phase, state, to_go, driver):
+    """Any state and driver action (outside [-1, 1] too): a finite machine action in [-1, 1]; the brake only
+    where the phase lets it act; a shift only out of phases 1 and 3; the bucket never asked past the curve
+    that stops it at the dump height."""
+    from wl_env.assist import assisted_action, bucket_command
+    from wl_env.params import DEFAULT_PARAMS as p
+
+    y = (*state, 0.0, 0.0)
+    action = np.array([float(v) for v in assisted_action(y, phase, to_go, driver, p, braking, 0.1)])
+    assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0 + 1e-12), action
+    shifted = action[3] > 0
+    assert not shifted or phase in (1, 3)
+    interval_phase = phase + 1 if shifted else phase
+    if interval_phase in (1, 3) or (interval_phase == 2 and braking == "tc"):
+        assert action[2] == -1.0  # no service brake where it does not act
+    asked = 2.5 * float(np.clip(driver[1], -1, 1))
+    assert 2.5 * action[1] <= float(bucket_command(state[2], state[3], 2.5, p, 0.1)) + 1e-9
+    assert 2.5 * action[1] <= max(asked, -2.5) + 1e-9
