@@ -10,9 +10,10 @@ the rule-based operator's (:mod:`agents.operator` calls the same functions):
   speed at which the converter in forward gear brakes with it (the model, bisected in omega; at most
   ``TC_MAX_FRACTION`` of the limit, a margin for its rise within the step);
 * **TC lift-off**: with TC braking the engine is brought to that speed ``TC_LIFT_OFF_TIME`` before the
-  braking point, or earlier where the unfuelled engine needs longer to come down to it (the model's
-  d omega/dt at no injection, with 20 % margin), since the converter would brake far too hard from a
-  racing engine;
+  braking point, since the converter would brake far too hard from a racing engine. From an engine far
+  above that speed 1.2 s is not enough (an unfuelled engine comes down at ~20-40 rad/s^2): the driver's
+  request must come down in time (a learned driver does; an earlier lift-off computed from the unfuelled
+  engine's descent cost a trained driver 11-16 points of fuel gap, docs/benchmarks.md section 7);
 * **bucket**: never faster than the speed from which 80 % of the strongest bucket deceleration stops it
   at the dump height, so it stops there whatever the driver asks.
 
@@ -45,7 +46,6 @@ BUCKET_STOP_FRACTION = 0.8  # of the strongest bucket deceleration, the stopping
 MIN_MOVING_SPEED = 0.05  # m/s: below it a leg is not ended by the braking point (the machine is starting)
 TC_SPEED_FLOOR = 1.3  # the converter's braking speed stays above this times omega_min (clear of a stall)
 _BISECTIONS = 20
-_COMING_DOWN_POINTS = 8
 
 
 def stopping_distance(speed: Any, deceleration: Any) -> Any:
@@ -91,22 +91,6 @@ def tc_braking_speed(V: Any, H: Any, V_b: Any, deceleration: Any, p: LoaderParam
     return np.where(decel(lo0) >= deceleration, lo0, np.where(decel(hi0) <= deceleration, hi0, inner))
 
 
-def unfuelled_time(omega: Any, omega_target: Any, V: Any, H: Any, p: LoaderParams, braking: str = "tc") -> Any:
-    """s an unfuelled engine takes from ``omega`` down to ``omega_target`` (rad/s) under phase 1's converter
-    load with the bucket still (the lift's load ends before the braking point; counting it would cut the
-    estimate), the integral of d omega / |d omega/dt| by the midpoint rule (the rate falls with the
-    converter's load, ~n^2: the rate at the start alone underestimates the time several times); 0 where
-    omega is not above the target."""
-    spec = cycle.phase_specs(braking, p)[0]
-    drop = np.maximum(omega - omega_target, 0.0)
-    total = 0.0 * drop
-    for k in range(_COMING_DOWN_POINTS):
-        w = omega_target + (k + 0.5) / _COMING_DOWN_POINTS * drop
-        rate = -derivatives(np.maximum(w, p.omega_min), V, H, 0.0, 0.0, 0.0, 0.0, spec.gear, spec.direction, p)[0]
-        total = total + drop / _COMING_DOWN_POINTS / np.maximum(rate, 1.0)
-    return total
-
-
 def bucket_command(H: Any, V_b: Any, asked: Any, p: LoaderParams, dt: float) -> Any:
     """m/s^2: the bucket acceleration ``asked``, capped by the curve on which ``BUCKET_STOP_FRACTION`` of
     the strongest bucket deceleration stops the bucket at the dump height (the height left counted from
@@ -137,19 +121,14 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
 
     request = request_action
     if braking == "tc":  # the converter metered by the engine speed: in phase 2, and eased into before it
-        approaching = (phase == 1) & ~shift
-        metered = (braking_phase == 2) | approaching
+        lift_off = (phase == 1) & ~shift & (stopping_distance(speed, a_plan) + speed * TC_LIFT_OFF_TIME >= distance_to_go)
+        metered = (braking_phase == 2) | lift_off
         if np.any(metered):
             aim = np.minimum(np.where(braking_phase == 2, a_req, a_plan), TC_MAX_FRACTION * a_limit)
             omega = tc_braking_speed(V, H, V_b, aim, p, braking)
-            # lift off TC_LIFT_OFF_TIME before the braking point, or earlier if the unfuelled engine takes longer
-            # to come down to the braking speed (from a racing engine the converter would brake far too hard)
-            coming_down = unfuelled_time(y[0], omega, V, H, p, braking)
-            to_braking_point = np.maximum(distance_to_go - stopping_distance(speed, a_plan), 0.0) / np.maximum(speed, 1e-3)
-            lift_off = approaching & (to_braking_point <= np.maximum(TC_LIFT_OFF_TIME, coming_down))
             floor = p.omega_min + GOVERNOR_FLOOR_MARGIN
             metered_request = np.clip(2.0 * (omega - floor) / (p.omega_max - floor) - 1.0, -1.0, 1.0)
-            request = np.where((braking_phase == 2) | lift_off, metered_request, request)
+            request = np.where(metered, metered_request, request)
 
     ab_lo, ab_hi = p.U_ab_bounds
     asked = 0.5 * (ab_hi + ab_lo) + bucket_action * 0.5 * (ab_hi - ab_lo)
