@@ -147,30 +147,22 @@ SHIPPED = [("ppo-target", b) for b in ("service", "tc")]
 
 @pytest.mark.parametrize("kind,braking", SHIPPED)
 def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, braking):
-    """Each shipped target-conditioned policy loads pickle-free, takes WheelLoaderTarget-v0's observation and
-    drives a held-out cycle to its end at a 1.5 T_min target; its metadata records how it was made."""
+    """Each shipped target-conditioned policy loads pickle-free, drives WheelLoaderTarget-v2 (the stopping
+    assist) through a held-out cycle at a 1.5 T_min target with its marks met and no violation; its metadata
+    records how it was made."""
     from agents.evaluate import default_policy_path, evaluate_controller
     from wl_env.suites import load_suite
 
     policy = load_policy(default_policy_path(braking, kind))
-    assert policy.env_id == "WheelLoaderTarget-v1" and policy.braking == braking  # (its config says; the governor)
+    assert policy.env_id == "WheelLoaderTarget-v2" and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
     scenario = load_suite("test").of(braking)[0]
     e = evaluate_controller(policy, braking, scenarios=[scenario], target_ratio=1.5, solve=False)["per_episode"][0]
-    assert e["completed"], e
+    assert e["success"] and e["max_violation"] == 0.0, e
 
 
-IGNORES_TARGET = pytest.mark.xfail(strict=True, reason=(
-    "measured: PPO through the governor (WheelLoaderTarget-v1, 15 M steps) drives one cycle per scenario whatever "
-    "the target: on these three cycles +0.3..+0.5 s at 1.5 T_min against 1.0 for a target 4.0-4.8 s later "
-    "(service), -0.1..0 s (TC); docs/benchmarks.md section 7"))
-CONDITIONED = [pytest.param(kind, b, marks=IGNORES_TARGET) for kind, b in SHIPPED]
-
-
-@pytest.mark.parametrize("kind,braking", CONDITIONED)
-def test_a_later_target_gives_a_slower_leaner_cycle(kind, braking):
-    """Target conditioning: three held-out cycles at 1.0 and at 1.5 T_min; the later target's cycles take
-    longer (by at least a third of the difference in target) and burn less fuel, in the median."""
+def _target_pairs(kind: str, braking: str) -> tuple[list[float], list[float], list[float]]:
+    """Three held-out cycles at 1.0 and at 1.5 T_min: per cycle the change in cycle time, in target and in fuel."""
     from agents.evaluate import default_policy_path, evaluate_controller
     from wl_env.suites import load_suite
 
@@ -181,4 +173,22 @@ def test_a_later_target_gives_a_slower_leaner_cycle(kind, braking):
     dT = [s["T"] - f["T"] for f, s in zip(fast, slow, strict=True)]
     d_target = [s["target_time"] - f["target_time"] for f, s in zip(fast, slow, strict=True)]
     d_fuel = [s["fuel_g"] - f["fuel_g"] for f, s in zip(fast, slow, strict=True)]
-    assert np.median(dT) > np.median(d_target) / 3 and np.median(d_fuel) < 0, (dT, d_target, d_fuel)
+    return dT, d_target, d_fuel
+
+
+@pytest.mark.parametrize("kind,braking", SHIPPED)
+def test_a_later_target_gives_a_slower_leaner_cycle(kind, braking):
+    """Target conditioning: the later target's cycles take longer and burn less fuel, in the median."""
+    dT, d_target, d_fuel = _target_pairs(kind, braking)
+    assert np.median(dT) > 0 and np.median(d_fuel) < 0, (dT, d_target, d_fuel)
+
+
+WEAK_TC = pytest.mark.xfail(strict=True, reason=(
+    "measured (stop 25): the TC policy drives 0 / 0.3 / 1.0 s slower for a target 4.0-4.9 s later (4-8 g leaner): "
+    "conditioned in the right direction, by less than a third of the target's change; docs/benchmarks.md section 7"))
+
+
+@pytest.mark.parametrize("kind,braking", [pytest.param(k, b, marks=WEAK_TC) if b == "tc" else (k, b) for k, b in SHIPPED])
+def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(kind, braking):
+    dT, d_target, d_fuel = _target_pairs(kind, braking)
+    assert np.median(dT) > np.median(d_target) / 3, (dT, d_target, d_fuel)
