@@ -126,7 +126,7 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
         if np.any(metered):
             aim = np.minimum(np.where(braking_phase == 2, a_req, a_plan), TC_MAX_FRACTION * a_limit)
             omega = tc_braking_speed(V, H, V_b, aim, p, braking)
-            floor = p.omega_min + GOVERNOR_FLOOR_MARGIN
+            floor = p.omega_min + GOVERNOR_FLOOR_MARGIN  # (Codec.encode_speed_request, on arrays of loaders)
             metered_request = np.clip(2.0 * (omega - floor) / (p.omega_max - floor) - 1.0, -1.0, 1.0)
             request = np.where(metered, metered_request, request)
 
