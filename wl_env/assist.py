@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from wl_env import cycle
-from wl_env.codec import GOVERNOR_FLOOR_MARGIN
+from wl_env.codec import encode_speed_request
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams
 
@@ -126,9 +126,7 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
         if np.any(metered):
             aim = np.minimum(np.where(braking_phase == 2, a_req, a_plan), TC_MAX_FRACTION * a_limit)
             omega = tc_braking_speed(V, H, V_b, aim, p, braking)
-            floor = p.omega_min + GOVERNOR_FLOOR_MARGIN  # (Codec.encode_speed_request, on arrays of loaders)
-            metered_request = np.clip(2.0 * (omega - floor) / (p.omega_max - floor) - 1.0, -1.0, 1.0)
-            request = np.where(metered, metered_request, request)
+            request = np.where(metered, encode_speed_request(omega, p), request)
 
     ab_lo, ab_hi = p.U_ab_bounds
     asked = 0.5 * (ab_hi + ab_lo) + bucket_action * 0.5 * (ab_hi - ab_lo)

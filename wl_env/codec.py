@@ -57,6 +57,13 @@ TARGET_OBS_LOW = np.concatenate([SCENARIO_OBS_LOW, np.array([0.0, -1.0], dtype=n
 TARGET_OBS_HIGH = np.concatenate([SCENARIO_OBS_HIGH, np.array([1.0, 6.0], dtype=np.float32)])
 
 
+def encode_speed_request(speed_request: Any, p: Any) -> Any:
+    """The governor's engine-speed request (rad/s) -> action 0 in [-1, 1] (``fuel_action="engine_speed"``),
+    clipped; ``p`` a parameter set or a vector env's view of many (arrays)."""
+    lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
+    return np.clip(2.0 * (speed_request - lo) / (p.omega_max - lo) - 1.0, -1.0, 1.0)
+
+
 @dataclass(frozen=True)
 class Observation:
     """A decoded observation, in SI units (floats, or arrays for a batch)."""
@@ -113,11 +120,9 @@ class Codec:
         lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
         return lo + (a_fuel + 1.0) * (0.5 * (p.omega_max - lo))
 
-    def encode_speed_request(self, speed_request: float) -> float:
+    def encode_speed_request(self, speed_request: Any) -> Any:
         """The inverse of :meth:`decode_speed_request`, clipped to [-1, 1]."""
-        p = self.params
-        lo = p.omega_min + GOVERNOR_FLOOR_MARGIN
-        return min(max(2.0 * (speed_request - lo) / (p.omega_max - lo) - 1.0, -1.0), 1.0)
+        return encode_speed_request(speed_request, self.params)
 
     def encode_action(self, u_mf: float, u_ab: float, u_b: float, shift: bool) -> np.ndarray:
         """Commanded (U_mf mg, U_ab m/s^2, U_b N m) and a shift request -> the action vector, clipped to

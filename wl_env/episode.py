@@ -186,7 +186,7 @@ class CycleStepper(Flattened):
         u_mf, u_ab, _ = c.decode_action(a[0], a[1], a[2])
         view = self._governor_view(y, self._interval_phase(y, phase, a[3])[0], u_ab)
         if to == "engine_speed":
-            return c.encode_speed_request(governor_request(*view[:4], u_mf, *view[4:]))
+            return float(c.encode_speed_request(governor_request(*view[:4], u_mf, *view[4:])))
         return float(c.encode_action(governed_injection(*view[:4], c.decode_speed_request(a[0]), *view[4:]), u_ab, 0.0,
                                      False)[0])
 
