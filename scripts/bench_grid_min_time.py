@@ -1,13 +1,19 @@
-"""Is there a cycle one step shorter than the MPC's minimum-time plan on the environment's 0.1 s grid?
+"""Is there a cycle one step shorter than the MPC's minimum-time plan on the environment's 0.1 s grid (or,
+``--same-length``, one as short on less fuel)?
 
 Plans the nominal cycle in minimum-time mode, then solves every schedule with one step fewer within +-R
 steps per phase of the plan's (warm from the plan, then cold if that fails) and prints each one's target
 misses (relative: the reversing point's and the end position's to the reverse distance, the height's to
 H_T) and whether it meets the MPC's tolerance (``mpc.controller.solver.MISS_TOL``).
 
+``--same-length``: instead, every schedule with as many steps as the plan's within +-R per phase, each
+solved for the least fuel (the target-time mode's NLP at the plan's cycle time, no control-rate penalty),
+and the least fuel of those that meet the targets against the continuous optimum's at the same cycle time
+(:func:`mpc.benchmark.scoring.score_run`): what the grid itself allows a minimum-time cycle.
+
 Usage::
 
-    python scripts/bench_grid_min_time.py {service,tc} [R]
+    python scripts/bench_grid_min_time.py {service,tc} [R] [--same-length]
 """
 
 from __future__ import annotations
@@ -23,20 +29,31 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import wl_env  # noqa: E402, F401  (registers the envs)
+from mpc.benchmark.scoring import score_run  # noqa: E402
 from mpc.controller import mpc as M  # noqa: E402
 from mpc.controller.schedule import steps_of  # noqa: E402
 from mpc.controller.solver import MISS_TOL, Solve  # noqa: E402
 
 
 def main() -> None:
-    braking = sys.argv[1] if len(sys.argv) > 1 else "tc"
-    reach = int(sys.argv[2]) if len(sys.argv) > 2 else 2
+    args = [a for a in sys.argv[1:] if a != "--same-length"]
+    same_length = len(args) < len(sys.argv) - 1
+    braking = args[0] if args else "tc"
+    reach = int(args[1]) if len(args) > 1 else 2
     env = gym.make("WheelLoader-v2", braking=braking)
     core = env.unwrapped.core
-    ctrl = M.MPCController(braking, config=M.MPCConfig(mode="time"), dt=core.dt, substeps=core.substeps)
     obs, _ = env.reset(seed=0)
-    ctrl.reset()
-    ctrl.act(obs)  # plans the cycle
+
+    def planned(config: M.MPCConfig) -> M.MPCController:
+        ctrl = M.MPCController(braking, config=config, dt=core.dt, substeps=core.substeps)
+        ctrl.reset()
+        ctrl.act(obs)  # plans the cycle
+        return ctrl
+
+    ctrl = planned(M.MPCConfig(mode="time"))
+    if same_length:
+        T = steps_of(ctrl._sol.counts) * ctrl.dt
+        ctrl = planned(M.MPCConfig(mode="target_time", target_time=T, rate_weight=(0.0, 0.0)))
     x, _, phase = ctrl.state_from_obs(obs)
     sol, x = ctrl._sol, ctrl.project_state(x, phase)  # (the start state the plan was made from)
     n0 = steps_of(sol.counts)
@@ -44,10 +61,10 @@ def main() -> None:
           f"fuel {sol.fuel_g:.3f} g; the MPC's target tolerance {MISS_TOL:g} (relative)", flush=True)
     nlp = ctrl._nlp(1)
     phases = sorted(sol.counts)
-    t0, tried, feasible, closest = time.perf_counter(), 0, 0, None
+    t0, tried, feasible, closest, cheapest = time.perf_counter(), 0, 0, None, None
     for d in itertools.product(range(-reach, reach + 1), repeat=len(phases)):
         new = {q: sol.counts[q] + dq for q, dq in zip(phases, d, strict=True)}
-        if sum(d) != -1 or any(not (0 if q in (2, 4) else 1) <= new[q] <= nlp.slots_per_phase[q] for q in phases):
+        if sum(d) != (0 if same_length else -1) or any(not (0 if q in (2, 4) else 1) <= new[q] <= nlp.slots_per_phase[q] for q in phases):
             continue
         tried += 1
         z, lam_x, lam_g = nlp.resample(sol.z, sol.lam_x, sol.lam_g, sol.counts, new)
@@ -59,10 +76,17 @@ def main() -> None:
         worst = max(map(abs, alt.misses.values()), default=np.inf) if alt.ok else np.inf
         if closest is None or worst < closest[0]:
             closest = (worst, new)
-        print(f"  {new}: ok {alt.ok}, feasible {alt.feasible}, misses {({k: round(v, 4) for k, v in alt.misses.items()})}, "
-              f"deceleration excess {alt.excess:.1e}", flush=True)
-    print(f"{braking}: {tried} schedules of {n0 - 1} steps solved in {time.perf_counter() - t0:.0f} s, {feasible} meet the "
+        if alt.feasible and (cheapest is None or alt.fuel_g < cheapest[0]):
+            cheapest = (alt.fuel_g, new)
+        print(f"  {new}: ok {alt.ok}, feasible {alt.feasible}, fuel {alt.fuel_g:.3f} g, misses "
+              f"{({k: round(v, 4) for k, v in alt.misses.items()})}, deceleration excess {alt.excess:.1e}", flush=True)
+    n = n0 if same_length else n0 - 1
+    print(f"{braking}: {tried} schedules of {n} steps solved in {time.perf_counter() - t0:.0f} s, {feasible} meet the "
           "targets" + (f"; the closest {closest[1]} misses by {closest[0]:.4f} (relative)" if closest else ""))
+    if same_length and cheapest is not None:
+        fuel_opt = score_run(n * ctrl.dt, cheapest[0], braking).fuel_opt_g
+        print(f"{braking}: the least fuel on the grid at {n * ctrl.dt:.1f} s: {cheapest[0]:.3f} g ({cheapest[1]}), "
+              f"{100 * (cheapest[0] / fuel_opt - 1):+.2f} % against the continuous optimum's {fuel_opt:.3f} g")
 
 
 if __name__ == "__main__":
