@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the env)
-from wl_env.codec import N_OBS, OBS_HIGH, OBS_LOW, TIME_SCALE, Codec
+from wl_env.codec import GOVERNOR_FLOOR_MARGIN, N_OBS, OBS_HIGH, OBS_LOW, TIME_SCALE, Codec, encode_speed_request
 from wl_env.params import DEFAULT_PARAMS as P
 
 
@@ -40,6 +40,20 @@ def test_actions_round_trip_and_clip():
     a = codec.encode_action(1e9, math.nan, -5.0, shift=False)  # beyond the ranges, NaN: clipped, no brake
     assert a.tolist() == [1.0, -1.0, -1.0, -1.0]
 
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-50.0, 400.0), min_size=1, max_size=8))
+def test_speed_requests_round_trip_for_one_loader_and_for_arrays(requests):
+    """The governor's request encodes within [-1, 1], back to itself inside the governed range, the same
+    for a float and an array of loaders (the assist meters a vector env's converters through it)."""
+    codec = Codec(P)
+    omegas = np.array(requests)
+    encoded = encode_speed_request(omegas, P)
+    assert ((encoded >= -1.0) & (encoded <= 1.0)).all()
+    assert np.array_equal(encoded, [codec.encode_speed_request(w) for w in requests])
+    lo = P.omega_min + GOVERNOR_FLOOR_MARGIN
+    assert np.allclose(codec.decode_speed_request(encoded), np.clip(omegas, lo, P.omega_max), rtol=1e-12, atol=1e-9)
 
 def test_the_env_observes_what_the_codec_decodes():
     """A controller reads state, time and phase from the codec alone (no copy of max_time or a scale)."""
