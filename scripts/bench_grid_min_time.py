@@ -18,6 +18,7 @@ Usage::
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import sys
 import time
@@ -36,10 +37,14 @@ from mpc.controller.solver import MISS_TOL, Solve  # noqa: E402
 
 
 def main() -> None:
-    args = [a for a in sys.argv[1:] if a != "--same-length"]
-    same_length = len(args) < len(sys.argv) - 1
-    braking = args[0] if args else "tc"
-    reach = int(args[1]) if len(args) > 1 else 2
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("braking", nargs="?", default="tc", choices=("service", "tc"))
+    ap.add_argument("reach", nargs="?", type=int, default=2, help="R: steps per phase around the plan's schedule")
+    ap.add_argument("--same-length", action="store_true", help="schedules as long as the plan's, for the least fuel")
+    a = ap.parse_args()
+    if a.reach < 1:
+        ap.error(f"R (reach) must be an integer >= 1, got {a.reach}")
+    braking, reach, same_length = a.braking, a.reach, a.same_length
     env = gym.make("WheelLoader-v2", braking=braking)
     core = env.unwrapped.core
     obs, _ = env.reset(seed=0)
