@@ -41,7 +41,6 @@ def test_actions_round_trip_and_clip():
     assert a.tolist() == [1.0, -1.0, -1.0, -1.0]
 
 
-
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.floats(-50.0, 400.0), min_size=1, max_size=8))
 def test_speed_requests_round_trip_for_one_loader_and_for_arrays(requests):
@@ -54,6 +53,7 @@ def test_speed_requests_round_trip_for_one_loader_and_for_arrays(requests):
     assert np.array_equal(encoded, [codec.encode_speed_request(w) for w in requests])
     lo = P.omega_min + GOVERNOR_FLOOR_MARGIN
     assert np.allclose(codec.decode_speed_request(encoded), np.clip(omegas, lo, P.omega_max), rtol=1e-12, atol=1e-9)
+
 
 def test_the_env_observes_what_the_codec_decodes():
     """A controller reads state, time and phase from the codec alone (no copy of max_time or a scale)."""
