@@ -102,6 +102,17 @@ class AheadJob:
     collected: bool = False  # its plan was taken up (or found stale)
 
 
+@dataclass
+class LateSolve:
+    """A deadline step's solve that ran past its deadline (``kind`` "plan" or "move"), from the state
+    ``x`` measured at step ``k``: it runs on on the worker, and a late plan is taken up when it is done."""
+
+    kind: str
+    future: concurrent.futures.Future
+    x: np.ndarray
+    k: int
+
+
 @dataclass(frozen=True)
 class MPCConfig:
     """MPC settings. ``mode``: minimum time, minimum fuel finishing by ``target_time`` (s), or
@@ -187,7 +198,7 @@ class MPCController:
         budgets = [b for b in (self.config.time_budget, self._deadline_s) if b is not None]
         self.solver = solver or IpoptSolver(self.config.max_iter, min(budgets, default=None))
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
-        self._pending: tuple[str, concurrent.futures.Future] | None = None  # a late solve: ("plan" or "move", its future)
+        self._pending: LateSolve | None = None  # deadline mode: a solve that runs on past its step
         self._ahead: AheadJob | None = None  # realtime: the solve running for the next step
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
@@ -235,7 +246,7 @@ class MPCController:
         step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
         controller's plan) would run beside it, and CasADi's objects are not safe to create from two
         threads at once (seen: heap corruption)."""
-        futures = ([self._pending[1]] if self._pending else []) + ([self._ahead.future] if self._ahead else [])
+        futures = ([self._pending.future] if self._pending else []) + ([self._ahead.future] if self._ahead else [])
         self._pending = self._ahead = None
         for future in futures:
             future.result()
@@ -528,7 +539,7 @@ class MPCController:
         They have no side effect on the controller (they may run on the deadline's worker): a move not
         solved by the deadline runs on and is dropped, and the step keeps the plan so far, the first
         solve's. (A first solve not done by then raises TimeoutError, its future in ``_pending``.)"""
-        sol = self._on_time(("plan", self._solve), t0, phase, counts, x, warm, None, **args)
+        sol = self._on_time(("plan", self._solve), t0, (x, k), phase, counts, x, warm, None, **args)
         if not sol.ok or self._over_budget(t0, 0.5) or (self._deadline_s is not None
                                                         and time.perf_counter() - t0 > 0.5 * self._deadline_s):
             return (sol, None, None), ""
@@ -536,14 +547,15 @@ class MPCController:
         if move is None:
             return (sol, None, None), ""
         try:
-            alt = self._on_time(("move", self._try_move), t0, sol, move, phase, x, **args)
+            alt = self._on_time(("move", self._try_move), t0, (x, k), sol, move, phase, x, **args)
         except concurrent.futures.TimeoutError:  # (alt None: the move did not pay, as far as this step knows)
             return (sol, move, None), "; a schedule move past the deadline (dropped)"
         return (sol, move, alt), ""
 
-    def _on_time(self, job: tuple[str, Any], t0: float, *args: Any, **kwargs: Any) -> Any:
+    def _on_time(self, job: tuple[str, Any], t0: float, made: tuple[np.ndarray, int], *args: Any, **kwargs: Any) -> Any:
         """``job`` = (kind, function) called with the arguments; with a deadline, on its worker, and
-        TimeoutError if it is not done by t0 + the deadline (it runs on, kept in ``_pending``)."""
+        TimeoutError if it is not done by t0 + the deadline (it runs on, kept in ``_pending`` with the
+        state and step it was ``made`` from)."""
         kind, fn = job
         if self._deadline_s is None:
             return fn(*args, **kwargs)
@@ -551,13 +563,14 @@ class MPCController:
         try:
             return future.result(timeout=max(t0 + self._deadline_s - time.perf_counter(), 0.0))
         except concurrent.futures.TimeoutError:
-            self._pending = (kind, future)
+            self._pending = LateSolve(kind, future, np.array(made[0]), made[1])
             raise
 
     def _step_outcome(self, x: np.ndarray, phase: int, k: int, t_call: float) -> tuple[tuple | None, str, float]:
         """The step's solves (:meth:`_step_solves`), within the deadline if there is one, and the time the
         step began: None (and why) when the deadline passed before a plan, or when the solver is still
-        busy with a late solve (a late plan then warm-starts the next solve; a late move is dropped).
+        busy with a late solve. A late plan, once done, is the plan in use (shifted by the steps it took:
+        newer than the one before it) and warm-starts the next solve; a late move is dropped.
 
         A late solve runs on in the background. The step after it begins, in real time, a control
         interval after the step before; a simulation faster than real time waits for the late solve as
@@ -566,15 +579,17 @@ class MPCController:
         start = t_call
         if self._pending is not None:
             start = max(t_call, self._step_start + self.dt)
-            kind, future = self._pending
+            pending = self._pending
             try:
-                late = future.result(timeout=max(start + self._deadline_s - time.perf_counter(), 0.0))
+                late = pending.future.result(timeout=max(start + self._deadline_s - time.perf_counter(), 0.0))
             except concurrent.futures.TimeoutError:
                 self._step_start = start
                 return None, "deadline: the solver is still busy with an earlier step; the previous plan, shifted", start
             self._pending = None
-            if kind == "plan" and late.z is not None:
+            if pending.kind == "plan" and late.z is not None:
                 self._iterate = late
+                if late.ok:
+                    self._sol, self._plan = late, self._make_plan(late, pending.x, pending.k)
         self._step_start = start
         self._enter_phase(phase)
         # what the solves read from the controller, fixed now (a late solve runs on beside the next step)
