@@ -20,7 +20,7 @@ The violation column is the environment's own (the driver's limits at every RK4 
 
 Usage::
 
-    python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick]
+    python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
 """
 
@@ -72,13 +72,13 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
     return row
 
 
-def runs(braking: str, targets: list[float], quick: bool, suite_sample: int, corners: bool, deadline_ms: float | None):
+def runs(braking: str, targets: list[float], mismatch: bool, suite_sample: int, corners: bool, deadline_ms: float | None):
     """(label, config, keyword arguments of closed_loop) of every run of one braking alternative."""
     base = {"deadline_ms": deadline_ms}
     yield "min time", MPCConfig(mode="time", **base), {}
     for T in targets:
         yield f"target {T:g} s", MPCConfig(mode="target_time", target_time=T, **base), {}
-    for payload, rolling in ([] if quick else MISMATCH):
+    for payload, rolling in (MISMATCH if mismatch else []):
         plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
         yield f"mismatch: payload x{payload}, rolling x{rolling}", MPCConfig(mode="time", **base), {"plant": plant}
     for i, sc in enumerate(load_suite("test").spread(braking, suite_sample) if suite_sample else ()):
@@ -121,6 +121,7 @@ def main() -> None:
     ap.add_argument("--targets", type=float, nargs="+", default=[9.0, 10.0, 11.0, 13.0, 16.0],
                     help="cycle times (s) of the target-time runs")
     ap.add_argument("--quick", action="store_true", help="one target time, no mismatch runs")
+    ap.add_argument("--no-mismatch", action="store_true", help="no mismatch runs")
     ap.add_argument("--solvers", nargs="+", default=["ipopt"], choices=sorted(SOLVERS), help="the candidates to compare")
     ap.add_argument("--suite-sample", type=int, default=0, metavar="N", help="test-suite scenarios per braking")
     ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
@@ -142,7 +143,7 @@ def main() -> None:
         for rt in realtime:
             name = f"{solver} realtime" if rt else solver
             for b in args.braking:
-                for label, config, kw in runs(b, targets, args.quick, args.suite_sample, args.corners, args.deadline_ms):
+                for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
                     print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
                     row = closed_loop(b, dataclasses.replace(config, realtime=rt), solver, label, **kw)
                     rows.append({**row, "solver": name, "realtime": rt})
