@@ -129,7 +129,7 @@ def test_realtime_controls_come_at_once_and_keep_the_optimum():
         assert ctrl.fallbacks < 0.5 * len(r.solve_times_s)
         assert ctrl._ahead is None  # the worker's last solve ended with the episode (run_episode -> end_episode)
     # (the reference's path takes 6-23 s: the continuous OCP and a cold solve, new NLPs if the layout is new)
-    assert ctrl.first_plan_from == "neighbour" and ctrl.planning_time < 3.0
+    assert ctrl.first_plan_from == "neighbour" and ctrl.planning_time < 4.0
 
 
 def test_realtime_never_waits_for_a_slow_solver():
