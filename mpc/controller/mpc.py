@@ -820,8 +820,16 @@ class MPCController:
             return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
         if warm is not None and warm.first_phase == first_phase and warm.z is not None:
             return timed_solve(self.solver, nlp, counts, first_phase, args, warm.z, warm)
-        # a cold solve (the first of a cycle): on the MX twin (the same variables and rows), which builds
-        # in a tenth of the time
+        if guess is not None:
+            # the first solve of a cycle: the layout's warm solver, built for the cycle anyway, from the
+            # guess with no multipliers (measured, six cycles: 0.45-0.96 s against 1.2-1.9 s cold on the MX
+            # twin, the same schedules; it builds no solver of its own and keeps ~30 MB less)
+            none = Solve(counts=dict(counts), first_phase=first_phase, ok=True, status="", z=guess,
+                         lam_x=np.zeros(nlp.n_var), lam_g=np.zeros(nlp.n_con))
+            sol = timed_solve(self.solver, nlp, counts, first_phase, args, guess, none)
+            if sol.ok:
+                return sol
+        # a cold solve: on the MX twin (the same variables and rows), which builds in a tenth of the time
         z0 = guess if guess is not None else (nlp.lbw + nlp.ubw) / 2
         return timed_solve(self.solver, self._nlp(first_phase, "MX"), counts, first_phase, args, z0)
 
