@@ -87,8 +87,9 @@ def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, ome
     return StepModel(braking, params, dt, substeps, omega_margin)
 
 
-# The NLPs one controller plans with (one per first phase, SX and its MX twin) and their solvers: a
-# suite run moves on to another scenario's model, and each NLP with its solver holds 50-200 MB.
+# The NLPs one controller plans with (one per first phase; the MX twin of the first where a cycle's first
+# solve fails on the warm solver) and their solvers: a suite run moves on to another scenario's model,
+# and each NLP with its solver holds 50-200 MB.
 NLP_CACHE = 8
 
 
