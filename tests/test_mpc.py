@@ -4,6 +4,7 @@ constraints, it adapts to a mismatched plant, and it survives solver failures.""
 import functools
 import math
 
+import casadi as ca
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from mpc.benchmark.ocp import solve_ocp
 from mpc.controller.grid import NOMINAL_ESTIMATE, StepModel
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from mpc.controller.schedule import apportion, steps_of
-from mpc.controller.solver import IpoptSolver
+from mpc.controller.solver import IpoptSolver, SolverResult
 from wl_env.model import estimated_derivatives
 from wl_env.params import DEFAULT_PARAMS as P
 from wl_env.simulator import Simulator
@@ -284,3 +285,34 @@ def test_a_controller_moved_to_another_scenario_keeps_no_nlp_of_the_old_model():
     assert grid_nlp.cache_info().currsize == 1
     release_solvers()
     assert grid_nlp.cache_info().currsize == 0 and step_model.cache_info().currsize == 0
+
+
+class CountingSolver(IpoptSolver):
+    """IPOPT that records how each solve was started, and fails the ones from zero multipliers if told."""
+
+    def __init__(self, fail_from_zero: bool) -> None:
+        super().__init__()
+        self.fail_from_zero, self.starts = fail_from_zero, []
+
+    def solve(self, nlp, args, x0, lam_x0=None, lam_g0=None):
+        start = "cold" if lam_x0 is None else "zero" if not (np.any(lam_x0) or np.any(lam_g0)) else "warm"
+        self.starts.append((start, nlp.symbolic is ca.MX))
+        if start == "zero" and self.fail_from_zero:
+            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
+        return super().solve(nlp, args, x0, lam_x0, lam_g0)
+
+
+@pytest.mark.parametrize("fail_from_zero", [pytest.param(False, marks=pytest.mark.slow), True])  # (15-20 s each)
+def test_the_first_solve_runs_on_the_warm_solver_and_falls_back_to_the_cold_one(fail_from_zero):
+    """A cycle's first solve starts the layout's warm (SX) solver from the reference's guess with zero
+    multipliers, and builds no MX twin; if that fails, the cold solve on the MX twin plans the cycle."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    solver = CountingSolver(fail_from_zero)
+    target = 11.3 if fail_from_zero else 11.7  # (targets no other test plans: no stored first plan)
+    ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=target), solver=solver)
+    ctrl.act(obs)
+    assert ctrl.first_plan_from == "reference" and ctrl._sol.ok and ctrl._sol.feasible
+    assert solver.starts[0] == ("zero", False)
+    cold = [s for s in solver.starts if s[0] == "cold"]
+    assert cold == ([("cold", True)] if fail_from_zero else [])
