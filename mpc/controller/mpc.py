@@ -824,9 +824,9 @@ class MPCController:
             # the first solve of a cycle: the layout's warm solver, built for the cycle anyway, from the
             # guess with no multipliers (measured, six cycles: 0.45-0.96 s against 1.2-1.9 s cold on the MX
             # twin, the same schedules; it builds no solver of its own and keeps ~30 MB less)
-            none = Solve(counts=dict(counts), first_phase=first_phase, ok=True, status="", z=guess,
+            zero = Solve(counts=dict(counts), first_phase=first_phase, ok=True, status="", z=guess,
                          lam_x=np.zeros(nlp.n_var), lam_g=np.zeros(nlp.n_con))
-            sol = timed_solve(self.solver, nlp, counts, first_phase, args, guess, none)
+            sol = timed_solve(self.solver, nlp, counts, first_phase, args, guess, zero)
             if sol.ok:
                 return sol
         # a cold solve: on the MX twin (the same variables and rows), which builds in a tenth of the time
