@@ -654,15 +654,12 @@ class MPCController:
             self._prepare_nlps(phase)
             sol = self._solve(phase, last.counts, x, warm=last)
             if sol.ok:
-                self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
-                self.first_plan_from = "stored"
+                self._take_first_plan(sol, "stored")
                 return
         if cfg.realtime:
             sol = self._plan_from_neighbour(key, x, phase, k)
             if sol is not None:
-                self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
-                self._remember_first_plan(key, sol)
-                self.first_plan_from = "neighbour"
+                self._take_first_plan(sol, "neighbour", key)
                 return
         ref = self.reference()
         durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
@@ -691,15 +688,18 @@ class MPCController:
                 failed.add(move)
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
-        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
-        self._remember_first_plan(key, sol)
-        self.first_plan_from = "reference"
+        self._take_first_plan(sol, "reference", key)
 
-    def _remember_first_plan(self, key: tuple, sol: Solve) -> None:
-        _FIRST_PLANS.pop(key, None)
-        _FIRST_PLANS[key] = (sol, dict(self._slots))
-        while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
-            del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
+    def _take_first_plan(self, sol: Solve, source: str, key: tuple | None = None) -> None:
+        """The cycle starts from ``sol`` (planned from ``source``, see ``first_plan_from``), stored under
+        ``key`` with its slot layout for the next controller of this process, if a key is given."""
+        self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
+        self.first_plan_from = source
+        if key is not None:
+            _FIRST_PLANS.pop(key, None)
+            _FIRST_PLANS[key] = (sol, dict(self._slots))
+            while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
+                del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
 
     def _plan_from_neighbour(self, key: tuple, x: np.ndarray, phase: int, k: int) -> Solve | None:
         """A real-time controller's first plan from the nearest first plan stored for the same model, first
