@@ -89,7 +89,11 @@ def test_closed_loop_cycle_near_the_optimum(braking, mode):
     assert abs(r.episode.final_height_error_m) <= 0.02
     assert r.episode.max_violation == 0.0  # deceleration and speed limits held at every step
     assert (np.asarray(r.episode.trajectory.states)[:, 0] > P.omega_min).all()
-    assert ctrl.fallbacks == 0 and r.solve_time["median_s"] < 0.1  # faster than the control interval
+    # Warm-started: 2 IPOPT iterations a step in the median (measured, both modes). Iterations, not wall
+    # time, are the bound: a 2-core machine shared with another pytest worker ran the same solves at
+    # 65-115 ms. The wall-time bound only catches work per step (an NLP build takes > 1 s) that counts none.
+    assert ctrl.fallbacks == 0 and np.median(ctrl.step_iterations[1:]) <= 5
+    assert r.solve_time["median_s"] < 0.5
     if mode == "time":  # measured +0.4 % (service), +0.3 % (tc); the environment ends on its 0.1 s grid
         assert r.episode.T <= 1.02 * solve_ocp(braking, "time", verify=False).T
     else:  # on time, and within 3 % of the least fuel of any cycle that long (measured +0.1 %, -0.03 %)

@@ -240,6 +240,7 @@ class MPCController:
         self.worker_solve_times: list[float] = []  # realtime: each worker job's solves, plan and move (s)
         self.plan_ages: list[int] = []  # realtime: per step, the steps since the plan it applies was solved
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
+        self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
         self.fallbacks = 0
         self.deadline_misses = 0
         self.planning_time = 0.0
@@ -349,8 +350,9 @@ class MPCController:
             self._submit_ahead(x_plan, phase, k, counts, u[None, :])
         self.solve_times.append(solve_time)
         self.step_solves.append(len(solves))
+        self.step_iterations.append(sum(s.iterations for s in solves))
         info = {"solve_time": solve_time, "status": status, "fallback": not ok, "over_budget": over_budget,
-                "deadline_missed": not solves, "solves": len(solves), "iterations": sum(s.iterations for s in solves),
+                "deadline_missed": not solves, "solves": len(solves), "iterations": self.step_iterations[-1],
                 "schedule": dict(self._counts), "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
         return u, shift, info
 
@@ -428,6 +430,7 @@ class MPCController:
         self.solve_times.append(latency)
         self.plan_ages.append(age)
         self.step_solves.append(0)
+        self.step_iterations.append(0)
         status = (f"the plan of step {made}" + ("; overdue, shifted" if late else "")) + note
         info = {"solve_time": latency, "status": status, "fallback": late, "over_budget": False,
                 "deadline_missed": late, "solves": 0, "iterations": 0, "plan_age": age,
