@@ -240,15 +240,23 @@ class GridNLP:
     w . (u_k - u_{k-1})^2 on U_mf and U_ab (scaled; eq. (33) of the paper on the grid).
     """
 
-    def __init__(self, model: StepModel, first_phase: int, slots: dict[int, int], symbolic: str = "SX") -> None:
+    def __init__(self, model: StepModel, first_phase: int, slots: dict[int, int], symbolic: str = "SX",
+                 open_phase: int | None = None, short: bool = False) -> None:
         if symbolic not in ("SX", "MX"):
             raise ValueError(f"symbolic must be 'SX' (fast to evaluate) or 'MX' (fast to build), got {symbolic!r}")
         self.symbolic = getattr(ca, symbolic)
         if first_phase not in (1, 2, 3, 4):
             raise ValueError(f"first_phase must be 1..4, got {first_phase!r}")
+        if open_phase is not None and open_phase not in range(first_phase, 5):
+            raise ValueError(f"open_phase must be None or {first_phase}..4, got {open_phase!r}")
         self.model = model
         self.first_phase = first_phase
-        self.phases = tuple(range(first_phase, 5))
+        # A short horizon (open_phase): the NLP ends within that phase, without its stop step and targets,
+        # and prices its end state with a terminal cost (the cycle's value beyond it, :meth:`terminal`).
+        self.open_phase = open_phase
+        self.short = short  # a short horizon's NLP (open or not): its solvers are cached apart from the full ones
+        self.phases = tuple(range(first_phase, 5 if open_phase is None else open_phase + 1))
+        self.stop_phases = tuple(ph for ph in self.phases if ph in (2, 4) and ph != open_phase)
         self.slots_per_phase = {ph: int(slots[ph]) for ph in self.phases}
         if any(n < 1 for n in self.slots_per_phase.values()):
             raise ValueError(f"every phase needs at least one slot, got {self.slots_per_phase}")
@@ -258,18 +266,21 @@ class GridNLP:
         m, p = self.model, self.model.params
         xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
         kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
-        kinds = sorted(kinds + [(ph, "stop") for ph in self.phases if ph in (2, 4)], key=lambda k: (k[0], k[1] == "stop"))
+        kinds = sorted(kinds + [(ph, "stop") for ph in self.stop_phases], key=lambda k: (k[0], k[1] == "stop"))
         n_slots = len(kinds)
         sym = self.symbolic
         self.h_offset = N_XR + N_EST  # parameters: the start, the estimate, then per slot h, active, rate on
         self._active_offset = self.h_offset + n_slots
         self._rate_offset = self._active_offset + n_slots
-        par = sym.sym("par", self._rate_offset + n_slots + N_R)
+        # ... the rate weights, then (open_phase) the terminal cost's: reference end state, its gradient, weight
+        self.terminal_offset = self._rate_offset + n_slots + N_R
+        n_terminal = 2 * N_XR + 1 if self.open_phase is not None else 0
+        par = sym.sym("par", self.terminal_offset + n_terminal)
         est = par[N_XR:N_XR + N_EST]
         hs = par[self.h_offset:self._active_offset]
         is_active = par[self._active_offset:self._rate_offset]
         rate_on = par[self._rate_offset:self._rate_offset + n_slots]
-        rate_w = par[self._rate_offset + n_slots:]
+        rate_w = par[self._rate_offset + n_slots:self.terminal_offset]
         w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
         size = {"w": 0, "g": 0}
 
@@ -360,6 +371,11 @@ class GridNLP:
             self.stage_rows.append(size["g"] - g_before)
             slots.append(Slot(ph, kind, u_off, x_off, g_off, gap))
             fuel += fuel_k
+        if self.open_phase is not None:  # the value of the cycle beyond the horizon, to second order about a plan's
+            x_ref, grad, weight = (par[self.terminal_offset:self.terminal_offset + N_XR],
+                                   par[self.terminal_offset + N_XR:self.terminal_offset + 2 * N_XR], par[-1])
+            dx = Xk - x_ref
+            cost.append(ca.dot(grad, dx) + 0.5 * weight * ca.dot(dx, dx))
         fuel_g = 1000.0 * fuel
         J = fuel_g + ca.sum1(ca.vertcat(*cost))
         self.slots = slots
@@ -396,7 +412,7 @@ class GridNLP:
         par[self._rate_offset + active] = 1.0
         if u_prev is None:
             par[self._rate_offset + active[0]] = 0.0
-        par[self._rate_offset + n:] = rate_weight
+        par[self._rate_offset + n:self.terminal_offset] = rate_weight
         lbw, ubw, lbg, ubg = self.lbw.copy(), self.ubw.copy(), self.lbg.copy(), self.ubg.copy()
         idle = np.ones(n, dtype=bool)
         idle[active] = False
@@ -454,6 +470,26 @@ class GridNLP:
             lbx[s.x:s.x + N_X], ubx[s.x:s.x + N_X] = -math.inf, math.inf  # (where it ends is committed too)
         return {**args, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
 
+    def with_terminal(self, args: dict[str, Any], x_ref: np.ndarray, gradient: np.ndarray, weight: float) -> dict[str, Any]:
+        """The arguments with the terminal cost (an open NLP's): ``gradient`` . dX + ``weight`` / 2 |dX|^2,
+        dX the end state's (scaled, N_XR: the state and the last control) difference from ``x_ref``."""
+        if self.open_phase is None:
+            raise ValueError("a terminal cost needs an NLP that ends open (open_phase)")
+        if not (np.isfinite(weight) and weight >= 0.0):
+            raise ValueError(f"the terminal weight must be finite and >= 0, got {weight!r}")
+        p = np.array(args["p"], dtype=float)
+        p[self.terminal_offset:self.terminal_offset + N_XR] = x_ref
+        p[self.terminal_offset + N_XR:self.terminal_offset + 2 * N_XR] = gradient
+        p[-1] = weight
+        return {**args, "p": p}
+
+    def slot_spans(self, k: int) -> tuple[slice, slice, slice]:
+        """Slot k's decision variables (control, slacks, misses, end state), its shooting rows and its own
+        rows (the start equality of slot 0 apart), as slices of z and g."""
+        s = self.slots[k]
+        end = self.slots[k + 1].gap if k + 1 < len(self.slots) else self.n_con
+        return slice(s.u, s.x + N_XR), slice(s.gap, s.gap + N_XR), slice(s.g, end)
+
     def _step_of(self, s: Slot) -> StepFunction:
         return self.model.full[s.phase] if s.kind == "full" else self.model.stop[s.phase]
 
@@ -470,7 +506,7 @@ class GridNLP:
                 raise ValueError(f"phase {ph}: {n} steps do not fit its {n_slots} slots")
             out.extend(range(k + n_slots - n, k + n_slots))
             k += n_slots
-            if ph in (2, 4):
+            if ph in self.stop_phases:
                 out.append(k)
                 k += 1
         return np.array(out, dtype=int)

@@ -38,12 +38,14 @@ import numpy as np
 
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
+from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
     GridSolver,
     IpoptSolver,
     Solve,
     grid_nlp,
+    horizon_nlp,
     release_solvers,
     solve_until,
     step_model,
@@ -151,6 +153,12 @@ class MPCConfig:
     # controls move 1.41x (U_mf) and 1.73x (U_ab) the optimum's total variation; 0.01 gives 1.04x / 0.19x
     # for +0.02 % fuel, 0.1 gives 0.86x / 0.13x for +0.06 %, 1.0 0.68x / 0.07x for +0.27 %.
     rate_weight: tuple[float, float] = (0.1, 0.1)
+    # A short receding horizon (mpc.controller.horizon): after the first plan, each step solves only the
+    # next ``horizon_steps`` steps of its schedule, the rest of the cycle priced by the first plan's value
+    # (its costate, and ``terminal_weight`` g per unit of scaled end-state difference squared / 2). None:
+    # the whole rest of the cycle every step. Synchronous only; no schedule moves (the first plan's schedule).
+    horizon_steps: int | None = None
+    terminal_weight: float = 100.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -175,6 +183,15 @@ class MPCConfig:
             raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {self.rate_weight!r}")
         if not 0.0 <= self.tighten < 0.5:
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
+        if self.horizon_steps is not None:
+            if not (isinstance(self.horizon_steps, int) and not isinstance(self.horizon_steps, bool)
+                    and 2 <= self.horizon_steps <= 1000):
+                raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {self.horizon_steps!r}")
+            if self.realtime or self.deadline_ms is not None:
+                raise ValueError("horizon_steps is synchronous only: not with realtime or deadline_ms")
+        if not (isinstance(self.terminal_weight, (int, float)) and math.isfinite(self.terminal_weight)
+                and self.terminal_weight >= 0.0):
+            raise ValueError(f"terminal_weight must be a finite number >= 0, got {self.terminal_weight!r}")
 
 
 class MPCController:
@@ -232,6 +249,8 @@ class MPCController:
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
+        self._reference: HorizonReference | None = None  # horizon_steps: the first plan, the horizons' value
+        self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self.estimator.reset()
@@ -319,6 +338,13 @@ class MPCController:
             solves, ok, over_budget = [self._sol], True, False
             solve_time = self.planning_time = time.perf_counter() - t0
             status = self._sol.status
+        elif self.config.horizon_steps is not None:
+            self._enter_phase(phase)
+            sol, nlp = self._horizon_solve(x_plan, phase)
+            solves, over_budget = [sol], self._over_budget(t0)
+            ok, solve_time, status = sol.ok and not over_budget, sol.wall, sol.status
+            if ok:  # (the plan of the horizon alone: the full layouts' warm starts stay the first plan's)
+                self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
         else:
             outcome, status, t0 = self._step_outcome(x_plan, phase, k, t0)
             if outcome is None:  # past the deadline, or the solver still busy with an earlier one
@@ -338,10 +364,10 @@ class MPCController:
                         self._accept_move(move, alt, k)
                 solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
                 status = "; ".join(s.status for s in solves) + status
-        if ok:
+        if ok and (self.config.horizon_steps is None or len(self.solve_times) == 0):
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
-        else:
+        elif not ok:
             self.fallbacks += 1
         counts = dict(self._counts)
         u, shift, _ = self._from_plan(k, phase)
@@ -698,6 +724,9 @@ class MPCController:
         ``key`` with its slot layout for the next controller of this process, if a key is given."""
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
+        if self.config.horizon_steps is not None:
+            self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g)
+            self._prepare_horizons(sol.first_phase)
         if key is not None:
             _FIRST_PLANS.pop(key, None)
             _FIRST_PLANS[key] = (sol, dict(self._slots))
@@ -744,6 +773,41 @@ class MPCController:
         """Build the NLPs (and solvers) of the slot layout from ``phase`` on now, not in the middle of the cycle."""
         for q in range(phase, 5):
             self.solver.prepare(self._nlp(q))
+
+    # ------------------------------------------------------------------ short horizon (MPCConfig.horizon_steps)
+    def _horizon_nlp(self, phase: int, counts: dict[int, int]) -> tuple[GridNLP, dict[int, int]]:
+        """The NLP of the horizon from ``phase`` with the schedule ``counts`` left, and the horizon's
+        schedule: per phase at most ``horizon_steps`` slots, ending open where it ends before the cycle."""
+        counts, open_phase = horizon_counts(counts, phase, self.config.horizon_steps)
+        last = 4 if open_phase is None else open_phase
+        slots = tuple((q, min(self._slots[q], self.config.horizon_steps)) for q in range(phase, last + 1))
+        return horizon_nlp(self.model, phase, slots, open_phase), counts
+
+    def _prepare_horizons(self, phase: int) -> None:
+        """Build the horizons' NLPs and solvers along the first plan's schedule now, not during the cycle."""
+        counts = dict(self._counts)
+        for q in sorted(counts):
+            while counts[q] > 0:  # the horizon from each of the phase's full steps, then from its stop step
+                self.solver.prepare(self._horizon_nlp(q, counts)[0])
+                counts[q] -= 1
+            if q in (2, 4):
+                self.solver.prepare(self._horizon_nlp(q, counts)[0])
+            del counts[q]
+
+    def _horizon_solve(self, x: np.ndarray, phase: int) -> tuple[Solve, GridNLP]:
+        """Solve the next ``horizon_steps`` of the schedule from state x, warm-started from the first plan."""
+        nlp, counts = self._horizon_nlp(phase, self._counts)
+        ref = self._reference
+        z0, lam_x, lam_g, end = ref.warm_start(nlp, counts, self._counts, x, self._horizon_last)
+        u_prev = self._last[2] if self._last is not None else None
+        args = nlp.arguments(counts, x, self.estimator.estimate, self.dt, tighten=(self.config.tighten, self._later_margin()),
+                             u_prev=u_prev, rate_weight=self.config.rate_weight)
+        args = terminal_arguments(nlp, args, ref, end, self.config.terminal_weight)
+        warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z0, lam_x=lam_x, lam_g=lam_g)
+        sol = timed_solve(self.solver, nlp, counts, phase, args, z0, warm)
+        if sol.ok:
+            self._horizon_last = (nlp, sol)
+        return sol, nlp
 
     def reference(self):
         """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""

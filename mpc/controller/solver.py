@@ -99,6 +99,13 @@ def grid_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], .
     return GridNLP(model, first_phase, dict(slots), symbolic)
 
 
+@functools.lru_cache(maxsize=NLP_CACHE)
+def horizon_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], open_phase: int | None) -> GridNLP:
+    """A short horizon's NLP, ending open in ``open_phase`` (None: at the cycle's end). A cache of its own
+    (with its solvers): a cycle slides through ~6 of them, which would push the full layouts out of theirs."""
+    return GridNLP(model, first_phase, dict(slots), "SX", open_phase, short=True)
+
+
 # A wall-clock deadline per solve call (time.perf_counter() s), per thread: IPOPT's own max_wall_time is
 # fixed when its solver is built, and a real-time controller's solves each have their own.
 _CALL = threading.local()
@@ -151,8 +158,7 @@ class _DeadlineCallback(ca.Callback):
 _DEADLINE_CALLBACK: _DeadlineCallback | None = None  # one for every solver (built on first use)
 
 
-@functools.lru_cache(maxsize=NLP_CACHE)
-def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
+def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
             "ipopt.max_iter": max_iter}
@@ -168,6 +174,11 @@ def _ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None)
     return ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
 
 
+# the full layouts' solvers, and the short horizons' (each a cache of its own, as their NLPs)
+_ipopt = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
+_ipopt_horizon = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
+
+
 class IpoptSolver:
     """IPOPT on a grid NLP: warm-started solves at ``max_iter`` iterations and ``time_budget`` seconds of
     wall time at most; a cold solve (no multipliers given) at up to 500 iterations."""
@@ -178,7 +189,8 @@ class IpoptSolver:
         self.max_iter, self.time_budget = max_iter, time_budget
 
     def _function(self, nlp: GridNLP, warm: bool) -> ca.Function:
-        return _ipopt(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None)
+        build = _ipopt_horizon if nlp.short else _ipopt
+        return build(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None)
 
     def prepare(self, nlp: GridNLP) -> None:
         """Build the warm solver of an NLP now (not in the middle of a cycle)."""
@@ -316,7 +328,7 @@ def release_solvers() -> None:
     440 MB after one cycle, 110 MB after this)."""
     from mpc.benchmark import ocp  # (the MPC's reference and the scoring build OCP NLPs too)
 
-    for cache in (step_model, grid_nlp, _ipopt, _fatrop, _sqp_rti):
+    for cache in (step_model, grid_nlp, horizon_nlp, _ipopt, _ipopt_horizon, _fatrop, _sqp_rti):
         cache.cache_clear()
     ocp.release_nlps()
     gc.collect()
