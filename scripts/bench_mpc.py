@@ -12,6 +12,9 @@ Per braking alternative (and per solver candidate, ``--solvers``):
     0.1 s control interval, and the controls' total variation against the optimum's at the same cycle
     time (:func:`mpc.benchmark.scoring.smoothness`).
 
+``--horizons 10 20`` runs each synchronous candidate also with a short receding horizon of that many steps
+(``MPCConfig.horizon_steps``: the rest of the cycle priced by the first plan's value), as ``ipopt h10``.
+
 ``--realtime both`` runs each candidate also as the real-time controller (``MPCConfig.realtime``): its
 per-step time is then the time to the control, and the worker's solves (plan and schedule move, one
 interval ahead) and the oldest plan a step applied are reported beside it.
@@ -22,6 +25,7 @@ Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
+        [--horizons 10 20] [--terminal-weight 100]
 """
 
 from __future__ import annotations
@@ -128,6 +132,10 @@ def main() -> None:
     ap.add_argument("--deadline-ms", type=float, default=None, help="MPCConfig.deadline_ms of every run")
     ap.add_argument("--realtime", choices=["off", "on", "both"], default="off",
                     help="MPCConfig.realtime: the synchronous controller (off), the real-time one (on), or both side by side")
+    ap.add_argument("--horizons", type=int, nargs="+", default=[], metavar="N",
+                    help="also run each synchronous candidate with a short horizon of N steps (MPCConfig.horizon_steps)")
+    ap.add_argument("--terminal-weight", type=float, default=MPCConfig.terminal_weight,
+                    help="MPCConfig.terminal_weight of the short-horizon runs")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
@@ -139,14 +147,18 @@ def main() -> None:
     realtime = {"off": [False], "on": [True], "both": [False, True]}[args.realtime]
     if args.deadline_ms is not None and True in realtime:
         ap.error("--deadline-ms applies to the synchronous controller (a real-time step's deadline is its interval)")
-    for solver in args.solvers:
-        for rt in realtime:
-            name = f"{solver} realtime" if rt else solver
-            for b in args.braking:
-                for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
-                    print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
-                    row = closed_loop(b, dataclasses.replace(config, realtime=rt), solver, label, **kw)
-                    rows.append({**row, "solver": name, "realtime": rt})
+    if args.horizons and args.deadline_ms is not None:
+        ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
+    variants = [(solver, rt, None) for solver in args.solvers for rt in realtime]
+    variants += [(solver, False, h) for solver in args.solvers for h in args.horizons]
+    for solver, rt, horizon in variants:
+        name = f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}"
+        for b in args.braking:
+            for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
+                print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
+                config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight)
+                row = closed_loop(b, config, solver, label, **kw)
+                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "
           "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) "

@@ -68,6 +68,9 @@ MIN_GAIN = 0.05
 MIN_GAIN_ONLINE = 0.2
 SEARCH_SOLVES = 12  # solves the first step may spend on the schedule
 SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's search
+# A short horizon's full plan is made again when the plant estimate [accel offset (m/s^2), accel gain, lift
+# gain] moves by more than this since it was made (or when the horizon's plan misses a target).
+REPLAN_ESTIMATE_CHANGE = np.array([0.02, 0.01, 0.01])
 SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared between nearby schedules)
 # The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
 # engine-speed error (see MPCController._later_margin): per rad/s of RMS error, and at most.
@@ -262,6 +265,7 @@ class MPCController:
         self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
         self.fallbacks = 0
         self.deadline_misses = 0
+        self.replans = 0  # horizon_steps: steps after the first that solved the whole rest of the cycle
         self.planning_time = 0.0
         # what the first plan started from: "stored" (this cycle's, planned before in the process),
         # "neighbour" (real time: another target's or start's) or "reference" (the continuous optimum)
@@ -335,38 +339,44 @@ class MPCController:
             return self._control_ahead(x_plan, phase, k)
         if self._counts is None:  # the first step plans the cycle (a real controller would before it starts)
             self._plan_cycle(x_plan, phase, k)
-            solves, ok, over_budget = [self._sol], True, False
+            solves, ok, over_budget, short = [self._sol], True, False, False
             solve_time = self.planning_time = time.perf_counter() - t0
             status = self._sol.status
-        elif self.config.horizon_steps is not None:
-            self._enter_phase(phase)
-            sol, nlp = self._horizon_solve(x_plan, phase)
-            solves, over_budget = [sol], self._over_budget(t0)
-            ok, solve_time, status = sol.ok and not over_budget, sol.wall, sol.status
-            if ok:  # (the plan of the horizon alone: the full layouts' warm starts stay the first plan's)
-                self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
         else:
-            outcome, status, t0 = self._step_outcome(x_plan, phase, k, t0)
-            if outcome is None:  # past the deadline, or the solver still busy with an earlier one
-                solves, ok, over_budget, solve_time = [], False, True, time.perf_counter() - t0
-                self.deadline_misses += 1
-            else:
-                sol, move, alt = outcome
-                solves, over_budget = [sol] + ([alt] if alt is not None else []), self._over_budget(t0)
-                ok = sol.ok and not over_budget
-                if sol.z is not None:  # the next solve goes on from here, converged or not
-                    self._iterate = sol
-                if ok:
-                    self._sol = sol
-                    if move is not None and alt is None:  # past the deadline: it waits as a move that did not pay
-                        self.schedule.record(move, k, paid=False)
-                    elif move is not None:
-                        self._accept_move(move, alt, k)
-                solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
-                status = "; ".join(s.status for s in solves) + status
-        if ok and (self.config.horizon_steps is None or len(self.solve_times) == 0):
+            short = self._reference is not None and not self._reference_stale()
+            if short:  # the short horizon; where its plan misses a target, the full solve below too
+                self._enter_phase(phase)
+                sol, nlp = self._horizon_solve(x_plan, phase)
+                solves, over_budget = [sol], self._over_budget(t0)
+                ok, solve_time, status = sol.ok and not over_budget, sol.wall, sol.status
+                short = sol.feasible
+                if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
+                    self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
+            if not short:
+                self.replans += self._reference is not None
+                outcome, status, t0 = self._step_outcome(x_plan, phase, k, t0)
+                if outcome is None:  # past the deadline, or the solver still busy with an earlier one
+                    solves, ok, over_budget, solve_time = [], False, True, time.perf_counter() - t0
+                    self.deadline_misses += 1
+                else:
+                    sol, move, alt = outcome
+                    solves, over_budget = [sol] + ([alt] if alt is not None else []), self._over_budget(t0)
+                    ok = sol.ok and not over_budget
+                    if sol.z is not None:  # the next solve goes on from here, converged or not
+                        self._iterate = sol
+                    if ok:
+                        self._sol = sol
+                        if move is not None and alt is None:  # past the deadline: it waits as a move that did not pay
+                            self.schedule.record(move, k, paid=False)
+                        elif move is not None:
+                            self._accept_move(move, alt, k)
+                    solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
+                    status = "; ".join(s.status for s in solves) + status
+        if ok and not short:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
+            if self.config.horizon_steps is not None:  # the plan the short horizons follow from now on
+                self._take_reference(self._sol)
         elif not ok:
             self.fallbacks += 1
         counts = dict(self._counts)
@@ -725,7 +735,6 @@ class MPCController:
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
         if self.config.horizon_steps is not None:
-            self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g)
             self._prepare_horizons(sol.first_phase)
         if key is not None:
             _FIRST_PLANS.pop(key, None)
@@ -782,6 +791,19 @@ class MPCController:
         last = 4 if open_phase is None else open_phase
         slots = tuple((q, min(self._slots[q], self.config.horizon_steps)) for q in range(phase, last + 1))
         return horizon_nlp(self.model, phase, slots, open_phase), counts
+
+    def _take_reference(self, sol: Solve) -> None:
+        """A full plan: the one the short horizons follow (warm start, terminal cost), with the plant
+        estimate it was made with."""
+        self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g)
+        self._reference_estimate = np.array(self.estimator.estimate)
+        self._horizon_last = None
+
+    def _reference_stale(self) -> bool:
+        """The plant estimate moved since the full plan was made (by REPLAN_ESTIMATE_CHANGE in a component):
+        its value no longer prices the rest of the cycle, the next step plans it in full again."""
+        change = np.abs(np.asarray(self.estimator.estimate) - self._reference_estimate)
+        return bool((change > REPLAN_ESTIMATE_CHANGE).any())
 
     def _prepare_horizons(self, phase: int) -> None:
         """Build the horizons' NLPs and solvers along the first plan's schedule now, not during the cycle."""
@@ -940,6 +962,7 @@ class MPCController:
                 "p99_s": float(np.percentile(st, 99)), "max_s": float(st.max()),
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
                 "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time),
+                "replans": int(self.replans),
                 # realtime: the worker's solves per step (plan and schedule move), and how old the plans applied were
                 "background_median_s": float(np.median(bg)), "background_p99_s": float(np.percentile(bg, 99)),
                 "background_max_s": float(bg.max()), "plan_age_max": int(max(self.plan_ages, default=0))}

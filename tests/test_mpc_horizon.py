@@ -1,0 +1,113 @@
+"""The short receding horizon (MPCConfig.horizon_steps): its schedule, its terminal cost from the first
+plan's value, and the closed loop it drives."""
+
+import functools
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import wl_env  # noqa: F401  (registers the env)
+from mpc.benchmark.ocp import solve_ocp
+from mpc.controller.grid import NOMINAL_ESTIMATE
+from mpc.controller.horizon import horizon_counts
+from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
+from mpc.controller.schedule import steps_of
+from mpc.controller.solver import Solve, timed_solve
+
+
+@settings(max_examples=300, deadline=None)
+@given(counts=st.fixed_dictionaries({q: st.integers(0, 40) for q in (1, 2, 3, 4)}), phase=st.integers(1, 4),
+       steps=st.integers(1, 60))
+def test_a_horizon_takes_the_next_steps_of_the_schedule(counts, phase, steps):
+    counts = {q: n for q, n in counts.items() if q >= phase}
+    out, open_phase = horizon_counts(counts, phase, steps)
+    if open_phase is None:  # it reaches the cycle's end: the whole rest
+        assert out == counts and steps_of(counts) <= steps + 1
+        return
+    assert list(out) == list(range(phase, open_phase + 1))
+    assert all(out[q] == counts[q] for q in out if q != open_phase)  # the phases before it whole
+    assert 1 <= out[open_phase] <= counts[open_phase]
+    # N steps, or one more where a phase that must be whole (its stop step alone) or a first step ends past N
+    assert steps <= steps_of(out) - (1 if open_phase in (2, 4) else 0) <= steps + 1
+
+
+@pytest.mark.parametrize("bad", [0, 1, -3, 2.5, True, "10"])
+def test_a_bad_horizon_is_refused_by_name(bad):
+    with pytest.raises(ValueError, match="horizon_steps"):
+        MPCConfig(mode="time", horizon_steps=bad)
+
+
+def test_a_bad_terminal_weight_or_a_real_time_horizon_is_refused_by_name():
+    with pytest.raises(ValueError, match="terminal_weight"):
+        MPCConfig(mode="time", horizon_steps=10, terminal_weight=float("nan"))
+    with pytest.raises(ValueError, match="horizon_steps"):
+        MPCConfig(mode="time", horizon_steps=10, realtime=True)
+
+
+@functools.cache
+def planned(braking: str, horizon: int):
+    """A controller that planned the TC 11 s cycle (its first step), with its first plan."""
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=horizon)
+    ctrl = MPCController(braking, config=config)
+    obs, _ = gym.make("WheelLoader-v2", braking=braking).reset(seed=0)
+    ctrl.act(obs)
+    return ctrl, dict(ctrl._plan)
+
+
+def remaining_after(counts: dict[int, int], n: int) -> dict[int, int]:
+    """The schedule left after the first n steps of ``counts``."""
+    rem = dict(counts)
+    for q in sorted(rem):
+        d = min(rem[q], n)
+        rem[q] -= d
+        n -= d
+        if n == 0:
+            return rem
+        n -= 1 if q in (2, 4) else 0
+        del rem[q]
+    return rem
+
+
+@pytest.mark.parametrize("step", [5, 45])  # ends open in phase 1; crosses into phase 2 and ends open there
+def test_the_first_plan_is_an_optimum_of_each_short_horizon_along_it(step):
+    """With the first plan's costate as the terminal cost's gradient, the plan's own steps meet the short
+    NLP's optimality conditions: from the plan's state, the horizon's solve returns the plan's controls in
+    a few iterations. With the gradient's sign turned, it does not (the terminal cost is what holds it)."""
+    ctrl, plan = planned("tc", 10)
+    ref, cfg = ctrl._reference, ctrl.config
+    rem = remaining_after(ref.counts, step)
+    phase = min(rem)
+    nlp, counts = ctrl._horizon_nlp(phase, rem)
+    assert nlp.open_phase is not None and nlp.n_var < 0.25 * ref.nlp.n_var
+    x = plan["states"][step]
+    z0, lam_x, lam_g, end = ref.warm_start(nlp, counts, rem, x)
+    args = nlp.arguments(counts, x, NOMINAL_ESTIMATE, ctrl.dt, tighten=(cfg.tighten, cfg.tighten),
+                         u_prev=plan["controls"][step - 1], rate_weight=cfg.rate_weight)
+    x_ref, gradient = ref.terminal(end)
+    du = {}
+    for sign in (1.0, -1.0):
+        warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z0, lam_x=lam_x, lam_g=lam_g)
+        sol = timed_solve(ctrl.solver, nlp, counts, phase, nlp.with_terminal(args, x_ref, sign * gradient, 100.0), z0, warm)
+        assert sol.ok, sol.status
+        controls = nlp.plan(sol.z, counts, x, ctrl.dt)["controls"]
+        du[sign] = np.abs(controls - plan["controls"][step:step + len(controls)]).max(axis=0)
+        if sign > 0:
+            assert sol.iterations <= 10
+    assert du[1.0][0] < 3.0 and du[1.0][1] < 0.05  # mg, m/s^2 (measured 0.3-2.3 mg, 0.02)
+    assert du[-1.0][0] > 20.0  # (measured 70-150 mg)
+
+
+def test_the_short_horizon_drives_the_cycle_on_time_near_the_optimum():
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10)
+    ctrl = MPCController("tc", config=config)
+    r = run_closed_loop("tc", config, score=False, controller=ctrl)
+    ep = r.episode
+    assert ep.completed and ep.success and ep.max_violation == 0.0
+    assert ep.T <= 11.0 + 1e-9
+    # measured +0.05 % over the least fuel of any 11 s cycle (the full horizon: +0.05 %)
+    assert ep.fuel_g <= 1.01 * solve_ocp("tc", "fuel_at_time", T=ep.T, verify=False).fuel_g
+    assert ctrl.fallbacks == 0 and np.median(ctrl.step_iterations[1:]) <= 5  # (measured 2)
+    assert r.solve_time["median_s"] < 0.5
