@@ -179,6 +179,9 @@ def main() -> None:
               f"max {ms(every):.0f} ms ({len(every)} steps); first-step planning median {np.median(plans):.1f} s, "
               f"max {max(plans):.1f} s; success {sum(r['success'] for r in rows if r['solver'] == solver)}"
               f"/{sum(1 for r in rows if r['solver'] == solver)}; control interval 100 ms")
+        if any(r.get("horizon_steps") for r in rows if r["solver"] == solver):
+            print(f"[{solver}] steps that planned the whole cycle again (the plant estimate moved, or the horizon "
+                  f"missed a target): {sum(r['solve_time']['replans'] for r in rows if r['solver'] == solver)}")
         jobs = [s for r in rows if r["solver"] == solver for s in r["worker_solve_times_s"]]
         if jobs:
             print(f"[{solver}] the worker's solves (one interval ahead): median {ms(jobs, 50):.1f} ms, p99 "

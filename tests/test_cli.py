@@ -471,6 +471,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["evaluate", "--controller", "operator", "--sample", "3"], "--sample", "--suite"),
     (["mpc", "--mismatch"], "--mismatch", "--scenario"),
     (["mpc", "--realtime", "--deadline-ms", "50"], "--realtime", "--deadline-ms"),
+    (["mpc", "--horizon-steps", "1"], "--horizon-steps", "[2, 1000]"),
+    (["mpc", "--horizon-steps", "10", "--realtime"], "--horizon-steps", "--realtime"),
     (["train", "--env-id", "WheelLoader-v7"], "--env-id", "WheelLoaderTarget-v0"),
     (["train", "--scenario", "train"], "--scenario", "WheelLoader-v1"),
     (["train", "--env-id", "WheelLoaderTarget-v0", "--target", "0.5", "2"], "--target", "[1, 3]"),

@@ -134,7 +134,9 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         _out_dir(args.cache, "--cache")
     if args.realtime and args.deadline_ms is not None:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
-    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime,
+    if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
+        raise ValueError("--horizon-steps runs the synchronous controller: not with --realtime or --deadline-ms")
+    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "horizon_steps": args.horizon_steps,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
@@ -162,7 +164,8 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
             f"solve time median {1e3 * st['median_s']:.1f} ms, p99 {1e3 * st['p99_s']:.1f} ms, max {1e3 * st['max_s']:.1f} ms, "
             + (f"{st['fallbacks']} steps on an overdue plan (the worker's solves: median "
                f"{1e3 * st['background_median_s']:.1f} ms, max {1e3 * st['background_max_s']:.0f} ms)" if config.realtime
-               else f"{st['fallbacks']} fallbacks ({st['deadline_misses']} past the deadline)"))
+               else f"{st['fallbacks']} fallbacks ({st['deadline_misses']} past the deadline)")
+            + (f", {st['replans']} steps planned the whole cycle again" if config.horizon_steps else ""))
     if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
     print(line + f" -> {args.out}")
@@ -402,6 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
     p.add_argument("--realtime", action="store_true", help="real-time MPC: each step applies the plan solved while "
                    "the steps before ran and hands its own solve to a worker thread (a control in about 0.1 ms)")
+    p.add_argument("--horizon-steps", type=_int_in(2, 1000), metavar="N",
+                   help="a short receding horizon of N steps in [2, 1000], the rest of the cycle priced by the full "
+                   "plan's value (default: the whole rest of the cycle every step)")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
                    help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")

@@ -2,12 +2,13 @@
 
 The full-horizon MPC solves the whole rest of the cycle every step (75-130 steps). A short horizon solves
 only its next steps; where it ends inside a phase, the rest of the cycle is priced by a terminal cost from
-the cycle's first plan (the OCP on the grid): that plan's value to second order about its state at the
-horizon's end. Its first-order part is the plan's costate there, the multipliers of the plan's shooting
-row and state bounds at that step, so the first plan's own steps are an optimum of the short NLP too
-(the KKT conditions hold with the same multipliers); the second-order part is a tuning weight (a
-curvature the grid's value does not give cheaply), which keeps a plant off the plan from leaving the
-region where the first-order part holds. Where the horizon reaches the cycle's end, it is the full NLP.
+the last full plan (the OCP on the grid: the cycle's first plan, or a re-plan where the plant estimate
+moved): that plan's value to second order about its state at the horizon's end. Its first-order part is
+the plan's costate there, the multipliers of the plan's shooting row and state bounds at that step, so
+the plan's own steps are an optimum of the short NLP too (the KKT conditions hold with the same
+multipliers); the second-order part is a tuning weight (a curvature the grid's value does not give
+cheaply), which keeps a plant off the plan from leaving the region where the first-order part holds.
+Where the horizon reaches the cycle's end, it is the full NLP with at most ``steps`` slots per phase.
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ def horizon_counts(counts: dict[int, int], phase: int, steps: int) -> tuple[dict
 
 @dataclass
 class HorizonReference:
-    """The cycle's first plan (a solution of the full NLP ``nlp`` for ``counts``), as the warm start and
-    the terminal cost of the short horizons along it."""
+    """A full plan (a solution of the full NLP ``nlp`` for ``counts``), as the warm start and the
+    terminal cost of the short horizons along it."""
 
     nlp: GridNLP
     counts: dict[int, int]

@@ -198,7 +198,8 @@ class MPCConfig:
 
 
 class MPCController:
-    """Shrinking-horizon MPC for ``WheelLoader-v1`` (controller protocol: ``reset()``, ``act(obs)``).
+    """Shrinking-horizon MPC for ``WheelLoader-v1`` (controller protocol: ``reset()``, ``act(obs)``); with
+    ``MPCConfig.horizon_steps``, a short receding horizon priced by the full plan's value beyond it.
 
     ``dt`` and ``substeps`` must be the environment's (``run_closed_loop`` reads them from it).
     ``solver``: any :class:`~mpc.controller.solver.GridSolver` (default: IPOPT with the config's budgets).
