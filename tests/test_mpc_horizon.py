@@ -16,6 +16,7 @@ from mpc.controller.horizon import horizon_counts
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from mpc.controller.schedule import steps_of
 from mpc.controller.solver import Solve, timed_solve
+from wl_env.params import DEFAULT_PARAMS as P
 
 
 @settings(max_examples=300, deadline=None)
@@ -111,3 +112,16 @@ def test_the_short_horizon_drives_the_cycle_on_time_near_the_optimum():
     assert ep.fuel_g <= 1.01 * solve_ocp("tc", "fuel_at_time", T=ep.T, verify=False).fuel_g
     assert ctrl.fallbacks == 0 and np.median(ctrl.step_iterations[1:]) <= 5  # (measured 2)
     assert r.solve_time["median_s"] < 0.5
+
+
+def test_a_mismatched_plant_makes_the_short_horizon_plan_the_cycle_again_and_keep_the_limits():
+    """TC, plant payload x0.8 and rolling resistance x1.3 against the nominal model: without re-plans the
+    short horizon followed the nominal plan's value and schedule, and broke the deceleration limit by 11 %
+    and missed the truck by 14-41 cm (measured). With them: measured T = 8.7 s, zero violation, on the marks."""
+    config = MPCConfig(mode="time", horizon_steps=10)
+    ctrl = MPCController("tc", config=config)
+    plant = P.variant(payload_scale=0.8, rolling_scale=1.3)
+    r = run_closed_loop("tc", config, plant_params=plant, score=False, controller=ctrl)
+    ep = r.episode
+    assert ep.completed and ep.success and ep.max_violation == 0.0
+    assert 0 < ctrl.replans < len(ctrl.solve_times) - 1  # some steps plan the whole cycle again, not all
