@@ -117,13 +117,15 @@ def test_the_short_horizon_drives_the_cycle_on_time_near_the_optimum():
 
 
 def test_a_mismatched_plant_makes_the_short_horizon_plan_the_cycle_again_and_keep_the_limits():
-    """TC, plant payload x0.8 and rolling resistance x1.3 against the nominal model: without re-plans the
-    short horizon followed the nominal plan's value and schedule, and broke the deceleration limit by 11 %
-    and missed the truck by 14-41 cm (measured). With them: measured T = 8.7 s, zero violation, on the marks."""
-    config = MPCConfig(mode="time", horizon_steps=10)
+    """TC, plant payload x0.8 and rolling resistance x1.3 against the nominal model (the real-time controller's
+    worst corner). Without re-plans the short horizon followed the nominal plan's value and schedule: in
+    minimum-time mode 11 % over the deceleration limit, the truck missed by 14-41 cm (measured). With them,
+    at an 11 s target: measured 7 re-plans in 111 steps, zero violation, on the marks, a step late (11.1 s)."""
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10)  # (the cycle planned above)
     ctrl = MPCController("tc", config=config)
     plant = P.variant(payload_scale=0.8, rolling_scale=1.3)
     r = run_closed_loop("tc", config, plant_params=plant, score=False, controller=ctrl)
     ep = r.episode
     assert ep.completed and ep.success and ep.max_violation == 0.0
-    assert 0 < ctrl.replans < len(ctrl.solve_times) - 1  # some steps plan the whole cycle again, not all
+    assert ep.T <= 11.0 + ctrl.dt + 1e-9
+    assert 0 < ctrl.replans < 0.25 * len(ctrl.solve_times)  # some steps plan the whole cycle again, few
