@@ -345,15 +345,17 @@ class MPCController:
             status = self._sol.status
         else:
             short = self._reference is not None and not self._reference_stale()
+            tried: list[Solve] = []  # this step's short-horizon solve, if any
             if short:  # the short horizon; where its plan misses a target, the full solve below too
                 self._enter_phase(phase)
                 sol, nlp = self._horizon_solve(x_plan, phase)
-                solves, over_budget = [sol], self._over_budget(t0)
+                solves, over_budget, tried = [sol], self._over_budget(t0), [sol]
                 # (the step's whole time: the warm start and the arguments are Python work per step too)
                 ok, solve_time, status = sol.ok and not over_budget, time.perf_counter() - t0, sol.status
                 short = sol.feasible
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
+            short_time = solve_time if tried else 0.0
             if not short:
                 self.replans += self._reference is not None
                 outcome, status, t0 = self._step_outcome(x_plan, phase, k, t0)
@@ -374,6 +376,7 @@ class MPCController:
                             self._accept_move(move, alt, k)
                     solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
                     status = "; ".join(s.status for s in solves) + status
+                solves, solve_time = tried + solves, short_time + solve_time  # (a re-plan's step: both solves)
         if ok and not short:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
