@@ -26,15 +26,16 @@ def test_a_horizon_takes_the_next_steps_of_the_schedule(counts, phase, steps):
     counts = {q: n for q, n in counts.items() if q >= phase}
     out, open_phase = horizon_counts(counts, phase, steps)
     empty = any(counts[q] == 0 for q in counts)  # (a phase with its stop step alone is taken whole)
-    if open_phase is None:  # it reaches the cycle's end: the whole rest, N steps or fewer
-        assert out == counts and (steps_of(counts) <= steps or empty)
+    if open_phase is None:  # it reaches the cycle's end: the whole rest, N steps (+1: a last stop step) or fewer
+        assert out == counts and (steps_of(counts) <= steps + 1 or empty)
         return
     assert list(out) == list(range(phase, open_phase + 1))
     assert all(out[q] == counts[q] for q in out if q != open_phase)  # the phases before it whole
-    assert 1 <= out[open_phase] <= counts[open_phase]
-    # N steps, or, where whole phases already took N, the open phase's first step
+    # it never ends open just before a stop step (whose target the terminal cost holds to first order only)
+    assert 1 <= out[open_phase] <= counts[open_phase] - (1 if open_phase in (2, 4) else 0)
+    # N steps, or, where whole phases already took N or more, the open phase's first step
     n = steps_of(out) - (1 if open_phase in (2, 4) else 0)  # (the open phase has no stop step)
-    assert n == steps or (out[open_phase] == 1 and (n == steps + 1 or n > steps and empty))
+    assert n == steps or (out[open_phase] == 1 and n > steps)
 
 
 @pytest.mark.parametrize("bad", [0, 1, -3, 2.5, True, "10"])
