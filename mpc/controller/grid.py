@@ -252,7 +252,7 @@ class GridNLP:
         self.model = model
         self.first_phase = first_phase
         # A short horizon (open_phase): the NLP ends within that phase, without its stop step and targets,
-        # and prices its end state with a terminal cost (the cycle's value beyond it, :meth:`terminal`).
+        # and prices its end state with a terminal cost (the cycle's value beyond it, :meth:`with_terminal`).
         self.open_phase = open_phase
         self.short = short  # a short horizon's NLP (open or not): its solvers are cached apart from the full ones
         self.phases = tuple(range(first_phase, 5 if open_phase is None else open_phase + 1))

@@ -157,9 +157,10 @@ class MPCConfig:
     # for +0.02 % fuel, 0.1 gives 0.86x / 0.13x for +0.06 %, 1.0 0.68x / 0.07x for +0.27 %.
     rate_weight: tuple[float, float] = (0.1, 0.1)
     # A short receding horizon (mpc.controller.horizon): after the first plan, each step solves only the
-    # next ``horizon_steps`` steps of its schedule, the rest of the cycle priced by the first plan's value
-    # (its costate, and ``terminal_weight`` g per unit of scaled end-state difference squared / 2). None:
-    # the whole rest of the cycle every step. Synchronous only; no schedule moves (the first plan's schedule).
+    # next ``horizon_steps`` steps of its schedule, the rest of the cycle priced by the last full plan's value
+    # (its costate, and ``terminal_weight`` g per unit of scaled end-state difference squared / 2). A full
+    # plan is made again (with its schedule moves) where the plant estimate moves or the horizon misses a
+    # target. None: the whole rest of the cycle every step. Synchronous only.
     horizon_steps: int | None = None
     terminal_weight: float = 100.0
 
@@ -253,7 +254,7 @@ class MPCController:
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
-        self._reference: HorizonReference | None = None  # horizon_steps: the first plan, the horizons' value
+        self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
@@ -822,7 +823,8 @@ class MPCController:
             del counts[q]
 
     def _horizon_solve(self, x: np.ndarray, phase: int) -> tuple[Solve, GridNLP]:
-        """Solve the next ``horizon_steps`` of the schedule from state x, warm-started from the first plan."""
+        """Solve the next ``horizon_steps`` of the schedule from state x, warm-started from the last horizon's
+        solve (its steps this one shares) and the full plan (the new last step)."""
         nlp, counts = self._horizon_nlp(phase, self._counts)
         ref = self._reference
         z0, lam_x, lam_g, end = ref.warm_start(nlp, counts, self._counts, x, self._horizon_last)
