@@ -382,7 +382,11 @@ class MPCController:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
             if self.config.horizon_steps is not None:  # the plan the short horizons follow from now on
+                t1 = time.perf_counter()
                 self._take_reference(self._sol)
+                if self.solve_times:  # a re-plan (a new schedule, maybe): its horizons are built now, in the step's time
+                    self._prepare_horizons(min(self._counts))
+                    solve_time += time.perf_counter() - t1
         elif not ok:
             self.fallbacks += 1
         counts = dict(self._counts)
