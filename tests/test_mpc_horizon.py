@@ -6,7 +6,7 @@ import functools
 import gymnasium as gym
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the env)
@@ -22,6 +22,7 @@ from wl_env.params import DEFAULT_PARAMS as P
 @settings(max_examples=300, deadline=None)
 @given(counts=st.fixed_dictionaries({q: st.integers(0, 40) for q in (1, 2, 3, 4)}), phase=st.integers(1, 4),
        steps=st.integers(1, 60))
+@example(counts={1: 1, 2: 4, 3: 40, 4: 1}, phase=1, steps=46)  # (N + 2: phase 4's one full step with its stop)
 def test_a_horizon_takes_the_next_steps_of_the_schedule(counts, phase, steps):
     counts = {q: n for q, n in counts.items() if q >= phase}
     out, open_phase = horizon_counts(counts, phase, steps)
