@@ -13,7 +13,7 @@ Per braking alternative (and per solver candidate, ``--solvers``):
     time (:func:`mpc.benchmark.scoring.smoothness`).
 
 ``--horizons 10 20`` runs each synchronous candidate also with a short receding horizon of that many steps
-(``MPCConfig.horizon_steps``: the rest of the cycle priced by the first plan's value), as ``ipopt h10``.
+(``MPCConfig.horizon_steps``: the rest of the cycle priced by the last full plan's value), as ``ipopt h10``.
 
 ``--realtime both`` runs each candidate also as the real-time controller (``MPCConfig.realtime``): its
 per-step time is then the time to the control, and the worker's solves (plan and schedule move, one

@@ -55,6 +55,7 @@ class HorizonReference:
     z: np.ndarray
     lam_x: np.ndarray
     lam_g: np.ndarray
+    estimate: np.ndarray  # the plant estimate the plan was made with
 
     def slots_for(self, counts: dict[int, int], remaining: dict[int, int], open_phase: int | None) -> list[int]:
         """The plan's slots for a horizon's steps: in each phase, the first ``counts[q]`` of the
@@ -105,7 +106,7 @@ class HorizonReference:
 
 
 def terminal_arguments(nlp: GridNLP, args: dict[str, Any], ref: HorizonReference, end_slot: int,
-                    weight: float) -> dict[str, Any]:
+                       weight: float) -> dict[str, Any]:
     """``args`` with the terminal cost at the plan's slot ``end_slot`` (an open NLP), else unchanged."""
     if nlp.open_phase is None:
         return args

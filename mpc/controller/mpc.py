@@ -346,47 +346,29 @@ class MPCController:
             status = self._sol.status
         else:
             short = self._reference is not None and not self._reference_stale()
-            tried: list[Solve] = []  # this step's short-horizon solve, if any
+            tried, short_time = [], 0.0  # this step's short-horizon solve, if any, and its time
             if short:  # the short horizon; where its plan misses a target, the full solve below too
                 self._enter_phase(phase)
                 sol, nlp = self._horizon_solve(x_plan, phase)
                 solves, over_budget, tried = [sol], self._over_budget(t0), [sol]
                 # (the step's whole time: the warm start and the arguments are Python work per step too)
                 ok, solve_time, status = sol.ok and not over_budget, time.perf_counter() - t0, sol.status
-                short = sol.feasible
+                short, short_time = sol.feasible, solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
-            short_time = solve_time if tried else 0.0
             if not short:
                 self.replans += self._reference is not None
-                outcome, status, t0 = self._step_outcome(x_plan, phase, k, t0)
-                if outcome is None:  # past the deadline, or the solver still busy with an earlier one
-                    solves, ok, over_budget, solve_time = [], False, True, time.perf_counter() - t0
-                    self.deadline_misses += 1
-                else:
-                    sol, move, alt = outcome
-                    solves, over_budget = [sol] + ([alt] if alt is not None else []), self._over_budget(t0)
-                    ok = sol.ok and not over_budget
-                    if sol.z is not None:  # the next solve goes on from here, converged or not
-                        self._iterate = sol
-                    if ok:
-                        self._sol = sol
-                        if move is not None and alt is None:  # past the deadline: it waits as a move that did not pay
-                            self.schedule.record(move, k, paid=False)
-                        elif move is not None:
-                            self._accept_move(move, alt, k)
-                    solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
-                    status = "; ".join(s.status for s in solves) + status
+                solves, ok, over_budget, solve_time, status = self._full_step(x_plan, phase, k, t0)
                 solves, solve_time = tried + solves, short_time + solve_time  # (a re-plan's step: both solves)
         if ok and not short:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
             if self.config.horizon_steps is not None:  # the plan the short horizons follow from now on
                 t1 = time.perf_counter()
-                self._take_reference(self._sol)
-                if self.solve_times:  # a re-plan (a new schedule, maybe): its horizons are built now, in the step's time
-                    self._prepare_horizons(min(self._counts))
-                    solve_time += time.perf_counter() - t1
+                self._take_reference(self._sol)  # (its horizons built now: in the step's, or the planning's, time)
+                solve_time += time.perf_counter() - t1
+                if len(self.solve_times) == 0:
+                    self.planning_time = solve_time
         elif not ok:
             self.fallbacks += 1
         counts = dict(self._counts)
@@ -401,6 +383,27 @@ class MPCController:
                 "deadline_missed": not solves, "solves": len(solves), "iterations": self.step_iterations[-1],
                 "schedule": dict(self._counts), "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
         return u, shift, info
+
+    def _full_step(self, x: np.ndarray, phase: int, k: int, t0: float) -> tuple[list[Solve], bool, bool, float, str]:
+        """A step that solves the whole rest of the cycle (and the schedule move worth a try): its solves, ok,
+        over budget, time and status; the plan in use, its warm start and the schedule updated."""
+        outcome, status, t0 = self._step_outcome(x, phase, k, t0)
+        if outcome is None:  # past the deadline, or the solver still busy with an earlier one
+            self.deadline_misses += 1
+            return [], False, True, time.perf_counter() - t0, status
+        sol, move, alt = outcome
+        solves, over_budget = [sol] + ([alt] if alt is not None else []), self._over_budget(t0)
+        ok = sol.ok and not over_budget
+        if sol.z is not None:  # the next solve goes on from here, converged or not
+            self._iterate = sol
+        if ok:
+            self._sol = sol
+            if move is not None and alt is None:  # past the deadline: it waits as a move that did not pay
+                self.schedule.record(move, k, paid=False)
+            elif move is not None:
+                self._accept_move(move, alt, k)
+        solve_time = time.perf_counter() - t0 if self._deadline_s is not None else sum(s.wall for s in solves)
+        return solves, ok, over_budget, solve_time, "; ".join(s.status for s in solves) + status
 
     def _over_budget(self, t0: float, fraction: float = 1.0) -> bool:
         b = self.config.time_budget
@@ -744,8 +747,6 @@ class MPCController:
         ``key`` with its slot layout for the next controller of this process, if a key is given."""
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
-        if self.config.horizon_steps is not None:
-            self._prepare_horizons(sol.first_phase)
         if key is not None:
             _FIRST_PLANS.pop(key, None)
             _FIRST_PLANS[key] = (sol, dict(self._slots))
@@ -804,19 +805,20 @@ class MPCController:
 
     def _take_reference(self, sol: Solve) -> None:
         """A full plan: the one the short horizons follow (warm start, terminal cost), with the plant
-        estimate it was made with."""
-        self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g)
-        self._reference_estimate = np.array(self.estimator.estimate)
+        estimate it was made with; the horizons along its schedule are built now, not during the cycle."""
+        self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g,
+                                           np.array(self.estimator.estimate))
         self._horizon_last = None
+        self._prepare_horizons()
 
     def _reference_stale(self) -> bool:
         """The plant estimate moved since the full plan was made (by REPLAN_ESTIMATE_CHANGE in a component):
         its value no longer prices the rest of the cycle, the next step plans it in full again."""
-        change = np.abs(np.asarray(self.estimator.estimate) - self._reference_estimate)
+        change = np.abs(np.asarray(self.estimator.estimate) - self._reference.estimate)
         return bool((change > REPLAN_ESTIMATE_CHANGE).any())
 
-    def _prepare_horizons(self, phase: int) -> None:
-        """Build the horizons' NLPs and solvers along the first plan's schedule now, not during the cycle."""
+    def _prepare_horizons(self) -> None:
+        """Build the NLPs and solvers of the horizons along the schedule left (cached: built once)."""
         counts = dict(self._counts)
         for q in sorted(counts):
             while counts[q] > 0:  # the horizon from each of the phase's full steps, then from its stop step
