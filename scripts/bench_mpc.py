@@ -13,7 +13,9 @@ Per braking alternative (and per solver candidate, ``--solvers``):
     time (:func:`mpc.benchmark.scoring.smoothness`).
 
 ``--horizons 10 20`` runs each synchronous candidate also with a short receding horizon of that many steps
-(``MPCConfig.horizon_steps``: the rest of the cycle priced by the last full plan's value), as ``ipopt h10``.
+(``MPCConfig.horizon_steps``: the rest of the cycle priced by the last full plan's value), as ``ipopt h10``;
+``ipopt+sqp-rti`` solves those horizons by one real-time SQP iteration (IPOPT for the full plans and as the
+fallback) and runs only with ``--horizons``.
 
 ``--realtime both`` runs each candidate also as the real-time controller (``MPCConfig.realtime``): its
 per-step time is then the time to the control, and the worker's solves (plan and schedule move, one
@@ -25,7 +27,7 @@ Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
-        [--horizons 10 20] [--terminal-weight 100]
+        [--horizons 10 20] [--horizons-only] [--terminal-weight 100]
 """
 
 from __future__ import annotations
@@ -61,14 +63,16 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
         T_min = reference_at(10.0, braking, scenario.params())["T_min"]
         config = dataclasses.replace(config, mode="target_time", target_time=target_ratio * T_min)
     t0 = time.perf_counter()
+    candidate = None if solver == "ipopt" else SOLVERS[solver]()
     r = run_closed_loop(braking, config, plant_params=plant, score=plant is None and not mismatch, scenario=scenario,
-                        mismatch=mismatch, solver=None if solver == "ipopt" else SOLVERS[solver]())
+                        mismatch=mismatch, solver=candidate)
     # (ipopt: the controller's own, with its wall-time limit at the deadline)
     ep = r.episode
     row = {"braking": braking, "solver": solver, "run": label, "mode": config.mode, "target_time": config.target_time,
            **ep.to_dict(trajectory=False), "solve_time": r.solve_time, "solve_times_s": r.solve_times_s,
            "worker_solve_times_s": r.worker_solve_times_s,
-           "wall_s": time.perf_counter() - t0, "fallbacks": r.solve_time["fallbacks"]}
+           "wall_s": time.perf_counter() - t0, "fallbacks": r.solve_time["fallbacks"],
+           "handed_over": getattr(candidate, "handed_over", 0)}  # (solves the candidate left to IPOPT)
     if r.score is not None:
         row.update(time_gap=r.score.time_gap, fuel_gap=r.score.fuel_gap, T_min=r.score.T_min, fuel_opt_g=r.score.fuel_opt_g)
         plant_params = scenario.params() if scenario is not None else None
@@ -134,6 +138,7 @@ def main() -> None:
                     help="MPCConfig.realtime: the synchronous controller (off), the real-time one (on), or both side by side")
     ap.add_argument("--horizons", type=int, nargs="+", default=[], metavar="N",
                     help="also run each synchronous candidate with a short horizon of N steps (MPCConfig.horizon_steps)")
+    ap.add_argument("--horizons-only", action="store_true", help="only the short-horizon runs (--horizons)")
     ap.add_argument("--terminal-weight", type=float, default=MPCConfig.terminal_weight,
                     help="MPCConfig.terminal_weight of the short-horizon runs")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
@@ -147,9 +152,13 @@ def main() -> None:
     realtime = {"off": [False], "on": [True], "both": [False, True]}[args.realtime]
     if args.deadline_ms is not None and True in realtime:
         ap.error("--deadline-ms applies to the synchronous controller (a real-time step's deadline is its interval)")
+    if args.horizons_only and not args.horizons:
+        ap.error("--horizons-only needs --horizons")
     if args.horizons and args.deadline_ms is not None:
         ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
-    variants = [(solver, rt, None) for solver in args.solvers for rt in realtime]
+    # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
+    variants = [(solver, rt, None) for solver in args.solvers for rt in realtime
+                if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
     variants += [(solver, False, h) for solver in args.solvers for h in args.horizons]
     for solver, rt, horizon in variants:
         name = f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}"

@@ -473,6 +473,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["mpc", "--realtime", "--deadline-ms", "50"], "--realtime", "--deadline-ms"),
     (["mpc", "--horizon-steps", "1"], "--horizon-steps", "[2, 1000]"),
     (["mpc", "--horizon-steps", "10", "--realtime"], "--horizon-steps", "--realtime"),
+    (["mpc", "--horizon-solver", "sqp-rti"], "--horizon-solver", "--horizon-steps"),
+    (["mpc", "--horizon-steps", "10", "--horizon-solver", "fatrop"], "--horizon-solver", "sqp-rti"),
     (["train", "--env-id", "WheelLoader-v7"], "--env-id", "WheelLoaderTarget-v0"),
     (["train", "--scenario", "train"], "--scenario", "WheelLoader-v1"),
     (["train", "--env-id", "WheelLoaderTarget-v0", "--target", "0.5", "2"], "--target", "[1, 3]"),

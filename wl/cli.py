@@ -136,7 +136,10 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
         raise ValueError("--horizon-steps runs the synchronous controller: not with --realtime or --deadline-ms")
+    if args.horizon_solver != "ipopt" and args.horizon_steps is None:
+        raise ValueError(f"--horizon-solver {args.horizon_solver} solves the short horizons: give --horizon-steps")
     rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "horizon_steps": args.horizon_steps,
+          "horizon_solver": args.horizon_solver,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
@@ -408,6 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon-steps", type=_int_in(2, 1000), metavar="N",
                    help="a short receding horizon of N steps in [2, 1000], the rest of the cycle priced by the full "
                    "plan's value (default: the whole rest of the cycle every step)")
+    p.add_argument("--horizon-solver", choices=["ipopt", "sqp-rti"], default="ipopt",
+                   help="the short horizons' solver: IPOPT, or one real-time SQP iteration per step (hpipm; IPOPT "
+                   "where it fails and for the full plans); needs --horizon-steps")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
                    help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")

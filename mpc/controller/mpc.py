@@ -47,6 +47,7 @@ from mpc.controller.solver import (
     grid_nlp,
     horizon_nlp,
     release_solvers,
+    rti_on_short_horizons,
     solve_until,
     step_model,
     timed_solve,
@@ -122,6 +123,9 @@ class LateSolve:
     k: int
 
 
+HORIZON_SOLVERS = ("ipopt", "sqp-rti")  # MPCConfig.horizon_solver
+
+
 @dataclass(frozen=True)
 class MPCConfig:
     """MPC settings. ``mode``: minimum time, minimum fuel finishing by ``target_time`` (s), or
@@ -163,6 +167,10 @@ class MPCConfig:
     # target. None: the whole rest of the cycle every step. Synchronous only.
     horizon_steps: int | None = None
     terminal_weight: float = 100.0
+    # The short horizons' solver: "ipopt", or "sqp-rti" (one SQP step per control step from the last
+    # horizon's plan, its QP solved by hpipm on the stage structure; up to two more where it leaves the rows
+    # unmet; IPOPT where that fails too, and for every full plan). Needs horizon_steps.
+    horizon_solver: str = "ipopt"
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -193,6 +201,10 @@ class MPCConfig:
                 raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {self.horizon_steps!r}")
             if self.realtime or self.deadline_ms is not None:
                 raise ValueError("horizon_steps is synchronous only: not with realtime or deadline_ms")
+        if self.horizon_solver not in HORIZON_SOLVERS:
+            raise ValueError(f"horizon_solver must be one of {HORIZON_SOLVERS}, got {self.horizon_solver!r}")
+        if self.horizon_solver != "ipopt" and self.horizon_steps is None:
+            raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps")
         if not (isinstance(self.terminal_weight, (int, float)) and math.isfinite(self.terminal_weight)
                 and self.terminal_weight >= 0.0):
             raise ValueError(f"terminal_weight must be a finite number >= 0, got {self.terminal_weight!r}")
@@ -223,6 +235,8 @@ class MPCController:
                              f"({1e3 * self.dt:g} ms): a control must be ready before the next step begins")
         budgets = [b for b in (self.config.time_budget, self._deadline_s) if b is not None]
         self.solver = solver or IpoptSolver(self.config.max_iter, min(budgets, default=None))
+        if solver is None and self.config.horizon_solver == "sqp-rti":
+            self.solver = rti_on_short_horizons(self.solver)
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: LateSolve | None = None  # deadline mode: a solve that runs on past its step
         self._ahead: AheadJob | None = None  # realtime: the solve running for the next step
@@ -821,11 +835,12 @@ class MPCController:
         """Build the NLPs and solvers of the horizons along the schedule left (cached: built once)."""
         counts = dict(self._counts)
         for q in sorted(counts):
-            while counts[q] > 0:  # the horizon from each of the phase's full steps, then from its stop step
+            # the horizon from each of the phase's full steps, then with none left: from the stop step of
+            # phases 2 and 4, or, in phases 1 and 3, a plant that has not yet reached the phase's end
+            # (unprepared, that layout was built mid-cycle: 1.3-1.9 s steps)
+            while counts[q] >= 0:
                 self.solver.prepare(self._horizon_nlp(q, counts)[0])
                 counts[q] -= 1
-            if q in (2, 4):
-                self.solver.prepare(self._horizon_nlp(q, counts)[0])
             del counts[q]
 
     def _horizon_solve(self, x: np.ndarray, phase: int) -> tuple[Solve, GridNLP]:
