@@ -15,7 +15,8 @@ Per braking alternative (and per solver candidate, ``--solvers``):
 ``--horizons 10 20`` runs each synchronous candidate also with a short receding horizon of that many steps
 (``MPCConfig.horizon_steps``: the rest of the cycle priced by the last full plan's value), as ``ipopt h10``;
 ``ipopt+sqp-rti`` solves those horizons by one real-time SQP iteration (IPOPT for the full plans and as the
-fallback) and runs only with ``--horizons``.
+fallback) and runs only with ``--horizons``. ``--replan-lag 10`` runs each short horizon also with its re-plans on
+a worker thread (``MPCConfig.replan_lag_steps``), as ``ipopt h10 lag10``.
 
 ``--realtime both`` runs each candidate also as the real-time controller (``MPCConfig.realtime``): its
 per-step time is then the time to the control, and the worker's solves (plan and schedule move, one
@@ -27,7 +28,7 @@ Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
-        [--horizons 10 20] [--horizons-only] [--terminal-weight 100]
+        [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 100]
 """
 
 from __future__ import annotations
@@ -139,6 +140,8 @@ def main() -> None:
     ap.add_argument("--horizons", type=int, nargs="+", default=[], metavar="N",
                     help="also run each synchronous candidate with a short horizon of N steps (MPCConfig.horizon_steps)")
     ap.add_argument("--horizons-only", action="store_true", help="only the short-horizon runs (--horizons)")
+    ap.add_argument("--replan-lag", type=int, metavar="N", help="also run each short horizon with its re-plans on the "
+                    "worker, due N steps later (MPCConfig.replan_lag_steps), as '... h10 lag10'")
     ap.add_argument("--terminal-weight", type=float, default=MPCConfig.terminal_weight,
                     help="MPCConfig.terminal_weight of the short-horizon runs")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
@@ -152,22 +155,26 @@ def main() -> None:
     realtime = {"off": [False], "on": [True], "both": [False, True]}[args.realtime]
     if args.deadline_ms is not None and True in realtime:
         ap.error("--deadline-ms applies to the synchronous controller (a real-time step's deadline is its interval)")
+    if args.replan_lag is not None and not (args.horizons and 1 <= args.replan_lag <= 100):
+        ap.error("--replan-lag N needs --horizons and N in [1, 100]")
     if args.horizons_only and not args.horizons:
         ap.error("--horizons-only needs --horizons")
     if args.horizons and args.deadline_ms is not None:
         ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
-    variants = [(solver, rt, None) for solver in args.solvers for rt in realtime
+    variants = [(solver, rt, None, None) for solver in args.solvers for rt in realtime
                 if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
-    variants += [(solver, False, h) for solver in args.solvers for h in args.horizons]
-    for solver, rt, horizon in variants:
-        name = f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}"
+    variants += [(solver, False, h, lag) for solver in args.solvers for h in args.horizons
+                 for lag in [None] + ([args.replan_lag] if args.replan_lag else [])]
+    for solver, rt, horizon, lag in variants:
+        name = (f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}") + (f" lag{lag}" if lag else "")
         for b in args.braking:
             for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
                 print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
-                config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight)
+                config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
+                                             replan_lag_steps=lag)
                 row = closed_loop(b, config, solver, label, **kw)
-                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon})
+                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon, "replan_lag_steps": lag})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "
           "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) "
@@ -191,6 +198,9 @@ def main() -> None:
         if any(r.get("horizon_steps") for r in rows if r["solver"] == solver):
             print(f"[{solver}] steps that planned the whole cycle again (the plant estimate moved, or the horizon "
                   f"missed a target): {sum(r['solve_time']['replans'] for r in rows if r['solver'] == solver)}")
+        handed = sum(r["handed_over"] for r in rows if r["solver"] == solver)
+        if handed:
+            print(f"[{solver}] solves the candidate failed and IPOPT took: {handed}")
         jobs = [s for r in rows if r["solver"] == solver for s in r["worker_solve_times_s"]]
         if jobs:
             print(f"[{solver}] the worker's solves (one interval ahead): median {ms(jobs, 50):.1f} ms, p99 "

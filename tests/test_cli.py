@@ -474,6 +474,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["mpc", "--horizon-steps", "1"], "--horizon-steps", "[2, 1000]"),
     (["mpc", "--horizon-steps", "10", "--realtime"], "--horizon-steps", "--realtime"),
     (["mpc", "--horizon-solver", "sqp-rti"], "--horizon-solver", "--horizon-steps"),
+    (["mpc", "--replan-lag-steps", "10"], "--replan-lag-steps", "--horizon-steps"),
+    (["mpc", "--horizon-steps", "10", "--replan-lag-steps", "0"], "--replan-lag-steps", "[1, 100]"),
     (["mpc", "--horizon-steps", "10", "--horizon-solver", "fatrop"], "--horizon-solver", "sqp-rti"),
     (["train", "--env-id", "WheelLoader-v7"], "--env-id", "WheelLoaderTarget-v0"),
     (["train", "--scenario", "train"], "--scenario", "WheelLoader-v1"),

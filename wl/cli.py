@@ -136,10 +136,11 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
         raise ValueError("--horizon-steps runs the synchronous controller: not with --realtime or --deadline-ms")
-    if args.horizon_solver != "ipopt" and args.horizon_steps is None:
-        raise ValueError(f"--horizon-solver {args.horizon_solver} solves the short horizons: give --horizon-steps")
+    for flag, value in (("--horizon-solver", args.horizon_solver != "ipopt"), ("--replan-lag-steps", args.replan_lag_steps)):
+        if value and args.horizon_steps is None:
+            raise ValueError(f"{flag} acts on the short horizons: give --horizon-steps")
     rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "horizon_steps": args.horizon_steps,
-          "horizon_solver": args.horizon_solver,
+          "horizon_solver": args.horizon_solver, "replan_lag_steps": args.replan_lag_steps,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
@@ -414,6 +415,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon-solver", choices=["ipopt", "sqp-rti"], default="ipopt",
                    help="the short horizons' solver: IPOPT, or one real-time SQP iteration per step (hpipm; IPOPT "
                    "where it fails and for the full plans); needs --horizon-steps")
+    p.add_argument("--replan-lag-steps", type=_int_in(1, 100), metavar="N",
+                   help="a short horizon's re-plans (the plant estimate moved) run beside it on a worker thread and "
+                   "take over N steps later, N in [1, 100] (default: the step that needs one solves it); needs --horizon-steps")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
                    help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")

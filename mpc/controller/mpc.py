@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import logging
 import math
 import os
 import threading
@@ -41,6 +42,8 @@ from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
+    EXCESS_TOL,
+    MISS_TOL,
     GridSolver,
     IpoptSolver,
     Solve,
@@ -62,6 +65,9 @@ from wl_env.scenario import Scenario
 
 if TYPE_CHECKING:
     from mpc.benchmark.scoring import Score
+
+log = logging.getLogger(__name__)
+TARGET_PHASE = {"reversing point": 2, "end position": 4, "end height": 4}  # the phase whose stop step has the target
 
 # g: the least predicted improvement worth a solve, when the first step plans the cycle and during it
 # (a schedule move takes 10-30 iterations, 0.2-0.5 s: during the cycle only for a clear gain)
@@ -94,6 +100,15 @@ FIRST_PLANS_KEPT = 16
 # longer (in steps): the worker's one-step moves do not make up more (measured, service: 12 -> 11-13 s,
 # +0.05..+0.12 % fuel; 16 -> 13 -> 11 -> 10 s, +0.56 / +1.51 / +1.99 %, against -0.01 % planned afresh at 10 s).
 NEIGHBOUR_CHANGE = 0.1
+
+
+@dataclass
+class ReplanJob:
+    """A short horizon's re-plan on the worker (MPCConfig.replan_lag_steps): the whole cycle from the state
+    measured at step ``k``, due as the horizons' reference at step ``k + lag``."""
+
+    k: int
+    future: concurrent.futures.Future
 
 
 @dataclass
@@ -171,6 +186,11 @@ class MPCConfig:
     # horizon's plan, its QP solved by hpipm on the stage structure; up to two more where it leaves the rows
     # unmet; IPOPT where that fails too, and for every full plan). Needs horizon_steps.
     horizon_solver: str = "ipopt"
+    # A short horizon's re-plan where the plant estimate moved: None, the step that finds it stale solves the
+    # whole cycle (0.4-3 s); N, the re-plan runs on the worker beside the short horizons (from that step's
+    # state, the same schedule) and becomes their reference N steps later (the step waits for it if it is
+    # not done yet: so the run does not depend on the machine's speed). Needs horizon_steps.
+    replan_lag_steps: int | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -205,6 +225,12 @@ class MPCConfig:
             raise ValueError(f"horizon_solver must be one of {HORIZON_SOLVERS}, got {self.horizon_solver!r}")
         if self.horizon_solver != "ipopt" and self.horizon_steps is None:
             raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps")
+        if self.replan_lag_steps is not None:
+            if not (isinstance(self.replan_lag_steps, int) and not isinstance(self.replan_lag_steps, bool)
+                    and 1 <= self.replan_lag_steps <= 100):
+                raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {self.replan_lag_steps!r}")
+            if self.horizon_steps is None:
+                raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps")
         if not (isinstance(self.terminal_weight, (int, float)) and math.isfinite(self.terminal_weight)
                 and self.terminal_weight >= 0.0):
             raise ValueError(f"terminal_weight must be a finite number >= 0, got {self.terminal_weight!r}")
@@ -270,6 +296,7 @@ class MPCController:
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
         self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
+        self._replan: ReplanJob | None = None  # replan_lag_steps: the re-plan running on the worker
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self.estimator.reset()
@@ -293,8 +320,8 @@ class MPCController:
         step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
         controller's plan) would run beside it, and CasADi's objects are not safe to create from two
         threads at once (seen: heap corruption)."""
-        futures = ([self._pending.future] if self._pending else []) + ([self._ahead.future] if self._ahead else [])
-        self._pending = self._ahead = None
+        futures = [job.future for job in (self._pending, self._ahead, getattr(self, "_replan", None)) if job is not None]
+        self._pending = self._ahead = self._replan = None
         for future in futures:
             future.result()
 
@@ -359,19 +386,27 @@ class MPCController:
             solve_time = self.planning_time = time.perf_counter() - t0
             status = self._sol.status
         else:
-            short = self._reference is not None and not self._reference_stale()
+            if self._reference is not None:
+                self._enter_phase(phase)
+                self._take_replan(k, phase)
+            short = self._reference is not None and (not self._reference_stale() or self._replan_beside(x_plan, phase, k))
             tried, short_time = [], 0.0  # this step's short-horizon solve, if any, and its time
             if short:  # the short horizon; where its plan misses a target, the full solve below too
-                self._enter_phase(phase)
                 sol, nlp = self._horizon_solve(x_plan, phase)
                 solves, over_budget, tried = [sol], self._over_budget(t0), [sol]
                 # (the step's whole time: the warm start and the arguments are Python work per step too)
                 ok, solve_time, status = sol.ok and not over_budget, time.perf_counter() - t0, sol.status
-                short, short_time = sol.feasible, solve_time
+                # (a plan that misses a target, its limits kept, is the best the horizon can do: with
+                # replan_lag_steps it is applied while the whole cycle is re-planned beside it, if the
+                # re-plan is due before the target's step; measured, else the cycle ended off the truck)
+                short = sol.feasible or (ok and sol.excess <= EXCESS_TOL and self._before_targets(sol.misses)
+                                         and self._replan_beside(x_plan, phase, k))
+                short_time = solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
             if not short:
                 self.replans += self._reference is not None
+                self._drop_replan()  # (this step plans the whole cycle itself: no CasADi call beside its own)
                 solves, ok, over_budget, solve_time, status = self._full_step(x_plan, phase, k, t0)
                 solves, solve_time = tried + solves, short_time + solve_time  # (a re-plan's step: both solves)
         if ok and not short:
@@ -830,6 +865,61 @@ class MPCController:
         its value no longer prices the rest of the cycle, the next step plans it in full again."""
         change = np.abs(np.asarray(self.estimator.estimate) - self._reference.estimate)
         return bool((change > REPLAN_ESTIMATE_CHANGE).any())
+
+    def _before_targets(self, misses: dict[str, float]) -> bool:
+        """A re-plan begun now is due (``replan_lag_steps``) before the step of every target missed."""
+        lag = self.config.replan_lag_steps
+        due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name])
+               for name, v in misses.items() if abs(v) > MISS_TOL]
+        return lag is not None and all(d > lag for d in due)
+
+    def _replan_beside(self, x: np.ndarray, phase: int, k: int) -> bool:
+        """With ``replan_lag_steps``: the whole cycle re-planned on the worker (the schedule kept, and the
+        move worth a try, as a full step's), unless a re-plan runs already; the step goes on with its short
+        horizon (True). Else False: this step re-plans."""
+        lag = self.config.replan_lag_steps
+        warm = self._iterate if self._iterate is not None and self._iterate.first_phase == phase else None
+        if lag is None or (self._replan is None and warm is None):  # (a cold solve builds an NLP: not on the worker)
+            return False
+        if self._replan is None:
+            self.replans += 1
+            self._nlp(phase)  # (built here if need be: the worker only solves)
+            args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
+                    "margin": self._later_margin()}
+            log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
+            self._replan = ReplanJob(k, self._deadline_pool().submit(
+                self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()))
+        return True
+
+    def _take_replan(self, k: int, phase: int) -> None:
+        """A re-plan due at this step (``replan_lag_steps`` after it began): wait for it, keep its schedule
+        move if that paid (the steps taken since stay taken), and make the plan the short horizons'
+        reference and the full solves' warm start. A failed one is dropped (the step re-plans again if the
+        estimate is still off)."""
+        job = self._replan
+        if job is None or k < job.k + self.config.replan_lag_steps:
+            return
+        self._replan = None
+        (sol, move, alt), _ = job.future.result()
+        if not sol.ok:
+            log.info("step %d: the re-plan begun at step %d failed (%s)", k, job.k, sol.status)
+            return
+        if move is not None:
+            paid = alt is not None and alt.ok and self.schedule.cost(alt, job.k) < self.schedule.cost(sol, job.k)
+            self.schedule.record(move, job.k, paid)
+            if paid:
+                for q in self._counts:
+                    self._counts[q] = max(self._counts[q] + alt.counts.get(q, 0) - sol.counts.get(q, 0), 0)
+                sol = alt
+        last = self._horizon_last
+        self._sol = self._iterate = self._tail(sol, phase)
+        self._take_reference(self._sol)
+        self._horizon_last = last  # (the next horizon goes on from the last one's plan, as between re-plans)
+
+    def _drop_replan(self) -> None:
+        if self._replan is not None:
+            self._replan.future.result()  # (CasADi calls never overlap but a short solve's and the re-plan's)
+            self._replan = None
 
     def _prepare_horizons(self) -> None:
         """Build the NLPs and solvers of the horizons along the schedule left (cached: built once)."""
