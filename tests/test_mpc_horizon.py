@@ -154,17 +154,6 @@ def test_the_real_time_iteration_drives_the_short_horizon_on_time_near_the_optim
     assert np.median(ctrl.step_iterations[1:]) == 1  # (the RTI's one SQP step: the plan is followed, not re-solved)
 
 
-@pytest.mark.slow  # two cycles, ~1 min
-def test_the_real_time_iteration_keeps_the_deceleration_limit_from_a_stored_first_plan():
-    """The RTI meets its rows to FEAS_TOL, so the margin it may use ends that much short of the limit.
-    Measured before: TC at 11 s, planned from the first plan stored by an earlier cycle of the process, went
-    2.7e-8 over the deceleration limit in its stop step (row residual 4e-8)."""
-    run_closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10), score=False)
-    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10, horizon_solver="sqp-rti")
-    ep = run_closed_loop("tc", config, score=False).episode
-    assert ep.completed and ep.success and ep.max_violation == 0.0
-
-
 class _Recorder:
     """A grid solver that records the NLPs it is given and succeeds or fails as told."""
 

@@ -298,12 +298,6 @@ class SqpRtiSolver:
         if lam_x0 is None or lam_g0 is None:  # a cold start is not a real-time iteration's
             return SolverResult(ok=False, status=f"sqp-rti ({self.qpsol}): no previous plan", iterations=0)
         fn = _sqp_rti(nlp, self.qpsol)  # (the bounds as they are: hpipm keeps the start's equalities)
-        # The deceleration margin a plan may use ends FEAS_TOL short of the limit: a plan that meets its rows
-        # to FEAS_TOL stays within the limit (measured: one at the margin's end went 2.7e-8 over it)
-        em = [s.em for s in nlp.slots]
-        ubx = np.array(args["ubx"], dtype=float)
-        ubx[em] = np.maximum(ubx[em] - self.FEAS_TOL, np.asarray(args["lbx"], dtype=float)[em])
-        args = {**args, "ubx": ubx}
         z, lam_x, lam_g = np.clip(x0, args["lbx"], args["ubx"]), lam_x0, lam_g0
         for k in range(1 + self.extra_steps):
             sol = fn(x0=z, lam_x0=lam_x, lam_g0=lam_g, **args)
