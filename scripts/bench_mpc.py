@@ -166,6 +166,8 @@ def main() -> None:
                 if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
     variants += [(solver, False, h, lag) for solver in args.solvers for h in args.horizons
                  for lag in [None] + ([args.replan_lag] if args.replan_lag else [])]
+    if not variants:
+        ap.error("no run: a short-horizon candidate (ipopt+sqp-rti) runs only with --horizons")
     for solver, rt, horizon, lag in variants:
         name = (f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}") + (f" lag{lag}" if lag else "")
         for b in args.braking:
