@@ -7,6 +7,7 @@ Scoring needs a Pareto front; solving one takes minutes, so the tests write a sy
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -638,3 +639,13 @@ def test_suite_solve_writes_each_scenario_resumes_and_assembles(tmp_path, capsys
     assert wl.cli.main(argv) == 0
     assert len(fake_solve.calls) == n and len(sorted((cache / "suites").glob("nominal_*/*.json"))) == 2
     assert "2 scenarios" in capsys.readouterr().out
+
+
+def test_the_horizon_solver_flag_offers_exactly_the_configs_solvers():
+    """(The parser names them itself, so that building it imports no CasADi.)"""
+    from mpc.controller.mpc import HORIZON_SOLVERS
+    from wl.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    flag = next(a for a in sub.choices["mpc"]._actions if "--horizon-solver" in a.option_strings)
+    assert tuple(flag.choices) == HORIZON_SOLVERS

@@ -15,7 +15,7 @@ from mpc.controller.grid import NOMINAL_ESTIMATE
 from mpc.controller.horizon import horizon_counts
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 from mpc.controller.schedule import steps_of
-from mpc.controller.solver import FallbackSolver, SolverResult, SqpRtiSolver, Solve, timed_solve
+from mpc.controller.solver import FallbackSolver, Solve, SolverResult, SqpRtiSolver, timed_solve
 from wl_env.params import DEFAULT_PARAMS as P
 
 
@@ -245,7 +245,7 @@ def test_re_plans_beside_the_horizon_keep_a_mismatched_plant_within_the_limits_d
         ctrl = MPCController("tc", config=config)
         if slow:
             solves = ctrl._step_solves
-            ctrl._step_solves = lambda *a, **k: (time.sleep(0.3), solves(*a, **k))[1]
+            ctrl._step_solves = lambda *a, _solves=solves, **k: (time.sleep(0.3), _solves(*a, **k))[1]
         r = run_closed_loop("tc", config, plant_params=plant, score=False, controller=ctrl)
         ep = r.episode
         assert ep.completed and ep.success and ep.max_violation == 0.0

@@ -266,6 +266,7 @@ class MPCController:
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: LateSolve | None = None  # deadline mode: a solve that runs on past its step
         self._ahead: AheadJob | None = None  # realtime: the solve running for the next step
+        self._replan: ReplanJob | None = None  # replan_lag_steps: the re-plan running on the worker
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
@@ -296,7 +297,6 @@ class MPCController:
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
         self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
-        self._replan: ReplanJob | None = None  # replan_lag_steps: the re-plan running on the worker
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self.estimator.reset()
@@ -320,7 +320,7 @@ class MPCController:
         step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
         controller's plan) would run beside it, and CasADi's objects are not safe to create from two
         threads at once (seen: heap corruption)."""
-        futures = [job.future for job in (self._pending, self._ahead, getattr(self, "_replan", None)) if job is not None]
+        futures = [job.future for job in (self._pending, self._ahead, self._replan) if job is not None]
         self._pending = self._ahead = self._replan = None
         for future in futures:
             future.result()
@@ -700,14 +700,18 @@ class MPCController:
                     self._sol, self._plan = late, self._make_plan(late, pending.x, pending.k)
         self._step_start = start
         self._enter_phase(phase)
-        # what the solves read from the controller, fixed now (a late solve runs on beside the next step)
-        args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
-                "margin": self._later_margin()}
+        args = self._solve_inputs()  # (a late solve runs on beside the next step)
         try:
             outcome, note = self._step_solves(x, phase, k, dict(self._counts), self._iterate, args, start)
         except concurrent.futures.TimeoutError:
             return None, f"deadline: no plan within {1e3 * self._deadline_s:g} ms; the previous plan, shifted", start
         return outcome, note, start
+
+    def _solve_inputs(self) -> dict[str, Any]:
+        """What a solve reads from the controller (the plant estimate, the control applied before, the later
+        steps' margin), fixed now: for a solve that runs on the worker beside the next steps."""
+        return {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
+                "margin": self._later_margin()}
 
     def _deadline_pool(self) -> concurrent.futures.ThreadPoolExecutor:
         # one worker: CasADi releases the GIL while it solves, so the controller returns at the deadline
@@ -884,8 +888,7 @@ class MPCController:
         if self._replan is None:
             self.replans += 1
             self._nlp(phase)  # (built here if need be: the worker only solves)
-            args = {"est": np.array(self.estimator.estimate), "u_prev": None if self._last is None else np.array(self._last[2]),
-                    "margin": self._later_margin()}
+            args = self._solve_inputs()
             log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
             self._replan = ReplanJob(k, self._deadline_pool().submit(
                 self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()))

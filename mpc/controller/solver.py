@@ -299,17 +299,19 @@ class SqpRtiSolver:
             return SolverResult(ok=False, status=f"sqp-rti ({self.qpsol}): no previous plan", iterations=0)
         fn = _sqp_rti(nlp, self.qpsol)  # (the bounds as they are: hpipm keeps the start's equalities)
         z, lam_x, lam_g = np.clip(x0, args["lbx"], args["ubx"]), lam_x0, lam_g0
-        for k in range(1 + self.extra_steps):
+        steps = 0
+        while True:
+            steps += 1
             sol = fn(x0=z, lam_x0=lam_x, lam_g0=lam_g, **args)
             interrupt.check("")
             z, lam_x, lam_g = (np.array(sol[key]).ravel() for key in ("x", "lam_x", "lam_g"))
             g = np.array(sol["g"]).ravel()
             infeas = float(np.max(np.maximum(args["lbg"] - g, 0.0) + np.maximum(g - args["ubg"], 0.0), initial=0.0))
             ok = bool(np.isfinite(z).all()) and infeas <= self.FEAS_TOL
-            if ok or not np.isfinite(infeas):
+            if ok or not np.isfinite(infeas) or steps > self.extra_steps:
                 break
-        return SolverResult(ok=ok, status=f"sqp-rti ({self.qpsol}): row residual {infeas:.1e} after {k + 1} steps",
-                            iterations=k + 1, z=z, lam_x=lam_x, lam_g=lam_g, lam_p=np.array(sol["lam_p"]).ravel(),
+        return SolverResult(ok=ok, status=f"sqp-rti ({self.qpsol}): row residual {infeas:.1e} after {steps} steps",
+                            iterations=steps, z=z, lam_x=lam_x, lam_g=lam_g, lam_p=np.array(sol["lam_p"]).ravel(),
                             f=float(sol["f"]))
 
 
