@@ -201,6 +201,10 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
+# The assisted drivers (WheelLoaderTarget-v2, v3) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
+# its own machine (injection, brake, shift) and its actions are labelled as the driver's (driver_labels).
+DRIVER_ENV_IDS = TARGET_ENV_IDS[2:4]
+DEMO_ENV_ID = {**{e: e for e in TARGET_ENV_IDS[:2]}, **dict.fromkeys(DRIVER_ENV_IDS, TARGET_ENV_IDS[1])}
 METHOD = "behaviour cloning (MPC)"  # the method a clone's metadata names
 SHIFT_RAMP = 0.4  # per step: the shift label's slope before the expert's shift (see shift_labels)
 
@@ -225,6 +229,57 @@ def shift_labels(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
             k = shifted[0]
             out[steps, SHIFT] = np.clip(SHIFT_RAMP * (steps - k + 0.5), -1.0, 1.0)
     return out
+
+
+def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any], braking: str, coast: bool = False,
+                  dt: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """A WheelLoaderTarget-v1 expert episode as the assisted driver's actions (WheelLoaderTarget-v2; with
+    ``coast`` v3's), with per-sample weights. The engine-speed request and the bucket are the expert's own.
+    The braking fraction (:func:`wl_env.assist.fraction_action`, held over each leg and its braking) is the
+    one at which the assist brakes where the expert did: in v2 it ends the leg where the expert shifted; in
+    v3 it starts the service brakes where the expert's did, and the early-shift request is the expert's
+    shift as a ramp (:func:`shift_labels`). Weight 0 where an action does nothing: the fraction outside the
+    leg it acts in, the shift outside phases 1 and 3, and with TC braking the request in phase 2 (the assist
+    meters the converter there). ``dt``: the episode's control interval in s."""
+    from wl_env.assist import fraction_action
+    from wl_env.codec import Codec
+    from wl_env.scenario import Scenario
+
+    p = Scenario.from_dict(scenario).params()
+    o = Codec(p, observe_scenario=True).decode_observation(obs)
+    phase, speed, to_go = np.asarray(o.phase), np.abs(np.asarray(o.vehicle_speed)), np.asarray(o.distance_to_go)
+    fraction = np.zeros(len(obs), dtype=np.float32)
+    weights = np.ones((len(obs), 4 if coast else 3), dtype=np.float32)
+    for leg in (1, 3):
+        in_leg = (phase == leg) | (phase == leg + 1)
+        steps = np.flatnonzero(phase == leg)
+        marks = steps[actions[steps, SHIFT] > 0.0]  # the expert's shift
+        if coast and (leg == 3 or braking == "service"):  # the service brakes' onset (brake action > -1)
+            braking_steps = np.flatnonzero(phase == leg + 1)
+            marks = braking_steps[actions[braking_steps, 2] > -1.0]
+        if marks.size:
+            k = marks[0]
+            fraction[in_leg] = fraction_action(speed[k], to_go[k], p, dt)
+        else:  # (an episode cut short, or braking that never started: nothing to label)
+            weights[in_leg, 2] = 0.0
+    weights[~np.isin(phase, (1, 3) if not coast else (1, 2, 3, 4)), 2] = 0.0
+    if braking == "tc":
+        weights[phase == 2, 0] = 0.0
+        if coast:
+            weights[phase == 2, 2] = 0.0
+    columns = [actions[:, 0], actions[:, 1], fraction]
+    if coast:
+        columns.append(np.clip(shift_labels(obs, actions)[:, SHIFT], -1.0, 1.0))
+        weights[~np.isin(phase, (1, 3)), 3] = 0.0
+    return np.column_stack(columns).astype(np.float32), weights
+
+
+def labels(demo: dict[str, Any], env_id: str, braking: str) -> tuple[np.ndarray, np.ndarray]:
+    """One episode's regression targets in ``env_id``'s action space and their per-sample weights."""
+    if env_id in DRIVER_ENV_IDS:
+        return driver_labels(demo["obs"], demo["actions"], demo["scenario"], braking, coast=env_id == DRIVER_ENV_IDS[1])
+    actions = np.clip(shift_labels(demo["obs"], demo["actions"]), -1.0, 1.0)
+    return actions, action_weights(demo["obs"], actions)
 
 
 def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -259,8 +314,9 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     from agents.ppo import build_model, make_env, save_model_files, write_json_atomic
 
     envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
-    if envs != {cfg.env_id}:
-        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; the config's env is {cfg.env_id}")
+    if envs != {DEMO_ENV_ID[cfg.env_id]}:
+        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; a {cfg.env_id} clone needs "
+                         f"{DEMO_ENV_ID[cfg.env_id]} episodes")
     if not cfg.norm_obs:
         raise ValueError("behaviour cloning normalizes the observations by the demos' statistics: norm_obs must be true")
     good = [d for d in demos if usable(d)]
@@ -272,8 +328,8 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     n_val = max(1, int(round(validation_share * len(good))))
     parts = {"val": [good[i] for i in order[:n_val]], "train": [good[i] for i in order[n_val:]]}
     obs = {k: np.concatenate([d["obs"] for d in v]) for k, v in parts.items()}
-    act = {k: np.clip(np.concatenate([shift_labels(d["obs"], d["actions"]) for d in v]), -1.0, 1.0)
-           for k, v in parts.items()}
+    labelled = {k: [labels(d, cfg.env_id, cfg.braking) for d in v] for k, v in parts.items()}
+    act = {k: np.concatenate([a for a, _ in v]) for k, v in labelled.items()}
     norm = ObsNormalization(obs["train"].mean(0).astype(np.float64), obs["train"].var(0).astype(np.float64))
 
     th.manual_seed(cfg.seed)
@@ -283,7 +339,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     policy = model.policy
     x = {k: th.as_tensor(norm.apply(v)) for k, v in obs.items()}
     y = {k: th.as_tensor(v) for k, v in act.items()}
-    w = {k: th.as_tensor(action_weights(obs[k], act[k])) for k in obs}
+    w = {k: th.as_tensor(np.concatenate([wt for _, wt in v])) for k, v in labelled.items()}
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     optimizer = th.optim.Adam(params, lr=learning_rate)
 

@@ -13,11 +13,12 @@ from wl_env import cycle
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
-ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2")
+ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2",
+           "WheelLoaderTarget-v3")
 TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
-# v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions)
-TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2")
-ASSISTED_ENV_ID = "WheelLoaderTarget-v2"
+# v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions); v3: v2
+# whose driver may end a leg early and coast (4 actions)
+TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3")
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
 
@@ -107,7 +108,8 @@ class PPOConfig:
         "help": "environment: WheelLoader-v1 (the paper's cycle, the shipped nominal policies), WheelLoader-v2 "
                 "(scenarios observed), WheelLoaderTarget-v0 (v2 with a target cycle time per episode) or "
                 "WheelLoaderTarget-v1 (v0 with an engine-speed request as action 0, through the engine's governor) or "
-                "WheelLoaderTarget-v2 (v1 through the stopping assist: request, bucket, braking fraction)"})
+                "WheelLoaderTarget-v2 (v1 through the stopping assist: request, bucket, braking fraction) or "
+                "WheelLoaderTarget-v3 (v2 with a 4th action: end the leg early and coast)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={
@@ -159,7 +161,7 @@ class PPOConfig:
         default=-2.0, metadata={"help": "anneal a cap on the log std linearly to this at the end (none: off)"})
     shift_bias_init: float = field(
         default=-1.0, metadata={"help": "initial mean of the shift action (< 0: hold the gear at first; "
-                                "WheelLoaderTarget-v2 has none: its assist shifts)"})
+                                "WheelLoaderTarget-v2 has none: its assist shifts; v3's asks to end the leg early)"})
     fuel_bias_init: float = field(
         default=0.0, metadata={"help": "initial mean of the fuel action (< 0: explore below the governor)"})
     bucket_bias_init: float = field(

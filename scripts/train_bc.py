@@ -3,10 +3,11 @@
     python scripts/train_bc.py --braking tc --episodes 40 --workers 2 --export agents/policies/bc_tc
 
 1. MPC demonstrations in ``--env-id`` (``agents.imitation.collect_demos``; WheelLoaderTarget-v1: action 0 the
-   engine-speed request to the governor, the MPC's injection translated): fresh draws of the
+   engine-speed request to the governor, the MPC's injection translated; for the assisted drivers of v2 and
+   v3, v1 episodes labelled as the driver's actions, ``agents.imitation.driver_labels``): fresh draws of the
    ``train`` distribution, targets uniform in ``--target`` times the scenario's estimated T_min, a
    ``--fast-share`` of them as fast as possible. One file per episode in ``--demos`` (default
-   ``<log-dir>/demos_<env-id>_<braking>_s<demo-seed>``): a killed run resumes with the episodes it has.
+   ``<log-dir>/demos_<demonstrations env>_<braking>_s<demo-seed>``): a killed run resumes with the episodes it has.
 2. The PPO policy network (``--net-arch``) regressed onto the expert's actions (``agents.imitation.clone``),
    written as the run ``<log-dir>/<run-name>/final`` (the layout of a PPO run: ``wl evaluate --model``
    takes it; ``wl train --init-policy <run>/final/policy`` fine-tunes it with PPO).
@@ -43,7 +44,7 @@ class Options:
     target: tuple[float, float] = (1.05, 2.5)  # target ratios to T_min the demonstrations are drawn from
     fast_share: float = 0.2  # share of demonstrations as fast as possible (the MPC's minimum-time mode)
     workers: int = 1  # processes collecting demonstrations
-    demos: str = ""  # demonstration folder (default <log-dir>/demos_<env-id>_<braking>_s<demo-seed>)
+    demos: str = ""  # demonstration folder (default <log-dir>/demos_<demonstrations env>_<braking>_s<demo-seed>)
     seed: int = 0  # seed of the network's initialization and the training/validation split
     epochs: int = 300  # passes over the demonstrations
     learning_rate: float = 1e-3  # Adam step size
@@ -56,7 +57,8 @@ class Options:
     dagger_rounds: int = 0  # DAgger rounds after the first clone (0: behaviour cloning only)
     dagger_episodes: int = 20  # episodes the clone drives per round
     beta: float = 0.2  # DAgger: the chance per step that the expert's action is applied instead of the clone's
-    env_id: str = "WheelLoaderTarget-v1"  # the env of the demonstrations and the clone (v0: action 0 the injection)
+    env_id: str = "WheelLoaderTarget-v1"  # the clone's env (v0: action 0 the injection; v2/v3: the assisted driver,
+    # labelled from v1 demonstrations)
 
 
 def write_policy_copy(stem: str | Path, out: Path) -> None:
@@ -68,15 +70,19 @@ def write_policy_copy(stem: str | Path, out: Path) -> None:
 
 
 def main(o: Options, command: str) -> int:
-    from agents.imitation import METHOD, DemoSettings, clone, collect_demos
+    from agents.imitation import DEMO_ENV_ID, DRIVER_ENV_IDS, METHOD, DemoSettings, clone, collect_demos
     from agents.ppo import export_policy
     from agents.ppo_config import PPOConfig
 
     cfg = PPOConfig(braking=o.braking, env_id=o.env_id, scenario="train", init_noise=0.0, seed=o.seed,
                     net_arch=o.net_arch, log_dir=o.log_dir, run_name=o.run_name or f"bc_{o.braking}_s{o.seed}",
                     progress_bar=False)
-    settings = DemoSettings(o.braking, o.demo_seed, tuple(o.target), o.fast_share, env_id=o.env_id)
-    folder = o.demos or str(Path(o.log_dir) / f"demos_{o.env_id}_{o.braking}_s{o.demo_seed}")
+    if o.env_id in DRIVER_ENV_IDS and o.dagger_rounds:
+        raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: an assisted driver's braking labels come "
+                         f"from the expert's own cycle (where it shifted and braked), not from states a clone visits")
+    demo_env = DEMO_ENV_ID[o.env_id]  # (an assisted driver is cloned from the expert's own v1 cycles)
+    settings = DemoSettings(o.braking, o.demo_seed, tuple(o.target), o.fast_share, env_id=demo_env)
+    folder = o.demos or str(Path(o.log_dir) / f"demos_{demo_env}_{o.braking}_s{o.demo_seed}")
     try:
         demos = collect_demos(settings, o.episodes, folder, workers=o.workers)
     except KeyboardInterrupt:

@@ -127,7 +127,7 @@ def test_governed_demonstrations_replay_the_experts_cycle_and_clone_only_into_th
     assert v1["T"] == pytest.approx(v0["T"], abs=1e-9) and v1["fuel_g"] == pytest.approx(v0["fuel_g"], rel=1e-5)
     np.testing.assert_array_equal(v1["actions"][:, 1:], v0["actions"][:, 1:])
     assert not np.allclose(v1["actions"][:, 0], v0["actions"][:, 0])  # requests, not injections
-    with pytest.raises(ValueError, match="WheelLoaderTarget-v1 episodes; the config's env is WheelLoaderTarget-v0"):
+    with pytest.raises(ValueError, match="WheelLoaderTarget-v1 episodes; a WheelLoaderTarget-v0 clone needs WheelLoaderTarget-v0"):
         clone([v1, v1], _tiny(tmp_path, run_name="mixed"))
     cfg = _tiny(tmp_path, run_name="governed", env_id="WheelLoaderTarget-v1", net_arch=(64, 64))
     clone([v1, v1], cfg, epochs=5)
@@ -137,6 +137,46 @@ def test_governed_demonstrations_replay_the_experts_cycle_and_clone_only_into_th
         DemoSettings("service", env_id="WheelLoader-v2")
     with pytest.raises(ValueError, match="is a WheelLoaderTarget-v0 episode; this collection is of WheelLoaderTarget-v1"):
         collect_demos(DemoSettings("service", seed=3, expert="operator"), 1, tmp_path / "WheelLoaderTarget-v0")
+
+
+def _replay(env_id: str, braking: str, demo: dict, driver: np.ndarray) -> dict:
+    """The labelled driver actions applied open loop through ``env_id``, each phase's from its own first step
+    (the assist may end a leg a step off the expert's)."""
+    import gymnasium as gym
+
+    from wl_env.codec import Codec
+
+    phases = Codec(observe_scenario=True).decode_observation(demo["obs"]).phase
+    env = gym.make(env_id, braking=braking)
+    env.reset(seed=0, options={"scenario": Scenario.from_dict(demo["scenario"]), "target_time": demo["target_time"]})
+    done, phase, k, info = False, 1, 0, {}
+    while not done:
+        if env.unwrapped._phase != phase:
+            phase, k = env.unwrapped._phase, 0
+        steps = np.flatnonzero(phases == phase)
+        _, _, term, trunc, info = env.step(driver[steps[min(k, len(steps) - 1)]])
+        done, k = term or trunc, k + 1
+    return info
+
+
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_driver_labels_replay_the_experts_cycle_through_the_assist(tmp_path, braking):
+    """A WheelLoaderTarget-v1 expert episode labelled as the assisted driver's actions (v2, v3) and replayed
+    open loop through the assist drives the expert's cycle: its marks met, the cycle time within 0.2 s, the
+    fuel within 1 %. v3's coasting labels carry the expert's shift as a ramp."""
+    from agents.imitation import driver_labels, labels
+
+    (demo,) = collect_demos(DemoSettings(braking, seed=3, expert="operator"), 1, tmp_path)
+    assert demo["success"]
+    for env_id, coast in (("WheelLoaderTarget-v2", False), ("WheelLoaderTarget-v3", True)):
+        driver, weights = driver_labels(demo["obs"], demo["actions"], demo["scenario"], braking, coast=coast)
+        assert driver.shape == weights.shape == (len(demo["obs"]), 4 if coast else 3)
+        assert (np.abs(driver) <= 1.0).all() and set(np.unique(weights)) <= {0.0, 1.0}
+        np.testing.assert_array_equal(driver[:, :2], demo["actions"][:, :2])  # request and bucket: the expert's
+        np.testing.assert_array_equal(labels(demo, env_id, braking)[0], driver)
+        info = _replay(env_id, braking, demo, driver)
+        assert info["is_success"] and info["violations"]["max_excess"] == 0.0, (env_id, info)
+        assert info["t"] == pytest.approx(demo["T"], abs=0.2) and info["fuel_g"] == pytest.approx(demo["fuel_g"], rel=0.01)
 
 
 # ---------------------------------------------------------------------------------------------- shipped

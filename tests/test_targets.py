@@ -266,3 +266,80 @@ def test_the_assist_gives_a_machine_action_in_range_at_any_state(braking, phase,
     asked = 2.5 * float(np.clip(driver[1], -1, 1))
     assert 2.5 * action[1] <= float(bucket_command(state[2], state[3], 2.5, p, 0.1)) + 1e-9
     assert 2.5 * action[1] <= max(asked, -2.5) + 1e-9
+
+
+# ---------------------------------------------------------------- WheelLoaderTarget-v3: the coasting assist
+def test_the_coasting_env_passes_check_env_and_needs_the_assist():
+    env = gym.make("WheelLoaderTarget-v3", braking="service", scenario="train")
+    check_env(env.unwrapped, skip_render_check=True)
+    assert env.action_space.shape == (4,)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(4,\) \[engine-speed request, bucket, braking fraction, early shift\]"):
+        env.step(np.zeros(3, dtype=np.float32))
+    with pytest.raises(ValueError, match="coast=True needs assist=True"):
+        gym.make("WheelLoaderTarget-v1", coast=True)
+    with pytest.raises(ValueError, match="coast must be True or False"):
+        gym.make("WheelLoaderTarget-v3", coast="yes")
+
+
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_coasting_held_off_is_v2_and_coasting_saves_fuel_on_the_marks(braking):
+    """v3 with the early shift held off drives v2's cycle exactly. Asked from the start, the leg ends as soon
+    as coasting carries the machine past the mark: on held-out cycles the marks are met with no violation and
+    the cycle is leaner than without coasting (the machine rolls instead of driving to the braking point)."""
+    from wl_env.suites import load_suite
+
+    v2, v3 = gym.make("WheelLoaderTarget-v2", braking=braking), gym.make("WheelLoaderTarget-v3", braking=braking)
+    for scenario in load_suite("test").of(braking)[:2]:
+        opts = {"scenario": scenario, "target_ratio": 1.3}
+        driver = (0.3, 0.6, 1.0)
+        plain = _drive(v2, driver, options=opts)
+        held = _drive(v3, (*driver, -1.0), options=opts)
+        assert held["t"] == plain["t"] and held["fuel_g"] == plain["fuel_g"]
+        coasting = _drive(v3, (*driver, 1.0), options=opts)
+        assert coasting["is_success"] and coasting["violations"]["max_excess"] == 0.0, coasting
+        assert coasting["fuel_g"] < plain["fuel_g"] - 1.0 and coasting["t"] > plain["t"], (coasting, plain)
+
+
+def test_the_early_shift_is_granted_only_where_coasting_reaches_the_mark():
+    from wl_env.assist import coasting_deceleration, early_shift, stopping_distance
+    from wl_env.params import DEFAULT_PARAMS as p
+
+    speed, dt = 1.2, 0.1
+    reach = stopping_distance(speed, coasting_deceleration(p))  # ~2.9 m at c_r's rolling resistance
+    assert 0.5 < reach < 10.0
+    for phase, braking, to_go, granted in ((3, "service", reach - 2 * speed * dt, True),
+                                           (3, "service", reach, False),  # a step's travel short of the margin
+                                           (1, "service", reach - 2 * speed * dt, True),
+                                           (1, "tc", reach - 2 * speed * dt, False),  # the converter brakes phase 2
+                                           (3, "tc", reach - 2 * speed * dt, True),
+                                           (2, "service", 0.5, False), (4, "service", 0.5, False)):
+        assert bool(early_shift(phase, speed, to_go, 1.0, p, braking, dt)) is granted, (phase, braking, to_go)
+        assert not early_shift(phase, speed, to_go, -0.2, p, braking, dt)  # not asked
+    assert not early_shift(3, 0.01, 0.0, 1.0, p, "service", dt)  # standing: the leg has not begun
+
+
+@settings(max_examples=200, deadline=None)
+@given(braking=st.sampled_from(["service", "tc"]), phase=st.integers(1, 4),
+       state=st.tuples(st.floats(57.0, 240.0), st.floats(-3.0, 3.0), st.floats(0.0, 6.0), st.floats(-0.5, 1.5)),
+       to_go=st.floats(-1.0, 12.0), driver=st.tuples(*[st.floats(-3.0, 3.0)] * 4))
+def test_the_coasting_assist_brakes_only_from_the_braking_point(braking, phase, state, to_go, driver):
+    """Any state and driver action: a machine action in [-1, 1]; in a braking phase the service brakes act
+    only where braking at the driver's fraction from the next step would no longer stop short of the mark,
+    and with the early shift not asked the action is v2's."""
+    from wl_env.assist import BRAKING_FRACTION, assisted_action, stopping_distance
+    from wl_env.params import DEFAULT_PARAMS as p
+
+    y = (*state, 0.0, 0.0)
+    action = np.array([float(v) for v in assisted_action(y, phase, to_go, driver, p, braking, 0.1, coast=True)])
+    assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0 + 1e-12), action
+    interval_phase = phase + 1 if action[3] > 0 and phase in (1, 3) else phase
+    lo, hi = BRAKING_FRACTION
+    a_plan = (lo + 0.5 * (float(np.clip(driver[2], -1, 1)) + 1.0) * (hi - lo)) * p.decel_max * p.g
+    speed = abs(state[1])
+    if interval_phase in (2, 4) and action[2] > -1.0:
+        assert stopping_distance(speed, a_plan) >= to_go - speed * 0.1 - 1e-9
+    if driver[3] <= 0.0:
+        v2 = np.array([float(v) for v in assisted_action(y, phase, to_go, driver[:3], p, braking, 0.1)])
+        if interval_phase in (1, 3) or action[2] > -1.0:
+            np.testing.assert_array_equal(action, v2)

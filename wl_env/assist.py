@@ -36,6 +36,7 @@ from wl_env.model import derivatives
 from wl_env.params import LoaderParams
 
 N_ASSIST_ACTIONS = 3  # engine-speed request, bucket acceleration, braking fraction of the deceleration limit
+N_COAST_ACTIONS = 4  # WheelLoaderTarget-v3: and the request to end the leg early (coast)
 BRAKING_FRACTION = (0.5, 0.95)  # of the deceleration limit, the range of the driver's third action
 MAX_BRAKING_FRACTION = 0.98  # the braking itself asks at most this fraction of the limit
 # The converter's braking rises within a step as the machine slows (its speed ratio falls): metered from the
@@ -58,6 +59,15 @@ def braking_point(phase: Any, speed: Any, distance_to_go: Any, deceleration: Any
     would stop past the mark."""
     return (((phase == 1) | (phase == 3)) & (speed > MIN_MOVING_SPEED)
             & (stopping_distance(speed, deceleration) >= distance_to_go - speed * dt))
+
+
+def fraction_action(speed: Any, distance_to_go: Any, p: LoaderParams, dt: float) -> Any:
+    """The driver's braking-fraction action (in [-1, 1], clipped) with which :func:`braking_point` ends the
+    leg at this state: braking from the next step on at that deceleration stops on the mark. The inverse of
+    the law in :func:`assisted_action`, for labelling an expert's shift as a driver action."""
+    a = speed * speed / (2.0 * np.maximum(distance_to_go - speed * dt, 1e-3))
+    lo_f, hi_f = BRAKING_FRACTION
+    return np.clip(2.0 * (a / (p.decel_max * p.g) - lo_f) / (hi_f - lo_f) - 1.0, -1.0, 1.0)
 
 
 def stopping_deceleration(speed: Any, distance_to_go: Any, p: LoaderParams) -> Any:
@@ -101,22 +111,46 @@ def bucket_command(H: Any, V_b: Any, asked: Any, p: LoaderParams, dt: float) -> 
     return np.clip((v_stop - V_b) / dt, ab_lo, np.minimum(asked, ab_hi))
 
 
+def coasting_deceleration(p: LoaderParams) -> Any:
+    """m/s^2 by which a machine in neutral, unbraked, slows: the rolling resistance."""
+    return p.F_roll / p.M_tot
+
+
+def early_shift(phase: Any, speed: Any, distance_to_go: Any, asked: Any, p: LoaderParams, braking: str,
+                dt: float) -> Any:
+    """Whether the driver's request to end the leg now (``asked``, > 0) is granted (WheelLoaderTarget-v3):
+    in a leg that brakes with the service brakes (phase 3; phase 1 with service braking), moving, and only
+    where coasting in neutral from now on would carry the machine a step's travel past the mark, so the
+    assist can always stop it there."""
+    legs = (phase == 3) | ((phase == 1) & (braking == "service"))
+    reaches = stopping_distance(speed, coasting_deceleration(p)) >= distance_to_go + speed * dt
+    return legs & (np.asarray(asked) > 0.0) & (speed > MIN_MOVING_SPEED) & reaches
+
+
 def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: LoaderParams, braking: str,
-                    dt: float) -> tuple[Any, Any, Any, Any]:
+                    dt: float, coast: bool = False) -> tuple[Any, Any, Any, Any]:
     """The machine's action (WheelLoaderTarget-v1's: engine-speed request, bucket, brake, shift, each in
     [-1, 1]) for the driver's (request, bucket, braking fraction) at state ``y`` = (omega, V, H, V_b, ...)
-    in ``phase``. Floats or arrays of loaders."""
-    request_action, bucket_action, fraction_action = (np.clip(np.asarray(a, dtype=float), -1.0, 1.0) for a in driver)
+    in ``phase``. Floats or arrays of loaders.
+
+    ``coast`` (WheelLoaderTarget-v3): the driver has a fourth action, a request to end the leg before the
+    braking point (:func:`early_shift`), and the service brakes act only from the braking point at the
+    driver's fraction on: the machine coasts in neutral until then (the fuel-optimal cycles do this)."""
+    request_action, bucket_action, fraction_action = (np.clip(np.asarray(a, dtype=float), -1.0, 1.0) for a in driver[:3])
     V, H, V_b = y[1], y[2], y[3]
     speed = np.abs(V)
     a_limit = p.decel_max * p.g
     lo_f, hi_f = BRAKING_FRACTION
     a_plan = (lo_f + 0.5 * (fraction_action + 1.0) * (hi_f - lo_f)) * a_limit
     shift = braking_point(phase, speed, distance_to_go, a_plan, dt)
+    if coast:
+        shift = shift | early_shift(phase, speed, distance_to_go, driver[3], p, braking, dt)
     braking_phase = np.where(shift, phase + 1, phase)
     in_braking = (braking_phase == 2) | (braking_phase == 4)
     a_req = np.where(in_braking, stopping_deceleration(speed, distance_to_go, p), 0.0)
     brake_acts = (braking_phase == 4) | ((braking_phase == 2) & (braking == "service"))
+    if coast:  # coast in neutral until braking at the driver's fraction would stop the machine on the mark
+        brake_acts = brake_acts & (stopping_distance(speed, a_plan) >= distance_to_go - speed * dt)
     brake = np.where(brake_acts, brake_torque(a_req, p), 0.0)
 
     request = request_action

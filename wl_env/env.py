@@ -10,7 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from wl_env import cycle
-from wl_env.assist import N_ASSIST_ACTIONS, assisted_action
+from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
 from wl_env.params import LoaderParams, resolve
@@ -49,14 +49,23 @@ def check_target_ratios(target: Any) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def check_assist(assist: Any, fuel_action: str) -> bool:
-    """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor."""
-    if not isinstance(assist, bool):
-        raise ValueError(f"assist must be True or False, got {assist!r}")
+def check_assist(assist: Any, fuel_action: str, coast: Any = False) -> bool:
+    """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor; its coasting
+    variant (``coast``, WheelLoaderTarget-v3) needs it."""
+    for name, v in (("assist", assist), ("coast", coast)):
+        if not isinstance(v, bool):
+            raise ValueError(f"{name} must be True or False, got {v!r}")
+    if coast and not assist:
+        raise ValueError("coast=True needs assist=True (it is the stopping assist's coasting variant)")
     if assist and fuel_action != "engine_speed":
         raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
                          f"got fuel_action={fuel_action!r}")
     return assist
+
+
+def n_actions(assist: bool, coast: bool) -> int:
+    """The action count: the machine's 4, the assisted driver's 3, or 4 with the early-shift request (coast)."""
+    return N_COAST_ACTIONS if coast else N_ASSIST_ACTIONS if assist else 4
 
 
 def check_target_time(target_time: Any) -> float:
@@ -164,6 +173,17 @@ class WheelLoaderEnv(gym.Env):
     braking point) and stops the bucket at the dump height; the driver's request sets the engine speed
     everywhere else.
 
+    WheelLoaderTarget-v3 (``assist=True, coast=True``): ``Box(-1, 1, (4,), float32)``, v2's three and
+
+    | Num | Action                                   | -1                    | +1                  |
+    |-----|------------------------------------------|-----------------------|---------------------|
+    | 3   | end the leg now and coast (phase 3; phase 1 with service braking) | hold | > 0: granted where coasting in neutral carries the machine past the mark |
+
+    The service brakes then act only from the braking point at the driver's fraction on: the machine
+    coasts in neutral until then, as the fuel-optimal cycles do (they shift at 20-30 % of the braking
+    deceleration's need and brake late and hard). A leg the driver does not end early ends at the braking
+    point, as in v2.
+
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
     engine to the request within the interval under the load at its start (the model inverted in U_mf,
@@ -228,6 +248,8 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v3: v2 with a fourth driver action, ending the leg early to coast in neutral
+      (``coast``); the service brakes act from the braking point at the driver's fraction.
     * WheelLoaderTarget-v2: v1 driven through the stopping assist (``assist``): three driver actions.
     * WheelLoaderTarget-v1: v0 with action 0 the governor's engine-speed request (``fuel_action``).
     * WheelLoaderTarget-v0 (a task of its own): v2 with a target cycle time per episode
@@ -261,8 +283,10 @@ class WheelLoaderEnv(gym.Env):
         target: float | tuple[float, float] = TARGET_RATIOS,
         fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
+        coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: end the leg early)
     ) -> None:
-        self.assist = check_assist(assist, fuel_action)
+        self.assist = check_assist(assist, fuel_action, coast)
+        self.coast = coast
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = bool(observe_target)
         if self.observe_target and not observe_scenario:
@@ -282,7 +306,7 @@ class WheelLoaderEnv(gym.Env):
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
                                  make_reward_config(reward, w_fuel, w_time), self.observe_scenario,
                                  fuel_action)
-        self.action_space = spaces.Box(-1.0, 1.0, (N_ASSIST_ACTIONS if self.assist else 4,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (n_actions(self.assist, self.coast),), np.float32)
         codec = self.core.codec
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -358,7 +382,8 @@ class WheelLoaderEnv(gym.Env):
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = action if type(action) is np.ndarray and action.dtype.kind == "f" else np.asarray(action, dtype=np.float64)
         if a.shape != self.action_space.shape:
-            names = "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]"
+            names = ("[engine-speed request, bucket, braking fraction, early shift]" if self.coast else
+                     "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]")
             raise ValueError(f"action must have shape {self.action_space.shape} {names}, got shape {a.shape}")
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
         if not all(map(math.isfinite, values)):
@@ -366,7 +391,7 @@ class WheelLoaderEnv(gym.Env):
         if self.assist:
             y, phase = self._y, self._phase
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
-                                                        self.params, self.braking, self.core.dt)]
+                                                        self.params, self.braking, self.core.dt, self.coast)]
         t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]

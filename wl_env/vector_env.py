@@ -18,7 +18,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from wl_env.assist import N_ASSIST_ACTIONS, assisted_action
+from wl_env.assist import assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW
 from wl_env.env import (
     TARGET_RATIOS,
@@ -27,6 +27,7 @@ from wl_env.env import (
     episode_target,
     lateness_charge,
     make_reward_config,
+    n_actions,
     scenario_source,
     start_scenario,
     target_features,
@@ -61,6 +62,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         target: float | tuple[float, float] = TARGET_RATIOS,
         fuel_action: str = "injection",
         assist: bool = False,
+        coast: bool = False,
     ) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
@@ -69,7 +71,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
-        self.assist = check_assist(assist, fuel_action)
+        self.assist = check_assist(assist, fuel_action, coast)
+        self.coast = coast
         self.observe_target = bool(observe_target)
         if self.observe_target and not observe_scenario:
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
@@ -87,7 +90,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         self.core = CycleStepper(self.params, self.braking, dt, substeps, max_time,
                                  make_reward_config(reward, w_fuel, w_time), observe_scenario, fuel_action)
         codec = self.core.codec
-        self.single_action_space = spaces.Box(-1.0, 1.0, (N_ASSIST_ACTIONS if self.assist else 4,), np.float32)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (n_actions(self.assist, self.coast),), np.float32)
         low, high = (TARGET_OBS_LOW, TARGET_OBS_HIGH) if self.observe_target else (codec.obs_low, codec.obs_high)
         self.single_observation_space = spaces.Box(low, high, dtype=np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
@@ -170,7 +173,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         if self.assist:
             y, phase = self._y, self._phase
             action = assisted_action(y, phase, self.core.codec.distance_to_go(y[4], phase), a.T, self.params,
-                                     self.braking, self.core.dt)
+                                     self.braking, self.core.dt, self.coast)
         else:
             action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
