@@ -237,11 +237,11 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
     ``coast`` v3's), with per-sample weights. The engine-speed request and the bucket are the expert's own.
     The braking fraction (:func:`wl_env.assist.fraction_action`, held over each leg and its braking) is the
     one at which the assist brakes where the expert did: in v2 it ends the leg where the expert shifted; in
-    v3 it starts the service brakes where the expert's did, and the early-shift request is the expert's
-    shift as a ramp (:func:`shift_labels`). Weight 0 where an action does nothing: the fraction outside the
-    leg it acts in, the shift outside phases 1 and 3, and with TC braking the request in phase 2 (the assist
-    meters the converter there). ``dt``: the episode's control interval in s."""
-    from wl_env.assist import fraction_action
+    v3 it starts the service brakes where the expert's did, and the coasting fraction is the one whose
+    braking point is the expert's shift. Weight 0 where an action does nothing: the fractions outside the
+    legs they act in, and with TC braking the request in phase 2 (the assist meters the converter there) and
+    the coasting fraction in phases 1-2. ``dt``: the episode's control interval in s."""
+    from wl_env.assist import COAST_FRACTION, fraction_action
     from wl_env.codec import Codec
     from wl_env.scenario import Scenario
 
@@ -268,9 +268,16 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
         if coast:
             weights[phase == 2, 2] = 0.0
     columns = [actions[:, 0], actions[:, 1], fraction]
-    if coast:
-        columns.append(np.clip(shift_labels(obs, actions)[:, SHIFT], -1.0, 1.0))
-        weights[~np.isin(phase, (1, 3)), 3] = 0.0
+    if coast:  # the coasting fraction whose braking point is the expert's shift, held over the leg
+        coasting = np.ones(len(obs), dtype=np.float32)
+        for leg in (1, 3) if braking == "service" else (3,):
+            steps = np.flatnonzero(phase == leg)
+            shifted = steps[actions[steps, SHIFT] > 0.0]
+            if shifted.size:
+                k = shifted[0]
+                coasting[(phase == leg) | (phase == leg + 1)] = fraction_action(speed[k], to_go[k], p, dt, COAST_FRACTION)
+        columns.append(coasting)
+        weights[~np.isin(phase, (1, 3) if braking == "service" else (3,)), 3] = 0.0  # (where it can end a leg)
     return np.column_stack(columns).astype(np.float32), weights
 
 
@@ -311,7 +318,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     import torch as th
 
     from agents.policy_files import ObsNormalization
-    from agents.ppo import build_model, make_env, save_model_files, write_json_atomic
+    from agents.ppo import build_model, make_env
 
     envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
     if envs != {DEMO_ENV_ID[cfg.env_id]}:
@@ -368,19 +375,102 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     if not (math.isfinite(train_loss) and math.isfinite(val_loss)):
         env.close()
         raise ValueError(f"behaviour cloning diverged: train loss {train_loss}, validation loss {val_loss}; nothing saved")
-    vecnorm = env  # the VecNormalize: its statistics become the demos', so PPO fine-tuning starts from them
-    vecnorm.obs_rms.mean, vecnorm.obs_rms.var, vecnorm.obs_rms.count = norm.mean.copy(), norm.var.copy(), float(n)
     wall = time.perf_counter() - t0
     result = CloneResult(episodes=len(good), episodes_dropped=len(demos) - len(good), samples=n + len(x["val"]),
                          train_loss=train_loss, validation_loss=val_loss, wall_time_s=wall,
                          policy=str(cfg.run_dir / "final" / "policy"))
-    meta = {"num_timesteps": 0, "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed, "config": cfg.to_dict(),
-            "commands": [], "last_eval": None, "stopped_by_time_limit": False, "method": METHOD,
-            "clone": result.__dict__, "epochs": epochs, "learning_rate": learning_rate, "batch_size": batch_size,
-            **(extra or {})}
+    _save_run(model, env, norm, float(n), cfg, {"method": METHOD, "clone": result.__dict__, "epochs": epochs,
+                                                "learning_rate": learning_rate, "batch_size": batch_size, **(extra or {})})
+    return result
+
+
+def _save_run(model: Any, env: Any, norm: Any, count: float, cfg: PPOConfig, meta: dict[str, Any]) -> None:
+    """A fitted (not trained) policy as the run ``cfg.run_dir``'s ``final/`` (PPO's layout, pickle-free policy
+    too), its observation statistics ``norm`` in the env's VecNormalize so PPO fine-tuning starts from them."""
+    from agents.ppo import save_model_files, write_json_atomic
+
+    env.obs_rms.mean, env.obs_rms.var, env.obs_rms.count = norm.mean.copy(), norm.var.copy(), count
+    meta = {"num_timesteps": 0, "wall_time": meta.get("clone", {}).get("wall_time_s", 0.0), "braking": cfg.braking,
+            "seed": cfg.seed, "config": cfg.to_dict(), "commands": [], "last_eval": None,
+            "stopped_by_time_limit": False, **meta}
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    final = save_model_files(model, vecnorm, cfg.run_dir / "final", meta, export=True)
+    final = save_model_files(model, env, cfg.run_dir / "final", meta, export=True)
     write_json_atomic(final / "summary.json", meta)
     write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": meta["commands"]})
     env.close()
+
+
+GRAFT_METHOD = "PPO (WheelLoaderTarget-v2) with the coasting fraction cloned from the MPC"
+SHIFT_RIDGE = 1e-3  # the least-squares fit's ridge on the 64 features (they are tanh outputs, O(1))
+
+
+@dataclass
+class GraftResult:
+    """What :func:`graft_early_shift` fitted: the coasting head's weighted squared error against the best constant's."""
+
+    episodes: int
+    samples: int  # the samples the coasting fraction acts in (weight 1)
+    loss: float  # weighted mean squared error of the coasting-fraction label (an action in [-1, 1])
+    constant_loss: float  # the same for the best constant prediction
+    policy: str
+
+
+def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOConfig,
+                      extra: dict[str, Any] | None = None) -> GraftResult:
+    """A WheelLoaderTarget-v3 policy from a trained v2 one (``base``, pickle-free): v2's network, value net
+    and observation statistics as they are, and a fourth action, the coasting fraction, fitted to the MPC's
+    shifts in ``demos`` (:func:`driver_labels`) by least squares on the v2 actor's last hidden layer; PPO
+    fine-tuning (``init_policy``) then learns when to coast. Saved as ``cfg.run_dir/final/`` like :func:`clone`."""
+    import torch as th
+
+    from agents.policy_files import read_policy
+    from agents.ppo import build_model, make_env
+
+    if cfg.env_id != DRIVER_ENV_IDS[1]:
+        raise ValueError(f"graft_early_shift makes a {DRIVER_ENV_IDS[1]} policy; the config's env is {cfg.env_id}")
+    network, norm, meta = read_policy(base)
+    if meta.get("config", {}).get("env_id") != DRIVER_ENV_IDS[0] or norm is None:
+        raise ValueError(f"base {base} must be a {DRIVER_ENV_IDS[0]} policy with its normalization, "
+                         f"got env_id {meta.get('config', {}).get('env_id')!r}")
+    if meta.get("braking", cfg.braking) != cfg.braking:
+        raise ValueError(f"base {base} drives {meta['braking']} braking; the config's is {cfg.braking}")
+    good = [d for d in demos if usable(d) and d.get("env_id") == DEMO_ENV_ID[cfg.env_id]]
+    if len(good) < 2:
+        raise ValueError(f"{len(good)} usable {DEMO_ENV_ID[cfg.env_id]} demonstration episodes (of {len(demos)}): need at least 2")
+    th.manual_seed(cfg.seed)
+    env = make_env(cfg, num_envs=1)
+    model = build_model(cfg, env, cfg.run_dir / "tb")
+    policy = model.policy
+    state = policy.state_dict()
+    for k, v in network.state_dict().items():
+        if k not in state:
+            raise ValueError(f"base {base}: tensor {k} has no place in a {cfg.env_id} network of net_arch {list(cfg.net_arch)}")
+        if state[k].shape == v.shape:
+            state[k] = v.clone()
+        elif k in ("action_net.weight", "action_net.bias", "log_std") and state[k].shape[0] == v.shape[0] + 1:
+            state[k][:v.shape[0]] = v  # v2's three actions; the fourth is fitted below
+        else:
+            raise ValueError(f"base {base}: {k} has shape {tuple(v.shape)}, the {cfg.env_id} network "
+                             f"{tuple(state[k].shape)} (net_arch {list(cfg.net_arch)})")
+    labelled = [driver_labels(d["obs"], d["actions"], d["scenario"], cfg.braking, coast=True) for d in good]
+    obs = np.concatenate([d["obs"] for d in good])
+    y = np.concatenate([a[:, SHIFT] for a, _ in labelled]).astype(np.float64)
+    w = np.concatenate([wt[:, SHIFT] for _, wt in labelled]).astype(np.float64)
+    policy.load_state_dict(state)
+    with th.no_grad():
+        z = th.as_tensor(norm.apply(obs), dtype=th.float32)
+        features = policy.mlp_extractor.forward_actor(policy.extract_features(z, policy.pi_features_extractor))
+    X = np.column_stack([features.numpy().astype(np.float64), np.ones(len(obs))])
+    sw = np.sqrt(w)[:, None]
+    coef = np.linalg.solve((X * sw).T @ (X * sw) + SHIFT_RIDGE * np.eye(X.shape[1]), (X * sw).T @ (y * sw[:, 0]))
+    with th.no_grad():
+        policy.action_net.weight[SHIFT] = th.as_tensor(coef[:-1], dtype=th.float32)
+        policy.action_net.bias[SHIFT] = float(coef[-1])
+    mean_y = float(np.sum(w * y) / np.sum(w))
+    result = GraftResult(episodes=len(good), samples=int(np.sum(w > 0)),
+                         loss=float(np.sum(w * (X @ coef - y) ** 2) / np.sum(w)),
+                         constant_loss=float(np.sum(w * (y - mean_y) ** 2) / np.sum(w)),
+                         policy=str(cfg.run_dir / "final" / "policy"))
+    _save_run(model, env, norm, 1e6, cfg, {"method": GRAFT_METHOD, "base": str(base), "graft": result.__dict__,
+                                           **(extra or {})})
     return result

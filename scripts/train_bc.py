@@ -14,7 +14,10 @@
 3. ``--dagger-rounds N``: DAgger. Each round the clone drives ``--dagger-episodes`` new draws (the
    expert's own action applied with probability ``--beta`` per step), the MPC labels every state it
    visits, and the clone is fitted again on all demonstrations so far.
-4. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
+4. ``--graft-base POLICY`` (WheelLoaderTarget-v3): no clone; the trained v2 policy POLICY is kept and only
+   v3's fourth action, the coasting fraction, is fitted to the expert's shifts
+   (``agents.imitation.graft_early_shift``), a start for PPO fine-tuning (``--init-policy``).
+5. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ class Options:
     dagger_rounds: int = 0  # DAgger rounds after the first clone (0: behaviour cloning only)
     dagger_episodes: int = 20  # episodes the clone drives per round
     beta: float = 0.2  # DAgger: the chance per step that the expert's action is applied instead of the clone's
+    graft_base: str = ""  # a trained WheelLoaderTarget-v2 policy: keep it and fit only v3's coasting fraction onto it
     env_id: str = "WheelLoaderTarget-v1"  # the clone's env (v0: action 0 the injection; v2/v3: the assisted driver,
     # labelled from v1 demonstrations)
 
@@ -88,6 +92,17 @@ def main(o: Options, command: str) -> int:
     except KeyboardInterrupt:
         log.info("interrupted; the episodes in %s are kept, the same command goes on from them", folder)
         return 130
+    if o.graft_base:
+        from agents.imitation import graft_early_shift
+
+        if o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export:
+            raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
+                             f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
+        graft = graft_early_shift(o.graft_base, demos, cfg, extra={"commands": [command], "demos": {
+            "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target)}})
+        log.info("grafted the coasting fraction onto %s from %d episodes: squared error %.4f (a constant's %.4f) -> %s",
+                 o.graft_base, graft.episodes, graft.loss, graft.constant_loss, graft.policy)
+        return 0
     meta = {"commands": [command], "demos": {
         "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
         "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds, "dagger_episodes": o.dagger_episodes,
@@ -120,4 +135,9 @@ def main(o: Options, command: str) -> int:
 if __name__ == "__main__":
     argv = sys.argv[1:]
     with cli_logging():
-        sys.exit(main(tyro.cli(Options, args=argv), "python scripts/train_bc.py " + shlex.join(argv)))
+        try:
+            code = main(tyro.cli(Options, args=argv), "python scripts/train_bc.py " + shlex.join(argv))
+        except ValueError as exc:  # bad options: the message names them, no traceback
+            print(f"train_bc: error: {exc}", file=sys.stderr)
+            code = 2
+        sys.exit(code)

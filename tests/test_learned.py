@@ -232,3 +232,38 @@ WEAK_TC = pytest.mark.xfail(strict=True, reason=(
 def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(kind, braking):
     dT, d_target, d_fuel = _target_pairs(kind, braking)
     assert np.median(dT) > np.median(d_target) / 3, (dT, d_target, d_fuel)
+
+
+def test_train_bc_refuses_dagger_for_an_assisted_driver(tmp_path):
+    """The assisted drivers' braking labels come from the expert's own cycle: DAgger (the clone drives) is
+    refused by name, with exit 2 and no traceback, before any demonstration is collected."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_bc.py"
+    r = subprocess.run([sys.executable, str(script), "--env-id", "WheelLoaderTarget-v3", "--dagger-rounds", "1",
+                        "--log-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "dagger_rounds must be 0 with env_id WheelLoaderTarget-v3" in r.stderr
+    assert "Traceback" not in r.stderr and not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_grafting_the_coasting_fraction_keeps_the_v2_policy(tmp_path, braking):
+    """The graft (a WheelLoaderTarget-v3 policy from the shipped v2 one) acts as v2 in its three actions and
+    fits the fourth to the expert's shifts better than a constant; it refuses a base of another env."""
+    from agents.imitation import graft_early_shift
+
+    demos = collect_demos(DemoSettings(braking, seed=3, expert="operator"), 3, tmp_path / "demos")
+    base = POLICIES / f"ppo_target_{braking}"
+    cfg = PPOConfig(braking=braking, env_id="WheelLoaderTarget-v3", scenario="train", init_noise=0.0,
+                    log_dir=str(tmp_path), run_name="graft", progress_bar=False)
+    result = graft_early_shift(base, demos, cfg)
+    assert result.episodes == 3 and result.samples > 30 and result.loss < 0.5 * result.constant_loss, result
+    graft, v2 = load_policy(cfg.run_dir), load_policy(base)
+    assert graft.env_id == "WheelLoaderTarget-v3" and graft.meta["method"].startswith("PPO (WheelLoaderTarget-v2)")
+    obs = np.concatenate([d["obs"] for d in demos])
+    np.testing.assert_allclose(graft.act(obs)[:, :3], v2.act(obs), atol=1e-6)
+    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v2 policy"):
+        graft_early_shift(cfg.run_dir / "final" / "policy", demos, PPOConfig(**{**cfg.__dict__, "run_name": "again"}))
+    with pytest.raises(ValueError, match="makes a WheelLoaderTarget-v3 policy"):
+        graft_early_shift(base, demos, PPOConfig(**{**cfg.__dict__, "env_id": "WheelLoaderTarget-v2"}))

@@ -274,7 +274,7 @@ def test_the_coasting_env_passes_check_env_and_needs_the_assist():
     check_env(env.unwrapped, skip_render_check=True)
     assert env.action_space.shape == (4,)
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=r"shape \(4,\) \[engine-speed request, bucket, braking fraction, early shift\]"):
+    with pytest.raises(ValueError, match=r"shape \(4,\) \[engine-speed request, bucket, braking fraction, coasting fraction\]"):
         env.step(np.zeros(3, dtype=np.float32))
     with pytest.raises(ValueError, match="coast=True needs assist=True"):
         gym.make("WheelLoaderTarget-v1", coast=True)
@@ -283,10 +283,10 @@ def test_the_coasting_env_passes_check_env_and_needs_the_assist():
 
 
 @pytest.mark.parametrize("braking", ["service", "tc"])
-def test_coasting_held_off_is_v2_and_coasting_saves_fuel_on_the_marks(braking):
-    """v3 with the early shift held off drives v2's cycle exactly. Asked from the start, the leg ends as soon
-    as coasting carries the machine past the mark: on held-out cycles the marks are met with no violation and
-    the cycle is leaner than without coasting (the machine rolls instead of driving to the braking point)."""
+def test_coasting_off_is_v2_and_coasting_saves_fuel_on_the_marks(braking):
+    """v3 with the coasting fraction at the braking fraction drives v2's cycle exactly. At its lowest (15 %
+    of the limit) the legs the service brakes end end early to coast: on held-out cycles the marks are met
+    with no violation and the cycle is slower and leaner (the machine rolls instead of driving on)."""
     from wl_env.suites import load_suite
 
     v2, v3 = gym.make("WheelLoaderTarget-v2", braking=braking), gym.make("WheelLoaderTarget-v3", braking=braking)
@@ -294,29 +294,36 @@ def test_coasting_held_off_is_v2_and_coasting_saves_fuel_on_the_marks(braking):
         opts = {"scenario": scenario, "target_ratio": 1.3}
         driver = (0.3, 0.6, 1.0)
         plain = _drive(v2, driver, options=opts)
-        held = _drive(v3, (*driver, -1.0), options=opts)
+        held = _drive(v3, (*driver, 1.0), options=opts)
         assert held["t"] == plain["t"] and held["fuel_g"] == plain["fuel_g"]
-        coasting = _drive(v3, (*driver, 1.0), options=opts)
+        coasting = _drive(v3, (*driver, -1.0), options=opts)
         assert coasting["is_success"] and coasting["violations"]["max_excess"] == 0.0, coasting
         assert coasting["fuel_g"] < plain["fuel_g"] - 1.0 and coasting["t"] > plain["t"], (coasting, plain)
 
 
-def test_the_early_shift_is_granted_only_where_coasting_reaches_the_mark():
-    from wl_env.assist import coasting_deceleration, early_shift, stopping_distance
+def test_a_leg_ends_early_only_at_the_coasting_braking_point_and_where_coasting_reaches_the_mark():
+    from wl_env.assist import COAST_FRACTION, coasting_deceleration, early_shift, stopping_distance
     from wl_env.params import DEFAULT_PARAMS as p
 
     speed, dt = 1.2, 0.1
-    reach = stopping_distance(speed, coasting_deceleration(p))  # ~2.9 m at c_r's rolling resistance
-    assert 0.5 < reach < 10.0
-    for phase, braking, to_go, granted in ((3, "service", reach - 2 * speed * dt, True),
-                                           (3, "service", reach, False),  # a step's travel short of the margin
-                                           (1, "service", reach - 2 * speed * dt, True),
-                                           (1, "tc", reach - 2 * speed * dt, False),  # the converter brakes phase 2
-                                           (3, "tc", reach - 2 * speed * dt, True),
-                                           (2, "service", 0.5, False), (4, "service", 0.5, False)):
-        assert bool(early_shift(phase, speed, to_go, 1.0, p, braking, dt)) is granted, (phase, braking, to_go)
-        assert not early_shift(phase, speed, to_go, -0.2, p, braking, dt)  # not asked
-    assert not early_shift(3, 0.01, 0.0, 1.0, p, "service", dt)  # standing: the leg has not begun
+    reach = stopping_distance(speed, coasting_deceleration(p))  # ~2.9 m: rolling resistance alone
+    coast_point = stopping_distance(speed, COAST_FRACTION[0] * p.decel_max * p.g) + speed * dt  # at 15 % of the limit
+    reach_limit = reach - speed * dt  # the farthest mark coasting from here carries the machine a step past
+    assert 2.0 < reach_limit < coast_point < reach_limit + 0.1  # at 1.2 m/s the two limits lie close
+    short = reach_limit - 0.05  # within both
+    for phase, braking, to_go, coast, ends in ((3, "service", short, -1.0, True),
+                                               (3, "service", coast_point + 0.3, -1.0, False),  # before its braking point
+                                               (3, "service", short, 1.0, False),  # at 95 %: its braking point is later
+                                               (1, "service", short, -1.0, True),
+                                               (1, "tc", short, -1.0, False),  # the converter brakes phase 2
+                                               (3, "tc", short, -1.0, True),
+                                               (2, "service", 0.5, -1.0, False), (4, "service", 0.5, -1.0, False)):
+        assert bool(early_shift(phase, speed, to_go, coast, p, braking, dt)) is ends, (phase, braking, to_go, coast)
+    # past 15 %'s braking point but beyond coasting's reach: refused until coasting reaches
+    assert early_shift(3, speed, 0.5 * (reach_limit + coast_point) - 0.2, -1.0, p, "service", dt)
+    assert not early_shift(3, speed, 0.5 * (reach_limit + coast_point), -1.0, p, "service", dt)
+    assert COAST_FRACTION[0] > p.F_roll / p.M_tot / (p.decel_max * p.g)  # above coasting's own (~14 %)
+    assert not early_shift(3, 0.01, 0.0, -1.0, p, "service", dt)  # standing: the leg has not begun
 
 
 @settings(max_examples=200, deadline=None)
@@ -326,20 +333,20 @@ def test_the_early_shift_is_granted_only_where_coasting_reaches_the_mark():
 def test_the_coasting_assist_brakes_only_from_the_braking_point(braking, phase, state, to_go, driver):
     """Any state and driver action: a machine action in [-1, 1]; in a braking phase the service brakes act
     only where braking at the driver's fraction from the next step would no longer stop short of the mark,
-    and with the early shift not asked the action is v2's."""
-    from wl_env.assist import BRAKING_FRACTION, assisted_action, stopping_distance
+    and with the coasting fraction at or above the braking fraction the action is v2's."""
+    from wl_env.assist import BRAKING_FRACTION, COAST_FRACTION, assisted_action, stopping_distance
     from wl_env.params import DEFAULT_PARAMS as p
 
     y = (*state, 0.0, 0.0)
     action = np.array([float(v) for v in assisted_action(y, phase, to_go, driver, p, braking, 0.1, coast=True)])
     assert np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0 + 1e-12), action
     interval_phase = phase + 1 if action[3] > 0 and phase in (1, 3) else phase
-    lo, hi = BRAKING_FRACTION
-    a_plan = (lo + 0.5 * (float(np.clip(driver[2], -1, 1)) + 1.0) * (hi - lo)) * p.decel_max * p.g
+    fraction = [lo + 0.5 * (float(np.clip(a, -1, 1)) + 1.0) * (hi - lo)
+                for a, (lo, hi) in ((driver[2], BRAKING_FRACTION), (driver[3], COAST_FRACTION))]
     speed = abs(state[1])
     if interval_phase in (2, 4) and action[2] > -1.0:
-        assert stopping_distance(speed, a_plan) >= to_go - speed * 0.1 - 1e-9
-    if driver[3] <= 0.0:
+        assert stopping_distance(speed, fraction[0] * p.decel_max * p.g) >= to_go - speed * 0.1 - 1e-9
+    if fraction[1] >= fraction[0]:
         v2 = np.array([float(v) for v in assisted_action(y, phase, to_go, driver[:3], p, braking, 0.1)])
         if interval_phase in (1, 3) or action[2] > -1.0:
             np.testing.assert_array_equal(action, v2)

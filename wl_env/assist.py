@@ -1,4 +1,4 @@
-"""The driving assist of ``WheelLoaderTarget-v2``: an operator's stopping laws under a learned driver.
+"""The driving assist of ``WheelLoaderTarget-v2`` and ``-v3``: an operator's stopping laws under a learned driver.
 
 A driver (a policy) picks how to drive; the assist stops the machine on the marks. The assist's laws are
 the rule-based operator's (:mod:`agents.operator` calls the same functions):
@@ -20,8 +20,17 @@ the rule-based operator's (:mod:`agents.operator` calls the same functions):
 What the driver sets (each in [-1, 1]): the engine-speed request (as action 0 of WheelLoaderTarget-v1,
 through the governor, wherever the assist does not meter the converter), the bucket acceleration it asks
 (as action 1; the stopping curve caps it) and the braking deceleration as a fraction of the limit
-(-1: 50 %, +1: 95 %), which sets where the leg ends. Written for floats and numpy arrays of loaders (the
-vector env's :class:`~wl_env.params.ParamsView`).
+(-1: 50 %, +1: 95 %), which sets where the leg ends.
+
+**Coasting** (``coast``, WheelLoaderTarget-v3). The MPC's lean cycles shift to neutral early (where braking
+would need 20-30 % of the limit), roll, and brake late and hard (87-97 % of the limit): at the same fuel,
+a faster stop than v2's constant deceleration from its braking point, which cannot express them. v3's
+driver has a fourth action, the coasting fraction: the leg ends at the braking point of that fraction
+(:func:`early_shift`: in the legs the service brakes end, where coasting carries the machine past the mark),
+and the service brakes act only from the braking point at the braking fraction on. A coasting fraction at
+or above the braking fraction makes v3 drive v2's cycle.
+
+Written for floats and numpy arrays of loaders (the vector env's :class:`~wl_env.params.ParamsView`).
 """
 
 from __future__ import annotations
@@ -36,7 +45,10 @@ from wl_env.model import derivatives
 from wl_env.params import LoaderParams
 
 N_ASSIST_ACTIONS = 3  # engine-speed request, bucket acceleration, braking fraction of the deceleration limit
-N_COAST_ACTIONS = 4  # WheelLoaderTarget-v3: and the request to end the leg early (coast)
+N_COAST_ACTIONS = 4  # WheelLoaderTarget-v3: and the coasting fraction (where the leg ends to coast)
+# of the deceleration limit, the range of v3's fourth action: the leg ends to coast at the braking point of this
+# fraction (the MPC's lean cycles shift at 20-30 %; coasting alone slows the machine by ~14 % of the limit)
+COAST_FRACTION = (0.15, 0.95)
 BRAKING_FRACTION = (0.5, 0.95)  # of the deceleration limit, the range of the driver's third action
 MAX_BRAKING_FRACTION = 0.98  # the braking itself asks at most this fraction of the limit
 # The converter's braking rises within a step as the machine slows (its speed ratio falls): metered from the
@@ -61,12 +73,14 @@ def braking_point(phase: Any, speed: Any, distance_to_go: Any, deceleration: Any
             & (stopping_distance(speed, deceleration) >= distance_to_go - speed * dt))
 
 
-def fraction_action(speed: Any, distance_to_go: Any, p: LoaderParams, dt: float) -> Any:
-    """The driver's braking-fraction action (in [-1, 1], clipped) with which :func:`braking_point` ends the
+def fraction_action(speed: Any, distance_to_go: Any, p: LoaderParams, dt: float,
+                    bounds: tuple[float, float] = BRAKING_FRACTION) -> Any:
+    """The driver's fraction action (in [-1, 1], clipped; ``bounds`` the fractions of the deceleration limit
+    at -1 and +1: the braking fraction's, or :data:`COAST_FRACTION`) with which :func:`braking_point` ends the
     leg at this state: braking from the next step on at that deceleration stops on the mark. The inverse of
-    the law in :func:`assisted_action`, for labelling an expert's shift as a driver action."""
+    the law in :func:`assisted_action`, for labelling an expert's shift or braking as a driver action."""
     a = speed * speed / (2.0 * np.maximum(distance_to_go - speed * dt, 1e-3))
-    lo_f, hi_f = BRAKING_FRACTION
+    lo_f, hi_f = bounds
     return np.clip(2.0 * (a / (p.decel_max * p.g) - lo_f) / (hi_f - lo_f) - 1.0, -1.0, 1.0)
 
 
@@ -116,15 +130,19 @@ def coasting_deceleration(p: LoaderParams) -> Any:
     return p.F_roll / p.M_tot
 
 
-def early_shift(phase: Any, speed: Any, distance_to_go: Any, asked: Any, p: LoaderParams, braking: str,
+def early_shift(phase: Any, speed: Any, distance_to_go: Any, coast_action: Any, p: LoaderParams, braking: str,
                 dt: float) -> Any:
-    """Whether the driver's request to end the leg now (``asked``, > 0) is granted (WheelLoaderTarget-v3):
-    in a leg that brakes with the service brakes (phase 3; phase 1 with service braking), moving, and only
-    where coasting in neutral from now on would carry the machine a step's travel past the mark, so the
-    assist can always stop it there."""
+    """Whether the leg ends now to coast (WheelLoaderTarget-v3): at the braking point of the driver's
+    coasting fraction of the deceleration limit (``coast_action``: -1 at 15 %, +1 at 95 %,
+    :data:`COAST_FRACTION`), in a leg the service brakes end (phase 3; phase 1 with service braking), and only
+    where coasting in neutral from now on carries the machine a step's travel past the mark, so the assist
+    can always stop it there. A coasting fraction at or above the braking fraction never ends a leg early."""
+    lo, hi = COAST_FRACTION
+    c = np.clip(np.asarray(coast_action, dtype=float), -1.0, 1.0)
+    a_coast = (lo + 0.5 * (c + 1.0) * (hi - lo)) * p.decel_max * p.g
     legs = (phase == 3) | ((phase == 1) & (braking == "service"))
     reaches = stopping_distance(speed, coasting_deceleration(p)) >= distance_to_go + speed * dt
-    return legs & (np.asarray(asked) > 0.0) & (speed > MIN_MOVING_SPEED) & reaches
+    return legs & braking_point(phase, speed, distance_to_go, a_coast, dt) & reaches
 
 
 def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: LoaderParams, braking: str,
@@ -133,9 +151,9 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
     [-1, 1]) for the driver's (request, bucket, braking fraction) at state ``y`` = (omega, V, H, V_b, ...)
     in ``phase``. Floats or arrays of loaders.
 
-    ``coast`` (WheelLoaderTarget-v3): the driver has a fourth action, a request to end the leg before the
-    braking point (:func:`early_shift`), and the service brakes act only from the braking point at the
-    driver's fraction on: the machine coasts in neutral until then (the fuel-optimal cycles do this)."""
+    ``coast`` (WheelLoaderTarget-v3): the driver has a fourth action, the coasting fraction at whose braking
+    point the leg ends (:func:`early_shift`), and the service brakes act only from the braking point at the
+    braking fraction on: the machine coasts in neutral until then (the fuel-optimal cycles do this)."""
     request_action, bucket_action, fraction_action = (np.clip(np.asarray(a, dtype=float), -1.0, 1.0) for a in driver[:3])
     V, H, V_b = y[1], y[2], y[3]
     speed = np.abs(V)

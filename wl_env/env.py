@@ -177,12 +177,12 @@ class WheelLoaderEnv(gym.Env):
 
     | Num | Action                                   | -1                    | +1                  |
     |-----|------------------------------------------|-----------------------|---------------------|
-    | 3   | end the leg now and coast (phase 3; phase 1 with service braking) | hold | > 0: granted where coasting in neutral carries the machine past the mark |
+    | 3   | coasting deceleration, of the limit: the leg (phase 3; phase 1 with service braking) ends at its braking point, where coasting in neutral carries the machine past the mark | 15 % | 95 % |
 
-    The service brakes then act only from the braking point at the driver's fraction on: the machine
-    coasts in neutral until then, as the fuel-optimal cycles do (they shift at 20-30 % of the braking
-    deceleration's need and brake late and hard). A leg the driver does not end early ends at the braking
-    point, as in v2.
+    The service brakes then act only from the braking point at the braking fraction on: the machine coasts
+    in neutral until then, as the fuel-optimal cycles do (they shift at 20-30 % of the deceleration the
+    stop would need and brake late and hard). A coasting fraction at or above the braking fraction ends the
+    leg at the braking point, as in v2.
 
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
@@ -248,8 +248,8 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
-    * WheelLoaderTarget-v3: v2 with a fourth driver action, ending the leg early to coast in neutral
-      (``coast``); the service brakes act from the braking point at the driver's fraction.
+    * WheelLoaderTarget-v3: v2 with a fourth driver action, the coasting fraction at whose braking point the
+      leg ends early to coast in neutral (``coast``); the service brakes act from the braking point.
     * WheelLoaderTarget-v2: v1 driven through the stopping assist (``assist``): three driver actions.
     * WheelLoaderTarget-v1: v0 with action 0 the governor's engine-speed request (``fuel_action``).
     * WheelLoaderTarget-v0 (a task of its own): v2 with a target cycle time per episode
@@ -283,7 +283,7 @@ class WheelLoaderEnv(gym.Env):
         target: float | tuple[float, float] = TARGET_RATIOS,
         fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
-        coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: end the leg early)
+        coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
     ) -> None:
         self.assist = check_assist(assist, fuel_action, coast)
         self.coast = coast
@@ -382,7 +382,7 @@ class WheelLoaderEnv(gym.Env):
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = action if type(action) is np.ndarray and action.dtype.kind == "f" else np.asarray(action, dtype=np.float64)
         if a.shape != self.action_space.shape:
-            names = ("[engine-speed request, bucket, braking fraction, early shift]" if self.coast else
+            names = ("[engine-speed request, bucket, braking fraction, coasting fraction]" if self.coast else
                      "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]")
             raise ValueError(f"action must have shape {self.action_space.shape} {names}, got shape {a.shape}")
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
