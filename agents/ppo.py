@@ -668,7 +668,9 @@ def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
     with th.no_grad():
         model.policy.action_net.bias[0] = raw(cfg.fuel_bias_init)
         model.policy.action_net.bias[1] = raw(cfg.bucket_bias_init)
-        if model.policy.action_net.bias.shape[0] == 4:  # (WheelLoaderTarget-v2's assist shifts by itself)
+        if cfg.env_id == "WheelLoaderTarget-v3":  # (its fourth action is the coasting fraction)
+            model.policy.action_net.bias[3] = raw(cfg.coast_bias_init)
+        elif model.policy.action_net.bias.shape[0] == 4:  # (WheelLoaderTarget-v2's assist shifts by itself)
             model.policy.action_net.bias[3] = raw(cfg.shift_bias_init)
     return model
 

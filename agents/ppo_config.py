@@ -81,6 +81,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "log_std_init": ("a finite number", _is_num),
     "log_std_final": ("none or a finite number", lambda v: v is None or _is_num(v)),
     "shift_bias_init": ("a finite number", _is_num),
+    "coast_bias_init": ("a finite number", _is_num),
     "fuel_bias_init": ("a finite number", _is_num),
     "bucket_bias_init": ("a finite number", _is_num),
     "bounded_mean": ("true or false", lambda v: isinstance(v, bool)),
@@ -161,7 +162,10 @@ class PPOConfig:
         default=-2.0, metadata={"help": "anneal a cap on the log std linearly to this at the end (none: off)"})
     shift_bias_init: float = field(
         default=-1.0, metadata={"help": "initial mean of the shift action (< 0: hold the gear at first; "
-                                "WheelLoaderTarget-v2 has none: its assist shifts; v3's asks to end the leg early)"})
+                                "WheelLoaderTarget-v2 and v3 have none: their assist shifts)"})
+    coast_bias_init: float = field(
+        default=1.0, metadata={"help": "WheelLoaderTarget-v3: initial mean of the coasting fraction (+1: 0.95 of "
+                               "the limit, no early coasting: v2's cycles at first)"})
     fuel_bias_init: float = field(
         default=0.0, metadata={"help": "initial mean of the fuel action (< 0: explore below the governor)"})
     bucket_bias_init: float = field(

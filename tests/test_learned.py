@@ -267,3 +267,15 @@ def test_grafting_the_coasting_fraction_keeps_the_v2_policy(tmp_path, braking):
         graft_early_shift(cfg.run_dir / "final" / "policy", demos, PPOConfig(**{**cfg.__dict__, "run_name": "again"}))
     with pytest.raises(ValueError, match="makes a WheelLoaderTarget-v3 policy"):
         graft_early_shift(base, demos, PPOConfig(**{**cfg.__dict__, "env_id": "WheelLoaderTarget-v2"}))
+
+
+def test_an_untrained_v3_policy_starts_without_early_coasting(tmp_path):
+    """WheelLoaderTarget-v3's fourth action is the coasting fraction: PPO starts it at coast_bias_init (+1:
+    95 % of the limit, so the untrained driver drives v2's cycles), not at the shift action's "hold" (-1,
+    which here would coast from the first moment coasting reaches the mark)."""
+    cfg = _tiny(tmp_path, env_id="WheelLoaderTarget-v3")
+    env = make_env(cfg, num_envs=1)
+    model = build_model(cfg, env, tmp_path / "tb")
+    assert float(model.policy.action_net.bias[3]) == cfg.coast_bias_init == 1.0
+    assert float(model.policy.action_net.bias[1]) == cfg.bucket_bias_init
+    env.close()
