@@ -110,7 +110,7 @@ class PPOConfig:
                 "(scenarios observed), WheelLoaderTarget-v0 (v2 with a target cycle time per episode) or "
                 "WheelLoaderTarget-v1 (v0 with an engine-speed request as action 0, through the engine's governor) or "
                 "WheelLoaderTarget-v2 (v1 through the stopping assist: request, bucket, braking fraction) or "
-                "WheelLoaderTarget-v3 (v2 with a 4th action: end the leg early and coast)"})
+                "WheelLoaderTarget-v3 (v2 with a 4th action: the coasting fraction, where a leg ends early to coast)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={

@@ -197,15 +197,23 @@ def _drive(env, driver, seed=0, options=None):
     return info
 
 
-def test_the_assisted_env_passes_check_env_and_refuses_a_four_action():
-    env = gym.make("WheelLoaderTarget-v2", braking="tc", scenario="train")
+@pytest.mark.parametrize("env_id,braking,names", [
+    ("WheelLoaderTarget-v2", "tc", "engine-speed request, bucket, braking fraction"),
+    ("WheelLoaderTarget-v3", "service", "engine-speed request, bucket, braking fraction, coasting fraction")])
+def test_the_assisted_envs_pass_check_env_and_refuse_another_action_count(env_id, braking, names):
+    env = gym.make(env_id, braking=braking, scenario="train")
     check_env(env.unwrapped, skip_render_check=True)
-    assert env.action_space.shape == (3,)
+    n = len(names.split(", "))
+    assert env.action_space.shape == (n,)
     env.reset(seed=0)
-    with pytest.raises(ValueError, match=r"shape \(3,\) \[engine-speed request, bucket, braking fraction\]"):
-        env.step(np.zeros(4, dtype=np.float32))
+    with pytest.raises(ValueError, match=rf"shape \({n},\) \[{names}\]"):
+        env.step(np.zeros(7 - n, dtype=np.float32))
     with pytest.raises(ValueError, match="assist=True needs fuel_action='engine_speed'"):
-        gym.make("WheelLoaderTarget-v2", fuel_action="injection")
+        gym.make(env_id, fuel_action="injection")
+    with pytest.raises(ValueError, match="coast=True needs assist=True"):
+        gym.make("WheelLoaderTarget-v1", coast=True)
+    with pytest.raises(ValueError, match="coast must be True or False"):
+        gym.make("WheelLoaderTarget-v3", coast="yes")
 
 
 @pytest.mark.parametrize("braking", ["service", "tc"])
@@ -269,19 +277,6 @@ def test_the_assist_gives_a_machine_action_in_range_at_any_state(braking, phase,
 
 
 # ---------------------------------------------------------------- WheelLoaderTarget-v3: the coasting assist
-def test_the_coasting_env_passes_check_env_and_needs_the_assist():
-    env = gym.make("WheelLoaderTarget-v3", braking="service", scenario="train")
-    check_env(env.unwrapped, skip_render_check=True)
-    assert env.action_space.shape == (4,)
-    env.reset(seed=0)
-    with pytest.raises(ValueError, match=r"shape \(4,\) \[engine-speed request, bucket, braking fraction, coasting fraction\]"):
-        env.step(np.zeros(3, dtype=np.float32))
-    with pytest.raises(ValueError, match="coast=True needs assist=True"):
-        gym.make("WheelLoaderTarget-v1", coast=True)
-    with pytest.raises(ValueError, match="coast must be True or False"):
-        gym.make("WheelLoaderTarget-v3", coast="yes")
-
-
 @pytest.mark.parametrize("braking", ["service", "tc"])
 def test_coasting_off_is_v2_and_coasting_saves_fuel_on_the_marks(braking):
     """v3 with the coasting fraction at the braking fraction drives v2's cycle exactly. At its lowest (15 %

@@ -64,7 +64,7 @@ def check_assist(assist: Any, fuel_action: str, coast: Any = False) -> bool:
 
 
 def n_actions(assist: bool, coast: bool) -> int:
-    """The action count: the machine's 4, the assisted driver's 3, or 4 with the early-shift request (coast)."""
+    """The action count: the machine's 4, the assisted driver's 3, or 4 with the coasting fraction (coast)."""
     return N_COAST_ACTIONS if coast else N_ASSIST_ACTIONS if assist else 4
 
 
