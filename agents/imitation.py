@@ -201,6 +201,7 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
+COAST = 3  # WheelLoaderTarget-v3's coasting fraction's action index
 # The assisted drivers (WheelLoaderTarget-v2, v3) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
 # its own machine (injection, brake, shift) and its actions are labelled as the driver's (driver_labels).
 DRIVER_ENV_IDS = TARGET_ENV_IDS[2:4]
@@ -239,8 +240,9 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
     one at which the assist brakes where the expert did: in v2 it ends the leg where the expert shifted; in
     v3 it starts the service brakes where the expert's did, and the coasting fraction is the one whose
     braking point is the expert's shift. Weight 0 where an action does nothing: the fractions outside the
-    legs they act in, and with TC braking the request in phase 2 (the assist meters the converter there) and
-    the coasting fraction in phases 1-2. ``dt``: the episode's control interval in s."""
+    legs they act in (the coasting fraction: in phase 3, and phase 1 with service braking), and with TC
+    braking the request in phase 2 (the assist meters the converter there). ``dt``: the episode's control
+    interval in s."""
     from wl_env.assist import COAST_FRACTION, fraction_action
     from wl_env.codec import Codec
     from wl_env.scenario import Scenario
@@ -262,7 +264,8 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
             fraction[in_leg] = fraction_action(speed[k], to_go[k], p, dt)
         else:  # (an episode cut short, or braking that never started: nothing to label)
             weights[in_leg, 2] = 0.0
-    weights[~np.isin(phase, (1, 3) if not coast else (1, 2, 3, 4)), 2] = 0.0
+    if not coast:  # (v3's braking fraction also sets where the brakes start in phases 2 and 4)
+        weights[~np.isin(phase, (1, 3)), 2] = 0.0
     if braking == "tc":
         weights[phase == 2, 0] = 0.0
         if coast:
@@ -277,7 +280,7 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
                 k = shifted[0]
                 coasting[(phase == leg) | (phase == leg + 1)] = fraction_action(speed[k], to_go[k], p, dt, COAST_FRACTION)
         columns.append(coasting)
-        weights[~np.isin(phase, (1, 3) if braking == "service" else (3,)), 3] = 0.0  # (where it can end a leg)
+        weights[~np.isin(phase, (1, 3) if braking == "service" else (3,)), COAST] = 0.0  # (where it can end a leg)
     return np.column_stack(columns).astype(np.float32), weights
 
 
@@ -401,7 +404,7 @@ def _save_run(model: Any, env: Any, norm: Any, count: float, cfg: PPOConfig, met
 
 
 GRAFT_METHOD = "PPO (WheelLoaderTarget-v2) with the coasting fraction cloned from the MPC"
-SHIFT_RIDGE = 1e-3  # the least-squares fit's ridge on the 64 features (they are tanh outputs, O(1))
+COAST_RIDGE = 1e-3  # the least-squares fit's ridge on the 64 features (they are tanh outputs, O(1))
 
 
 @dataclass
@@ -454,18 +457,18 @@ def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOCon
                              f"{tuple(state[k].shape)} (net_arch {list(cfg.net_arch)})")
     labelled = [driver_labels(d["obs"], d["actions"], d["scenario"], cfg.braking, coast=True) for d in good]
     obs = np.concatenate([d["obs"] for d in good])
-    y = np.concatenate([a[:, SHIFT] for a, _ in labelled]).astype(np.float64)
-    w = np.concatenate([wt[:, SHIFT] for _, wt in labelled]).astype(np.float64)
+    y = np.concatenate([a[:, COAST] for a, _ in labelled]).astype(np.float64)
+    w = np.concatenate([wt[:, COAST] for _, wt in labelled]).astype(np.float64)
     policy.load_state_dict(state)
     with th.no_grad():
         z = th.as_tensor(norm.apply(obs), dtype=th.float32)
         features = policy.mlp_extractor.forward_actor(policy.extract_features(z, policy.pi_features_extractor))
     X = np.column_stack([features.numpy().astype(np.float64), np.ones(len(obs))])
     sw = np.sqrt(w)[:, None]
-    coef = np.linalg.solve((X * sw).T @ (X * sw) + SHIFT_RIDGE * np.eye(X.shape[1]), (X * sw).T @ (y * sw[:, 0]))
+    coef = np.linalg.solve((X * sw).T @ (X * sw) + COAST_RIDGE * np.eye(X.shape[1]), (X * sw).T @ (y * sw[:, 0]))
     with th.no_grad():
-        policy.action_net.weight[SHIFT] = th.as_tensor(coef[:-1], dtype=th.float32)
-        policy.action_net.bias[SHIFT] = float(coef[-1])
+        policy.action_net.weight[COAST] = th.as_tensor(coef[:-1], dtype=th.float32)
+        policy.action_net.bias[COAST] = float(coef[-1])
     mean_y = float(np.sum(w * y) / np.sum(w))
     result = GraftResult(episodes=len(good), samples=int(np.sum(w > 0)),
                          loss=float(np.sum(w * (X @ coef - y) ** 2) / np.sum(w)),

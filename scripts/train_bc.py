@@ -34,7 +34,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from wl_env.logs import cli_logging  # noqa: E402
+from wl_env.logs import PACKAGES, cli_logging  # noqa: E402
 
 log = logging.getLogger("train_bc")
 
@@ -84,6 +84,9 @@ def main(o: Options, command: str) -> int:
     if o.env_id in DRIVER_ENV_IDS and o.dagger_rounds:
         raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: an assisted driver's braking labels come "
                          f"from the expert's own cycle (where it shifted and braked), not from states a clone visits")
+    if o.graft_base and (o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export):
+        raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
+                         f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
     demo_env = DEMO_ENV_ID[o.env_id]  # (an assisted driver is cloned from the expert's own v1 cycles)
     settings = DemoSettings(o.braking, o.demo_seed, tuple(o.target), o.fast_share, env_id=demo_env)
     folder = o.demos or str(Path(o.log_dir) / f"demos_{demo_env}_{o.braking}_s{o.demo_seed}")
@@ -95,9 +98,6 @@ def main(o: Options, command: str) -> int:
     if o.graft_base:
         from agents.imitation import graft_early_shift
 
-        if o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export:
-            raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
-                             f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
         graft = graft_early_shift(o.graft_base, demos, cfg, extra={"commands": [command], "demos": {
             "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target)}})
         log.info("grafted the coasting fraction onto %s from %d episodes: squared error %.4f (a constant's %.4f) -> %s",
@@ -134,7 +134,7 @@ def main(o: Options, command: str) -> int:
 
 if __name__ == "__main__":
     argv = sys.argv[1:]
-    with cli_logging():
+    with cli_logging(names=(*PACKAGES, "train_bc")):
         try:
             code = main(tyro.cli(Options, args=argv), "python scripts/train_bc.py " + shlex.join(argv))
         except ValueError as exc:  # bad options: the message names them, no traceback

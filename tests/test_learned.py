@@ -235,16 +235,20 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
     assert np.median(dT) > np.median(d_target) / 3, (dT, d_target, d_fuel)
 
 
-def test_train_bc_refuses_dagger_for_an_assisted_driver(tmp_path):
+@pytest.mark.parametrize("args,message", [
+    (["--env-id", "WheelLoaderTarget-v3", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v3"),
+    (["--env-id", "WheelLoaderTarget-v2", "--graft-base", "agents/policies/ppo_target_v2_tc"],
+     "graft_base needs env_id WheelLoaderTarget-v3")])
+def test_train_bc_refuses_what_an_assisted_driver_cannot_take(tmp_path, args, message):
     """The assisted drivers' braking labels come from the expert's own cycle: DAgger (the clone drives) is
-    refused by name, with exit 2 and no traceback, before any demonstration is collected."""
+    refused by name; a graft is v3's only. Exit 2, no traceback, before any demonstration is collected."""
     import subprocess
     import sys
 
     script = Path(__file__).resolve().parents[1] / "scripts" / "train_bc.py"
-    r = subprocess.run([sys.executable, str(script), "--env-id", "WheelLoaderTarget-v3", "--dagger-rounds", "1",
-                        "--log-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2 and "dagger_rounds must be 0 with env_id WheelLoaderTarget-v3" in r.stderr
+    r = subprocess.run([sys.executable, str(script), *args, "--log-dir", str(tmp_path)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and message in r.stderr
     assert "Traceback" not in r.stderr and not any(tmp_path.iterdir())
 
 

@@ -72,7 +72,8 @@ def test_finishing_late_costs_the_lateness_times_its_weight():
 
 @pytest.mark.parametrize("env_id,braking,init_noise,seed", [("WheelLoaderTarget-v0", "tc", 0.5, 11),
                                                           ("WheelLoaderTarget-v1", "service", 0.0, 5),
-                                                          ("WheelLoaderTarget-v2", "tc", 0.0, 3)])
+                                                          ("WheelLoaderTarget-v2", "tc", 0.0, 3),
+                                                          ("WheelLoaderTarget-v3", "service", 0.0, 7)])
 def test_the_vector_target_env_draws_targets_and_steps_as_single_envs_do(env_id, braking, init_noise, seed):
     n = 3
     venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", braking=braking,
@@ -86,7 +87,7 @@ def test_the_vector_target_env_draws_targets_and_steps_as_single_envs_do(env_id,
     for _ in range(40):
         a = rng.uniform(-1, 1, size=(n, n_act)).astype(np.float32)
         if n_act == 4:
-            a[:, 3] = -1.0  # (hold the gear: a full leg)
+            a[:, 3] = -1.0  # (hold the gear: a full leg; v3: coast from the lowest fraction's braking point)
         else:
             a[:, 1] = 0.6  # (lift: the assist stops the bucket; v2 shifts by itself)
         obs_v, rew_v, *_ = venv.step(a)
