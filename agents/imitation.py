@@ -216,6 +216,18 @@ def _phases(obs: np.ndarray) -> np.ndarray:
     return np.asarray(Codec().decode_observation(obs).phase)
 
 
+def shift_steps(phase: np.ndarray, actions: np.ndarray) -> dict[int, int]:
+    """Where the expert ended each leg: the first step of phase 1 and of phase 3 with the shift asked (> 0);
+    a leg it did not end (an episode cut short) is left out."""
+    out = {}
+    for leg in (1, 3):
+        steps = np.flatnonzero(phase == leg)
+        shifted = steps[actions[steps, SHIFT] > 0.0]
+        if shifted.size:
+            out[leg] = int(shifted[0])
+    return out
+
+
 def shift_labels(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """One episode's actions with the shift request relabelled as a ramp to the expert's shift. The expert
     asks for it once per phase (+1 once, -1 before): a regression of that pulse predicts "hold" everywhere
@@ -223,12 +235,9 @@ def shift_labels(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
     the expert's shift, so the clone's threshold (> 0) shifts where the expert did."""
     out = actions.copy()
     phase = _phases(obs)
-    for ph in (1, 3):
-        steps = np.flatnonzero(phase == ph)
-        shifted = steps[actions[steps, SHIFT] > 0.0]
-        if shifted.size:
-            k = shifted[0]
-            out[steps, SHIFT] = np.clip(SHIFT_RAMP * (steps - k + 0.5), -1.0, 1.0)
+    for leg, k in shift_steps(phase, actions).items():
+        steps = np.flatnonzero(phase == leg)
+        out[steps, SHIFT] = np.clip(SHIFT_RAMP * (steps - k + 0.5), -1.0, 1.0)
     return out
 
 
@@ -243,24 +252,25 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
     legs they act in (the coasting fraction: in phase 3, and phase 1 with service braking), and with TC
     braking the request in phase 2 (the assist meters the converter there). ``dt``: the episode's control
     interval in s."""
-    from wl_env.assist import COAST_FRACTION, fraction_action
+    from wl_env.assist import COAST_FRACTION, coasting_legs, fraction_action
     from wl_env.codec import Codec
     from wl_env.scenario import Scenario
 
     p = Scenario.from_dict(scenario).params()
     o = Codec(p, observe_scenario=True).decode_observation(obs)
     phase, speed, to_go = np.asarray(o.phase), np.abs(np.asarray(o.vehicle_speed)), np.asarray(o.distance_to_go)
+    shifts = shift_steps(phase, actions)
+    legs = coasting_legs(braking)  # (v3: where the service brakes end a leg, and a leg may end early)
     fraction = np.zeros(len(obs), dtype=np.float32)
     weights = np.ones((len(obs), 4 if coast else 3), dtype=np.float32)
     for leg in (1, 3):
         in_leg = (phase == leg) | (phase == leg + 1)
-        steps = np.flatnonzero(phase == leg)
-        marks = steps[actions[steps, SHIFT] > 0.0]  # the expert's shift
-        if coast and (leg == 3 or braking == "service"):  # the service brakes' onset (brake action > -1)
+        k = shifts.get(leg)  # the expert's shift
+        if coast and leg in legs:  # the service brakes' onset (brake action > -1)
             braking_steps = np.flatnonzero(phase == leg + 1)
-            marks = braking_steps[actions[braking_steps, 2] > -1.0]
-        if marks.size:
-            k = marks[0]
+            onset = braking_steps[actions[braking_steps, 2] > -1.0]
+            k = int(onset[0]) if onset.size else None
+        if k is not None:
             fraction[in_leg] = fraction_action(speed[k], to_go[k], p, dt)
         else:  # (an episode cut short, or braking that never started: nothing to label)
             weights[in_leg, 2] = 0.0
@@ -273,14 +283,11 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
     columns = [actions[:, 0], actions[:, 1], fraction]
     if coast:  # the coasting fraction whose braking point is the expert's shift, held over the leg
         coasting = np.ones(len(obs), dtype=np.float32)
-        for leg in (1, 3) if braking == "service" else (3,):
-            steps = np.flatnonzero(phase == leg)
-            shifted = steps[actions[steps, SHIFT] > 0.0]
-            if shifted.size:
-                k = shifted[0]
+        for leg, k in shifts.items():
+            if leg in legs:
                 coasting[(phase == leg) | (phase == leg + 1)] = fraction_action(speed[k], to_go[k], p, dt, COAST_FRACTION)
         columns.append(coasting)
-        weights[~np.isin(phase, (1, 3) if braking == "service" else (3,)), COAST] = 0.0  # (where it can end a leg)
+        weights[~np.isin(phase, legs), COAST] = 0.0  # (where it can end a leg)
     return np.column_stack(columns).astype(np.float32), weights
 
 

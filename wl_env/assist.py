@@ -130,6 +130,12 @@ def coasting_deceleration(p: LoaderParams) -> Any:
     return p.F_roll / p.M_tot
 
 
+def coasting_legs(braking: str) -> tuple[int, ...]:
+    """The phases a leg may end early in to coast (WheelLoaderTarget-v3): those the service brakes end (with TC
+    braking the converter brakes phase 2, metered from the engine speed: no rolling there)."""
+    return (1, 3) if braking == "service" else (3,)
+
+
 def early_shift(phase: Any, speed: Any, distance_to_go: Any, coast_action: Any, p: LoaderParams, braking: str,
                 dt: float) -> Any:
     """Whether the leg ends now to coast (WheelLoaderTarget-v3): at the braking point of the driver's
@@ -140,7 +146,9 @@ def early_shift(phase: Any, speed: Any, distance_to_go: Any, coast_action: Any, 
     lo, hi = COAST_FRACTION
     c = np.clip(np.asarray(coast_action, dtype=float), -1.0, 1.0)
     a_coast = (lo + 0.5 * (c + 1.0) * (hi - lo)) * p.decel_max * p.g
-    legs = (phase == 3) | ((phase == 1) & (braking == "service"))
+    legs: Any = False
+    for leg in coasting_legs(braking):  # (comparisons, not np.isin: ~40x cheaper on the env's step)
+        legs = legs | (phase == leg)
     reaches = stopping_distance(speed, coasting_deceleration(p)) >= distance_to_go + speed * dt
     return legs & braking_point(phase, speed, distance_to_go, a_coast, dt) & reaches
 
