@@ -67,8 +67,7 @@ from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
-N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, "WheelLoaderTarget-v1": N_TARGET_OBS,
-                "WheelLoaderTarget-v2": N_TARGET_OBS, "WheelLoaderTarget-v3": N_TARGET_OBS}
+N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGET_ENV_IDS, N_TARGET_OBS)}
 
 log = logging.getLogger(__name__)
 

@@ -95,18 +95,17 @@ def main(o: Options, command: str) -> int:
     except KeyboardInterrupt:
         log.info("interrupted; the episodes in %s are kept, the same command goes on from them", folder)
         return 130
-    if o.graft_base:
-        from agents.imitation import graft_early_shift
-
-        graft = graft_early_shift(o.graft_base, demos, cfg, extra={"commands": [command], "demos": {
-            "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target)}})
-        log.info("grafted the coasting fraction onto %s from %d episodes: squared error %.4f (a constant's %.4f) -> %s",
-                 o.graft_base, graft.episodes, graft.loss, graft.constant_loss, graft.policy)
-        return 0
     meta = {"commands": [command], "demos": {
         "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
         "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds, "dagger_episodes": o.dagger_episodes,
         "beta": o.beta}}
+    if o.graft_base:
+        from agents.imitation import graft_early_shift
+
+        graft = graft_early_shift(o.graft_base, demos, cfg, extra=meta)
+        log.info("grafted the coasting fraction onto %s from %d episodes: squared error %.4f (a constant's %.4f) -> %s",
+                 o.graft_base, graft.episodes, graft.loss, graft.constant_loss, graft.policy)
+        return 0
     fit = {"epochs": o.epochs, "learning_rate": o.learning_rate, "batch_size": o.batch_size, "extra": meta}
     result = clone(demos, cfg, **fit)
     log.info("cloned %d episodes (%d dropped), %d samples: validation loss %.5f -> %s", result.episodes,
