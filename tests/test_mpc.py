@@ -101,6 +101,7 @@ def test_closed_loop_cycle_near_the_optimum(braking, mode):
         assert r.episode.fuel_g <= 1.03 * solve_ocp(braking, "fuel_at_time", T=r.episode.T, verify=False).fuel_g
 
 
+@pytest.mark.slow  # 33 s; the default run has the minimum-time and target-time modes
 def test_weighted_mode_trades_fuel_for_time():
     """w_fuel = 0.5 weighs 1 g against 0.1 s x 0.5: the cycle lands between the fastest and a slow one."""
     r, _ = closed_loop("service", "weighted", w_fuel=0.5)

@@ -229,6 +229,7 @@ def test_a_mismatched_plant_makes_the_short_horizon_plan_the_cycle_again_and_kee
     assert 0 < ctrl.replans < 0.25 * len(ctrl.solve_times)  # some steps plan the whole cycle again, few
 
 
+@pytest.mark.slow  # 26 s, an opt-in mode; the default run has the in-step re-plans on a mismatch corner
 def test_re_plans_beside_the_horizon_keep_a_mismatched_plant_within_the_limits_deterministically():
     """replan_lag_steps: the re-plans (the plant estimate moved) run on the worker and take over 10 steps
     later, the step waiting if need be, so the run does not depend on the machine's speed. TC, plant payload

@@ -72,7 +72,7 @@ def test_deadline_returns_the_shifted_plan_in_time_and_flags_it():
     1-60 late, it still completed in 11.0 s; with three more busy processes on the 2 cores, 2 of 3 runs
     stalled at 2.4-3.1 s: plans 3-4 steps old drive the machine open loop.)"""
     env = gym.make("WheelLoader-v2", braking="service")
-    deadline_ms, delay = 100.0, 0.25
+    deadline_ms, delay = 100.0, 0.5
     # (the first solve that starts at step 20 or later: on a slow machine step 20 may still wait for step 19's)
     solver = SlowSolver(set(range(20, 200)), delay, once=True)
     ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0, deadline_ms=deadline_ms),
@@ -98,10 +98,12 @@ def test_deadline_returns_the_shifted_plan_in_time_and_flags_it():
         obs, _, term, trunc, info = env.step(a)
         if term or trunc:
             break
-    # the late solve (0.25 s and its own) spans the deadlines of its step and the next (other steps may
-    # miss too on a slow machine: a solve here takes 10-150 ms)
+    # the late solve (0.5 s and its own) spans two deadlines in a row: its step's and the next, or, where it
+    # waited on the worker behind an earlier late solve and began only after its step returned, the next two
+    # (other steps may miss too on a slow machine: a solve here takes 10-150 ms; CI once had 22 on time
+    # after a 0.25 s delay that began at 21)
     slow = solver.slowed_at[0]
-    assert 20 <= slow <= 30 and {slow, slow + 1} <= set(missed)
+    assert 20 <= slow <= 30 and any({j, j + 1} <= set(missed) for j in (slow, slow + 1))
     assert ctrl.deadline_misses == len(missed) == ctrl.stats()["deadline_misses"]
     assert info["violations"]["max_excess"] == 0.0
     if len(missed) <= 0.25 * (k + 1):

@@ -39,7 +39,7 @@ def test_the_nominal_and_test_suites_ship_with_their_optima():
     assert fronts[f"tc_{DEFAULT_PARAMS.fingerprint()}"].T_min == pytest.approx(8.379, abs=2e-3)
 
 
-@pytest.mark.parametrize("k", [0, 1])
+@pytest.mark.parametrize("k", [0, pytest.param(1, marks=pytest.mark.slow)])  # (15-19 s each)
 def test_a_shipped_point_re_simulates_and_a_fresh_solve_agrees(k):
     """A sample of the shipped points, seeded: solved afresh from the templates at the same cycle time, the
     cycle re-simulates (the targets and every limit hold in the environment's step) and its fuel agrees."""
