@@ -28,11 +28,17 @@ def sim_step(sim, y, phase, u, dt=0.1):
     return np.array(y1), phase1, s_rev
 
 
-@pytest.mark.parametrize("braking", ["service", "tc"])
-def test_grid_step_is_the_environment_step(braking):
+# a heavier, rougher cycle: the plant the model's functions take as their parameter, not the one built with
+HEAVY = P.replace(M_load=12500.0, c_r=0.045, H_T=4.4, reverse_distance=7.5, forward_distance=5.5)
+
+
+@pytest.mark.parametrize("braking,plant", [("service", P), ("tc", P), ("service", HEAVY), ("tc", HEAVY)])
+def test_grid_step_is_the_environment_step(braking, plant):
     """The MPC's step functions compute what the simulator computes: full steps in every phase, the
-    stop step at the reversing point (cut at V = 0, the rest in phase 3) and at the end (standing)."""
-    model, sim = StepModel(braking, P), Simulator(P, braking)
+    stop step at the reversing point (cut at V = 0, the rest in phase 3) and at the end (standing). Built
+    once for the machine, they take the scenario as a parameter: the nominal model's functions with the
+    heavy cycle's payload and rolling resistance are the heavy cycle's simulator."""
+    model, sim = StepModel(braking, P).with_params(plant), Simulator(plant, braking)
     cases = [  # phase, kind, state (omega, V, H, V_b, s), control
         (1, "full", (180.0, -1.2, 1.5, 0.3, -1.0), (120.0, 0.5, 0.0)),
         (2, "full", (150.0, -1.5, 2.0, 0.3, -5.0), (20.0, 0.0, 30000.0 if braking == "service" else 0.0)),
@@ -43,7 +49,7 @@ def test_grid_step_is_the_environment_step(braking):
     ]
     for phase, kind, x, u in cases:
         fn = (model.full if kind == "full" else model.stop)[phase].fn
-        x1, _rows, fuel, s_stop = fn(np.array(x), np.array(u), 0.1, NOMINAL_ESTIMATE)
+        x1, _rows, fuel, s_stop = fn(np.array(x), np.array(u), 0.1, NOMINAL_ESTIMATE, model.step_scenario)
         y1, phase1, s_rev = sim_step(sim, (*x, 0.0), phase, u)
         assert np.allclose(np.array(x1).ravel(), y1[:5], rtol=0, atol=1e-9), (phase, kind)
         assert float(fuel) == pytest.approx(y1[5], abs=1e-12)
@@ -170,7 +176,8 @@ def test_schedule_sensitivities_predict_a_stretched_phase():
     sol, nlp = ctrl._sol, ctrl._nlp(1)
     tight = ca.nlpsol("tight", "ipopt", nlp.nlp, {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                                                    "ipopt.tol": 1e-10})
-    args = nlp.arguments(sol.counts, x, NOMINAL_ESTIMATE, 0.1, tighten=(ctrl.config.tighten, ctrl.config.tighten))
+    args = nlp.arguments(sol.counts, x, NOMINAL_ESTIMATE, 0.1, tighten=(ctrl.config.tighten, ctrl.config.tighten),
+                         params=ctrl.params)
     base = tight(x0=sol.z, **args)
     # the method, on a converged optimum; the controller's own solves (tol 1e-6, acceptable 1e-4) rank
     # the moves with multipliers that err by up to 5 % (measured), each move then verified by a solve
@@ -273,23 +280,33 @@ def test_a_candidate_that_fails_hands_the_solve_to_its_fallback():
     assert ctrl._sol.ok and ctrl._sol.status.startswith("sqp-rti (hpipm): ") and ", then " in ctrl._sol.status
 
 
-def test_a_controller_moved_to_another_scenario_keeps_no_nlp_of_the_old_model():
-    """Memory: the grid NLPs and their solvers are per model (50 MB or more each); a controller whose new
-    scenario changes the model releases them all, and release_solvers leaves no built NLP behind."""
-    from mpc.controller.solver import grid_nlp, release_solvers, step_model
+def test_scenarios_of_one_machine_share_its_nlps_and_another_structure_releases_them():
+    """Planning time and memory: a grid NLP and its solver (1-3 s to build, 50 MB or more) take the
+    scenario as a parameter. A controller moved to another scenario plans on the ones built, with that
+    scenario's values in their parameters; a scenario whose dump height brings the boom's end stop within
+    reach (its rows: another structure) releases them all, and release_solvers leaves nothing built."""
+    from mpc.controller import solver
+    from mpc.controller.grid import GRID_SCENARIO
     from wl_env.scenario import Scenario
 
     ctrl = MPCController("service")
-    grid_nlp(ctrl.model, 4, ((4, 4),))  # a small NLP of the nominal model
-    assert grid_nlp.cache_info().currsize >= 1
-    ctrl.reset(scenario=Scenario(payload=12000.0, braking="service"))
-    assert grid_nlp.cache_info().currsize == 0 and step_model.cache_info().currsize == 1  # the new model only
-    assert ctrl.model.params.M_tot > P.M_tot
-    grid_nlp(ctrl.model, 4, ((4, 4),))
-    ctrl.reset(scenario=Scenario(payload=12000.0, braking="service"))  # the same model: its NLPs are kept
-    assert grid_nlp.cache_info().currsize == 1
-    release_solvers()
-    assert grid_nlp.cache_info().currsize == 0 and step_model.cache_info().currsize == 0
+    nlp = solver.grid_nlp(ctrl.model, 4, ((4, 4),))  # a small NLP
+    ctrl.reset(scenario=Scenario(payload=12000.0, reverse_distance=7.0, dump_height=4.5, braking="service"))
+    assert ctrl.model.params.M_tot > P.M_tot and ctrl.model.params.M_load == 12000.0
+    assert solver.grid_nlp(ctrl.model, 4, ((4, 4),)) is nlp  # the same NLP, not a new one
+    x = np.array([150.0, 1.0, 4.0, 0.2, -0.6])
+    par = nlp.arguments({4: 3}, x, NOMINAL_ESTIMATE, 0.1, params=ctrl.params)["p"]
+    assert dict(zip(GRID_SCENARIO, par[nlp.scenario_offset:nlp.h_offset], strict=True)) == {
+        "M_load": 12000.0, "c_r": P.c_r, "H_T": 4.5, "reverse_distance": 7.0, "forward_distance": P.forward_distance}
+    with pytest.raises(ValueError, match="another machine"):
+        nlp.arguments({4: 3}, x, NOMINAL_ESTIMATE, 0.1, params=P.replace(gear_ratio=1.1 * P.gear_ratio))
+    with pytest.raises(ValueError, match="another machine"):
+        StepModel("service", P).with_params(P.replace(U_mf_max=0.9 * P.U_mf_max))
+    ctrl.reset(scenario=Scenario(dump_height=5.1, braking="service"))  # the end stop within a step's lift
+    assert ctrl.model.end_stop and solver.grid_nlp.cache_info().currsize == 0
+    solver.grid_nlp(ctrl.model, 4, ((4, 4),))
+    solver.release_solvers()
+    assert solver.grid_nlp.cache_info().currsize == 0 and not solver._MODELS
 
 
 class CountingSolver(IpoptSolver):

@@ -94,7 +94,7 @@ def test_the_first_plan_is_an_optimum_of_each_short_horizon_along_it(step, solve
     assert nlp.open_phase is not None and nlp.n_var < 0.25 * ref.nlp.n_var
     x = plan["states"][step]
     z0, lam_x, lam_g, end = ref.warm_start(nlp, counts, rem, x)
-    args = nlp.arguments(counts, x, NOMINAL_ESTIMATE, ctrl.dt, tighten=(cfg.tighten, cfg.tighten),
+    args = nlp.arguments(counts, x, NOMINAL_ESTIMATE, ctrl.dt, tighten=(cfg.tighten, cfg.tighten), params=ctrl.params,
                          u_prev=plan["controls"][step - 1], rate_weight=cfg.rate_weight)
     x_ref, gradient = ref.terminal(end)
     du = {}

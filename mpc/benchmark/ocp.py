@@ -748,15 +748,23 @@ def transport(result: OCPResult, params: LoaderParams) -> OCPResult:
     if not src:
         return result
     dst = scenario_fields(params)
-    phase = np.asarray(result.phase)
-    s = np.asarray(result.position, dtype=float)
-    first = phase <= 2
+    x, s_new = transport_states(result.states, result.position, result.phase, src, dst)
+    x[0, 0] = dst["omega_0"]
+    return replace(result, states=x.tolist(), position=s_new.tolist(), scenario_fields=dst)
+
+
+def transport_states(states: Any, position: Any, phase: Any, src: dict[str, float],
+                     dst: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """States [omega, V, H, V_b, ...] and positions s (m) of a cycle of scenario ``src`` (scenario_fields),
+    reshaped for ``dst``: positions scaled per leg (phases 1-2, 3-4) to its distances, heights mapped from
+    H_0..H_T onto its own (the bucket speed with them); the engine and the travel speed kept."""
+    phase = np.asarray(phase)
+    s = np.asarray(position, dtype=float)
     rd, rd_new = src["reverse_distance"], dst["reverse_distance"]
-    s_new = np.where(first, s * rd_new / rd,
+    s_new = np.where(phase <= 2, s * rd_new / rd,
                      -rd_new + (s + rd) * dst["forward_distance"] / src["forward_distance"])
-    x = np.array(result.states, dtype=float)
+    x = np.array(states, dtype=float)
     lift = (dst["H_T"] - dst["H_0"]) / (src["H_T"] - src["H_0"])
     x[:, 2] = dst["H_0"] + (x[:, 2] - src["H_0"]) * lift
     x[:, 3] *= lift
-    x[0, 0] = dst["omega_0"]
-    return replace(result, states=x.tolist(), position=s_new.tolist(), scenario_fields=dst)
+    return x, s_new

@@ -101,5 +101,5 @@ class ModelErrorEstimator:
         (:class:`mpc.controller.grid.StepModel`) with the lift drawing lift_gain times the model's power
         from the engine and dV/dt = accel[0] * model + d * accel[1]."""
         x1 = self.model.full[phase].fn(np.asarray(x0, dtype=float)[:5], np.asarray(u, dtype=float), self.dt,
-                                       np.array([accel[1], accel[0], lift_gain]))[0]
+                                       np.array([accel[1], accel[0], lift_gain]), self.model.step_scenario)[0]
         return float(x1[0]), float(x1[1])

@@ -29,6 +29,9 @@ vector with one more idle slot.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -38,7 +41,7 @@ import numpy as np
 
 from wl_env import cycle, limits, step
 from wl_env.model import estimated_derivatives
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
 from wl_env.physics import lift
 from wl_env.step import State
 
@@ -46,6 +49,12 @@ N_X = 5  # grid state [omega (rad/s), V (m/s), H (m), V_b (m/s), s (m)]
 X_SCALE = np.array([200.0, 2.5, 5.0, 1.0, 6.6])
 U_SCALE = np.array([260.0, 2.5, 57800.0])  # U_mf (mg), U_ab (m/s^2), U_b (N m)
 N_EST = 3  # the plant estimate: [accel offset (m/s^2), accel gain, lift gain], see estimated_derivatives
+# The scenario (wl_env.scenario) as the NLP's parameters, so that one built NLP and its solvers serve every
+# scenario of a machine: the step functions take the plant's (payload kg, rolling coefficient), the rows the
+# targets (dump height m, the legs' distances m). The start state is a parameter already.
+GRID_SCENARIO = ("M_load", "c_r", "H_T", "reverse_distance", "forward_distance")
+N_SCN = len(GRID_SCENARIO)
+N_STEP_SCN = 2  # ... of which the step functions take the first two
 NOMINAL_ESTIMATE = np.array([0.0, 1.0, 1.0])
 TARGET_WEIGHT = 1.0e4  # objective (g) per unit of relative target miss: 15 g per cm of distance
 # Deceleration, per unit of relative excess: over the limit itself (practically hard: 1 % costs as much as
@@ -70,9 +79,38 @@ def _vector(y: State) -> Any:
     return ca.vertcat(y[0], y[1], y[2], y[3], y[4])
 
 
+def scenario_values(params: LoaderParams) -> np.ndarray:
+    """The values of GRID_SCENARIO in ``params``: what an NLP built for its machine takes per solve."""
+    return np.array([float(getattr(params, name)) for name in GRID_SCENARIO])
+
+
+def needs_end_stop(p: LoaderParams, dt: float, substeps: int) -> bool:
+    """The boom's end stop can act only if a bucket lifting at the pump's limit reaches it within a
+    substep from H_T (the plan never goes above H_T: the bucket is not lowered and ends there)."""
+    v_pump = max(float(lift.max_lift_speed(H, p.omega_max, p)) for H in np.linspace(p.H_0, lift.max_bucket_height(p), 50))
+    return bool(p.H_T + v_pump * dt / substeps >= lift.max_bucket_height(p))
+
+
+@functools.lru_cache(maxsize=64)  # (per solve, see GridNLP.arguments: 50 pump evaluations)
+def model_structure(braking: str, params: LoaderParams, dt: float, substeps: int, omega_margin: float) -> tuple:
+    """What a :class:`StepModel`'s functions depend on: the machine's fields (not the scenario's), the
+    step, and whether the boom's end stop needs rows (it depends on H_0 and H_T, :func:`needs_end_stop`)."""
+    machine = tuple((f.name, getattr(params, f.name)) for f in dataclasses.fields(LoaderParams)
+                    if f.init and f.name not in SCENARIO_FIELDS)
+    return (braking, machine, float(dt), int(substeps), float(omega_margin), needs_end_stop(params, dt, substeps))
+
+
+def _symbolic_params(params: LoaderParams, scenario: Any) -> ParamsView:
+    """``params``'s machine with the scenario's fields from ``scenario`` (symbols, GRID_SCENARIO's first
+    entries); those it does not give are NaN, so that a function built on it and reading them is caught."""
+    given = dict(zip(GRID_SCENARIO, [scenario[i] for i in range(int(scenario.numel()))], strict=False))
+    return ParamsView(params, **{name: given.get(name, math.nan) for name in SCENARIO_FIELDS})
+
+
 @dataclass(frozen=True)
 class StepFunction:
-    """A CasADi function (x0, u, h, est) -> (x1, rows, fuel kg, s at the stop) and its rows' bounds."""
+    """A CasADi function (x0, u, h, est, scn) -> (x1, rows, fuel kg, s at the stop) and its rows' bounds
+    (scn: the plant's GRID_SCENARIO[:N_STEP_SCN], :attr:`StepModel.step_scenario`)."""
 
     fn: ca.Function
     lb: np.ndarray
@@ -85,7 +123,13 @@ class StepFunction:
 
 
 class StepModel:
-    """The control step of each phase as the environment takes it (see the module doc)."""
+    """The control step of each phase as the environment takes it (see the module doc), for the machine
+    of ``params``, with the scenario (the payload, the rolling resistance) as its functions' parameter.
+
+    Models of one machine (:attr:`key`: the braking, the control interval, every field of the machine's
+    but the scenario's) compare and hash equal, so an NLP built on one serves them all
+    (:func:`mpc.controller.solver.grid_nlp`); :meth:`with_params` gives another scenario's model on the
+    same functions. ``params`` and :attr:`step_scenario` are this one's scenario."""
 
     def __init__(self, braking: str, params: LoaderParams | dict | None = None, dt: float = 0.1, substeps: int = 1,
                  omega_margin: float = 0.0) -> None:
@@ -98,14 +142,31 @@ class StepModel:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt (the control interval) must be > 0 s, got {dt!r}")
         self.dt, self.substeps, self.omega_margin = float(dt), substeps, float(omega_margin)
-        p = self.params
-        # The boom's end stop can act only if a bucket lifting at the pump's limit reaches it within a
-        # substep from H_T (the plan never goes above H_T: the bucket is not lowered and ends there).
-        v_pump = max(float(lift.max_lift_speed(H, p.omega_max, p)) for H in np.linspace(p.H_0, lift.max_bucket_height(p), 50))
-        self.end_stop = p.H_T + v_pump * dt / substeps >= lift.max_bucket_height(p)
+        self.end_stop = needs_end_stop(self.params, self.dt, substeps)
+        self.key = model_structure(self.braking, self.params, self.dt, substeps, self.omega_margin)
         self.specs = {s.phase: s for s in cycle.phase_specs(braking, self.params)}
         self.full = {ph: self._step(ph, stop=False) for ph in (1, 2, 3, 4)}
         self.stop = {ph: self._step(ph, stop=True) for ph in (2, 4)}
+
+    def with_params(self, params: LoaderParams) -> StepModel:
+        """This machine's model for the scenario of ``params`` (the same functions: no build)."""
+        params = resolve(params)
+        if model_structure(self.braking, params, self.dt, self.substeps, self.omega_margin) != self.key:
+            raise ValueError("with_params: another machine (or an end stop the model has no rows for); build a StepModel")
+        other = copy.copy(self)
+        other.params = params
+        return other
+
+    @property
+    def step_scenario(self) -> np.ndarray:
+        """The step functions' scenario input for this model's params (payload kg, rolling coefficient)."""
+        return scenario_values(self.params)[:N_STEP_SCN]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, StepModel) and other.key == self.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
 
     def _step(self, phase: int, stop: bool) -> StepFunction:
         """A full step, or a stop step (its last substep crosses V = 0; rows besides the full step's: the
@@ -114,9 +175,11 @@ class StepModel:
 
         Rows are residuals (<= 0 holds; the deceleration's bounds are set per solve, see
         :meth:`GridNLP.arguments`), written so that h = 0 (an idle slot) leaves them finite."""
-        p, spec = self.params, self.specs[phase]
+        spec = self.specs[phase]
         d, gear = spec.direction, spec.gear
         x0, u, h, est = ca.SX.sym("x0", N_X), ca.SX.sym("u", 3), ca.SX.sym("h"), ca.SX.sym("est", N_EST)
+        scn = ca.SX.sym("scn", N_STEP_SCN)
+        p = _symbolic_params(self.params, scn)
         hs = h / self.substeps
         y, fuel, rows, lb, ub = _state(x0), 0.0, [], [], []
         decel_all: list[int] = []
@@ -186,7 +249,7 @@ class StepModel:
             end_rows(y_end)
             s_stop, fuel, y = y_stop[4], fuel + y_stop[5] + (y_end[5] - y_stop[5]), y_end
         name = f"{'stop' if stop else 'full'}_step_{phase}"
-        return StepFunction(ca.Function(name, [x0, u, h, est], [_vector(y), ca.vertcat(*rows), fuel, s_stop]),
+        return StepFunction(ca.Function(name, [x0, u, h, est, scn], [_vector(y), ca.vertcat(*rows), fuel, s_stop]),
                             np.array(lb, dtype=float), np.array(ub, dtype=float), tuple(decel_all))
 
 
@@ -226,7 +289,8 @@ class GridNLP:
     ``symbolic``: "SX" inlines the step functions (an NLP that evaluates fast, ~1-2 s to build with its
     solver), "MX" calls them (builds in ~0.1 s, evaluates ~2x slower): the same variables and rows.
 
-    Parameters: the start state (scaled) and the control applied before it, the plant estimate, one step
+    Parameters: the start state (scaled) and the control applied before it, the plant estimate, the
+    scenario (GRID_SCENARIO: one NLP serves every scenario of its machine), one step
     length per slot (dt, or 0 when idle: an idle slot carries its state through), the weight of each
     slot's control-rate term (0 where it does not count) and the rate penalty's weights. The decision
     vector is stage-wise (:class:`Slot`): the start state, then per slot the control (scaled), an elastic
@@ -263,13 +327,15 @@ class GridNLP:
         self._build()
 
     def _build(self) -> None:
-        m, p = self.model, self.model.params
+        m = self.model
         xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
         kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
         kinds = sorted(kinds + [(ph, "stop") for ph in self.stop_phases], key=lambda k: (k[0], k[1] == "stop"))
         n_slots = len(kinds)
         sym = self.symbolic
-        self.h_offset = N_XR + N_EST  # parameters: the start, the estimate, then per slot h, active, rate on
+        # parameters: the start, the estimate, the scenario, then per slot h, active, rate on
+        self.scenario_offset = N_XR + N_EST
+        self.h_offset = self.scenario_offset + N_SCN
         self._active_offset = self.h_offset + n_slots
         self._rate_offset = self._active_offset + n_slots
         # ... the rate weights, then (open_phase) the terminal cost's: reference end state, its gradient, weight
@@ -277,6 +343,8 @@ class GridNLP:
         n_terminal = 2 * N_XR + 1 if self.open_phase is not None else 0
         par = sym.sym("par", self.terminal_offset + n_terminal)
         est = par[N_XR:N_XR + N_EST]
+        scn = par[self.scenario_offset:self.h_offset]
+        p = _symbolic_params(m.params, scn)  # (the machine's fields are numbers, the scenario's symbols)
         hs = par[self.h_offset:self._active_offset]
         is_active = par[self._active_offset:self._rate_offset]
         rate_on = par[self._rate_offset:self._rate_offset + n_slots]
@@ -338,7 +406,7 @@ class GridNLP:
             em, _ = var(1, 0.0, math.inf)  # (its upper bound, the margin, is set per solve)
             u = U * us
             x_now, r_now = Xk[:N_X] * xs, Xk[N_X:]
-            x_end, rows, fuel_k, s_stop = step.fn(x_now, u, hs[k], est)
+            x_end, rows, fuel_k, s_stop = step.fn(x_now, u, hs[k], est, scn[:N_STEP_SCN])
             sel = np.zeros(step.n_rows)
             sel[list(step.decel)] = 1.0
             path = [(rows - ca.DM(sel) * (ex + em), step.lb, step.ub)]  # (the deceleration's: elastic)
@@ -390,9 +458,9 @@ class GridNLP:
     # ------------------------------------------------------------------ per solve
     def arguments(self, counts: dict[int, int], x_start: np.ndarray, est: np.ndarray, dt: float,
                   tighten: tuple[float, float] = (0.0, 0.0), u_prev: np.ndarray | None = None,
-                  rate_weight: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
+                  rate_weight: tuple[float, float] = (0.0, 0.0), *, params: LoaderParams) -> dict[str, Any]:
         """Parameters and bounds for a schedule: ``counts[phase]`` full steps in each phase, besides the
-        stop steps. Idle slots carry the state through (the measured start before the first active step,
+        stop steps, in the scenario of ``params`` (the NLP's machine, :meth:`StepModel.with_params`). Idle slots carry the state through (the measured start before the first active step,
         the state of the phase before in later phases), their rows relaxed. ``tighten``: the margin
         (fraction of the deceleration limit) the plan keeps in its first step and in the later ones;
         the plan may use it at DECEL_MARGIN_WEIGHT. ``u_prev``: the control [U_mf, U_ab] applied before
@@ -400,6 +468,7 @@ class GridNLP:
         scaled control change squared (g)."""
         if abs(dt - self.model.dt) > 1e-12:
             raise ValueError(f"dt {dt!r} s is not the model's control interval {self.model.dt!r} s")
+        self.model.with_params(params)  # (raises for another machine)
         active = self.active_slots(counts)
         n = len(self.slots)
         par = np.zeros(self.n_par)
@@ -407,6 +476,7 @@ class GridNLP:
         if u_prev is not None:
             par[N_X:N_XR] = np.asarray(u_prev, dtype=float)[:N_R] / U_SCALE[:N_R]
         par[N_XR:N_XR + N_EST] = est
+        par[self.scenario_offset:self.h_offset] = scenario_values(params)
         par[self.h_offset + active] = dt
         par[self._active_offset + active] = 1.0
         par[self._rate_offset + active] = 1.0
@@ -593,6 +663,20 @@ class GridNLP:
                 z[self.slots[k].x:self.slots[k].x + N_XR] = z[x_before:x_before + N_XR]
                 z[self.slots[k].u:self.slots[k].u + 3] = 0.0
         return z, lam_x, lam_g
+
+    def transport(self, z: np.ndarray, src: LoaderParams, dst: LoaderParams) -> np.ndarray:
+        """A solution for the scenario of ``src`` reshaped as a warm start for ``dst``'s: each state's
+        position and height as :func:`mpc.benchmark.ocp.transport_states` maps them, the rest kept."""
+        from mpc.benchmark.ocp import scenario_fields, transport_states
+
+        z = np.array(z, dtype=float)
+        at = [0] + [s.x for s in self.slots]
+        x = np.array([z[i:i + N_X] * X_SCALE for i in at])
+        x[:, :4], x[:, 4] = transport_states(x[:, :4], x[:, 4], [self.first_phase] + [s.phase for s in self.slots],
+                                             scenario_fields(src), scenario_fields(dst))
+        for i, row in zip(at, x, strict=True):
+            z[i:i + N_X] = row / X_SCALE
+        return z
 
     def sensitivities(self, lam_p: np.ndarray, counts: dict[int, int], dt: float) -> dict[int, float]:
         """First-order change of the optimal objective per step added to each phase.

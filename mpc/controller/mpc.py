@@ -33,12 +33,12 @@ import os
 import threading
 import time
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from mpc.controller.estimator import ModelErrorEstimator
-from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
+from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP, model_structure
 from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
@@ -58,7 +58,7 @@ from mpc.controller.solver import (
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, resolve
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
 from wl_env.scenario import Scenario
@@ -92,10 +92,39 @@ MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
+
+
+class FirstPlanKey(NamedTuple):
+    """What a first plan was made for (MPCController._plan_cycle)."""
+
+    machine: tuple  # StepModel.key: the machine, the step, the braking
+    scenario: str  # its params' fingerprint
+    phase: int
+    mode: str
+    target_time: float | None
+    w_fuel: float | None
+    realtime: bool
+    step: int
+    start: bytes  # the start state
+
+
 # The first plans of the cycles planned in this process, with their slot layouts: the same cycle again
-# starts from its plan (MPCController._plan_cycle).
-_FIRST_PLANS: dict[tuple, tuple[Solve, dict[int, int]]] = {}
+# starts from its plan (MPCController._plan_cycle), and a new scenario of the machine plans on their layouts.
+class FirstPlan(NamedTuple):
+    sol: Solve
+    slots: dict[int, int]  # its slot layout
+    params: LoaderParams  # its scenario
+
+
+_FIRST_PLANS: dict[FirstPlanKey, FirstPlan] = {}
 FIRST_PLANS_KEPT = 16
+# A new cycle plans on a stored plan's slot layout (its NLPs and solvers built) where each phase has at most
+# this many slots more than it needs; else on a layout of its own.
+LAYOUT_SLACK = 16
+# Another scenario's plan as a first plan: each leg's phases stretched by (distance ratio)^this. With the
+# plan's own shares (0) five `test` scenarios at 12 s after the nominal one came to +0.2..+5.7 % fuel over
+# their optima; with 0.5, +0.2..+2.2 % (real time, service).
+LEG_TIME_EXPONENT = 0.5
 # A real-time controller's first plan may start from a stored plan of another target this much shorter or
 # longer (in steps): the worker's one-step moves do not make up more (measured, service: 12 -> 11-13 s,
 # +0.05..+0.12 % fuel; 16 -> 13 -> 11 -> 10 s, +0.56 / +1.51 / +1.99 %, against -0.01 % planned afresh at 10 s).
@@ -285,11 +314,15 @@ class MPCController:
             if scenario.braking != self.braking:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
             params = scenario.params(self.params)
-            if params != self.params:  # the old model's NLPs are of no further use: their memory goes back
-                release_solvers()
+            if params != self.params:
+                margin = float(self.config.omega_margin)
+                # the same machine: its NLPs and solvers take the scenario as a parameter, and serve on; another
+                # one's (or an end stop that needs rows): the old NLPs are of no further use, their memory goes back
+                if model_structure(self.braking, params, self.dt, self.substeps, margin) != self.model.key:
+                    release_solvers()
                 self.params = params
+                self.model = step_model(self.braking, params, self.dt, self.substeps, margin)
                 self.codec = Codec(params)
-                self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))
                 self.estimator = ModelErrorEstimator(self.model, self.dt)
         self._sol: Solve | None = None  # the last good solve (its z is the plan, shifted by the counts)
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
@@ -751,11 +784,10 @@ class MPCController:
         cfg = self.config
         if cfg.mode == "target_time":
             self.schedule.target_steps = int(math.floor(cfg.target_time / self.dt + 1e-6))
-        m = self.model  # (by value: the model's NLPs may have been released and built again since)
-        key = (m.braking, m.params.fingerprint(), m.dt, m.substeps, m.omega_margin, phase, cfg.mode, cfg.target_time,
-               cfg.w_fuel, cfg.realtime, k, np.asarray(x, dtype=float).tobytes())
+        key = FirstPlanKey(self.model.key, self.params.fingerprint(), phase, cfg.mode, cfg.target_time, cfg.w_fuel,
+                           cfg.realtime, k, np.asarray(x, dtype=float).tobytes())
         if key in _FIRST_PLANS:
-            last, self._slots = _FIRST_PLANS[key]
+            last, self._slots, _ = _FIRST_PLANS[key]
             self._prepare_nlps(phase)
             sol = self._solve(phase, last.counts, x, warm=last)
             if sol.ok:
@@ -775,7 +807,7 @@ class MPCController:
         else:
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
         counts = apportion(durations, n, self.dt)
-        self._slots = {q: SLOT_ROUNDING * math.ceil((c + cfg.spare_steps) / SLOT_ROUNDING) for q, c in counts.items()}
+        self._slots = self._layout(key, {q: c + cfg.spare_steps for q, c in counts.items()})
         self._prepare_nlps(phase)
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
@@ -795,52 +827,107 @@ class MPCController:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._take_first_plan(sol, "reference", key)
 
-    def _take_first_plan(self, sol: Solve, source: str, key: tuple | None = None) -> None:
+    def _layout(self, key: FirstPlanKey, need: dict[int, int]) -> dict[int, int]:
+        """Slots per phase for a first plan that needs ``need``: ``need`` rounded up to SLOT_ROUNDING, or in
+        real time the smallest layout of a stored plan of the machine from the same phase with room enough
+        (at most LAYOUT_SLACK more per phase: its NLPs and solvers are built, another scenario's too). (Not
+        for the synchronous controller: another layout gives the same plan only to the solver's tolerance,
+        and it plans as a fresh process would.)"""
+        fits = [slots for other, (_, slots, _) in _FIRST_PLANS.items()
+                if self.config.realtime and other.machine == key.machine and other.phase == key.phase
+                and all(n <= slots[q] <= n + LAYOUT_SLACK for q, n in need.items())]
+        if fits:  # (the NLPs still built first, then the smallest)
+            return dict(min(fits, key=lambda slots: (not self._built(key.phase, slots), sum(slots[q] for q in need))))
+        return {q: SLOT_ROUNDING * math.ceil(n / SLOT_ROUNDING) for q, n in need.items()}
+
+    def _take_first_plan(self, sol: Solve, source: str, key: FirstPlanKey | None = None) -> None:
         """The cycle starts from ``sol`` (planned from ``source``, see ``first_plan_from``), stored under
         ``key`` with its slot layout for the next controller of this process, if a key is given."""
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
         if key is not None:
             _FIRST_PLANS.pop(key, None)
-            _FIRST_PLANS[key] = (sol, dict(self._slots))
+            _FIRST_PLANS[key] = FirstPlan(sol, dict(self._slots), self.params)
             while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
                 del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
 
-    def _plan_from_neighbour(self, key: tuple, x: np.ndarray, phase: int, k: int) -> Solve | None:
-        """A real-time controller's first plan from the nearest first plan stored for the same model, first
-        phase and mode (another target time or start; in steps, within NEIGHBOUR_CHANGE): its solution
-        stretched onto this cycle's schedule (the same shares of the steps), warm-started on its slot layout
-        if the schedule fits it (its solvers are built). None if there is none, or the plan misses a target
-        (the continuous reference then plans, and says if the target is impossible).
+    def _plan_from_neighbour(self, key: FirstPlanKey, x: np.ndarray, phase: int, k: int) -> Solve | None:
+        """A real-time controller's first plan from the nearest first plan stored for the same machine, first
+        phase and mode (another target time, start or scenario; in steps, within NEIGHBOUR_CHANGE; one whose
+        NLPs are still built first, then the same scenario, then the nearest): its solution stretched onto this cycle's schedule (the same shares of the steps),
+        another scenario's reshaped to this one's distances and heights (:meth:`GridNLP.transport`), and
+        warm-started on its slot layout if the schedule fits it (its solvers are built). In minimum-time
+        mode another scenario's steps are scaled by the ratio of the two T_min estimates. None if there is
+        none, or the plan misses a target (the continuous reference then plans, and says if the target is
+        impossible).
 
         Only in real time: the plan then depends on what the process planned before (the solve converges
         to the nearest local optimum), as a real-time controller's plans depend on the solves' timing
         anyway; the synchronous controller plans as a fresh process would."""
         best = None
-        for other, (last, slots) in _FIRST_PLANS.items():
-            # the same model, phase, mode (its weight) and real time (key[7]: the target time may differ)
-            if other[:7] != key[:7] or other[8:10] != key[8:10] or last.z is None:
+        for other, (last, slots, params) in _FIRST_PLANS.items():
+            # the same machine, phase, mode (its weight) and real time; the target, start and scenario may differ
+            if (other.machine, other.phase, other.mode, other.w_fuel, other.realtime) != (
+                    key.machine, key.phase, key.mode, key.w_fuel, key.realtime) or last.z is None:
                 continue
+            elsewhere = other.scenario != key.scenario
             n_last = steps_of(last.counts)
-            n = self.schedule.target_steps - k if self.config.mode == "target_time" else n_last
-            durations = {q: (c + (1 if q in (2, 4) else 0)) * self.dt for q, c in last.counts.items()}
+            if self.config.mode == "target_time":
+                n = self.schedule.target_steps - k
+            else:
+                n = self._min_time_steps(n_last, params) if elsewhere else n_last
+                if n is None:
+                    continue
+            durations = {q: (c + (1 if q in (2, 4) else 0)) * self.dt * (self._leg_stretch(params, q) if elsewhere else 1.0)
+                         for q, c in last.counts.items()}
             try:
                 counts = apportion(durations, n, self.dt)
             except ValueError:  # fewer steps than phases
                 return None
             change = abs(n - n_last) / n_last
+            rank = (not self._built(phase, slots), elsewhere, self._scenario_distance(params), change)
             if change <= NEIGHBOUR_CHANGE and all(c <= slots[q] for q, c in counts.items()) \
-                    and (best is None or change < best[0]):
-                best = (change, last, slots, counts)
+                    and (best is None or rank < best[0]):
+                best = (rank, last, slots, counts, params)
         if best is None:
             return None
-        _, last, slots, counts = best
+        (_, elsewhere, _, _), last, slots, counts, params = best
         self._slots = dict(slots)
         self._prepare_nlps(phase)
-        z, lam_x, lam_g = self._nlp(phase).resample(last.z, last.lam_x, last.lam_g, last.counts, counts)
+        nlp = self._nlp(phase)
+        z = nlp.transport(last.z, params, self.params) if elsewhere else last.z
+        z, lam_x, lam_g = nlp.resample(z, last.lam_x, last.lam_g, last.counts, counts)
         warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
         sol = self._solve(phase, counts, x, warm=warm)
         return sol if sol.feasible else None
+
+    def _built(self, phase: int, slots: dict[int, int]) -> bool:
+        """The NLPs of the layout ``slots`` from ``phase`` on are built (and their solvers, as a rule)."""
+        return all(grid_nlp.holds(self.model, q, tuple((p, slots[p]) for p in range(q, 5))) for q in range(phase, 5))
+
+    def _scenario_distance(self, other: LoaderParams) -> float:
+        """How far another scenario lies from this one: the root mean square of the relative differences of
+        their fields (SCENARIO_FIELDS)."""
+        here, there = (np.array([float(getattr(p, f)) for f in SCENARIO_FIELDS]) for p in (self.params, other))
+        return float(np.sqrt(np.mean(((here - there) / np.maximum(np.abs(here), 1e-9)) ** 2)))
+
+    def _leg_stretch(self, other: LoaderParams, phase: int) -> float:
+        """How much longer phase ``phase``'s leg takes here than in the scenario of ``other``, to first order:
+        as the square root of the distances' ratio (a leg driven at bounded acceleration, LEG_TIME_EXPONENT)."""
+        leg = "reverse_distance" if phase <= 2 else "forward_distance"
+        return (getattr(self.params, leg) / getattr(other, leg)) ** LEG_TIME_EXPONENT
+
+    def _min_time_steps(self, n_other: int, other: LoaderParams) -> int | None:
+        """A minimum-time schedule's steps here, from another scenario's n_other, by the ratio of the two
+        scenarios' T_min estimates (wl_env.suites.min_time); None outside the scenario ranges."""
+        from wl_env.scenario import Scenario
+        from wl_env.suites.min_time import estimate_min_time
+
+        try:
+            here, there = (estimate_min_time(Scenario.from_params(p, self.braking)) for p in (self.params, other))
+        except ValueError:
+            return None
+        return max(int(round(n_other * here / there)), 4)
 
     def _prepare_nlps(self, phase: int) -> None:
         """Build the NLPs (and solvers) of the slot layout from ``phase`` on now, not in the middle of the cycle."""
@@ -943,7 +1030,8 @@ class MPCController:
         ref = self._reference
         z0, lam_x, lam_g, end = ref.warm_start(nlp, counts, self._counts, x, self._horizon_last)
         u_prev = self._last[2] if self._last is not None else None
-        args = nlp.arguments(counts, x, self.estimator.estimate, self.dt, tighten=(self.config.tighten, self._later_margin()),
+        args = nlp.arguments(counts, x, self.estimator.estimate, self.dt, params=self.params,
+                             tighten=(self.config.tighten, self._later_margin()),
                              u_prev=u_prev, rate_weight=self.config.rate_weight)
         args = terminal_arguments(nlp, args, ref, end, self.config.terminal_weight)
         warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z0, lam_x=lam_x, lam_g=lam_g)
@@ -1022,7 +1110,7 @@ class MPCController:
             u_prev = self._last[2] if self._last is not None else None
             margin = self._later_margin()
         try:
-            args = nlp.arguments(counts, x, est, self.dt, tighten=(self.config.tighten, margin), u_prev=u_prev,
+            args = nlp.arguments(counts, x, est, self.dt, params=self.params, tighten=(self.config.tighten, margin), u_prev=u_prev,
                                  rate_weight=self.config.rate_weight)
             if u_fixed is not None:
                 args = nlp.fix_first_controls(args, u_fixed)
@@ -1103,6 +1191,7 @@ class ClosedLoopResult:
     plant_params: dict[str, Any] | None  # the simulated machine where it differs from the model
     scenario: dict[str, Any] | None = None  # the plant's cycle (wl_env.scenario.Scenario; None: outside its ranges)
     worker_solve_times_s: list[float] = dataclasses.field(default_factory=list)  # realtime: the worker's solves per job
+    first_plan_from: str = ""  # MPCController.first_plan_from: "reference", "stored" or "neighbour"
 
     def to_dict(self) -> dict[str, Any]:
         """As written to JSON: the episode's fields at the top level (with its trajectory's t, states,
@@ -1113,7 +1202,8 @@ class ClosedLoopResult:
                 "target_time": self.config.target_time, **ep, **traj,
                 "score": self.score.to_dict() if self.score is not None else None,
                 "solve_time": self.solve_time, "solve_times_s": self.solve_times_s,
-                "worker_solve_times_s": self.worker_solve_times_s, "plant_params": self.plant_params}
+                "worker_solve_times_s": self.worker_solve_times_s, "plant_params": self.plant_params,
+                "first_plan_from": self.first_plan_from}
 
 
 def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
@@ -1162,4 +1252,5 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
 
     return ClosedLoopResult(braking=braking, config=config, episode=ep, score=s, solve_time=ctrl.stats(),
                             solve_times_s=list(ctrl.solve_times), plant_params=plant.to_dict() if plant != model else None,
-                            scenario=scenario_of(plant, braking), worker_solve_times_s=list(ctrl.worker_solve_times))
+                            scenario=scenario_of(plant, braking), worker_solve_times_s=list(ctrl.worker_solve_times),
+                            first_plan_from=ctrl.first_plan_from)

@@ -7,6 +7,7 @@ object with :meth:`IpoptSolver.solve`'s signature, so a test can inject a failin
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import dataclasses
@@ -24,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from mpc import interrupt
-from mpc.controller.grid import N_XR, GridNLP, StepModel
+from mpc.controller.grid import N_XR, GridNLP, StepModel, model_structure
 from wl_env.params import LoaderParams
 
 log = logging.getLogger(__name__)
@@ -82,9 +83,22 @@ class GridSolver(Protocol):
     def prepare(self, nlp: GridNLP) -> None: ...
 
 
-@functools.lru_cache(maxsize=16)
+# The step models built, per machine (StepModel.key). A dict, not an lru_cache: that would key on the
+# whole params, and build again for each scenario.
+_MODELS: dict[tuple, StepModel] = {}
+MODELS_KEPT = 16
+
+
 def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, omega_margin: float) -> StepModel:
-    return StepModel(braking, params, dt, substeps, omega_margin)
+    """The model of ``params``'s scenario, on the functions built once for its machine (and on its NLPs,
+    :func:`grid_nlp`: the models of one machine are equal)."""
+    key = model_structure(braking, params, dt, substeps, omega_margin)
+    built = _MODELS.get(key)
+    if built is None:
+        built = _MODELS[key] = StepModel(braking, params, dt, substeps, omega_margin)
+        while len(_MODELS) > MODELS_KEPT:
+            del _MODELS[next(iter(_MODELS))]
+    return built.with_params(params)
 
 
 # The NLPs one controller plans with (one per first phase; the MX twin of the first where a cycle's first
@@ -93,10 +107,44 @@ def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, ome
 NLP_CACHE = 8
 
 
-@functools.lru_cache(maxsize=NLP_CACHE)
-def grid_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], symbolic: str = "SX") -> GridNLP:
-    """The NLP of a model from ``first_phase`` on with ``slots`` ((phase, slots), ...)."""
-    return GridNLP(model, first_phase, dict(slots), symbolic)
+CacheInfo = collections.namedtuple("CacheInfo", "hits misses maxsize currsize")
+
+
+class _NLPCache:
+    """The grid NLPs built, least recently used out first (functools.lru_cache's interface): a cache that
+    can also say what it holds (``holds``), which lru_cache cannot, so that a first plan picks a layout
+    whose NLPs are built."""
+
+    def __init__(self, maxsize: int) -> None:
+        self.maxsize, self._nlps, self._hits, self._misses = maxsize, collections.OrderedDict(), 0, 0
+
+    def __call__(self, model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...],
+                 symbolic: str = "SX") -> GridNLP:
+        """The NLP of a model from ``first_phase`` on with ``slots`` ((phase, slots), ...)."""
+        key = (model, first_phase, slots, symbolic)
+        nlp = self._nlps.pop(key, None)
+        if nlp is None:
+            self._misses += 1
+            nlp = GridNLP(model, first_phase, dict(slots), symbolic)
+        else:
+            self._hits += 1
+        self._nlps[key] = nlp
+        while len(self._nlps) > self.maxsize:
+            self._nlps.popitem(last=False)
+        return nlp
+
+    def holds(self, model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], symbolic: str = "SX") -> bool:
+        return (model, first_phase, slots, symbolic) in self._nlps
+
+    def cache_info(self) -> CacheInfo:
+        return CacheInfo(self._hits, self._misses, self.maxsize, len(self._nlps))
+
+    def cache_clear(self) -> None:
+        self._nlps.clear()
+        self._hits = self._misses = 0
+
+
+grid_nlp = _NLPCache(NLP_CACHE)
 
 
 @functools.lru_cache(maxsize=NLP_CACHE)
@@ -357,7 +405,8 @@ def release_solvers() -> None:
     440 MB after one cycle, 110 MB after this)."""
     from mpc.benchmark import ocp  # (the MPC's reference and the scoring build OCP NLPs too)
 
-    for cache in (step_model, grid_nlp, horizon_nlp, _ipopt, _ipopt_horizon, _fatrop, _sqp_rti):
+    _MODELS.clear()
+    for cache in (grid_nlp, horizon_nlp, _ipopt, _ipopt_horizon, _fatrop, _sqp_rti):
         cache.cache_clear()
     ocp.release_nlps()
     gc.collect()
