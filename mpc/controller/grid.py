@@ -142,8 +142,8 @@ class StepModel:
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt (the control interval) must be > 0 s, got {dt!r}")
         self.dt, self.substeps, self.omega_margin = float(dt), substeps, float(omega_margin)
-        self.end_stop = needs_end_stop(self.params, self.dt, substeps)
         self.key = model_structure(self.braking, self.params, self.dt, substeps, self.omega_margin)
+        self.end_stop = self.key[-1]  # (needs_end_stop)
         self.specs = {s.phase: s for s in cycle.phase_specs(braking, self.params)}
         self.full = {ph: self._step(ph, stop=False) for ph in (1, 2, 3, 4)}
         self.stop = {ph: self._step(ph, stop=True) for ph in (2, 4)}
