@@ -114,6 +114,7 @@ class FirstPlan(NamedTuple):
     sol: Solve
     slots: dict[int, int]  # its slot layout
     params: LoaderParams  # its scenario
+    reference: Any  # its continuous reference (an OCPResult; None if it was another target's plan, stretched)
 
 
 _FIRST_PLANS: dict[FirstPlanKey, FirstPlan] = {}
@@ -121,10 +122,6 @@ FIRST_PLANS_KEPT = 16
 # A new cycle plans on a stored plan's slot layout (its NLPs and solvers built) where each phase has at most
 # this many slots more than it needs; else on a layout of its own.
 LAYOUT_SLACK = 16
-# Another scenario's plan as a first plan: each leg's phases stretched by (distance ratio)^this. With the
-# plan's own shares (0) five `test` scenarios at 12 s after the nominal one came to +0.2..+5.7 % fuel over
-# their optima; with 0.5, +0.2..+2.2 % (real time, service).
-LEG_TIME_EXPONENT = 0.5
 # A real-time controller's first plan may start from a stored plan of another target this much shorter or
 # longer (in steps): the worker's one-step moves do not make up more (measured, service: 12 -> 11-13 s,
 # +0.05..+0.12 % fuel; 16 -> 13 -> 11 -> 10 s, +0.56 / +1.51 / +1.99 %, against -0.01 % planned afresh at 10 s).
@@ -316,9 +313,13 @@ class MPCController:
             params = scenario.params(self.params)
             if params != self.params:
                 margin = float(self.config.omega_margin)
-                # the same machine: its NLPs and solvers take the scenario as a parameter, and serve on; another
-                # one's (or an end stop that needs rows): the old NLPs are of no further use, their memory goes back
-                if model_structure(self.braking, params, self.dt, self.substeps, margin) != self.model.key:
+                # A real-time controller plans the new scenario on the NLPs and solvers built (the scenario is
+                # their parameter), where it is the same machine. A synchronous one plans it as a fresh process,
+                # on a slot layout of its own, and another machine (or an end stop that needs rows) has NLPs of
+                # its own: the old ones are of no further use, their memory goes back (measured: `wl run` peaked
+                # at 1.19 GB with the suite's NLPs kept, against 0.48-0.50 GB released).
+                if not self.config.realtime or model_structure(self.braking, params, self.dt, self.substeps,
+                                                               margin) != self.model.key:
                     release_solvers()
                 self.params = params
                 self.model = step_model(self.braking, params, self.dt, self.substeps, margin)
@@ -787,26 +788,19 @@ class MPCController:
         key = FirstPlanKey(self.model.key, self.params.fingerprint(), phase, cfg.mode, cfg.target_time, cfg.w_fuel,
                            cfg.realtime, k, np.asarray(x, dtype=float).tobytes())
         if key in _FIRST_PLANS:
-            last, self._slots, _ = _FIRST_PLANS[key]
+            last, self._slots = _FIRST_PLANS[key].sol, _FIRST_PLANS[key].slots
             self._prepare_nlps(phase)
             sol = self._solve(phase, last.counts, x, warm=last)
             if sol.ok:
                 self._take_first_plan(sol, "stored")
                 return
         if cfg.realtime:
-            sol = self._plan_from_neighbour(key, x, phase, k)
-            if sol is not None:
-                self._take_first_plan(sol, "neighbour", key)
+            planned = self._plan_from_neighbour(key, x, phase, k)
+            if planned is not None:
+                self._take_first_plan(planned[0], "neighbour", key, planned[1])
                 return
         ref = self.reference()
-        durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
-        if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
-            durations = {q: d for q, d in durations.items() if q >= phase}
-        if cfg.mode == "target_time":
-            n = max(self.schedule.target_steps - k, len(durations))
-        else:
-            n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
-        counts = apportion(durations, n, self.dt)
+        counts = self._reference_schedule(ref, phase, k)
         self._slots = self._layout(key, {q: c + cfg.spare_steps for q, c in counts.items()})
         self._prepare_nlps(phase)
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
@@ -825,7 +819,19 @@ class MPCController:
                 failed.add(move)
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
-        self._take_first_plan(sol, "reference", key)
+        self._take_first_plan(sol, "reference", key, ref)
+
+    def _reference_schedule(self, ref: Any, phase: int, k: int) -> dict[int, int]:
+        """Whole steps per phase from ``phase`` on, in the continuous reference's shares of the time: the
+        target's steps left (target-time mode), else the reference's own cycle time."""
+        durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
+        if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
+            durations = {q: d for q, d in durations.items() if q >= phase}
+        if self.config.mode == "target_time":
+            n = max(self.schedule.target_steps - k, len(durations))
+        else:
+            n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
+        return apportion(durations, n, self.dt)
 
     def _layout(self, key: FirstPlanKey, need: dict[int, int]) -> dict[int, int]:
         """Slots per phase for a first plan that needs ``need``: ``need`` rounded up to SLOT_ROUNDING, or in
@@ -833,73 +839,76 @@ class MPCController:
         (at most LAYOUT_SLACK more per phase: its NLPs and solvers are built, another scenario's too). (Not
         for the synchronous controller: another layout gives the same plan only to the solver's tolerance,
         and it plans as a fresh process would.)"""
-        fits = [slots for other, (_, slots, _) in _FIRST_PLANS.items()
+        fits = [stored.slots for other, stored in _FIRST_PLANS.items()
                 if self.config.realtime and other.machine == key.machine and other.phase == key.phase
-                and all(n <= slots[q] <= n + LAYOUT_SLACK for q, n in need.items())]
+                and all(n <= stored.slots[q] <= n + LAYOUT_SLACK for q, n in need.items())]
         if fits:  # (the NLPs still built first, then the smallest)
             return dict(min(fits, key=lambda slots: (not self._built(key.phase, slots), sum(slots[q] for q in need))))
         return {q: SLOT_ROUNDING * math.ceil(n / SLOT_ROUNDING) for q, n in need.items()}
 
-    def _take_first_plan(self, sol: Solve, source: str, key: FirstPlanKey | None = None) -> None:
+    def _take_first_plan(self, sol: Solve, source: str, key: FirstPlanKey | None = None, reference: Any = None) -> None:
         """The cycle starts from ``sol`` (planned from ``source``, see ``first_plan_from``), stored under
-        ``key`` with its slot layout for the next controller of this process, if a key is given."""
+        ``key`` with its slot layout and continuous ``reference`` for the next controller of this process,
+        if a key is given."""
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
         if key is not None:
             _FIRST_PLANS.pop(key, None)
-            _FIRST_PLANS[key] = FirstPlan(sol, dict(self._slots), self.params)
+            _FIRST_PLANS[key] = FirstPlan(sol, dict(self._slots), self.params, reference)
             while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
                 del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
 
-    def _plan_from_neighbour(self, key: FirstPlanKey, x: np.ndarray, phase: int, k: int) -> Solve | None:
-        """A real-time controller's first plan from the nearest first plan stored for the same machine, first
-        phase and mode (another target time, start or scenario; in steps, within NEIGHBOUR_CHANGE; one whose
-        NLPs are still built first, then the same scenario, then the nearest): its solution stretched onto this cycle's schedule (the same shares of the steps),
-        another scenario's reshaped to this one's distances and heights (:meth:`GridNLP.transport`), and
-        warm-started on its slot layout if the schedule fits it (its solvers are built). In minimum-time
-        mode another scenario's steps are scaled by the ratio of the two T_min estimates. None if there is
-        none, or the plan misses a target (the continuous reference then plans, and says if the target is
-        impossible).
+    def _plan_from_neighbour(self, key: FirstPlanKey, x: np.ndarray, phase: int, k: int) -> tuple[Solve, Any] | None:
+        """A real-time controller's first plan from a first plan stored for the same machine, first phase
+        and mode (another target time, start or scenario), warm-started on its slot layout (its solvers are
+        built), and the continuous reference it takes its schedule from; None if there is none whose
+        schedule fits, or the plan misses a target (the reference then plans, and says if the target is
+        impossible). The candidates in order: NLPs still built first, then the same scenario, then the
+        nearest (:meth:`_scenario_distance`).
+
+        - The same scenario: its solution stretched onto this cycle's steps (the same shares of them), if
+          within NEIGHBOUR_CHANGE of its own.
+        - Another scenario: this scenario's own continuous reference, warm-started from the neighbour's
+          (0.2-0.6 s against 0.9-2.3 s from templates), sets the schedule (as :meth:`_plan_cycle`'s); the
+          neighbour's solution, reshaped to this scenario's legs and heights (:meth:`GridNLP.transport`)
+          and resampled onto that schedule, is the warm start.
 
         Only in real time: the plan then depends on what the process planned before (the solve converges
         to the nearest local optimum), as a real-time controller's plans depend on the solves' timing
         anyway; the synchronous controller plans as a fresh process would."""
-        best = None
-        for other, (last, slots, params) in _FIRST_PLANS.items():
+        candidates = []
+        for other, stored in _FIRST_PLANS.items():
             # the same machine, phase, mode (its weight) and real time; the target, start and scenario may differ
             if (other.machine, other.phase, other.mode, other.w_fuel, other.realtime) != (
-                    key.machine, key.phase, key.mode, key.w_fuel, key.realtime) or last.z is None:
+                    key.machine, key.phase, key.mode, key.w_fuel, key.realtime) or stored.sol.z is None:
                 continue
             elsewhere = other.scenario != key.scenario
+            candidates.append(((not self._built(phase, stored.slots), elsewhere, self._scenario_distance(stored.params)),
+                               elsewhere, stored))
+        for _, elsewhere, (last, slots, params, last_ref) in sorted(candidates, key=lambda c: c[0]):
             n_last = steps_of(last.counts)
-            if self.config.mode == "target_time":
-                n = self.schedule.target_steps - k
-            else:
-                n = self._min_time_steps(n_last, params) if elsewhere else n_last
-                if n is None:
-                    continue
-            durations = {q: (c + (1 if q in (2, 4) else 0)) * self.dt * (self._leg_stretch(params, q) if elsewhere else 1.0)
-                         for q, c in last.counts.items()}
+            ref = last_ref  # (another target's: the warm start a later scenario's reference takes)
             try:
-                counts = apportion(durations, n, self.dt)
-            except ValueError:  # fewer steps than phases
-                return None
-            change = abs(n - n_last) / n_last
-            rank = (not self._built(phase, slots), elsewhere, self._scenario_distance(params), change)
-            if change <= NEIGHBOUR_CHANGE and all(c <= slots[q] for q, c in counts.items()) \
-                    and (best is None or rank < best[0]):
-                best = (rank, last, slots, counts, params)
-        if best is None:
-            return None
-        (_, elsewhere, _, _), last, slots, counts, params = best
-        self._slots = dict(slots)
-        self._prepare_nlps(phase)
-        nlp = self._nlp(phase)
-        z = nlp.transport(last.z, params, self.params) if elsewhere else last.z
-        z, lam_x, lam_g = nlp.resample(z, last.lam_x, last.lam_g, last.counts, counts)
-        warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
-        sol = self._solve(phase, counts, x, warm=warm)
-        return sol if sol.feasible else None
+                if elsewhere:
+                    ref = self.reference(warm=last_ref)
+                    counts = self._reference_schedule(ref, phase, k)
+                else:
+                    n = self.schedule.target_steps - k if self.config.mode == "target_time" else n_last
+                    durations = {q: (c + (1 if q in (2, 4) else 0)) * self.dt for q, c in last.counts.items()}
+                    counts = apportion(durations, n, self.dt)
+            except ValueError:  # fewer steps than phases, or a target the warm reference finds impossible
+                continue
+            if abs(steps_of(counts) - n_last) / n_last > NEIGHBOUR_CHANGE or any(c > slots[q] for q, c in counts.items()):
+                continue
+            self._slots = dict(slots)
+            self._prepare_nlps(phase)
+            nlp = self._nlp(phase)
+            z = nlp.transport(last.z, params, self.params) if elsewhere else last.z
+            z, lam_x, lam_g = nlp.resample(z, last.lam_x, last.lam_g, last.counts, counts)
+            warm = Solve(counts=counts, first_phase=phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
+            sol = self._solve(phase, counts, x, warm=warm)
+            return (sol, ref) if sol.feasible else None
+        return None
 
     def _built(self, phase: int, slots: dict[int, int]) -> bool:
         """The NLPs of the layout ``slots`` from ``phase`` on are built (and their solvers, as a rule)."""
@@ -910,24 +919,6 @@ class MPCController:
         their fields (SCENARIO_FIELDS)."""
         here, there = (np.array([float(getattr(p, f)) for f in SCENARIO_FIELDS]) for p in (self.params, other))
         return float(np.sqrt(np.mean(((here - there) / np.maximum(np.abs(here), 1e-9)) ** 2)))
-
-    def _leg_stretch(self, other: LoaderParams, phase: int) -> float:
-        """How much longer phase ``phase``'s leg takes here than in the scenario of ``other``, to first order:
-        as the square root of the distances' ratio (a leg driven at bounded acceleration, LEG_TIME_EXPONENT)."""
-        leg = "reverse_distance" if phase <= 2 else "forward_distance"
-        return (getattr(self.params, leg) / getattr(other, leg)) ** LEG_TIME_EXPONENT
-
-    def _min_time_steps(self, n_other: int, other: LoaderParams) -> int | None:
-        """A minimum-time schedule's steps here, from another scenario's n_other, by the ratio of the two
-        scenarios' T_min estimates (wl_env.suites.min_time); None outside the scenario ranges."""
-        from wl_env.scenario import Scenario
-        from wl_env.suites.min_time import estimate_min_time
-
-        try:
-            here, there = (estimate_min_time(Scenario.from_params(p, self.braking)) for p in (self.params, other))
-        except ValueError:
-            return None
-        return max(int(round(n_other * here / there)), 4)
 
     def _prepare_nlps(self, phase: int) -> None:
         """Build the NLPs (and solvers) of the slot layout from ``phase`` on now, not in the middle of the cycle."""
@@ -1040,25 +1031,39 @@ class MPCController:
             self._horizon_last = (nlp, sol)
         return sol, nlp
 
-    def reference(self):
-        """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess)."""
+    def reference(self, warm: Any = None):
+        """The continuous optimum of this mode on a coarse mesh (the first plan's schedule and guess); with
+        ``warm`` (another scenario's or target's reference), solved from it alone, and raising ValueError if
+        that finds none (kept apart: the templates' may be another local optimum)."""
         key = (self.braking, self.params.fingerprint(), self.config.mode, self.config.target_time,
-               self.config.w_fuel, self.dt)
+               self.config.w_fuel, self.dt, warm is not None)
         if key not in _REFERENCES:
-            from mpc.benchmark.ocp import release_nlps
+            from mpc.benchmark.ocp import OCPError, release_nlps
 
-            _REFERENCES[key] = self._solve_reference()
-            release_nlps()  # its NLP (30-40 MB) is of no use in the cycle; the heap it held takes the MPC's own next
+            try:
+                _REFERENCES[key] = self._solve_reference(warm)
+            except OCPError as exc:
+                if warm is None:
+                    raise
+                raise ValueError(f"no reference from the warm start: {exc}") from None
+            finally:
+                if warm is None:  # (a warm one's NLP serves the next scenario's)
+                    release_nlps()  # its NLP (30-40 MB) is of no use in the cycle; the heap it held takes the MPC's own next
         return _REFERENCES[key]
 
-    def _solve_reference(self):
+    def _solve_reference(self, warm: Any = None):
         from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp
 
         cfg, b, p = self.config, self.braking, self.params
         settings = OCPSettings(intervals=REFERENCE_MESH, smoothing=(0.0,))
         opts = dict(params=p, verify=False, settings=settings)
-        if cfg.mode == "target_time":
-            T = math.floor(cfg.target_time / self.dt + 1e-6) * self.dt
+        T = math.floor(cfg.target_time / self.dt + 1e-6) * self.dt if cfg.mode == "target_time" else None
+        fastest_mode = cfg.mode == "time" or cfg.w_fuel == 0.0
+        if warm is not None:  # (from the warm start alone)
+            objective = "fuel_at_time" if T is not None else "time" if fastest_mode else "weighted"
+            return solve_ocp(b, objective, T=T, w_fuel=cfg.w_fuel if objective == "weighted" else None,
+                             warm_start=warm, starts=(), **opts)
+        if T is not None:
             try:  # the split of the time between the phases has local optima: start from several
                 return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in (0.3, 0.5, 0.7)), **opts)
             except OCPError:
@@ -1068,7 +1073,7 @@ class MPCController:
                         f"target_time {cfg.target_time:g} s is impossible: the minimum cycle time with {b} braking is "
                         f"{fastest.T:.3f} s (MPCConfig.target_time must be at least that)") from None
                 return fastest  # feasible, but not on the control grid: the cycle ends a step late
-        if cfg.mode == "time" or cfg.w_fuel == 0.0:
+        if fastest_mode:
             return solve_ocp(b, "time", starts=((4.2, 0.6), (4.2, 0.8)), **opts)
         return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)
 
