@@ -8,6 +8,8 @@ import casadi as ca
 import gymnasium as gym
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the env)
 from mpc.benchmark.ocp import solve_ocp
@@ -343,3 +345,28 @@ def test_the_first_solve_runs_on_the_warm_solver_and_falls_back_to_the_cold_one(
     assert solver.starts[0] == ("zero", False)
     cold = [s for s in solver.starts if s[0] == "cold"]
     assert cold == ([("cold", True)] if fail_from_zero else [])
+
+
+@settings(max_examples=60, deadline=None)
+@given(src=st.builds(dict, reverse_distance=st.floats(4.0, 10.0), forward_distance=st.floats(4.0, 10.0),
+                     H_0=st.floats(0.5, 1.2), H_T=st.floats(3.5, 5.1)),
+       dst=st.builds(dict, reverse_distance=st.floats(4.0, 10.0), forward_distance=st.floats(4.0, 10.0),
+                     H_0=st.floats(0.5, 1.2), H_T=st.floats(3.5, 5.1)))
+def test_a_plan_reshaped_for_another_scenario_keeps_its_marks_on_the_new_ones(src, dst):
+    """The warm start of a first plan from another scenario (GridNLP.transport, and the OCP's transport):
+    the start, the reversing point and the truck of the old legs land on the new ones, the bucket's start
+    and dump heights on the new ones; the engine and the travel speed are kept."""
+    from mpc.benchmark.ocp import transport_states
+
+    rd, fd = src["reverse_distance"], src["forward_distance"]
+    position = np.array([0.0, -0.5 * rd, -rd, -rd, -rd + 0.5 * fd, fd - rd])
+    phase = np.array([1, 1, 2, 3, 3, 4])
+    states = np.column_stack([np.full(6, 150.0), np.linspace(-1.0, 1.0, 6),
+                              np.linspace(src["H_0"], src["H_T"], 6), np.full(6, 0.3)])
+    x, s = transport_states(states, position, phase, src, dst)
+    rd2, fd2 = dst["reverse_distance"], dst["forward_distance"]
+    assert np.allclose(s[[0, 2, 3, 5]], [0.0, -rd2, -rd2, fd2 - rd2], atol=1e-9)
+    assert np.allclose(x[[0, -1], 2], [dst["H_0"], dst["H_T"]], atol=1e-9)
+    assert np.array_equal(x[:, :2], states[:, :2])
+    lift = (dst["H_T"] - dst["H_0"]) / (src["H_T"] - src["H_0"])
+    assert np.allclose(x[:, 3], 0.3 * lift)
