@@ -148,10 +148,14 @@ class StepModel:
         self.full = {ph: self._step(ph, stop=False) for ph in (1, 2, 3, 4)}
         self.stop = {ph: self._step(ph, stop=True) for ph in (2, 4)}
 
+    def fits(self, params: LoaderParams) -> bool:
+        """``params`` is a scenario of this model's machine: its functions (and NLPs) serve it."""
+        return model_structure(self.braking, params, self.dt, self.substeps, self.omega_margin) == self.key
+
     def with_params(self, params: LoaderParams) -> StepModel:
         """This machine's model for the scenario of ``params`` (the same functions: no build)."""
         params = resolve(params)
-        if model_structure(self.braking, params, self.dt, self.substeps, self.omega_margin) != self.key:
+        if not self.fits(params):
             raise ValueError("with_params: another machine (or an end stop the model has no rows for); build a StepModel")
         other = copy.copy(self)
         other.params = params
@@ -468,7 +472,8 @@ class GridNLP:
         scaled control change squared (g)."""
         if abs(dt - self.model.dt) > 1e-12:
             raise ValueError(f"dt {dt!r} s is not the model's control interval {self.model.dt!r} s")
-        self.model.with_params(params)  # (raises for another machine)
+        if not self.model.fits(params):
+            raise ValueError("params: another machine than this NLP's (or an end stop it has no rows for)")
         active = self.active_slots(counts)
         n = len(self.slots)
         par = np.zeros(self.n_par)

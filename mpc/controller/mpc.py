@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from mpc.controller.estimator import ModelErrorEstimator
-from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP, model_structure
+from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
@@ -312,17 +312,15 @@ class MPCController:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
             params = scenario.params(self.params)
             if params != self.params:
-                margin = float(self.config.omega_margin)
                 # A real-time controller plans the new scenario on the NLPs and solvers built (the scenario is
                 # their parameter), where it is the same machine. A synchronous one plans it as a fresh process,
                 # on a slot layout of its own, and another machine (or an end stop that needs rows) has NLPs of
                 # its own: the old ones are of no further use, their memory goes back (measured: `wl run` peaked
                 # at 1.19 GB with the suite's NLPs kept, against 0.48-0.50 GB released).
-                if not self.config.realtime or model_structure(self.braking, params, self.dt, self.substeps,
-                                                               margin) != self.model.key:
+                if not self.config.realtime or not self.model.fits(params):
                     release_solvers()
                 self.params = params
-                self.model = step_model(self.braking, params, self.dt, self.substeps, margin)
+                self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))
                 self.codec = Codec(params)
                 self.estimator = ModelErrorEstimator(self.model, self.dt)
         self._sol: Solve | None = None  # the last good solve (its z is the plan, shifted by the counts)
