@@ -30,7 +30,7 @@ import numpy as np
 
 from wl_env import cycle
 from wl_env.controller import Controller
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, shown
 from wl_env.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -279,18 +279,24 @@ class GuardedController:
 
 
 def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+    return shown(value, 60)
+
+
+# Limits of the settings: beyond them a run is a typo, not a plan (and a timer or an episode list past them
+# fails deep inside with OverflowError: setitimer's time_t, a list of 10**20 entries).
+MAX_ACT_TIMEOUT = 86400.0  # s, a day
+MAX_EPISODES = 100_000
 
 
 def check_act_timeout(act_timeout: float | None) -> None:
-    """Raise ValueError unless ``act_timeout`` is None (off) or a finite number of seconds > 0 that can be
-    enforced here (SIGALRM on the main thread)."""
+    """Raise ValueError unless ``act_timeout`` is None (off) or a number of seconds in (0, MAX_ACT_TIMEOUT]
+    that can be enforced here (SIGALRM on the main thread)."""
     if act_timeout is None:
         return
     if isinstance(act_timeout, bool) or not isinstance(act_timeout, (int, float)) or not (
-            math.isfinite(act_timeout) and act_timeout > 0):
-        raise ValueError(f"act_timeout (--act-timeout) must be a finite number of seconds > 0, got {act_timeout!r}")
+            0 < act_timeout <= MAX_ACT_TIMEOUT):  # (false for NaN)
+        raise ValueError(f"act_timeout (--act-timeout) must be a number of seconds in (0, {MAX_ACT_TIMEOUT:g}], "
+                         f"got {_short(act_timeout)}")
     if not hasattr(signal, "setitimer") or threading.current_thread() is not threading.main_thread():
         raise ValueError("act_timeout (--act-timeout) needs SIGALRM, i.e. a POSIX system and the main thread")
 
@@ -305,18 +311,18 @@ def check_target(target_time: float | None, target_ratio: float | None) -> None:
     if target_time is not None:
         check_target_time(target_time)
     if target_ratio is not None and not (isinstance(target_ratio, (int, float)) and not isinstance(target_ratio, bool)
-                                         and math.isfinite(target_ratio) and 1.0 <= target_ratio <= 3.0):
-        raise ValueError(f"target_ratio must lie in [1, 3] (times T_min), got {target_ratio!r}")
+                                         and 1.0 <= target_ratio <= 3.0):  # (false for NaN)
+        raise ValueError(f"target_ratio must lie in [1, 3] (times T_min), got {_short(target_ratio)}")
 
 
 def check_settings(episodes: int, init_noise: float, seed: int) -> None:
     """Raise ValueError for settings no evaluation can run with."""
-    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
-        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= MAX_EPISODES:
+        raise ValueError(f"episodes must be an integer in [1, {MAX_EPISODES}], got {_short(episodes)}")
     if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
-        raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+        raise ValueError(f"init_noise must lie in [0, 1], got {_short(init_noise)}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        raise ValueError(f"seed must be an integer >= 0, got {_short(seed)}")
 
 
 def evaluate_controller(
@@ -385,11 +391,11 @@ def evaluate_controller(
     elif scenario is not None:
         braking = braking or scenario.braking
     braking = cycle.check_braking(braking or "service")
+    check_settings(episodes, init_noise, seed)  # (before the plan: it multiplies by episodes)
     plan = list(scenarios) if scenarios is not None else [scenario or Scenario.nominal(braking)] * episodes
     for s in plan:
         if s.braking != braking:
             raise ValueError(f"scenario {s.label()} has {s.braking} braking; this evaluation runs {braking}")
-    check_settings(episodes, init_noise, seed)
     check_target(target_time, target_ratio)
     check_act_timeout(act_timeout)
     if min_time not in ("optimum", "estimate"):

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from wl_env.params import is_finite
+
 FORMAT = "wl-ppo-policy"
 FORMAT_VERSION = 1
 WEIGHTS_SUFFIX = ".safetensors"
@@ -179,7 +181,7 @@ def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     path = files.metadata
     try:
         meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:  # (nested too deeply)
         raise PolicyFileError(f"policy metadata {path} is unreadable: {brief(exc)}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not policy metadata (no \"format\": \"{FORMAT}\"); a pickle-free policy is "
@@ -235,7 +237,7 @@ def _check_network(net: Any, path: Path) -> None:
 
 
 def _finite_number(v: Any) -> bool:
-    return type(v) in (int, float) and math.isfinite(v)
+    return type(v) in (int, float) and is_finite(v)
 
 
 def build_network(net: dict[str, Any]) -> Any:

@@ -4,12 +4,12 @@ line (``wl train --help``, ``scripts/train_ppo.py``) is built without importing 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from wl_env import cycle
+from wl_env.params import is_finite
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
@@ -36,7 +36,7 @@ def _is_int(v: Any) -> bool:
 
 
 def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
 
 
 # field -> (requirement as said in the error, test); a value is a number only if finite and not a bool

@@ -334,10 +334,22 @@ def _broken(results: dict, what: str) -> dict:
         results["rows"][1]["T"] = "fast"
     elif what == "old":
         results = {"rows": results["rows"], "wall_time_s": 1.0}
+    # each of these was drawn as nonsense or failed in the drawing with a traceback or an unnamed error
+    elif what == "nan":
+        results["rows"][1]["T"] = math.nan
+    elif what == "huge":
+        results["rows"][1]["fuel_g"] = 10**400
+    elif what == "controller":
+        results["rows"][1]["controller"] = ["operator"]
+    elif what == "times":
+        results["optima"]["service"]["t"] = "abc"
+    elif what == "front":
+        results["fronts"]["service"]["T"] = results["fronts"]["service"]["T"][::-1]
     return results
 
 
-@pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old"])
+@pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge",
+                                  "controller", "times", "front"])
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
     if what != "missing":
@@ -462,6 +474,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["mpc", "--payload-scale", "inf"], "--payload-scale", "[0, 10]"),
     (["pareto", "--points", "2"], "--points", "[3, 100]"),
     (["evaluate", "--controller", "operator", "--seed=-1"], "--seed", ">= 0"),
+    (["evaluate", "--controller", "operator", "--episodes", "99999999999999999999"], "--episodes", "[1, 100000]"),
+    (["evaluate", "--controller", "operator", "--act-timeout", "1e308"], "--act-timeout", "(0, 86400]"),
+    (["evaluate", "--controller", "operator", "--scenario", "[1, 2]"], "--scenario", "JSON object"),
     (["ocp", "--scenario", '{"payload": 1}'], "Scenario.payload", "[6000, 13000] kg"),
     (["pareto", "--scenario", '{"dump_height": 5.5}'], "Scenario.dump_height", "[3.5, 5.1] m"),
     (["mpc", "--scenario", '{"start_engine_speed": 3000}'], "Scenario.start_engine_speed", "[800, 2000] rpm"),
@@ -500,6 +515,24 @@ def test_bad_input_is_one_line_naming_the_option_and_range(tmp_path, capsys, no_
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("wl: error:"), err
     assert option in lines[0] and allowed in lines[0], lines[0]
+
+
+def test_huge_input_is_one_short_line_and_the_limits_are_the_apis(tmp_path, capsys, no_work):
+    """A 10 MB value or deeply nested JSON gives one readable line (were a 10 MB line, or a RecursionError
+    naming no option); the evaluation's limits are agents.evaluate's."""
+    from agents.evaluate import MAX_ACT_TIMEOUT, MAX_EPISODES
+
+    out = ["--out", str(tmp_path / "o.json")]
+    for argv, needle in [(["ocp", "--params", '{"a": ' + "[" * 100_000 + "]" * 100_000 + "}", *out], "--params"),
+                         (["evaluate", "--controller", "operator", *out, "--scenario",
+                           '{"payload": "' + "x" * 10_000_000 + '"}'], "Scenario.payload"),
+                         (["params", "--set", '{"M_' + "x" * 10_000_000 + '": 1}'], "unknown LoaderParams")]:
+        code, err = _attempt(capsys, argv)
+        assert code == 2 and not no_work and len(err) < 3000 and needle in err, err[:300]
+        assert len(err.strip().splitlines()) == 1 and err.startswith("wl: error:")
+    code, _ = _attempt(capsys, ["evaluate", "--controller", "operator", *out, "--episodes", str(MAX_EPISODES),
+                                "--act-timeout", f"{MAX_ACT_TIMEOUT:g}"])
+    assert code is None and no_work[-1][2]["episodes"] == MAX_EPISODES
 
 
 def _unwritable(tmp_path: Path) -> Path:

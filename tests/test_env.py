@@ -164,6 +164,36 @@ def test_bad_actions_raise(action, match):
         env.step(np.array(action, dtype=np.float32))
 
 
+NOT_NUMBERS = [  # were cast silently ("0.5", complex) or failed with a bare TypeError or OverflowError
+    ["a"] * 4, ["0.5"] * 4, [1j] * 4, np.zeros(4, np.complex128), {"fuel": 1.0}, np.array([object()] * 4),
+    [10**400] * 4, [[0.0], [0.0, 1.0]],
+]
+
+
+@pytest.mark.parametrize("action", NOT_NUMBERS, ids=range(len(NOT_NUMBERS)))
+def test_actions_that_are_not_real_numbers_raise_naming_them(action):
+    env = gym.make("WheelLoader-v2").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must be finite numbers in \[-1, 1\]"):
+        env.step(action)
+    env.step([0.0, 0, -1, False])  # ints and bools are numbers
+    venv = gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions must be finite numbers in \[-1, 1\]"):
+        venv.step([action, action] if not isinstance(action, np.ndarray) else np.stack([action, action]))
+
+
+def test_bad_reset_options_raise_naming_them():
+    env = gym.make("WheelLoaderTarget-v3").unwrapped
+    for options, match in [(["scenario"], "options must be a dict"), ("scenario", "options must be a dict"),
+                           ({"target_ratio": 5.0}, r"target_ratio must be a ratio to T_min in \[1, 3\]"),
+                           ({"target_ratio": 10**400}, "target_ratio"), ({"target_time": 10**400}, "target_time"),
+                           ({"scenario": {"payload": 10**400}}, r"Scenario\.payload must lie in"),
+                           ({"scenario": "trian"}, r"suite name \('nominal', 'train', 'test', 'corners'\)")]:
+        with pytest.raises(ValueError, match=match):
+            env.reset(seed=0, options=options)
+
+
 def test_bad_configuration_raises():
     with pytest.raises(ValueError, match="braking"):
         gym.make("WheelLoader-v1", braking="engine")

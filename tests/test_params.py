@@ -91,6 +91,8 @@ NAN, INF = float("nan"), float("inf")
         ({"c_fr": [0.0, 0.0, -1.0]}, "c_fr"),  # negative friction
         ({"T_max_lines": [[8.0, 2.086], [-10.0, 0.0], [3855.0, -1.4]]}, "T_max_lines"),  # no torque
         ({"x_c": 3.0}, "x_c"),  # the cylinder cannot lift the boom
+        ({"M_veh": 10**400}, "M_veh"),  # JSON's ints have no limit: was a bare OverflowError
+        ({"c_fr": [0.7196, -0.1414, -10**400]}, "c_fr"),
     ],
 )
 def test_hostile_values_are_rejected_naming_the_field(change, field):
@@ -103,6 +105,14 @@ def test_allowed_values_message_gives_the_range():
         LoaderParams.from_dict({"M_veh": "32000"})
     with pytest.raises(ValueError, match=r"n_cyl must be an integer in \[1, 24\], got 6\.5"):
         LoaderParams.from_dict({"n_cyl": 6.5})
+
+
+def test_a_huge_bad_value_is_quoted_short():
+    """An error quotes the start of a bad value: a 10 MB string is not a readable message."""
+    for change in ({"M_veh": "x" * 10_000_000}, {"c_fr": "x" * 10_000_000}, {"n_cyl": 10**4000}, {"M_veh": -10**5000}):
+        with pytest.raises(ValueError, match=rf"LoaderParams\.{next(iter(change))} must") as exc:
+            LoaderParams.from_dict(change)
+        assert len(str(exc.value)) < 300
 
 
 def test_the_project_variants_and_spellings_are_accepted():
@@ -119,7 +129,7 @@ def test_the_project_variants_and_spellings_are_accepted():
 
 
 @pytest.mark.parametrize("kw", [{"payload_scale": True}, {"payload_scale": "2"}, {"rolling_scale": NAN},
-                                {"rolling_scale": -1.0}])
+                                {"rolling_scale": -1.0}, {"payload_scale": 10**400}])
 def test_variant_scales_are_checked(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         DEFAULT_PARAMS.variant(**kw)
@@ -134,6 +144,12 @@ def test_from_dict_rejects_non_string_keys():
     ({"dt": True}, "dt"), ({"dt": NAN}, "dt"), ({"substeps": True}, "substeps"), ({"substeps": 2.0}, "substeps"),
     ({"max_time": True}, "max_time"), ({"max_time": INF}, "max_time"), ({"init_noise": True}, "init_noise"),
     ({"w_fuel": True}, "w_fuel"), ({"w_time": "1"}, "w_time"), ({"params": {"c_fr": [NAN, 0, 0]}}, "c_fr"),
+    # ints too large for a float were a bare OverflowError
+    ({"dt": 10**400}, "dt"), ({"max_time": 10**400}, "max_time"), ({"reward": {"w_fuel": 10**400}}, "w_fuel"),
+    ({"target": 10**400}, "target"),
+    # switches and the braking were taken by truth value: "no" switched on, "" and {} were service braking
+    ({"observe_scenario": "no"}, "observe_scenario"), ({"observe_target": "yes"}, "observe_target"),
+    ({"braking": ""}, "braking"), ({"braking": {}}, "braking"),
 ])
 def test_env_arguments_are_checked(kw, name):
     import gymnasium as gym
@@ -157,7 +173,8 @@ def test_vector_env_num_envs_is_an_integer():
 
 
 @pytest.mark.parametrize("overrides, field", [('{"M_veh": "32000"}', "M_veh"), ('{"c_fr": [NaN, 0, 0]}', "c_fr"),
-                                              ('{"T_max_lines": 5}', "T_max_lines"), ('{"M_veh": true}', "M_veh")])
+                                              ('{"T_max_lines": 5}', "T_max_lines"), ('{"M_veh": true}', "M_veh"),
+                                              ('{"M_veh": 1' + "0" * 400 + "}", "M_veh")])  # was a traceback
 def test_wl_params_set_reports_one_line(capsys, overrides, field):
     import wl.cli
 
@@ -169,7 +186,8 @@ def test_wl_params_set_reports_one_line(capsys, overrides, field):
 # ------------------------------------------------------------------------------------------ fuzz
 FIELDS = [f.name for f in dataclasses.fields(LoaderParams) if f.init]
 HOSTILE = st.one_of(
-    st.sampled_from([NAN, INF, -INF, True, False, None, "32000", "", [], {}, -1.0, 0.0, 1e300, -1e300, 5, 6.5]),
+    st.sampled_from([NAN, INF, -INF, True, False, None, "32000", "", [], {}, -1.0, 0.0, 1e300, -1e300, 5, 6.5,
+                     10**400, -10**400]),
     st.floats(allow_nan=True, allow_infinity=True),
     st.integers(-10**9, 10**9),
     st.text(max_size=4),

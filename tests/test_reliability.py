@@ -314,6 +314,9 @@ CORRUPTIONS = {
     "not-monotone": lambda text, data: _set(data, fuel_g=data["fuel_g"][::-1]),
     "changed-number": lambda text, data: json.dumps({**data, "fuel_g": [f * 0.5 for f in data["fuel_g"]]}),
     "other-parameters": lambda text, data: _set(data, params_fingerprint="0123456789abcdef"),
+    # were a bare OverflowError and a RecursionError: a traceback instead of a recomputed entry
+    "huge-int": lambda text, data: _set(data, wall_time=10**400),
+    "nested-too-deeply": lambda text, data: '{"T": ' + "[" * 100_000 + "]" * 100_000 + "}",
 }
 
 

@@ -155,6 +155,7 @@ def test_normalization_entries_are_checked(tmp_path, entries, needle):
     ({"class": "os.system"}, "network.class"),
     ({"activation_fn": "Evil"}, "network.activation_fn"),
     ({"net_arch": {"pi": [10**9]}}, "network.net_arch"),
+    ({"log_std_init": 10**400}, "network.log_std_init"),  # was a bare OverflowError
     ({"observation_space": {"shape": [13], "low": [0.0] * 13, "high": [1.0] * 13}}, "does not fit"),
 ])
 def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, needle):
@@ -409,10 +410,25 @@ def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
     assert plain == timed and plain["summary"]["completion_rate"] == 1.0
     code, out, err = _run(capsys, "evaluate", "--help")
     assert "--act-timeout" in out and "default: off" in " ".join(out.split())
-    for bad in ("-1", "nan", "0"):
+    for bad in ("-1", "nan", "0", "1e308"):  # (1e308 overflowed the timer: an error blamed on the controller)
         code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--act-timeout", bad, "--no-score",
                             "--out", tmp_path / "e.json")
         assert code == 2 and "--act-timeout" in _one_error_line(err) and not (tmp_path / "e.json").exists()
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"episodes": "3"}, "episodes must be an integer in [1, 100000], got '3'"),  # was a TypeError
+    ({"episodes": 10**20}, "episodes must be an integer in [1, 100000]"),  # was an OverflowError
+    ({"act_timeout": 1e308}, "act_timeout (--act-timeout) must be a number of seconds in (0, 86400]"),
+    ({"target_ratio": 10**400}, "target_ratio must lie in [1, 3]"),
+])
+def test_evaluation_settings_are_checked_by_name(kw, needle):
+    from agents.evaluate import evaluate_controller
+    from agents.operator import OperatorPolicy
+
+    with pytest.raises(ValueError) as exc:
+        evaluate_controller(OperatorPolicy("tc"), "tc", score=False, **kw)
+    assert needle in str(exc.value)
 
 
 def test_user_classes_resolve_by_dotted_name(bad_module):

@@ -33,11 +33,12 @@ def test_a_value_outside_its_range_names_the_field_and_the_range(name, side):
 
 @given(name=st.sampled_from(list(FIELDS)),
        value=st.one_of(st.none(), st.text(max_size=3), st.booleans(), st.just(math.nan), st.just(math.inf),
-                       st.floats(allow_nan=False, allow_infinity=False)))
+                       st.floats(allow_nan=False, allow_infinity=False), st.integers(0, 20000),
+                       st.sampled_from([10**400, -10**400])))  # (JSON's ints: 10**400 was an OverflowError)
 @settings(max_examples=150, deadline=None)
 def test_any_value_is_accepted_in_range_or_refused_by_name(name, value):
     spec = FIELDS[name]
-    ok = (isinstance(value, float) and math.isfinite(value) and spec.lo <= value <= spec.hi)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and spec.lo <= value <= spec.hi  # (not NaN)
     if ok:
         assert getattr(Scenario(**{name: value}), name) == value
     else:
@@ -78,6 +79,18 @@ def test_bad_scenario_inputs_are_named(tmp_path):
     f = tmp_path / "s.json"
     f.write_text(json.dumps({"dump_height": 4.0}))
     assert Scenario.parse(str(f)).dump_height == 4.0
+    # hostile JSON: each a ValueError saying what is wrong (were RecursionError, OSError, a 10 MB message, "no file")
+    for text, match in [("[1, 2]", "JSON object of its fields, got list"),
+                        ('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
+                        ("x" * 5000, "no file"),
+                        ('{"payload": ' + "9" * 400 + "}", r"Scenario\.payload must lie in"),
+                        ('{"payload": "' + "x" * 10_000_000 + '"}', r"Scenario\.payload must be a number")]:
+        with pytest.raises(ValueError, match=match) as exc:
+            Scenario.parse(text)
+        assert len(str(exc.value)) < 500
+    f.write_bytes(b"\xff\xfe{")
+    with pytest.raises(ValueError, match=f"--scenario file {f}: cannot read it as text"):
+        Scenario.parse(str(f))
 
 
 # ---------------------------------------------------------------------------------------------- suites

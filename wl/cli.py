@@ -280,10 +280,12 @@ def _unit_float(text: str) -> float:
     return value
 
 
-def _seconds(text: str) -> float:
+def _act_timeout(text: str) -> float:
+    from agents.evaluate import MAX_ACT_TIMEOUT
+
     value = _number(text, float)
-    if not 0.0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text}")
+    if not 0.0 < value <= MAX_ACT_TIMEOUT:  # (false for NaN)
+        raise argparse.ArgumentTypeError(f"must be a number of seconds in (0, {MAX_ACT_TIMEOUT:g}], got {text}")
     return value
 
 
@@ -299,6 +301,8 @@ def _json_option(text: str, option: str) -> Any:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"{option} is not valid JSON ({exc})") from None
+    except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
+        raise ValueError(f"{option} is not valid JSON (nested too deeply)") from None
 
 
 def _params_from(args: argparse.Namespace):
@@ -316,7 +320,7 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
     try:
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
-        raise ValueError(f"--scenario: {exc}") from None
+        raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
     given = args.braking is not None if braking_given is None else braking_given
     if given:
         data = json.loads(Path(args.scenario).read_text()) if not args.scenario.strip().startswith("{") else \
@@ -460,15 +464,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "ppo_target_<braking>; bc: bc_target_<braking>); module:Class: passed as model=")
     p.add_argument("--trust-pickle", action="store_true", help="ppo: also load a stable-baselines3 .zip (+ .pkl), "
                    "which unpickles and can run code: for trusted input only, e.g. your own training runs")
-    p.add_argument("--episodes", type=_positive_int, default=10, metavar="N", help="episodes (default 10)")
+    p.add_argument("--episodes", type=_int_in(1, 100_000), default=10, metavar="N",
+                   help="episodes, 1..100000 (default 10)")
     p.add_argument("--init-noise", type=_unit_float, default=1.0, metavar="X",
                    help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of episode 0; episode i uses S + i")
     p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts (default $WL_CACHE_DIR or "
                    "~/.cache/wheel-loader-gym); a front not cached there is solved first (minutes)")
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
-    p.add_argument("--act-timeout", type=_seconds, metavar="SECONDS", help="fail if one act() call takes longer "
-                   "(default: off, no limit; a SIGALRM timer: it interrupts Python code, not a hung C call)")
+    p.add_argument("--act-timeout", type=_act_timeout, metavar="SECONDS", help="fail if one act() call takes longer, "
+                   "in (0, 86400] (default: off, no limit; a SIGALRM timer: it interrupts Python code, not a hung C call)")
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
     p.set_defaults(func=_evaluate_cmd)
 
@@ -510,8 +515,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+MAX_ERROR_CHARS = 2000  # an error quoting a user's 10 MB of JSON stays a readable line
+
+
 def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + " ..."
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.atomic_io import save_figure, write_atomic
+from wl_env.params import is_finite
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +230,8 @@ def load_results(folder: str | Path) -> dict[str, Any]:
         results = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:  # (a RuntimeError)
+        raise ValueError(f"{path} is not valid JSON: nested too deeply") from None
 
     problem = _problem(results)
     if problem:
@@ -238,6 +241,8 @@ def load_results(folder: str | Path) -> dict[str, Any]:
 
 def _problem(results: Any) -> str | None:
     """What keeps :func:`render` from drawing ``results``, or None."""
+    from mpc.benchmark.pareto import check_front
+
     if not isinstance(results, dict):
         return "not a JSON object"
     if results.get("format") != RESULTS_FORMAT:
@@ -250,29 +255,45 @@ def _problem(results: Any) -> str | None:
             if len(front["T"]) != len(front["fuel_g"]) or len(front["T"]) < 2:
                 return f"the {b} front needs as many fuels as cycle times, at least 2"
             if not all(map(_is_number, [front["T_min"], front["T_fuel_opt"], *front["T"], *front["fuel_g"]])):
-                return f"the {b} front holds a value that is not a number"
+                return f"the {b} front holds a value that is not a finite number"
+            problem = check_front(front)  # what a cached front must be: times rising from T_min, fuel falling
+            if problem:
+                return f"the {b} front: {problem}"
             _check_trajectory(results["optima"][b])
         for r in results["rows"]:
             missing = [k for k in ROW_KEYS if k not in r]
             if missing:
                 return f"a row lacks {missing}"
+            if not (isinstance(r["controller"], str) and r["braking"] in BRAKINGS and isinstance(r["success"], bool)):
+                return "a row's controller is not a name, its braking not one of the brakings or its success not a bool"
             if not (all(map(_is_number, (r["T"], r["fuel_g"], r["max_violation"])))
                     and all(v is None or _is_number(v) for v in (r["time_gap"], r["fuel_gap"]))):
-                return f"a row of {r['controller']!r} holds a value that is not a number"
+                return f"a row of {r['controller']!r} holds a value that is not a finite number"
         for tr in results["trajectories"]:
-            str(tr["controller"]), str(tr["braking"])
+            if not (isinstance(tr["controller"], str) and tr["braking"] in BRAKINGS):
+                return "a trajectory's controller is not a name or its braking not one of the brakings"
             _check_trajectory(tr)
         if not _is_number(results["wall_time_s"]):
             return "wall_time_s is not a number"
         suite = results.get("suite")
         if suite is not None:
+            if not (isinstance(suite["suite"], str) and isinstance(suite["full"], bool)
+                    and all(_is_number(suite[k]) for k in ("version", "scenarios_per_braking"))
+                    and (suite["sample"] is None or _is_number(suite["sample"]))):
+                return "the suite's name, version, sample, full or scenarios_per_braking is malformed"
             for r in suite["rows"]:
-                if not all(v is None or _is_number(v) for v in (r["success_rate"], r["time_gap_median"],
-                                                                r["fuel_gap_median"], r["fuel_gap_p90"])):
-                    return f"a suite row of {r['controller']!r} holds a value that is not a number"
+                if not (isinstance(r["controller"], str) and r["braking"] in BRAKINGS
+                        and all(map(_is_number, (r["scenarios"], r["success_rate"], r["max_violation"])))
+                        and all(r.get(k) is None or _is_number(r[k]) for k in (
+                            "time_gap_median", "time_gap_p90", "fuel_gap_median", "fuel_gap_p90", "lateness_median"))):
+                    return f"a suite row of {r['controller']!r} holds a value that is not a finite number"
             for e in suite["episodes"]:
-                str(e["controller"]), bool(e["success"]), e["scenario"]
-    except (KeyError, TypeError, IndexError) as exc:
+                if not (isinstance(e["controller"], str) and e["braking"] in BRAKINGS and isinstance(e["success"], bool)
+                        and (e["fuel_gap"] is None or _is_number(e["fuel_gap"]))
+                        and (e["scenario"] is None or (isinstance(e["scenario"], dict) and all(
+                            _is_number(e["scenario"][k]) for k in ("payload", "reverse_distance", "forward_distance"))))):
+                    return "a suite episode's controller, braking, success, fuel_gap or scenario is malformed"
+    except (KeyError, TypeError, IndexError, OverflowError) as exc:
         return f"missing or malformed entry {exc}"
     except ValueError as exc:
         return str(exc)
@@ -280,13 +301,16 @@ def _problem(results: Any) -> str | None:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+    """A finite number: `wl run` writes NaN and infinity as null, so one in the file is damage."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
 
 
 def _check_trajectory(d: dict[str, Any]) -> None:
+    if not (isinstance(d["t"], list) and all(map(_is_number, d["t"]))):
+        raise ValueError("a trajectory's times t are not a list of finite numbers")
     states = np.asarray(d["states"], dtype=float)
-    if states.shape != (len(d["t"]), 4):
-        raise ValueError(f"states of shape {states.shape} for {len(d['t'])} times (4 states each)")
+    if states.shape != (len(d["t"]), 4) or not np.all(np.isfinite(states)):
+        raise ValueError(f"states of shape {states.shape} for {len(d['t'])} times (4 finite states each)")
 
 
 # ---------------------------------------------------------------------------------------------- render

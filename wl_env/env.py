@@ -13,17 +13,22 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, resolve
-from wl_env.scenario import Scenario, resolve_scenario
+from wl_env.params import LoaderParams, is_finite, resolve, shown
+from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
 
 def scenario_source(scenario: Scenario | dict | str | None, braking: str | None) -> tuple[Scenario | Suite | None, str]:
     """(a fixed Scenario, a Suite to draw from, or None for the given params; the braking alternative)."""
+    if braking is not None:  # (not `braking or "service"`: a falsy braking such as "" or {} is an error)
+        cycle.check_braking(braking)
     if isinstance(scenario, str) and scenario in SUITES:
-        return load_suite(scenario), cycle.check_braking(braking or "service")
+        return load_suite(scenario), braking or "service"
     if scenario is None:
-        return None, cycle.check_braking(braking or "service")
+        return None, braking or "service"
+    if isinstance(scenario, str) and not scenario.strip().startswith(("{", "[")) and not is_file(scenario):
+        raise ValueError(f"scenario must be a suite name {SUITES}, a Scenario, a dict of its fields, JSON text or a "
+                         f"JSON file, got {shown(scenario)}")
     s = resolve_scenario(scenario, braking)
     return s, s.braking
 
@@ -36,16 +41,29 @@ def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -
         return None
 
 
+def action_array(action: Any, name: str) -> np.ndarray:
+    """``action`` as a float64 array if it holds real numbers (bool, int, float); ValueError naming ``name``
+    otherwise (strings, complex numbers, objects, ints too large for a float: no silent casts)."""
+    try:
+        a = np.asarray(action)
+    except (ValueError, TypeError):  # ragged nesting
+        a = None
+    if a is None or a.dtype.kind not in "biuf":
+        raise ValueError(f"{name} must be finite numbers in [-1, 1], got {shown(action)}")
+    return a.astype(np.float64)
+
+
 TARGET_RATIOS = (1.0, 2.5)  # the target env's default: targets drawn from T_min (fastest) to ~the minimum-fuel end
 
 
-def check_target_ratios(target: Any) -> tuple[float, float]:
-    """A target ratio to T_min (one number) or a range to draw from uniformly, within [1, 3]."""
+def check_target_ratios(target: Any, name: str = "target") -> tuple[float, float]:
+    """A target ratio to T_min (one number) or a range to draw from uniformly, within [1, 3]; ``name`` is
+    the parameter the error names (``target``, or reset's option ``target_ratio``)."""
     lo, hi = (target, target) if isinstance(target, (int, float)) and not isinstance(target, bool) else (
         tuple(target) if isinstance(target, (tuple, list)) and len(target) == 2 else (None, None))
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 1.0 <= v <= 3.0
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v) and 1.0 <= v <= 3.0
                for v in (lo, hi)) or lo > hi:
-        raise ValueError(f"target must be a ratio to T_min in [1, 3] or a range (lo, hi) within it, got {target!r}")
+        raise ValueError(f"{name} must be a ratio to T_min in [1, 3] or a range (lo, hi) within it, got {shown(target)}")
     return float(lo), float(hi)
 
 
@@ -53,14 +71,20 @@ def check_assist(assist: Any, fuel_action: str, coast: Any = False) -> bool:
     """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor; its coasting
     variant (``coast``, WheelLoaderTarget-v3) needs it."""
     for name, v in (("assist", assist), ("coast", coast)):
-        if not isinstance(v, bool):
-            raise ValueError(f"{name} must be True or False, got {v!r}")
+        check_flag(name, v)
     if coast and not assist:
         raise ValueError("coast=True needs assist=True (it is the stopping assist's coasting variant)")
     if assist and fuel_action != "engine_speed":
         raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
                          f"got fuel_action={fuel_action!r}")
     return assist
+
+
+def check_flag(name: str, value: Any) -> bool:
+    """A switch given as True or False (not ``bool(value)``: "no" would switch it on)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} must be True or False, got {shown(value)}")
+    return value
 
 
 def n_actions(assist: bool, coast: bool) -> int:
@@ -70,10 +94,10 @@ def n_actions(assist: bool, coast: bool) -> int:
 
 def check_target_time(target_time: Any) -> float:
     """A target cycle time in (0, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
-    if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and math.isfinite(target_time)
+    if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and is_finite(target_time)
             and 0.0 < target_time < TIME_SCALE):
         raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s (the episode ends at {TIME_SCALE:g} s), "
-                         f"got {target_time!r}")
+                         f"got {shown(target_time)}")
     return float(target_time)
 
 
@@ -91,7 +115,7 @@ def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: 
     if target_time is not None:
         return T_min, check_target_time(target_time)
     if target_ratio is not None:
-        lo, hi = check_target_ratios(target_ratio)
+        lo, hi = check_target_ratios(target_ratio, "target_ratio")
     else:
         lo, hi = ratios
     return T_min, float(T_min * (lo if lo == hi else rng.uniform(lo, hi)))
@@ -288,8 +312,8 @@ class WheelLoaderEnv(gym.Env):
         self.assist = check_assist(assist, fuel_action, coast)
         self.coast = coast
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
-        self.observe_target = bool(observe_target)
-        if self.observe_target and not observe_scenario:
+        self.observe_target = check_flag("observe_target", observe_target)
+        if self.observe_target and not check_flag("observe_scenario", observe_scenario):
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
         self._source, self.braking = scenario_source(scenario, braking)
@@ -299,7 +323,7 @@ class WheelLoaderEnv(gym.Env):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.render_mode = render_mode
         self.init_noise = float(init_noise)
-        self.observe_scenario = bool(observe_scenario)
+        self.observe_scenario = check_flag("observe_scenario", observe_scenario)
         fixed = self._source if isinstance(self._source, Scenario) else None
         self.params = fixed.params(self.machine) if fixed is not None else self.machine
         self.scenario = fixed or start_scenario(self.machine, self.braking, self.machine.omega_0, self.machine.H_0)
@@ -325,6 +349,8 @@ class WheelLoaderEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"WheelLoaderEnv.reset's options must be a dict or None, got {shown(options)}")
         options = dict(options or {})
         chosen = options.pop("scenario", None)
         target_time, target_ratio = options.pop("target_time", None), options.pop("target_ratio", None)
@@ -380,7 +406,7 @@ class WheelLoaderEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._done:
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
-        a = action if type(action) is np.ndarray and action.dtype.kind == "f" else np.asarray(action, dtype=np.float64)
+        a = action if type(action) is np.ndarray and action.dtype.kind == "f" else action_array(action, "action")
         if a.shape != self.action_space.shape:
             names = ("[engine-speed request, bucket, braking fraction, coasting fraction]" if self.coast else
                      "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]")

@@ -7,7 +7,6 @@ it, so that ``WheelLoaderEnv`` and ``WheelLoaderVectorEnv`` compute the same num
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -16,7 +15,7 @@ import numpy as np
 from wl_env import cycle, limits
 from wl_env.codec import FUEL_ACTIONS, Codec
 from wl_env.model import governed_injection, governor_request
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, is_finite, shown
 from wl_env.physics import torque_converter
 from wl_env.physics.backend import ops_for
 from wl_env.physics.flatten import Flattened, config_key, flatten_cached
@@ -64,8 +63,8 @@ class RewardConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {v!r}")
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and is_finite(v)):
+                raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {shown(v)}")
             if v < 0:
                 raise ValueError(f"RewardConfig.{f.name} must be >= 0, got {v!r}")
         for name in ("fuel_ref_g", "time_ref"):
@@ -96,12 +95,12 @@ class CycleStepper(Flattened):
     ) -> None:
         if fuel_action not in FUEL_ACTIONS:
             raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
-        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
+        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and 0.0 < dt <= 1.0):
+            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {shown(dt)}")
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
-        if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and math.isfinite(max_time) and max_time >= 5 * dt):
-            raise ValueError(f"max_time must be a finite number of seconds >= 5 dt, got {max_time!r}")
+        if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time) and max_time >= 5 * dt):
+            raise ValueError(f"max_time must be a finite number of seconds >= 5 dt, got {shown(max_time)}")
         self.params = params
         self.braking = cycle.check_braking(braking)
         self.sim = Simulator(params, braking)

@@ -322,14 +322,14 @@ class LoaderParams:
         known = {f.name for f in dataclasses.fields(self) if f.init}
         unknown = set(changes) - known
         if unknown:
-            raise ValueError(f"unknown LoaderParams field(s): {sorted(unknown)}; known: {sorted(known)}")
+            raise ValueError(f"unknown LoaderParams field(s): {shown(sorted(unknown), 200)}; known: {sorted(known)}")
         return dataclasses.replace(self, **changes)
 
     def variant(self, *, payload_scale: float = 1.0, rolling_scale: float = 1.0, **changes: Any) -> LoaderParams:
         """A variant for robustness studies: scale the payload M_load and the rolling coefficient c_r."""
         for name, scale in (("payload_scale", payload_scale), ("rolling_scale", rolling_scale)):
-            if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (math.isfinite(scale) and scale >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {scale!r}")
+            if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (is_finite(scale) and scale >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {shown(scale)}")
         changes.setdefault("M_load", self.M_load * payload_scale)
         changes.setdefault("c_r", self.c_r * rolling_scale)
         return self.replace(**changes)
@@ -354,6 +354,24 @@ class LoaderParams:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def is_finite(value: Any) -> bool:
+    """``math.isfinite`` that says False for an int too large for a float (10**400 from JSON) instead of
+    raising OverflowError: a validator then reports the value out of range."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def shown(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters: an error quotes the bad value, not all 10 MB of it."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int of more than 4300 digits (sys.get_int_max_str_digits)
+        text = f"<{type(value).__name__} of more digits than Python prints>"
+    return text if len(text) <= limit else f"{text[:limit - 5]}...{text[-2:]}"
+
+
 def _unit(name: str) -> str:
     unit = PROVENANCE.get(name, ("-",))[0]
     return "" if unit == "-" or len(unit) > 10 else f" {unit}"
@@ -362,13 +380,13 @@ def _unit(name: str) -> str:
 def _number(name: str, value: Any, allowed: _Range, unit: str = "") -> float:
     """A finite real number (no bool, no string) within ``allowed``, as a float."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"LoaderParams.{name} must be a number in {allowed}{unit}, got {value!r} "
+        raise ValueError(f"LoaderParams.{name} must be a number in {allowed}{unit}, got {shown(value)} "
                          f"({type(value).__name__})")
+    if not is_finite(value):
+        raise ValueError(f"LoaderParams.{name} must be a finite number in {allowed}{unit}, got {shown(value)}")
     v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"LoaderParams.{name} must be a finite number in {allowed}{unit}, got {value!r}")
     if v not in allowed:
-        raise ValueError(f"LoaderParams.{name} must lie in {allowed}{unit}, got {value!r}")
+        raise ValueError(f"LoaderParams.{name} must lie in {allowed}{unit}, got {shown(value)}")
     return v
 
 
@@ -377,9 +395,9 @@ def _sequence(name: str, value: Any, length: int, of: str) -> list[Any]:
     if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
         value = value.tolist()  # a numpy array
     if not isinstance(value, (list, tuple)):
-        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {value!r} ({type(value).__name__})")
+        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {shown(value)} ({type(value).__name__})")
     if len(value) != length:
-        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {len(value)} entries: {value!r}")
+        raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {len(value)} entries: {shown(value)}")
     return list(value)
 
 
@@ -388,10 +406,10 @@ def _coerce(name: str, value: Any) -> Any:
     if name in _INT_RANGES:
         allowed = _INT_RANGES[name]
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            raise ValueError(f"LoaderParams.{name} must be an integer in {allowed}, got {value!r} "
+            raise ValueError(f"LoaderParams.{name} must be an integer in {allowed}, got {shown(value)} "
                              f"({type(value).__name__})")
         if int(value) not in allowed:
-            raise ValueError(f"LoaderParams.{name} must lie in {allowed}, got {value!r}")
+            raise ValueError(f"LoaderParams.{name} must lie in {allowed}, got {shown(value)}")
         return int(value)
     if name in _VECTORS:
         length, allowed = _VECTORS[name]

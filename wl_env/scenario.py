@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES
-from wl_env.params import DEFAULT_PARAMS, LoaderParams
+from wl_env.params import DEFAULT_PARAMS, LoaderParams, shown
 
 RPM = math.pi / 30.0  # rad/s per rpm
 
@@ -80,13 +80,16 @@ class Scenario:
             v = getattr(self, name)
             allowed = f"[{spec.lo:g}, {spec.hi:g}]" + ("" if spec.unit == "-" else f" {spec.unit}")
             if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise ValueError(f"Scenario.{name} must be a number in {allowed}, got {v!r} ({type(v).__name__})")
-            v = float(v)
+                raise ValueError(f"Scenario.{name} must be a number in {allowed}, got {shown(v)} ({type(v).__name__})")
+            try:
+                v = float(v)
+            except OverflowError:  # an int too large for a float (JSON has them): outside every range
+                v = math.inf
             if not (math.isfinite(v) and spec.lo <= v <= spec.hi):
                 raise ValueError(f"Scenario.{name} must lie in {allowed}, got {v!r}")
             object.__setattr__(self, name, v)
         if self.braking not in BRAKING_MODES:
-            raise ValueError(f"Scenario.braking must be one of {BRAKING_MODES}, got {self.braking!r}")
+            raise ValueError(f"Scenario.braking must be one of {BRAKING_MODES}, got {shown(self.braking)}")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -102,22 +105,27 @@ class Scenario:
         known = [f.name for f in dataclasses.fields(cls)]
         unknown = sorted(set(map(str, data)) - set(known))
         if unknown:
-            raise ValueError(f"unknown Scenario field(s) {unknown}; known: {known}")
+            raise ValueError(f"unknown Scenario field(s) {shown(unknown, 200)}; known: {known}")
         return cls(**data)
 
     @classmethod
     def parse(cls, text: str) -> Scenario:
         """A scenario from JSON text or from the path of a JSON file (the ``--scenario`` option)."""
         text = text.strip()
-        if not text.startswith("{"):
+        if not text.startswith(("{", "[")):  # (a JSON list is read to say it is not an object)
             path = Path(text)
-            if not path.is_file():
-                raise ValueError(f"--scenario takes JSON text or a JSON file; no file {text!r}")
-            text = path.read_text()
+            if not is_file(path):
+                raise ValueError(f"--scenario takes JSON text or a JSON file; no file {shown(text)}")
+            try:
+                text = path.read_text()
+            except (OSError, UnicodeDecodeError) as exc:
+                raise ValueError(f"--scenario file {text}: cannot read it as text ({exc})") from None
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ValueError(f"--scenario is not valid JSON: {exc}") from None
+        except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
+            raise ValueError("--scenario is not a scenario: its JSON is nested too deeply") from None
         return cls.from_dict(data)
 
     @classmethod
@@ -150,6 +158,14 @@ class Scenario:
         return (f"{self.braking} {self.payload / 1000:g} t, {self.reverse_distance:g}/{self.forward_distance:g} m, "
                 f"c_r {self.rolling_resistance:g}, H_T {self.dump_height:g} m, {self.start_engine_speed:.0f} rpm, "
                 f"H_0 {self.start_bucket_height:g} m")
+
+
+def is_file(path: str | Path) -> bool:
+    """``Path(path).is_file()``, False (not OSError) for a name too long to be a path, e.g. mistyped JSON."""
+    try:
+        return Path(path).is_file()
+    except (OSError, ValueError):  # ENAMETOOLONG; a NUL character
+        return False
 
 
 def feature(name: str, value: Any) -> Any:

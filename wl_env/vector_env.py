@@ -22,7 +22,9 @@ from wl_env.assist import assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW
 from wl_env.env import (
     TARGET_RATIOS,
+    action_array,
     check_assist,
+    check_flag,
     check_target_ratios,
     episode_target,
     lateness_charge,
@@ -33,7 +35,7 @@ from wl_env.env import (
     target_features,
 )
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve, shown
 from wl_env.scenario import Scenario
 from wl_env.suites import Suite
 
@@ -73,7 +75,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         self.num_envs = num_envs
         self.assist = check_assist(assist, fuel_action, coast)
         self.coast = coast
-        self.observe_target = bool(observe_target)
+        self.observe_target = check_flag("observe_target", observe_target)
+        observe_scenario = check_flag("observe_scenario", observe_scenario)
         if self.observe_target and not observe_scenario:
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
@@ -108,7 +111,7 @@ class WheelLoaderVectorEnv(VectorEnv):
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         if options:
-            raise ValueError(f"WheelLoaderVectorEnv.reset takes no options, got {sorted(options)}")
+            raise ValueError(f"WheelLoaderVectorEnv.reset takes no options, got {shown(options)}")
         if seed is not None:
             seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
             if len(seeds) != self.num_envs:
@@ -161,7 +164,8 @@ class WheelLoaderVectorEnv(VectorEnv):
     def step(self, actions: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        a = np.asarray(actions, dtype=np.float64)
+        a = (np.asarray(actions, dtype=np.float64) if type(actions) is np.ndarray and actions.dtype.kind == "f"
+             else action_array(actions, "actions"))
         n_act = self.single_action_space.shape[0]
         if a.shape != (self.num_envs, n_act):
             raise ValueError(f"actions must have shape ({self.num_envs}, {n_act}), got {a.shape}")

@@ -39,7 +39,7 @@ from mpc.benchmark.ocp import (
     solve_ocp,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import LoaderParams, is_finite, resolve
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -125,7 +125,7 @@ class ParetoFront:
 
 # ---------------------------------------------------------------------------------------------- entry checks
 def _num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
 
 
 def _int(v: Any) -> bool:

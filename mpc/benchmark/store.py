@@ -76,6 +76,15 @@ def _finite_float(text: str) -> float:
     return v
 
 
+def _float_sized_int(text: str) -> int:
+    v = int(text)
+    try:
+        float(v)  # the entry's checks take numbers as floats: a larger int would fail them with OverflowError
+    except OverflowError:
+        raise ValueError(f"number too large for a float {text[:20]}...") from None
+    return v
+
+
 def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None) -> dict[str, Any]:
     """The payload of the entry at ``path`` (without schema and checksum); BadEntry if it is not a good
     entry of ``kind`` (solved for ``fingerprint``, if given). FileNotFoundError if there is none."""
@@ -85,11 +94,14 @@ def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
     except IsADirectoryError:
         raise BadEntry(path, "a folder, not a file") from None
     try:
-        data = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float)
+        data = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float,
+                          parse_int=_float_sized_int)
     except UnicodeDecodeError:
         raise BadEntry(path, "not UTF-8 text") from None
     except ValueError as exc:  # JSONDecodeError is one; so are the non-finite numbers
         raise BadEntry(path, f"not valid JSON ({exc})") from None
+    except RecursionError:  # (a RuntimeError)
+        raise BadEntry(path, "not valid JSON (nested too deeply)") from None
     if not isinstance(data, dict):
         raise BadEntry(path, f"a JSON {type(data).__name__}, not an object")
     schema = data.get("schema")
