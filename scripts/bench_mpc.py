@@ -28,7 +28,7 @@ Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
-        [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 100]
+        [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 1000]
 """
 
 from __future__ import annotations

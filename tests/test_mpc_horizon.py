@@ -159,6 +159,18 @@ def test_the_real_time_iteration_drives_the_short_horizon_on_time_near_the_optim
     assert np.median(ctrl.step_iterations[1:]) == 1  # (the RTI's one SQP step: the plan is followed, not re-solved)
 
 
+def test_the_rti_horizon_holds_the_plan_to_the_last_stop_without_a_re_plan():
+    """The terminal cost's curvature (terminal_weight) holds the plant to the full plan between re-plans. At
+    100 (stop 29's value) the service cycle at 13 s drifted until its last stop needed 0.95 % more than the
+    deceleration limit: a whole-cycle re-plan in the last step, and the excess all the same."""
+    config = MPCConfig(mode="target_time", target_time=13.0, horizon_steps=10, horizon_solver="sqp-rti")
+    ctrl = MPCController("service", config=config)
+    ep = run_closed_loop("service", config, score=False, controller=ctrl).episode
+    assert ep.completed and ep.success and ep.max_violation == 0.0
+    assert ep.T <= 13.0 + 1e-9
+    assert ctrl.replans == 0
+
+
 class _Recorder:
     """A grid solver that records the NLPs it is given and succeeds or fails as told."""
 
