@@ -171,6 +171,30 @@ def test_the_rti_horizon_holds_the_plan_to_the_last_stop_without_a_re_plan():
     assert ctrl.replans == 0
 
 
+def test_a_re_plan_waits_for_the_estimate_to_settle():
+    """The full plan is stale once the plant estimate has moved past REPLAN_ESTIMATE_CHANGE since it was made,
+    and re-planned only once the estimate stopped moving (REPLAN_SETTLE of that per step): while the
+    estimator converges, each step's crossing would re-plan the whole cycle again."""
+    from types import SimpleNamespace
+
+    from mpc.controller.mpc import REPLAN_ESTIMATE_CHANGE, REPLAN_SETTLE
+
+    ctrl = MPCController("service", config=MPCConfig(horizon_steps=10))
+    ctrl._reference = SimpleNamespace(estimate=np.array(NOMINAL_ESTIMATE, dtype=float))
+    est = ctrl.estimator
+
+    def step(lift_gain: float) -> bool:
+        est.lift_gain = lift_gain
+        return ctrl._reference_stale()
+
+    small = 0.5 * REPLAN_ESTIMATE_CHANGE[2]
+    assert not step(1.0) and not step(1.0 - small)  # within the change: not stale
+    assert not step(0.95) and not step(0.90)  # past it, still moving by 0.05 a step: wait
+    settle = REPLAN_SETTLE * REPLAN_ESTIMATE_CHANGE[2]
+    assert step(0.90 - 0.5 * settle)  # moved less than the settling step: re-plan now
+    assert not step(0.90 - 0.5 * settle - 2 * settle)  # moving again: wait
+
+
 class _Recorder:
     """A grid solver that records the NLPs it is given and succeeds or fails as told."""
 

@@ -78,6 +78,12 @@ SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's searc
 # A short horizon's full plan is made again when the plant estimate [accel offset (m/s^2), accel gain, lift
 # gain] moves by more than this since it was made (or when the horizon's plan misses a target).
 REPLAN_ESTIMATE_CHANGE = np.array([0.02, 0.01, 0.01])
+# ... once the estimate has settled: no component moved by more than this fraction of that in the last step.
+# While the estimator converges (the first second of a mismatched cycle: the lift gain moves 0.02-0.08 a step)
+# each crossing re-planned the whole cycle (0.2-2 s each; measured on the 8 mismatch corners under the RTI:
+# 58 re-plans, 27 with the wait, every corner on its marks with no violation either way); the horizon meanwhile
+# plans with the estimate as it is.
+REPLAN_SETTLE = 0.25
 # ... and a short horizon's plan off a target by up to this (relative) is applied, not re-planned. Full plans
 # aim within MISS_TOL and may end at its edge, where the real-time iteration's drift crossed it on nominal
 # cycles (1.2e-3 to 2.2e-3: whole-cycle re-plans of 0.2-1.2 s). 2.5e-3 is 1.7 cm at a 6.6 m reversing point
@@ -349,6 +355,7 @@ class MPCController:
         self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
         self.fallbacks = 0
         self.deadline_misses = 0
+        self._estimate_before: np.ndarray | None = None  # the plant estimate at the last step's staleness check
         self.replans = 0  # horizon_steps: steps after the first that solved the whole rest of the cycle
         self.planning_time = 0.0
         # what the first plan started from: "stored" (this cycle's, planned before in the process),
@@ -951,10 +958,14 @@ class MPCController:
         self._prepare_horizons()
 
     def _reference_stale(self) -> bool:
-        """The plant estimate moved since the full plan was made (by REPLAN_ESTIMATE_CHANGE in a component):
-        its value no longer prices the rest of the cycle, the next step plans it in full again."""
-        change = np.abs(np.asarray(self.estimator.estimate) - self._reference.estimate)
-        return bool((change > REPLAN_ESTIMATE_CHANGE).any())
+        """The plant estimate moved since the full plan was made (by REPLAN_ESTIMATE_CHANGE in a component)
+        and has settled (REPLAN_SETTLE): the plan's value no longer prices the rest of the cycle, this step
+        plans it in full again. Called once per step (it keeps the step's estimate for the next)."""
+        estimate, before = np.asarray(self.estimator.estimate), self._estimate_before
+        self._estimate_before = estimate.copy()
+        if not (np.abs(estimate - self._reference.estimate) > REPLAN_ESTIMATE_CHANGE).any():
+            return False
+        return before is None or not (np.abs(estimate - before) > REPLAN_SETTLE * REPLAN_ESTIMATE_CHANGE).any()
 
     def _before_targets(self, misses: dict[str, float]) -> bool:
         """A re-plan begun now is due (``replan_lag_steps``) before the step of every target missed."""
