@@ -85,9 +85,9 @@ REPLAN_ESTIMATE_CHANGE = np.array([0.02, 0.01, 0.01])
 # plans with the estimate as it is.
 REPLAN_SETTLE = 0.25
 # ... and a short horizon's plan off a target by up to this (relative) is applied, not re-planned. Full plans
-# aim within MISS_TOL and may end at its edge, where the real-time iteration's drift crossed it on nominal
-# cycles (1.2e-3 to 2.2e-3: whole-cycle re-plans of 0.2-1.2 s). 2.5e-3 is 1.7 cm at a 6.6 m reversing point
-# and 1.25 cm in height, within the episode's 5 cm and 2 cm.
+# aim within MISS_TOL and may end at its edge, where a step of drift crossed it (measured: TC minimum time,
+# 1.2e-3 short of the reversing point, a 1.2-1.4 s whole-cycle re-plan). 2.5e-3 is 1.7 cm at a 6.6 m
+# reversing point and 1.25 cm in height, within the episode's 5 cm and 2 cm.
 HORIZON_MISS_TOL = 2.5 * MISS_TOL
 SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared between nearby schedules)
 # The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
@@ -220,8 +220,8 @@ class MPCConfig:
     horizon_steps: int | None = None
     # (1000: at 100 the plant drifted from the plan between re-plans, measured by the bench's 16 nominal and
     # test runs under the RTI: service at 11, 13 and 16 s ended 0.06-2.1 % over the deceleration limit in their
-    # last stop, TC minimum time re-planned for 1.4 s; at 1000 none, fuel within 0.05 points; at 10000 TC at
-    # 13 and 16 s went 7.2 % over)
+    # last stop after a whole-cycle re-plan; at 1000 none, fuel within 0.05 points; at 10000 TC at 13 and 16 s
+    # went 7.2 % over)
     terminal_weight: float = 1000.0
     # The short horizons' solver: "ipopt", or "sqp-rti" (one SQP step per control step from the last
     # horizon's plan, its QP solved by hpipm on the stage structure; up to two more where it leaves the rows
