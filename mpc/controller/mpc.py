@@ -220,7 +220,7 @@ class MPCConfig:
     horizon_steps: int | None = None
     # (1000: at 100 the plant drifted from the plan between re-plans, measured by the bench's 16 nominal and
     # test runs under the RTI: service at 11, 13 and 16 s ended 0.06-2.1 % over the deceleration limit in their
-    # last stop after a whole-cycle re-plan; at 1000 none, fuel within 0.05 points; at 10000 TC at 13 and 16 s
+    # last stop after a whole-cycle re-plan; at 1000 none, fuel gaps -1.17..+0.01 points; at 10000 TC at 13 and 16 s
     # went 7.2 % over)
     terminal_weight: float = 1000.0
     # The short horizons' solver: "ipopt", or "sqp-rti" (one SQP step per control step from the last
