@@ -44,6 +44,8 @@ def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -
 def action_array(action: Any, name: str) -> np.ndarray:
     """``action`` as a float64 array if it holds real numbers (bool, int, float); ValueError naming ``name``
     otherwise (strings, complex numbers, objects, ints too large for a float: no silent casts)."""
+    if type(action) is np.ndarray and action.dtype.kind == "f":  # (the common case, first: a step's hot path)
+        return np.asarray(action, dtype=np.float64)
     try:
         a = np.asarray(action)
     except (ValueError, TypeError):  # ragged nesting
@@ -406,7 +408,7 @@ class WheelLoaderEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._done:
             raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
-        a = action if type(action) is np.ndarray and action.dtype.kind == "f" else action_array(action, "action")
+        a = action_array(action, "action")
         if a.shape != self.action_space.shape:
             names = ("[engine-speed request, bucket, braking fraction, coasting fraction]" if self.coast else
                      "[engine-speed request, bucket, braking fraction]" if self.assist else "[fuel, bucket, brake, shift]")

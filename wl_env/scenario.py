@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES
-from wl_env.params import DEFAULT_PARAMS, LoaderParams, shown
+from wl_env.params import DEFAULT_PARAMS, LoaderParams, is_finite, shown
 
 RPM = math.pi / 30.0  # rad/s per rpm
 
@@ -81,13 +81,9 @@ class Scenario:
             allowed = f"[{spec.lo:g}, {spec.hi:g}]" + ("" if spec.unit == "-" else f" {spec.unit}")
             if isinstance(v, bool) or not isinstance(v, numbers.Real):
                 raise ValueError(f"Scenario.{name} must be a number in {allowed}, got {shown(v)} ({type(v).__name__})")
-            try:
-                v = float(v)
-            except OverflowError:  # an int too large for a float (JSON has them): outside every range
-                v = math.inf
-            if not (math.isfinite(v) and spec.lo <= v <= spec.hi):
-                raise ValueError(f"Scenario.{name} must lie in {allowed}, got {v!r}")
-            object.__setattr__(self, name, v)
+            if not (is_finite(v) and spec.lo <= float(v) <= spec.hi):  # (is_finite: ints too large for a float)
+                raise ValueError(f"Scenario.{name} must lie in {allowed}, got {shown(v)}")
+            object.__setattr__(self, name, float(v))
         if self.braking not in BRAKING_MODES:
             raise ValueError(f"Scenario.braking must be one of {BRAKING_MODES}, got {shown(self.braking)}")
 

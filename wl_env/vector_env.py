@@ -164,8 +164,7 @@ class WheelLoaderVectorEnv(VectorEnv):
     def step(self, actions: Any):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        a = (np.asarray(actions, dtype=np.float64) if type(actions) is np.ndarray and actions.dtype.kind == "f"
-             else action_array(actions, "actions"))
+        a = action_array(actions, "actions")
         n_act = self.single_action_space.shape[0]
         if a.shape != (self.num_envs, n_act):
             raise ValueError(f"actions must have shape ({self.num_envs}, {n_act}), got {a.shape}")

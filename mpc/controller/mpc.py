@@ -447,9 +447,8 @@ class MPCController:
                 # (a plan that misses a target, its limits kept, is the best the horizon can do: with
                 # replan_lag_steps it is applied while the whole cycle is re-planned beside it, if the
                 # re-plan is due before the target's step; measured, else the cycle ended off the truck)
-                short = ok and sol.excess <= EXCESS_TOL and (
-                    all(abs(v) <= HORIZON_MISS_TOL for v in sol.misses.values())
-                    or (self._before_targets(sol.misses) and self._replan_beside(x_plan, phase, k)))
+                short = ok and (sol.within(HORIZON_MISS_TOL) or (
+                    sol.excess <= EXCESS_TOL and self._before_targets(sol.misses) and self._replan_beside(x_plan, phase, k)))
                 short_time = solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}

@@ -59,7 +59,11 @@ class Solve:
 
     @property
     def feasible(self) -> bool:
-        return self.ok and all(abs(v) <= MISS_TOL for v in self.misses.values()) and self.excess <= EXCESS_TOL
+        return self.ok and self.within(MISS_TOL)
+
+    def within(self, miss_tol: float) -> bool:
+        """The plan misses no target by more than ``miss_tol`` (relative) and keeps the deceleration limit."""
+        return all(abs(v) <= miss_tol for v in self.misses.values()) and self.excess <= EXCESS_TOL
 
 
 @dataclass(frozen=True)
