@@ -125,7 +125,7 @@ class FirstPlan(NamedTuple):
     sol: Solve
     slots: dict[int, int]  # its slot layout
     params: LoaderParams  # its scenario
-    reference: Any  # its continuous reference (an OCPResult; None if it was another target's plan, stretched)
+    reference: Any  # its continuous reference (an OCPResult), or, stretched from another target's plan, that plan's
 
 
 _FIRST_PLANS: dict[FirstPlanKey, FirstPlan] = {}
