@@ -214,16 +214,19 @@ class _NLP:
         self.short = short
 
 
+@pytest.mark.parametrize("lazy", [False, True])
 @pytest.mark.parametrize("primary_ok", [True, False])
-def test_a_short_horizon_solver_takes_only_the_short_nlps(primary_ok):
+def test_a_short_horizon_solver_takes_only_the_short_nlps(primary_ok, lazy):
     primary, fallback = _Recorder(primary_ok), _Recorder(True)
-    both = FallbackSolver(primary, fallback, short_only=True)
+    both = FallbackSolver(primary, fallback, short_only=True, lazy_fallback=lazy)
     for short in (False, True):
         both.prepare(_NLP(short))
         r = both.solve(_NLP(short), {}, np.zeros(1))
         assert r.ok
     assert primary.seen == [("prepare", True), ("solve", True)]  # never a full plan
-    assert fallback.seen == [("prepare", False), ("solve", False), ("prepare", True)] + ([] if primary_ok else [("solve", True)])
+    # lazy: the short horizon's fallback is not built ahead (the full plan's is: it is that NLP's solver)
+    ahead = [] if lazy else [("prepare", True)]
+    assert fallback.seen == [("prepare", False), ("solve", False)] + ahead + ([] if primary_ok else [("solve", True)])
     assert both.handed_over == (0 if primary_ok else 1)
     if not primary_ok:
         assert r.status == "failed, then ok"

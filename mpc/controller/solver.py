@@ -369,19 +369,27 @@ class SqpRtiSolver:
 
 class FallbackSolver:
     """A solver, and another for the solves it fails (their statuses both kept). ``short_only``: the
-    first solver takes only the short horizons' NLPs (``GridNLP.short``), the fallback the full plans."""
+    first solver takes only the short horizons' NLPs (``GridNLP.short``), the fallback the full plans.
+    ``lazy_fallback``: :meth:`prepare` builds the fallback only for the NLPs it solves itself; for the
+    first solver's it is built at its first hand-over (the short horizons' IPOPT: 19-36 MB and 0.3-0.8 s
+    per layout, half their solvers' memory and build time, for solves that fail rarely: none in the
+    bench's nominal and test runs, docs/benchmarks.md section 3)."""
 
-    def __init__(self, primary: GridSolver, fallback: GridSolver, short_only: bool = False) -> None:
+    def __init__(self, primary: GridSolver, fallback: GridSolver, short_only: bool = False,
+                 lazy_fallback: bool = False) -> None:
         self.primary, self.fallback, self.short_only = primary, fallback, short_only
+        self.lazy_fallback = lazy_fallback
         self.handed_over = 0  # solves the first solver failed and the fallback took
 
     def _primary_takes(self, nlp: GridNLP) -> bool:
         return nlp.short or not self.short_only
 
     def prepare(self, nlp: GridNLP) -> None:
-        if self._primary_takes(nlp):
+        primary = self._primary_takes(nlp)
+        if primary:
             self.primary.prepare(nlp)
-        self.fallback.prepare(nlp)
+        if not (primary and self.lazy_fallback):
+            self.fallback.prepare(nlp)
 
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
@@ -397,8 +405,9 @@ class FallbackSolver:
 
 def rti_on_short_horizons(ipopt: GridSolver) -> FallbackSolver:
     """The short horizons (``MPCConfig.horizon_steps``) by the real-time iteration (hpipm), ``ipopt`` for the
-    full plans and where the iteration fails (``MPCConfig.horizon_solver`` "sqp-rti")."""
-    return FallbackSolver(SqpRtiSolver("hpipm"), ipopt, short_only=True)
+    full plans and where the iteration fails (``MPCConfig.horizon_solver`` "sqp-rti"; there built at its first
+    failure, ``lazy_fallback``)."""
+    return FallbackSolver(SqpRtiSolver("hpipm"), ipopt, short_only=True, lazy_fallback=True)
 
 
 def release_solvers() -> None:
