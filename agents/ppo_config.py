@@ -10,6 +10,7 @@ from typing import Any
 
 from wl_env import cycle
 from wl_env.params import is_finite
+from wl_env.vector_env import MAX_NUM_ENVS
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
@@ -48,7 +49,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
     "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
-    "num_envs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "num_envs": (f"an integer in [1, {MAX_NUM_ENVS}]", lambda v: _is_int(v) and 1 <= v <= MAX_NUM_ENVS),
     "log_dir": ("a non-empty folder name", lambda v: isinstance(v, str) and v.strip() != ""),
     "run_name": ("a name without path separators", lambda v: isinstance(v, str) and "/" not in v and "\\" not in v
                  and v not in (".", "..")),

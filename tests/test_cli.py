@@ -375,6 +375,7 @@ def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     (["evaluate", "--controller", "agents.operator:NoSuchClass"], "NoSuchClass"),
     (["train", "--braking", "hydraulic", "--log-dir", "{tmp}"], "braking"),
     (["train", "--num-envs", "many"], "--num-envs"),
+    (["train", "--num-envs", "1000000000", "--log-dir", "{tmp}"], "[1, 16384]"),
     (["ocp", "--objective", "speed", "--out", "{tmp}/x.json"], "--objective"),
     (["report"], "--results"),
 ])

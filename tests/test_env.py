@@ -183,6 +183,12 @@ def test_actions_that_are_not_real_numbers_raise_naming_them(action):
         venv.step([action, action] if not isinstance(action, np.ndarray) else np.stack([action, action]))
 
 
+@pytest.mark.parametrize("num_envs", [0, 16385, 10**9, 10**400, 2.0, True, "8"])
+def test_a_vector_env_size_out_of_range_is_refused_by_name(num_envs):
+    with pytest.raises(ValueError, match=r"num_envs must be an integer in \[1, 16384\]"):
+        gym.make_vec("WheelLoader-v2", num_envs=num_envs, vectorization_mode="vector_entry_point")
+
+
 def test_bad_reset_options_raise_naming_them():
     env = gym.make("WheelLoaderTarget-v3").unwrapped
     for options, match in [(["scenario"], "options must be a dict"), ("scenario", "options must be a dict"),

@@ -39,6 +39,10 @@ from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve, sh
 from wl_env.scenario import Scenario
 from wl_env.suites import Suite
 
+# loaders in one vector env: each holds its own state arrays and random generator (~2 kB); the training's 64
+# are far below, and a mistyped count (1e9) is refused by name instead of exhausting the memory
+MAX_NUM_ENVS = 16384
+
 
 class WheelLoaderVectorEnv(VectorEnv):
     """N wheel loaders in the short loading cycle (same arguments as ``WheelLoaderEnv``)."""
@@ -66,8 +70,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         assist: bool = False,
         coast: bool = False,
     ) -> None:
-        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and 1 <= num_envs <= MAX_NUM_ENVS):
+            raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}], got {shown(num_envs)}")
         if render_mode is not None:
             raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
