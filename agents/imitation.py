@@ -321,10 +321,16 @@ class CloneResult:
 
 
 def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learning_rate: float = 1e-3,
-          batch_size: int = 1024, validation_share: float = 0.1, extra: dict[str, Any] | None = None) -> CloneResult:
+          batch_size: int = 1024, validation_share: float = 0.1, extra: dict[str, Any] | None = None,
+          base: str | Path | None = None) -> CloneResult:
     """Regress the mean action of ``cfg``'s PPO policy network onto the demos' actions; the policy is saved
     as ``cfg.run_dir/final/`` (the layout of a trained run), with ``extra`` in its metadata (e.g. the
-    command). Episodes are split, not samples: the validation loss is measured on whole held-out cycles."""
+    command). Episodes are split, not samples: the validation loss is measured on whole held-out cycles.
+
+    ``base``: a trained pickle-free policy of ``cfg``'s env and braking, whose network (actor and critic) and
+    observation statistics the clone starts from (else: a fresh network, the demos' statistics). Only the
+    actor is regressed: PPO fine-tuning from the clone then starts with a critic trained on the task (a fresh
+    critic's first advantages are noise, and with them the first updates of the cloned actor)."""
     import torch as th
 
     from agents.policy_files import ObsNormalization
@@ -354,6 +360,16 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     env = make_env(cfg, num_envs=1)
     model = build_model(cfg, env, cfg.run_dir / "tb")
     policy = model.policy
+    if base is not None:
+        network, norm, _ = _read_base(base, cfg, cfg.env_id)
+        state = policy.state_dict()
+        for k, v in network.state_dict().items():
+            if k not in state or state[k].shape != v.shape:
+                env.close()
+                raise ValueError(f"base {base}: tensor {k} of shape {tuple(v.shape)} does not fit a {cfg.env_id} network "
+                                 f"of net_arch {list(cfg.net_arch)}")
+            state[k] = v.clone()
+        policy.load_state_dict(state)
     x = {k: th.as_tensor(norm.apply(v)) for k, v in obs.items()}
     y = {k: th.as_tensor(v) for k, v in act.items()}
     w = {k: th.as_tensor(np.concatenate([wt for _, wt in v])) for k, v in labelled.items()}
@@ -390,8 +406,22 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
                          train_loss=train_loss, validation_loss=val_loss, wall_time_s=wall,
                          policy=str(cfg.run_dir / "final" / "policy"))
     _save_run(model, env, norm, float(n), cfg, {"method": METHOD, "clone": result.__dict__, "epochs": epochs,
-                                                "learning_rate": learning_rate, "batch_size": batch_size, **(extra or {})})
+                                                "learning_rate": learning_rate, "batch_size": batch_size,
+                                                **({"base": str(base)} if base is not None else {}), **(extra or {})})
     return result
+
+
+def _read_base(base: str | Path, cfg: PPOConfig, env_id: str) -> tuple[Any, Any, dict[str, Any]]:
+    """A trained pickle-free policy of ``env_id`` with its observation statistics, for ``cfg``'s braking."""
+    from agents.policy_files import read_policy
+
+    network, norm, meta = read_policy(base)
+    if meta.get("config", {}).get("env_id") != env_id or norm is None:
+        raise ValueError(f"base {base} must be a {env_id} policy with its normalization, "
+                         f"got env_id {meta.get('config', {}).get('env_id')!r}")
+    if meta.get("braking", cfg.braking) != cfg.braking:
+        raise ValueError(f"base {base} drives {meta['braking']} braking; the config's is {cfg.braking}")
+    return network, norm, meta
 
 
 def _save_run(model: Any, env: Any, norm: Any, count: float, cfg: PPOConfig, meta: dict[str, Any]) -> None:
@@ -433,17 +463,11 @@ def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOCon
     fine-tuning (``init_policy``) then learns when to coast. Saved as ``cfg.run_dir/final/`` like :func:`clone`."""
     import torch as th
 
-    from agents.policy_files import read_policy
     from agents.ppo import build_model, make_env
 
     if cfg.env_id != DRIVER_ENV_IDS[1]:
         raise ValueError(f"graft_early_shift makes a {DRIVER_ENV_IDS[1]} policy; the config's env is {cfg.env_id}")
-    network, norm, meta = read_policy(base)
-    if meta.get("config", {}).get("env_id") != DRIVER_ENV_IDS[0] or norm is None:
-        raise ValueError(f"base {base} must be a {DRIVER_ENV_IDS[0]} policy with its normalization, "
-                         f"got env_id {meta.get('config', {}).get('env_id')!r}")
-    if meta.get("braking", cfg.braking) != cfg.braking:
-        raise ValueError(f"base {base} drives {meta['braking']} braking; the config's is {cfg.braking}")
+    network, norm, meta = _read_base(base, cfg, DRIVER_ENV_IDS[0])
     good = [d for d in demos if usable(d) and d.get("env_id") == DEMO_ENV_ID[cfg.env_id]]
     if len(good) < 2:
         raise ValueError(f"{len(good)} usable {DEMO_ENV_ID[cfg.env_id]} demonstration episodes (of {len(demos)}): need at least 2")

@@ -17,6 +17,8 @@
 4. ``--graft-base POLICY`` (WheelLoaderTarget-v3): no clone; the trained v2 policy POLICY is kept and only
    v3's fourth action, the coasting fraction, is fitted to the expert's shifts
    (``agents.imitation.graft_early_shift``), a start for PPO fine-tuning (``--init-policy``).
+   ``--clone-base POLICY``: the clone starts from the trained policy POLICY of its env (its network and
+   observation statistics) and keeps its critic, a start for PPO fine-tuning with a trained critic.
 5. ``--export PATH``: shipped pickle-free with a fresh evaluation at three targets (agents.ppo.export_policy).
 """
 
@@ -61,6 +63,8 @@ class Options:
     dagger_episodes: int = 20  # episodes the clone drives per round
     beta: float = 0.2  # DAgger: the chance per step that the expert's action is applied instead of the clone's
     graft_base: str = ""  # a trained WheelLoaderTarget-v2 policy: keep it and fit only v3's coasting fraction onto it
+    clone_base: str = ""  # a trained policy of the clone's env: the clone starts from its network and observation
+    # statistics, and keeps its critic (for PPO fine-tuning from the clone: --init-policy <run>/final/policy)
     env_id: str = "WheelLoaderTarget-v1"  # the clone's env (v0: action 0 the injection; v2/v3: the assisted driver,
     # labelled from v1 demonstrations)
 
@@ -84,6 +88,8 @@ def main(o: Options, command: str) -> int:
     if o.env_id in DRIVER_ENV_IDS and o.dagger_rounds:
         raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: an assisted driver's braking labels come "
                          f"from the expert's own cycle (where it shifted and braked), not from states a clone visits")
+    if o.graft_base and o.clone_base:
+        raise ValueError("give graft_base or clone_base, not both")
     if o.graft_base and (o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export):
         raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
                          f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
@@ -106,7 +112,8 @@ def main(o: Options, command: str) -> int:
         log.info("grafted the coasting fraction onto %s from %d episodes: squared error %.4f (a constant's %.4f) -> %s",
                  o.graft_base, graft.episodes, graft.loss, graft.constant_loss, graft.policy)
         return 0
-    fit = {"epochs": o.epochs, "learning_rate": o.learning_rate, "batch_size": o.batch_size, "extra": meta}
+    fit = {"epochs": o.epochs, "learning_rate": o.learning_rate, "batch_size": o.batch_size, "extra": meta,
+           "base": o.clone_base or None}
     result = clone(demos, cfg, **fit)
     log.info("cloned %d episodes (%d dropped), %d samples: validation loss %.5f -> %s", result.episodes,
              result.episodes_dropped, result.samples, result.validation_loss, result.policy)

@@ -274,6 +274,33 @@ def test_grafting_the_coasting_fraction_keeps_the_v2_policy(tmp_path, braking):
         graft_early_shift(base, demos, PPOConfig(**{**cfg.__dict__, "env_id": "WheelLoaderTarget-v2"}))
 
 
+def test_a_clone_from_a_base_keeps_its_critic_and_statistics_and_fits_the_expert(tmp_path):
+    """clone(base=...): the regression starts from the shipped v3 policy; its critic and observation
+    statistics are kept as they are, its actor comes closer to the expert's labels than the base's; a base
+    of another env is refused by name."""
+    import torch as th
+
+    from agents.imitation import clone, labels
+
+    demos = collect_demos(DemoSettings("service", seed=3, expert="operator"), 3, tmp_path / "demos")
+    base = POLICIES / "ppo_target_service"
+    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v3", scenario="train", init_noise=0.0,
+                    log_dir=str(tmp_path), run_name="clone", progress_bar=False)
+    result = clone(demos, cfg, epochs=30, validation_share=0.34, base=base)
+    cloned, shipped = load_policy(cfg.run_dir), load_policy(base)
+    assert cloned.meta["base"] == str(base)
+    np.testing.assert_array_equal(cloned.normalization.mean, shipped.normalization.mean)
+    obs = np.concatenate([d["obs"] for d in demos])
+    values = [p.network.predict_values(th.as_tensor(p.normalize(obs))).detach().numpy() for p in (cloned, shipped)]
+    np.testing.assert_allclose(values[0], values[1], atol=1e-6)  # the critic untouched
+    y, w = (np.concatenate(v) for v in zip(*(labels(d, cfg.env_id, "service") for d in demos), strict=True))
+    loss = [float(np.mean(w * (p.network.get_distribution(th.as_tensor(p.normalize(obs))).distribution.mean
+                                .detach().numpy() - y) ** 2)) for p in (cloned, shipped)]
+    assert loss[0] < 0.5 * loss[1], (loss, result)
+    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v3 policy"):
+        clone(demos, PPOConfig(**{**cfg.__dict__, "run_name": "again"}), epochs=1, base=POLICIES / "ppo_target_v2_service")
+
+
 def test_an_untrained_v3_policy_starts_without_early_coasting(tmp_path):
     """WheelLoaderTarget-v3's fourth action is the coasting fraction: PPO starts it at coast_bias_init (+1:
     95 % of the limit, so the untrained driver drives v2's cycles), not at the shift action's "hold" (-1,
