@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from wl_env import cycle
-from wl_env.params import is_finite
-from wl_env.vector_env import MAX_NUM_ENVS
+from wl_env.params import MAX_NUM_ENVS, is_finite
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium

@@ -180,8 +180,8 @@ def test_driver_labels_replay_the_experts_cycle_through_the_assist(tmp_path, bra
 
 
 # ---------------------------------------------------------------------------------------------- shipped
-# the shipped target-conditioned policies (agents.evaluate.SHIPPED_POLICIES; the imitation baseline is not shipped:
-# its clones miss the marks in most test cycles, docs/benchmarks.md section 7)
+# the shipped target-conditioned policies (agents.evaluate.SHIPPED_POLICIES): PPO, and the imitation baseline (a clone
+# of the MPC fine-tuned by PPO, docs/benchmarks.md section 7)
 SHIPPED = [(k, b) for k in ("ppo-target", "bc") for b in ("service", "tc")]
 
 

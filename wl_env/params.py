@@ -444,6 +444,11 @@ def resolve(params: LoaderParams | dict | None) -> LoaderParams:
 # symbols of an NLP parametric in the scenario. The model reads them, and M_tot and F_roll derived from them.
 SCENARIO_FIELDS = ("M_load", "c_r", "H_T", "H_0", "omega_0", "reverse_distance", "forward_distance")
 
+# loaders in one vector env (wl_env.vector_env; PPOConfig.num_envs): each holds its own state arrays and random
+# generator (~2 kB); the training's 64 are far below, and a mistyped count (1e9) is refused by name instead of
+# exhausting the memory
+MAX_NUM_ENVS = 16384
+
 
 class ParamsView:
     """A :class:`LoaderParams` whose scenario fields (:data:`SCENARIO_FIELDS`) hold other values: numpy

@@ -35,13 +35,9 @@ from wl_env.env import (
     target_features,
 )
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve, shown
+from wl_env.params import MAX_NUM_ENVS, SCENARIO_FIELDS, LoaderParams, ParamsView, resolve, shown
 from wl_env.scenario import Scenario
 from wl_env.suites import Suite
-
-# loaders in one vector env: each holds its own state arrays and random generator (~2 kB); the training's 64
-# are far below, and a mistyped count (1e9) is refused by name instead of exhausting the memory
-MAX_NUM_ENVS = 16384
 
 
 class WheelLoaderVectorEnv(VectorEnv):
