@@ -361,7 +361,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     model = build_model(cfg, env, cfg.run_dir / "tb")
     policy = model.policy
     if base is not None:
-        network, norm, _ = _read_base(base, cfg, cfg.env_id)
+        network, norm, _ = read_base(base, cfg, cfg.env_id)
         state = policy.state_dict()
         for k, v in network.state_dict().items():
             if k not in state or state[k].shape != v.shape:
@@ -411,7 +411,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     return result
 
 
-def _read_base(base: str | Path, cfg: PPOConfig, env_id: str) -> tuple[Any, Any, dict[str, Any]]:
+def read_base(base: str | Path, cfg: PPOConfig, env_id: str) -> tuple[Any, Any, dict[str, Any]]:
     """A trained pickle-free policy of ``env_id`` with its observation statistics, for ``cfg``'s braking."""
     from agents.policy_files import read_policy
 
@@ -467,7 +467,7 @@ def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOCon
 
     if cfg.env_id != DRIVER_ENV_IDS[1]:
         raise ValueError(f"graft_early_shift makes a {DRIVER_ENV_IDS[1]} policy; the config's env is {cfg.env_id}")
-    network, norm, meta = _read_base(base, cfg, DRIVER_ENV_IDS[0])
+    network, norm, meta = read_base(base, cfg, DRIVER_ENV_IDS[0])
     good = [d for d in demos if usable(d) and d.get("env_id") == DEMO_ENV_ID[cfg.env_id]]
     if len(good) < 2:
         raise ValueError(f"{len(good)} usable {DEMO_ENV_ID[cfg.env_id]} demonstration episodes (of {len(demos)}): need at least 2")

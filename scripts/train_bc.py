@@ -93,6 +93,13 @@ def main(o: Options, command: str) -> int:
     if o.graft_base and (o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export):
         raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
                          f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
+    if o.clone_base or o.graft_base:  # (read and checked now, not after an hour of demonstrations)
+        from agents.imitation import read_base
+
+        if o.clone_base:
+            read_base(o.clone_base, cfg, o.env_id)
+        else:
+            read_base(o.graft_base, cfg, DRIVER_ENV_IDS[0])
     demo_env = DEMO_ENV_ID[o.env_id]  # (an assisted driver is cloned from the expert's own v1 cycles)
     settings = DemoSettings(o.braking, o.demo_seed, tuple(o.target), o.fast_share, env_id=demo_env)
     folder = o.demos or str(Path(o.log_dir) / f"demos_{demo_env}_{o.braking}_s{o.demo_seed}")

@@ -240,10 +240,14 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
 @pytest.mark.parametrize("args,message", [
     (["--env-id", "WheelLoaderTarget-v3", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v3"),
     (["--env-id", "WheelLoaderTarget-v2", "--graft-base", "agents/policies/ppo_target_v2_tc"],
-     "graft_base needs env_id WheelLoaderTarget-v3")])
+     "graft_base needs env_id WheelLoaderTarget-v3"),
+    (["--braking", "tc", "--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/ppo_target_service"],
+     "drives service braking"),
+    (["--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/no_such_policy"], "no_such_policy")])
 def test_train_bc_refuses_what_an_assisted_driver_cannot_take(tmp_path, args, message):
     """The assisted drivers' braking labels come from the expert's own cycle: DAgger (the clone drives) is
-    refused by name; a graft is v3's only. Exit 2, no traceback, before any demonstration is collected."""
+    refused by name; a graft is v3's only; a clone's base of another braking, or missing, is refused. Exit 2, no
+    traceback, before any demonstration is collected."""
     import subprocess
     import sys
 
