@@ -355,21 +355,21 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     act = {k: np.concatenate([a for a, _ in v]) for k, v in labelled.items()}
     norm = ObsNormalization(obs["train"].mean(0).astype(np.float64), obs["train"].var(0).astype(np.float64))
 
+    network = None
+    if base is not None:  # (read before the env is made: a bad base leaves nothing open)
+        network, norm, _ = read_base(base, cfg, cfg.env_id)
+
     th.manual_seed(cfg.seed)
     th.set_num_threads(max(1, cfg.torch_threads))
     env = make_env(cfg, num_envs=1)
     model = build_model(cfg, env, cfg.run_dir / "tb")
     policy = model.policy
-    if base is not None:
-        network, norm, _ = read_base(base, cfg, cfg.env_id)
-        state = policy.state_dict()
-        for k, v in network.state_dict().items():
-            if k not in state or state[k].shape != v.shape:
-                env.close()
-                raise ValueError(f"base {base}: tensor {k} of shape {tuple(v.shape)} does not fit a {cfg.env_id} network "
-                                 f"of net_arch {list(cfg.net_arch)}")
-            state[k] = v.clone()
-        policy.load_state_dict(state)
+    if network is not None:
+        try:
+            _start_from(policy, network, base, cfg)
+        except ValueError:
+            env.close()
+            raise
     x = {k: th.as_tensor(norm.apply(v)) for k, v in obs.items()}
     y = {k: th.as_tensor(v) for k, v in act.items()}
     w = {k: th.as_tensor(np.concatenate([wt for _, wt in v])) for k, v in labelled.items()}
@@ -409,6 +409,24 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
                                                 "learning_rate": learning_rate, "batch_size": batch_size,
                                                 **({"base": str(base)} if base is not None else {}), **(extra or {})})
     return result
+
+
+def _start_from(policy: Any, network: Any, base: str | Path, cfg: PPOConfig, one_more_action: bool = False) -> None:
+    """``policy`` (a fresh ``cfg`` network) loaded with the trained ``network``'s weights, actor and critic; with
+    ``one_more_action`` the action head has a row more than the base's, left as it is (the graft fits it)."""
+    state = policy.state_dict()
+    for k, v in network.state_dict().items():
+        if k not in state:
+            raise ValueError(f"base {base}: tensor {k} has no place in a {cfg.env_id} network of net_arch {list(cfg.net_arch)}")
+        if state[k].shape == v.shape:
+            state[k] = v.clone()
+        elif (one_more_action and k in ("action_net.weight", "action_net.bias", "log_std")
+              and state[k].shape[0] == v.shape[0] + 1):
+            state[k][:v.shape[0]] = v
+        else:
+            raise ValueError(f"base {base}: {k} has shape {tuple(v.shape)}, the {cfg.env_id} network "
+                             f"{tuple(state[k].shape)} (net_arch {list(cfg.net_arch)})")
+    policy.load_state_dict(state)
 
 
 def read_base(base: str | Path, cfg: PPOConfig, env_id: str) -> tuple[Any, Any, dict[str, Any]]:
@@ -475,22 +493,11 @@ def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOCon
     env = make_env(cfg, num_envs=1)
     model = build_model(cfg, env, cfg.run_dir / "tb")
     policy = model.policy
-    state = policy.state_dict()
-    for k, v in network.state_dict().items():
-        if k not in state:
-            raise ValueError(f"base {base}: tensor {k} has no place in a {cfg.env_id} network of net_arch {list(cfg.net_arch)}")
-        if state[k].shape == v.shape:
-            state[k] = v.clone()
-        elif k in ("action_net.weight", "action_net.bias", "log_std") and state[k].shape[0] == v.shape[0] + 1:
-            state[k][:v.shape[0]] = v  # v2's three actions; the fourth is fitted below
-        else:
-            raise ValueError(f"base {base}: {k} has shape {tuple(v.shape)}, the {cfg.env_id} network "
-                             f"{tuple(state[k].shape)} (net_arch {list(cfg.net_arch)})")
+    _start_from(policy, network, base, cfg, one_more_action=True)  # (v2's three actions; the fourth fitted below)
     labelled = [driver_labels(d["obs"], d["actions"], d["scenario"], cfg.braking, coast=True) for d in good]
     obs = np.concatenate([d["obs"] for d in good])
     y = np.concatenate([a[:, COAST] for a, _ in labelled]).astype(np.float64)
     w = np.concatenate([wt[:, COAST] for _, wt in labelled]).astype(np.float64)
-    policy.load_state_dict(state)
     with th.no_grad():
         z = th.as_tensor(norm.apply(obs), dtype=th.float32)
         features = policy.mlp_extractor.forward_actor(policy.extract_features(z, policy.pi_features_extractor))
