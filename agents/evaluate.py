@@ -540,6 +540,15 @@ def _episode_line(r: dict[str, Any]) -> str:
             f"fuel gap {_pct(r['fuel_gap'])}, max violation {100 * r['max_violation']:.1f} %")
 
 
+# the aggregate keys issue #14 names for `wl evaluate`'s JSON (its "aggregate"; the same values as in "summary")
+AGGREGATE_KEYS = ("success_rate", "time_gap_median", "fuel_gap_median", "fuel_gap_p90", "lateness_median")
+
+
+def aggregate(result: dict[str, Any]) -> dict[str, Any]:
+    """The headline aggregates of an :func:`evaluate_controller` result (:data:`AGGREGATE_KEYS`)."""
+    return {k: result["summary"][k] for k in AGGREGATE_KEYS}
+
+
 def summary_line(result: dict[str, Any], name: str) -> str:
     """One line of an :func:`evaluate_controller` result, for the command line."""
     s = result["summary"]

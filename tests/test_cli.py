@@ -117,6 +117,9 @@ def test_evaluate_operator_nominal_then_perturbed_and_scored(tmp_path, cache, ca
     _check_scores(eps, "service")
     s = r["summary"]
     assert s["success_rate"] == np.mean([e["success"] for e in eps])
+    # issue #14's "aggregate": its keys, the summary's values
+    assert r["aggregate"] == {k: s[k] for k in ("success_rate", "time_gap_median", "fuel_gap_median", "fuel_gap_p90",
+                                                "lateness_median")}
     assert s["completion_rate"] == 1.0 and s["scored"] == 2
     assert s["fuel_gap"]["mean"] == pytest.approx(np.mean([e["fuel_gap"] for e in eps]))
     assert s["T"]["max"] == max(e["T"] for e in eps)

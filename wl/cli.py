@@ -177,7 +177,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
 
 def _evaluate_cmd(args: argparse.Namespace) -> int:
-    from agents.evaluate import evaluate_controller, load_controller, summary_line
+    from agents.evaluate import aggregate, evaluate_controller, load_controller, summary_line
     from wl_env.atomic_io import write_json_atomic
     from wl_env.suites import load_suite
 
@@ -201,7 +201,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
                             name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
                             scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
                             target_ratio=args.target_ratio)
-    r = {"controller": args.controller, "model": args.model, "suite": args.suite, **r}
+    r = {"controller": args.controller, "model": args.model, "suite": args.suite, "aggregate": aggregate(r), **r}
     write_json_atomic(out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
     return 0
