@@ -307,6 +307,35 @@ def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return weights
 
 
+def check_demo_env(demos: list[dict[str, Any]], env_id: str) -> None:
+    """ValueError unless every episode of ``demos`` is of the env whose labels ``env_id`` takes."""
+    envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
+    if envs != {DEMO_ENV_ID[env_id]}:
+        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; {env_id} needs "
+                         f"{DEMO_ENV_ID[env_id]} episodes")
+
+
+def demo_samples(demos: list[dict[str, Any]], env_id: str, braking: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The raw observations, the ``env_id`` action labels and their weights of ``demos``' steps, stacked."""
+    labelled = [labels(d, env_id, braking) for d in demos]
+    return (np.concatenate([d["obs"] for d in demos]), np.concatenate([a for a, _ in labelled]),
+            np.concatenate([w for _, w in labelled]))
+
+
+def read_demo_folder(folder: str | Path, env_id: str) -> list[dict[str, Any]]:
+    """The usable episodes of a demonstration folder (:func:`collect_demos`' layout) for ``env_id``'s labels;
+    ValueError if there are none or they are another env's."""
+    paths = sorted(Path(folder).glob("episode_*.npz"))
+    if not paths:
+        raise ValueError(f"bc_demos {folder}: no demonstration episodes (episode_*.npz) in it")
+    demos = [read_demo(p) for p in paths]
+    check_demo_env(demos, env_id)
+    good = [d for d in demos if usable(d)]
+    if not good:
+        raise ValueError(f"bc_demos {folder}: none of its {len(demos)} episodes is usable (targets met, no violation)")
+    return good
+
+
 @dataclass
 class CloneResult:
     """What :func:`clone` did: the demos used, the fit, and where the policy is."""
@@ -336,10 +365,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     from agents.policy_files import ObsNormalization
     from agents.ppo import build_model, make_env
 
-    envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
-    if envs != {DEMO_ENV_ID[cfg.env_id]}:
-        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; a {cfg.env_id} clone needs "
-                         f"{DEMO_ENV_ID[cfg.env_id]} episodes")
+    check_demo_env(demos, cfg.env_id)
     if not cfg.norm_obs:
         raise ValueError("behaviour cloning normalizes the observations by the demos' statistics: norm_obs must be true")
     good = [d for d in demos if usable(d)]
@@ -350,9 +376,8 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     order = rng.permutation(len(good))
     n_val = max(1, int(round(validation_share * len(good))))
     parts = {"val": [good[i] for i in order[:n_val]], "train": [good[i] for i in order[n_val:]]}
-    obs = {k: np.concatenate([d["obs"] for d in v]) for k, v in parts.items()}
-    labelled = {k: [labels(d, cfg.env_id, cfg.braking) for d in v] for k, v in parts.items()}
-    act = {k: np.concatenate([a for a, _ in v]) for k, v in labelled.items()}
+    samples = {k: demo_samples(v, cfg.env_id, cfg.braking) for k, v in parts.items()}
+    obs, act = {k: v[0] for k, v in samples.items()}, {k: v[1] for k, v in samples.items()}
     norm = ObsNormalization(obs["train"].mean(0).astype(np.float64), obs["train"].var(0).astype(np.float64))
 
     network = None
@@ -372,7 +397,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
             raise
     x = {k: th.as_tensor(norm.apply(v)) for k, v in obs.items()}
     y = {k: th.as_tensor(v) for k, v in act.items()}
-    w = {k: th.as_tensor(np.concatenate([wt for _, wt in v])) for k, v in labelled.items()}
+    w = {k: th.as_tensor(v[2]) for k, v in samples.items()}
     params = list(policy.mlp_extractor.policy_net.parameters()) + list(policy.action_net.parameters())
     optimizer = th.optim.Adam(params, lr=learning_rate)
 

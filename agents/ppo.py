@@ -415,8 +415,11 @@ def _curve_row(nominal: dict[str, Any], episodes: list[dict[str, Any]]) -> dict[
 
 
 # ---------------------------------------------------------------------------------------------- training
-def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]) -> tuple[Any, Any]:
-    """The run's callbacks (a ``CallbackList``) and its evaluation (``train`` evaluates once more at the end).
+def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
+               demos: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[Any, Any]:
+    """The run's callbacks (a ``CallbackList``) and its evaluation (``train`` evaluates once more at the end);
+    ``demos`` (raw observations, action labels, weights: :func:`agents.imitation.demo_samples`) for
+    ``cfg.bc_demos``' regularization.
 
     stable-baselines3's own pieces do the scheduling and saving: ``EveryNTimesteps`` triggers the
     evaluations, ``CheckpointCallback`` (``save_vecnormalize=True``) saves the checkpoints. What SB3 lacks
@@ -544,11 +547,50 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any]) -> tuple[An
                 return False
             return True
 
+    class BehaviourCloningRegularizer(BaseCallback):
+        # Kept: SB3 has no demonstration-augmented policy gradient (DAPG's idea: the expert's actions pull
+        # on the actor with a weight that decays). Before each rollout the actor takes as many steps on the
+        # demos' weighted squared action error (clone's loss) as PPO takes on its own loss, through PPO's own
+        # optimizer, so that the weight sets the pull against PPO's steps (a separate Adam would normalize
+        # it away); before the rollout, so that PPO's ratios start at 1 on the policy that collected it.
+        def __init__(self) -> None:
+            super().__init__()
+            obs, act, weights = demos
+            self.obs, self.act, self.weights = obs, th.as_tensor(act, dtype=th.float32), th.as_tensor(weights)
+
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_start(self) -> None:
+            frac = self.num_timesteps / max(1, cfg.total_timesteps)
+            weight = cfg.bc_weight * max(0.0, 1.0 - frac / cfg.bc_fraction)
+            self.logger.record("train/bc_weight", weight)
+            if weight <= 0.0:
+                return
+            vn = _vecnorm_of(self.training_env)
+            x = th.as_tensor(vn.normalize_obs(self.obs) if vn is not None else self.obs, dtype=th.float32)
+            policy = self.model.policy
+            policy.set_training_mode(True)
+            rng = np.random.default_rng([cfg.seed, self.num_timesteps])  # (a resumed run draws the same batches)
+            for _ in range(cfg.n_epochs * max(1, cfg.n_steps * cfg.num_envs // cfg.batch_size)):
+                b = th.as_tensor(rng.integers(0, len(x), size=min(cfg.batch_size, len(x))))
+                mean = policy.get_distribution(x[b]).distribution.mean
+                loss = th.mean(self.weights[b] * (mean - self.act[b]) ** 2)
+                policy.optimizer.zero_grad()
+                (weight * loss).backward()
+                th.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm)
+                policy.optimizer.step()
+            policy.set_training_mode(False)
+            self.logger.record("train/bc_loss", float(loss.detach()))
+
     evaluation = ScoredEvaluation()
     every = EveryNTimesteps(n_steps=cfg.eval_freq, callback=evaluation)
     every.last_time_trigger = state["last_eval"] or 0  # on resume: the schedule goes on from the checkpoint's
     # The evaluation runs before the checkpoint of the same step, so that its progress.json records it.
-    return CallbackList([Curriculum(), every, RunCheckpoint(), WallTimeLimit()]), evaluation
+    run = [Curriculum(), every, RunCheckpoint(), WallTimeLimit()]
+    if demos is not None:
+        run.insert(1, BehaviourCloningRegularizer())  # (after the curriculum's std cap, before the rollout)
+    return CallbackList(run), evaluation
 
 
 def _eval_line(row: dict[str, Any]) -> str:
@@ -725,6 +767,11 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
             log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise FileExistsError(f"{run_dir} already holds a run; pass resume=True (--resume) or another run name")
+    demos = None
+    if cfg.bc_demos:  # (read and checked before anything is built or written)
+        from agents.imitation import demo_samples, read_demo_folder
+
+        demos = demo_samples(read_demo_folder(cfg.bc_demos, cfg.env_id), cfg.env_id, cfg.braking)
     if command:
         commands.append(command)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -754,7 +801,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     remaining = cfg.total_timesteps - step
     if remaining > 0:
-        run_callbacks, evaluation = _callbacks(cfg, run_dir, state)
+        run_callbacks, evaluation = _callbacks(cfg, run_dir, state, demos)
         model.learn(total_timesteps=remaining, callback=[run_callbacks, *(callbacks or [])],
                     reset_num_timesteps=ckpt is None, tb_log_name="PPO", progress_bar=cfg.progress_bar)
         if state["last_eval"] != model.num_timesteps:

@@ -95,6 +95,9 @@ _RULES: dict[str, tuple[str, Any]] = {
     "score": ("true or false", lambda v: isinstance(v, bool)),
     "checkpoint_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "keep_checkpoints": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "bc_demos": ("'' or a folder of demonstration episodes", lambda v: isinstance(v, str)),
+    "bc_weight": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "bc_fraction": ("a number in (0, 1]", lambda v: _is_num(v) and 0 < v <= 1),
 }
 
 
@@ -183,6 +186,14 @@ class PPOConfig:
     score: bool = field(default=True, metadata={"help": "score evaluations against the Pareto front (mpc)"})
     checkpoint_freq: int = field(default=500_000, metadata={"help": "checkpoint every this many steps"})
     keep_checkpoints: int = field(default=2, metadata={"help": "checkpoints kept on disk"})
+    # --- behaviour-cloning regularization (DAPG-style: keeps a cloned policy near its expert while PPO tunes it)
+    bc_demos: str = field(default="", metadata={
+        "help": "folder of MPC demonstration episodes (scripts/train_bc.py) whose labels the actor is also fitted to "
+                "after each rollout, target envs only ('': off)"})
+    bc_weight: float = field(default=1.0, metadata={
+        "help": "weight of the behaviour-cloning loss (the weighted squared error of the mean action) at the "
+                "start, against PPO's loss; decays linearly to 0"})
+    bc_fraction: float = field(default=1.0, metadata={"help": "fraction of training over which bc_weight decays to 0"})
 
     def __post_init__(self) -> None:
         """Every field checked for type and range (ConfigError naming it): a run with nonsense settings
@@ -205,6 +216,9 @@ class PPOConfig:
         if self.scenario and self.env_id == "WheelLoader-v1":
             raise ConfigError("scenario", "'' with WheelLoader-v1 (it does not observe the scenario; use "
                               "WheelLoader-v2 or WheelLoaderTarget-v0/v1)", self.scenario)
+        if self.bc_demos and self.env_id not in TARGET_ENV_IDS:
+            raise ConfigError("bc_demos", f"'' with {self.env_id} (demonstrations are episodes of the target "
+                              f"envs {', '.join(TARGET_ENV_IDS)})", self.bc_demos)
         self.target = tuple(float(x) for x in self.target)
         self.reward = {k: float(v) for k, v in self.reward.items()}
         self.curriculum_start = {k: float(v) for k, v in self.curriculum_start.items()}

@@ -317,3 +317,44 @@ def test_an_untrained_v3_policy_starts_without_early_coasting(tmp_path):
     assert float(model.policy.action_net.bias[3]) == cfg.coast_bias_init == 1.0
     assert float(model.policy.action_net.bias[1]) == cfg.bucket_bias_init
     env.close()
+
+
+def _demo_loss(policy, demos, env_id: str) -> float:
+    import torch as th
+
+    from agents.imitation import demo_samples
+
+    obs, y, w = demo_samples(demos, env_id, "service")
+    mean = policy.network.get_distribution(th.as_tensor(policy.normalize(obs))).distribution.mean.detach().numpy()
+    return float(np.mean(w * (mean - y) ** 2))
+
+
+def test_behaviour_cloning_regularization_pulls_the_actor_to_the_demonstrations(tmp_path):
+    """--bc-demos: between PPO's updates the actor is fitted to the demonstrations' labels with a decaying
+    weight (DAPG-style). The same run with the weight 0 is the control: same seed, same rollouts at first."""
+    from agents.ppo import train
+
+    demos = collect_demos(DemoSettings("service", seed=3, expert="operator"), 2, tmp_path / "demos")
+    loss = {}
+    for weight in (0.0, 5.0):
+        cfg = _tiny(tmp_path, env_id="WheelLoaderTarget-v3", run_name=f"bc{weight:g}", learning_rate=3e-3, n_epochs=8,
+                    bc_demos=str(tmp_path / "demos"), bc_weight=weight)
+        train(cfg)
+        loss[weight] = _demo_loss(load_policy(cfg.run_dir), demos, cfg.env_id)
+    assert loss[5.0] < 0.5 * loss[0.0], loss
+
+
+def test_behaviour_cloning_regularization_refuses_what_it_cannot_use(tmp_path):
+    from agents.ppo import train
+    from agents.ppo_config import ConfigError
+
+    with pytest.raises(ConfigError, match="bc_demos"):
+        PPOConfig(env_id="WheelLoader-v1", bc_demos=str(tmp_path))
+    with pytest.raises(ConfigError, match="bc_fraction"):
+        _tiny(tmp_path, bc_fraction=0.0)
+    with pytest.raises(ValueError, match="no demonstration episodes"):
+        train(_tiny(tmp_path, env_id="WheelLoaderTarget-v3", bc_demos=str(tmp_path / "none")))
+    collect_demos(DemoSettings("service", seed=3, expert="operator", env_id=TARGET_ENV_ID), 1, tmp_path / "v0")
+    with pytest.raises(ValueError, match="needs WheelLoaderTarget-v1 episodes"):
+        train(_tiny(tmp_path, env_id="WheelLoaderTarget-v3", bc_demos=str(tmp_path / "v0")))
+    assert not (tmp_path / "tiny").exists()  # refused before the run folder was written
