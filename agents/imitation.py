@@ -55,8 +55,12 @@ class DemoSettings:
     env_id: str = "WheelLoaderTarget-v1"  # v1: action 0 an engine-speed request (the governor's); v0: the injection
 
     def __post_init__(self) -> None:
-        if self.env_id not in TARGET_ENV_IDS[:2]:  # (v2's driver actions are not the MPC's controls)
-            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])}, got {self.env_id!r}")
+        if self.env_id not in TARGET_ENV_IDS[:2] and not (self.env_id == TARGET_ENV_IDS[3] and self.learner
+                                                           and self.expert == "mpc"):
+            # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 a DAgger
+            # learner drives and the MPC's plans label its states, plan_labels)
+            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])} (or {TARGET_ENV_IDS[3]} with a "
+                             f"learner and the MPC as the expert: DAgger), got {self.env_id!r}")
         if self.expert not in EXPERTS:
             raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         from wl_env.cycle import check_braking
@@ -104,6 +108,8 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         from agents.ppo import load_policy
 
         learner = load_policy(settings.learner)
+    if settings.env_id == TARGET_ENV_IDS[3]:
+        return _driver_dagger_episode(settings, env, expert, learner, rng, obs, scenario, target_time, fast)
     observations, actions = [], []
     done = False
     core = env.unwrapped
@@ -130,10 +136,80 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
             "learner": settings.learner, "env_id": settings.env_id}
 
 
+def _driver_dagger_episode(settings: DemoSettings, env: Any, expert: Any, learner: Any, rng: np.random.Generator,
+                           obs: np.ndarray, scenario: Any, target_time: float, fast: bool) -> dict[str, Any]:
+    """A DAgger episode of a WheelLoaderTarget-v3 driver: the learner drives (the label's action with
+    probability ``beta``), the MPC plans from every state it visits and its plan labels it
+    (:func:`plan_labels`); the MPC is told what the assist applied. Stored with its labels and weights."""
+    core = env.unwrapped
+    p, dt = core.params, core.core.dt
+    observations, labelled, weights = [], [], []
+    done = False
+    while not done:
+        a = np.asarray(expert.act(obs), dtype=np.float32)
+        request = core.core.translate_fuel_action(core.state, core.phase, a, to="engine_speed")
+        label, weight = plan_labels(expert.planned_steps(), int(core.phase), float(request), float(a[1]), p,
+                                    settings.braking, dt)
+        observations.append(obs)
+        labelled.append(label)
+        weights.append(weight)
+        drive = label if rng.uniform() < settings.beta else np.asarray(learner.act(obs), dtype=np.float32)
+        phase = int(core.phase)
+        obs, _, term, trunc, info = env.step(drive)
+        shift = phase in (1, 3) and int(info["phase"]) > phase
+        expert.applied(expert.action(np.asarray(info["controls"], dtype=float), shift))
+        done = term or trunc
+    env.close()
+    return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(labelled, np.float32),
+            "weights": np.asarray(weights, np.float32), "scenario": scenario.to_dict(), "target_time": target_time,
+            "fast": fast, "T": float(info["t"]), "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
+            "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
+            "learner": settings.learner, "env_id": settings.env_id}
+
+
+def plan_labels(plan: dict[str, np.ndarray] | None, phase: int, request: float, bucket: float, p: Any, braking: str,
+                dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """WheelLoaderTarget-v3's driver action at a state the MPC planned from, and its weights: the request
+    and bucket are the MPC's (``request`` its injection as the governor's request), the braking and coasting
+    fractions those at which the assist would brake and end the leg where the plan does (as
+    :func:`driver_labels` reads them off the expert's own cycle): the coasting fraction from the plan's
+    shift, the braking fraction from its service brakes' onset (with TC braking in phase 1: from its shift).
+    Weight 0 where an action does nothing (as :func:`driver_labels`) or the plan does not say (no plan,
+    or its event already behind)."""
+    from wl_env.assist import COAST_FRACTION, coasting_legs, fraction_action
+    from wl_env.codec import Codec
+
+    label = np.array([request, bucket, 1.0, 1.0], dtype=np.float32)
+    weight = np.array([1.0, 1.0, 0.0, 0.0], dtype=np.float32)
+    leg = phase if phase in (1, 3) else phase - 1
+    legs = coasting_legs(braking)
+    if braking == "tc" and phase == 2:
+        weight[0] = 0.0  # (the assist meters the converter there)
+    if plan is None or phase == 2 and braking == "tc":
+        return label, weight
+    phases, states, codec = np.asarray(plan["phase"]), np.asarray(plan["states"]), Codec(p)
+
+    def fraction_at(j: int, bounds: tuple[float, float] | None = None) -> float:
+        speed, to_go = abs(float(states[j][1])), float(codec.distance_to_go(states[j][4], leg))
+        return float(fraction_action(speed, to_go, p, dt, *(() if bounds is None else (bounds,))))
+
+    shift = np.flatnonzero(phases > leg)
+    if leg in legs:
+        onset = np.flatnonzero((phases == leg + 1) & (np.asarray(plan["controls"])[:, 2] > 0.0))
+        if onset.size:
+            label[2], weight[2] = fraction_at(int(onset[0])), 1.0
+        if phase == leg and shift.size:
+            label[3], weight[3] = fraction_at(int(shift[0]), COAST_FRACTION), 1.0
+    elif phase == leg and shift.size:  # (the braking fraction sets where the leg ends)
+        label[2], weight[2] = fraction_at(int(shift[0])), 1.0
+    return label, weight
+
+
 def _write_demo(path: Path, demo: dict[str, Any]) -> None:
     buf = io.BytesIO()
-    meta = {k: v for k, v in demo.items() if k not in ("obs", "actions")}
-    np.savez(buf, obs=demo["obs"], actions=demo["actions"], meta=np.array(json.dumps(meta)))
+    arrays = {k: demo[k] for k in ("obs", "actions", "weights") if k in demo}
+    meta = {k: v for k, v in demo.items() if k not in arrays}
+    np.savez(buf, **arrays, meta=np.array(json.dumps(meta)))
     write_atomic(path, buf.getvalue())
 
 
@@ -142,13 +218,16 @@ def read_demo(path: str | Path) -> dict[str, Any]:
     try:
         with np.load(path, allow_pickle=False) as f:
             obs, actions, meta = f["obs"], f["actions"], json.loads(str(f["meta"]))
+            extra = {"weights": f["weights"]} if "weights" in f.files else {}
     except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path} is not a demonstration file: {exc}") from None
     if obs.ndim != 2 or obs.shape[1] != N_TARGET_OBS or actions.shape != (len(obs), 4) or not (
             np.isfinite(obs).all() and np.isfinite(actions).all()):
         raise ValueError(f"{path}: expected finite obs ({len(obs)}, {N_TARGET_OBS}) and actions ({len(obs)}, 4), "
                          f"got {obs.shape} and {actions.shape}")
-    return {"obs": obs, "actions": actions, **meta}
+    if extra and (extra["weights"].shape != actions.shape or not np.isfinite(extra["weights"]).all()):
+        raise ValueError(f"{path}: expected finite weights {actions.shape}, got {extra['weights'].shape}")
+    return {"obs": obs, "actions": actions, **meta, **extra}
 
 
 def collect_chunk(settings: dict[str, Any], indices: list[int], out: str) -> list[int]:
@@ -293,6 +372,8 @@ def driver_labels(obs: np.ndarray, actions: np.ndarray, scenario: dict[str, Any]
 
 def labels(demo: dict[str, Any], env_id: str, braking: str) -> tuple[np.ndarray, np.ndarray]:
     """One episode's regression targets in ``env_id``'s action space and their per-sample weights."""
+    if "weights" in demo:  # (labelled when collected: a driver's DAgger episode, plan_labels)
+        return demo["actions"], demo["weights"]
     if env_id in DRIVER_ENV_IDS:
         return driver_labels(demo["obs"], demo["actions"], demo["scenario"], braking, coast=env_id == DRIVER_ENV_IDS[1])
     actions = np.clip(shift_labels(demo["obs"], demo["actions"]), -1.0, 1.0)
@@ -309,10 +390,12 @@ def action_weights(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
 
 def check_demo_env(demos: list[dict[str, Any]], env_id: str) -> None:
     """ValueError unless every episode of ``demos`` is of the env whose labels ``env_id`` takes."""
-    envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos}  # (demos before v1 carry no env_id: v0's)
-    if envs != {DEMO_ENV_ID[env_id]}:
-        raise ValueError(f"the demonstrations are {', '.join(sorted(envs))} episodes; {env_id} needs "
-                         f"{DEMO_ENV_ID[env_id]} episodes")
+    # (demos before v1 carry no env_id: v0's; an episode labelled when collected is of the env it labels)
+    envs = {d.get("env_id", TARGET_ENV_IDS[0]) for d in demos if "weights" not in d}
+    labelled = {d["env_id"] for d in demos if "weights" in d}
+    if envs != {DEMO_ENV_ID[env_id]} or not labelled <= {env_id}:
+        raise ValueError(f"the demonstrations are {', '.join(sorted(envs | labelled))} episodes; {env_id} needs "
+                         f"{DEMO_ENV_ID[env_id]} episodes" + (" (and its own DAgger episodes)" if labelled else ""))
 
 
 def demo_samples(demos: list[dict[str, Any]], env_id: str, braking: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

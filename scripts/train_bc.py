@@ -13,7 +13,8 @@
    takes it; ``wl train --init-policy <run>/final/policy`` fine-tunes it with PPO).
 3. ``--dagger-rounds N``: DAgger. Each round the clone drives ``--dagger-episodes`` new draws (the
    expert's own action applied with probability ``--beta`` per step), the MPC labels every state it
-   visits, and the clone is fitted again on all demonstrations so far.
+   visits, and the clone is fitted again on all demonstrations so far. A WheelLoaderTarget-v3 clone
+   drives v3, and the MPC's plan from each state labels its fractions (``agents.imitation.plan_labels``).
 4. ``--graft-base POLICY`` (WheelLoaderTarget-v3): no clone; the trained v2 policy POLICY is kept and only
    v3's fourth action, the coasting fraction, is fitted to the expert's shifts
    (``agents.imitation.graft_early_shift``), a start for PPO fine-tuning (``--init-policy``).
@@ -85,9 +86,9 @@ def main(o: Options, command: str) -> int:
     cfg = PPOConfig(braking=o.braking, env_id=o.env_id, scenario="train", init_noise=0.0, seed=o.seed,
                     net_arch=o.net_arch, log_dir=o.log_dir, run_name=o.run_name or f"bc_{o.braking}_s{o.seed}",
                     progress_bar=False)
-    if o.env_id in DRIVER_ENV_IDS and o.dagger_rounds:
-        raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: an assisted driver's braking labels come "
-                         f"from the expert's own cycle (where it shifted and braked), not from states a clone visits")
+    if o.env_id == DRIVER_ENV_IDS[0] and o.dagger_rounds:
+        raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: its braking labels come from the expert's "
+                         f"own cycle (where it shifted); {DRIVER_ENV_IDS[1]}'s come from the MPC's plans")
     if o.graft_base and o.clone_base:
         raise ValueError("give graft_base or clone_base, not both")
     if o.graft_base and (o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export):
@@ -128,9 +129,12 @@ def main(o: Options, command: str) -> int:
         # each round's learner is a copy of the clone it starts from (the clone is refitted into final/)
         learner = Path(o.log_dir) / f"{cfg.name}_dagger{r}_learner"
         write_policy_copy(result.policy, learner)
-        round_settings = dataclasses.replace(settings, seed=o.demo_seed + 1000 * r, learner=str(learner), beta=o.beta)
+        # (a v3 driver's rounds run in v3: the MPC labels them from its plans, agents.imitation.plan_labels)
+        round_settings = dataclasses.replace(settings, seed=o.demo_seed + 1000 * r, learner=str(learner), beta=o.beta,
+                                             env_id=o.env_id if o.env_id in DRIVER_ENV_IDS else settings.env_id)
         try:
-            demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}", workers=o.workers)
+            demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}_{round_settings.env_id}",
+                                   workers=o.workers)
         except KeyboardInterrupt:
             log.info("interrupted; the same command goes on from the episodes on disk")
             return 130

@@ -238,7 +238,7 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--env-id", "WheelLoaderTarget-v3", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v3"),
+    (["--env-id", "WheelLoaderTarget-v2", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v2"),
     (["--env-id", "WheelLoaderTarget-v2", "--graft-base", "agents/policies/ppo_target_v2_tc"],
      "graft_base needs env_id WheelLoaderTarget-v3"),
     (["--braking", "tc", "--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/ppo_target_service"],
@@ -358,3 +358,54 @@ def test_behaviour_cloning_regularization_refuses_what_it_cannot_use(tmp_path):
     with pytest.raises(ValueError, match="needs WheelLoaderTarget-v1 episodes"):
         train(_tiny(tmp_path, env_id="WheelLoaderTarget-v3", bc_demos=str(tmp_path / "v0")))
     assert not (tmp_path / "tiny").exists()  # refused before the run folder was written
+
+
+def test_plan_labels_read_the_fractions_off_the_mpcs_plan():
+    """A v3 driver's DAgger labels (agents.imitation.plan_labels): the coasting fraction whose braking point
+    is the plan's shift, the braking fraction whose is its brakes' onset (TC, phase 1: its shift), the
+    request and bucket as given; weight 0 where an action does nothing or the plan does not say."""
+    from agents.imitation import plan_labels
+    from wl_env.assist import COAST_FRACTION, fraction_action
+    from wl_env.params import DEFAULT_PARAMS as P
+
+    # reversing: 3 steps in gear, 2 rolling, brakes from the 6th; s from 0 towards -6.6 m
+    phases = np.array([1, 1, 1, 2, 2, 2, 2])
+    controls = np.zeros((7, 3))
+    controls[5:, 2] = 20_000.0
+    speed = np.array([1.0, 1.5, 2.0, 2.2, 2.1, 2.0, 1.2, 0.3])
+    s = -np.concatenate([[3.0], 3.0 + np.cumsum(speed[1:] * 0.1)])
+    states = np.column_stack([np.full(8, 150.0), -speed, np.full(8, 1.0), np.zeros(8), s])
+    plan = {"phase": phases, "stop": np.zeros(7, bool), "controls": controls, "states": states}
+    label, weight = plan_labels(plan, 1, 0.3, -0.2, P, "service", 0.1)
+    to_go = s + P.reverse_distance
+    assert label[:2].tolist() == pytest.approx([0.3, -0.2]) and weight.tolist() == [1, 1, 1, 1]
+    assert label[3] == pytest.approx(fraction_action(speed[3], to_go[3], P, 0.1, COAST_FRACTION))  # the shift
+    assert label[2] == pytest.approx(fraction_action(speed[5], to_go[5], P, 0.1))  # the brakes' onset
+    label, weight = plan_labels(plan, 1, 0.3, -0.2, P, "tc", 0.1)  # TC: phase 1 is no coasting leg
+    assert weight.tolist() == [1, 1, 1, 0] and label[2] == pytest.approx(fraction_action(speed[3], to_go[3], P, 0.1))
+    assert plan_labels(plan, 2, 0.3, -0.2, P, "tc", 0.1)[1].tolist() == [0, 1, 0, 0]  # the assist meters phase 2
+    assert plan_labels(None, 3, 0.3, -0.2, P, "service", 0.1)[1].tolist() == [1, 1, 0, 0]
+
+
+def test_a_v3_dagger_collection_needs_a_learner_and_the_mpc():
+    with pytest.raises(ValueError, match="with a learner and the MPC"):
+        DemoSettings("service", env_id="WheelLoaderTarget-v3")
+    with pytest.raises(ValueError, match="with a learner and the MPC"):
+        DemoSettings("service", env_id="WheelLoaderTarget-v3", learner="x", expert="operator")
+
+
+@pytest.mark.slow
+def test_a_v3_dagger_episode_is_labelled_from_the_mpcs_plans(tmp_path):
+    """The shipped v3 policy drives a train draw; the MPC labels every state it visits; the stored episode
+    reads back with its labels and weights, and clones into v3 beside v1 demonstrations (~30-60 s)."""
+    from agents.imitation import clone
+
+    (d,) = collect_demos(DemoSettings("service", seed=7, learner=str(POLICIES / "ppo_target_service"),
+                                      env_id="WheelLoaderTarget-v3"), 1, tmp_path / "dagger")
+    assert d["env_id"] == "WheelLoaderTarget-v3" and d["weights"].shape == d["actions"].shape == (len(d["obs"]), 4)
+    assert (np.abs(d["actions"]) <= 1.0).all() and d["weights"][:, 2:].sum() > 0  # fractions labelled somewhere
+    (v1,) = collect_demos(DemoSettings("service", seed=3, expert="operator"), 1, tmp_path / "v1")
+    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v3", scenario="train", init_noise=0.0,
+                    log_dir=str(tmp_path), run_name="clone", progress_bar=False)
+    result = clone([v1, d], cfg, epochs=2, validation_share=0.5)
+    assert result.samples == len(v1["obs"]) + len(d["obs"])

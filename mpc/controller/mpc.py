@@ -342,6 +342,7 @@ class MPCController:
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
+        self._plan_index: int | None = None  # the plan's step the last control came from
         self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
@@ -390,6 +391,17 @@ class MPCController:
         self.last_info = info
         return self.action(u, shift)
 
+    def planned_steps(self) -> dict[str, np.ndarray] | None:
+        """The plan the last :meth:`act` applied, from the step it applied on: per step its ``phase``, ``stop``
+        (a stop step of phase 2 or 4), ``controls`` [U_mf (mg), U_ab (m/s^2), U_b (N m)] and start state
+        (``states``: [omega, V, H, V_b, s], a row more: the last step's end). None before a plan, or where
+        the last control was not from one (the terminal law)."""
+        plan, i = self._plan, self._plan_index
+        if plan is None or i is None or i >= len(plan["phase"]):
+            return None
+        return {"phase": plan["phase"][i:], "stop": plan["stop"][i:], "controls": plan["controls"][i:],
+                "states": plan["states"][i:]}
+
     def applied(self, action: np.ndarray) -> None:
         """The env applied ``action`` instead of this controller's last one (a shadow expert labelling another
         controller's states, e.g. DAgger): the estimator and the rate penalty take that one as the last
@@ -416,6 +428,7 @@ class MPCController:
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
         k = int(round(t / self.dt))
+        self._plan_index = None  # (set where the control comes from the plan)
         if phase == 2 and -x[1] < MIN_STOP_SPEED:
             phase = 3  # at the reversing point (the env switches within this step): plan the way forward
         if phase == 4 and x[1] < MIN_STOP_SPEED:
@@ -524,6 +537,7 @@ class MPCController:
             later = np.flatnonzero(plan["phase"][i:] >= phase)
             i = i + int(later[0]) if later.size else len(plan["phase"]) - 1
             step_phase, stop = int(plan["phase"][i]), bool(plan["stop"][i])
+        self._plan_index = i
         u = np.array(plan["controls"][i], dtype=float)
         if stop and step_phase == 4:
             u[1] = self.params.U_ab_bounds[0]  # the simulator lands the bucket speed on 0 exactly (V_b >= 0)
