@@ -127,7 +127,7 @@ def test_governed_demonstrations_replay_the_experts_cycle_and_clone_only_into_th
     assert v1["T"] == pytest.approx(v0["T"], abs=1e-9) and v1["fuel_g"] == pytest.approx(v0["fuel_g"], rel=1e-5)
     np.testing.assert_array_equal(v1["actions"][:, 1:], v0["actions"][:, 1:])
     assert not np.allclose(v1["actions"][:, 0], v0["actions"][:, 0])  # requests, not injections
-    with pytest.raises(ValueError, match="WheelLoaderTarget-v1 episodes; a WheelLoaderTarget-v0 clone needs WheelLoaderTarget-v0"):
+    with pytest.raises(ValueError, match="WheelLoaderTarget-v1 episodes; WheelLoaderTarget-v0 needs WheelLoaderTarget-v0"):
         clone([v1, v1], _tiny(tmp_path, run_name="mixed"))
     cfg = _tiny(tmp_path, run_name="governed", env_id="WheelLoaderTarget-v1", net_arch=(64, 64))
     clone([v1, v1], cfg, epochs=5)
