@@ -130,7 +130,13 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         done = term or trunc
     env.close()
     return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
-            "scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
+            **_episode_record(settings, info, scenario, target_time, fast)}
+
+
+def _episode_record(settings: DemoSettings, info: dict[str, Any], scenario: Any, target_time: float,
+                    fast: bool) -> dict[str, Any]:
+    """What a demonstration file records of its episode besides its steps: the draw and the outcome."""
+    return {"scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
             "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
             "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
             "learner": settings.learner, "env_id": settings.env_id}
@@ -161,10 +167,7 @@ def _driver_dagger_episode(settings: DemoSettings, env: Any, expert: Any, learne
         done = term or trunc
     env.close()
     return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(labelled, np.float32),
-            "weights": np.asarray(weights, np.float32), "scenario": scenario.to_dict(), "target_time": target_time,
-            "fast": fast, "T": float(info["t"]), "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
-            "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
-            "learner": settings.learner, "env_id": settings.env_id}
+            "weights": np.asarray(weights, np.float32), **_episode_record(settings, info, scenario, target_time, fast)}
 
 
 def plan_labels(plan: dict[str, np.ndarray] | None, phase: int, request: float, bucket: float, p: Any, braking: str,

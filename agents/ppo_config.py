@@ -189,7 +189,7 @@ class PPOConfig:
     # --- behaviour-cloning regularization (DAPG-style: keeps a cloned policy near its expert while PPO tunes it)
     bc_demos: str = field(default="", metadata={
         "help": "folder of MPC demonstration episodes (scripts/train_bc.py) whose labels the actor is also fitted to "
-                "after each rollout, target envs only ('': off)"})
+                "before each rollout, target envs only ('': off)"})
     bc_weight: float = field(default=1.0, metadata={
         "help": "weight of the behaviour-cloning loss (the weighted squared error of the mean action) at the "
                 "start, against PPO's loss; decays linearly to 0"})

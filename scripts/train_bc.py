@@ -133,8 +133,9 @@ def main(o: Options, command: str) -> int:
         round_settings = dataclasses.replace(settings, seed=o.demo_seed + 1000 * r, learner=str(learner), beta=o.beta,
                                              env_id=o.env_id if o.env_id in DRIVER_ENV_IDS else settings.env_id)
         try:
-            demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}_{round_settings.env_id}",
-                                   workers=o.workers)
+            # (a v3 round's episodes are its own labels: a folder apart from a v1 round's, which keeps its name)
+            suffix = f"_{round_settings.env_id}" if round_settings.env_id != settings.env_id else ""
+            demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}{suffix}", workers=o.workers)
         except KeyboardInterrupt:
             log.info("interrupted; the same command goes on from the episodes on disk")
             return 130
