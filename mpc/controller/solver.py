@@ -335,7 +335,9 @@ class SqpRtiSolver:
     up to ``extra_steps`` more SQP steps from where it ended; a plan still unmet counts as failed (a
     fallback solver takes it)."""
 
-    FEAS_TOL = 1e-5
+    # (IPOPT's default constr_viol_tol, and a deadline-stopped IPOPT plan's: at 1e-5, 1.1e-5..3.4e-5 after three
+    # steps handed 1-2 horizons per mismatch corner to IPOPT, 0.1-0.4 s each)
+    FEAS_TOL = DEADLINE_FEASIBLE_TOL
 
     def __init__(self, qpsol: str = "hpipm", extra_steps: int = 2) -> None:
         if not (isinstance(extra_steps, int) and extra_steps >= 0):
