@@ -142,8 +142,9 @@ def test_realtime_controls_come_at_once_and_keep_the_optimum():
         assert len(r.worker_solve_times_s) > 0.5 * len(r.solve_times_s)
         assert ctrl.fallbacks < 0.5 * len(r.solve_times_s)
         assert ctrl._ahead is None  # the worker's last solve ended with the episode (run_episode -> end_episode)
-    # (the reference's path takes 6-23 s: the continuous OCP and a cold solve, new NLPs if the layout is new)
-    assert ctrl.first_plan_from == "neighbour" and ctrl.planning_time < 2.0
+    # (the reference's path takes 6-23 s: the continuous OCP and a cold solve, new NLPs if the layout is new;
+    # this one 0.5-1.2 s alone, 2.7 s beside two other jobs on the 2 cores)
+    assert ctrl.first_plan_from == "neighbour" and ctrl.planning_time < 4.0
     assert grid_nlp.cache_info().misses == builds  # no NLP built for the other scenario
 
 
