@@ -92,11 +92,11 @@ def test_deadline_returns_the_shifted_plan_in_time_and_flags_it():
             missed.append(k)
             assert ctrl.last_info["fallback"] and "deadline" in ctrl.last_info["status"]
             # an earlier step's plan's control for this step (shifted), not a new one
-            plan = ctrl._plan
-            i = ctrl._plan_index  # (k - k_made, or later where the plant ended a phase ahead of the plan)
-            assert i >= k - plan["k_made"] >= 1
-            expected = np.array(plan["controls"][i][:2])
-            if plan["stop"][i] and plan["phase"][i] == 4:  # (a standing stop at the truck lands the bucket)
+            # (its step k - k_made, or later where the plant ended a phase ahead of the plan)
+            assert ctrl._plan_index >= k - ctrl._plan["k_made"] >= 1
+            step = {key: v[0] for key, v in ctrl.planned_steps().items()}
+            expected = np.array(step["controls"][:2])
+            if step["stop"] and step["phase"] == 4:  # (a standing stop at the truck lands the bucket)
                 expected[1] = ctrl.params.U_ab_bounds[0]
             assert np.allclose(ctrl.codec.decode_action(*a[:3])[:2], expected, rtol=1e-4, atol=1e-3)
         obs, _, term, trunc, info = env.step(a)
