@@ -189,6 +189,8 @@ def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     if meta.get("format_version") != FORMAT_VERSION:
         raise PolicyFileError(f"{path}: format_version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
     _check_network(meta.get("network"), path)
+    if meta.get("braking") not in (None, "service", "tc"):
+        raise PolicyFileError(f"{path}: braking must be \"service\" or \"tc\" (or absent), got {meta.get('braking')!r}")
     recorded = meta.get("files")
     for key, file in (("weights", files.weights), ("normalization", files.normalization)):
         entry = recorded.get(key) if isinstance(recorded, dict) else None
@@ -240,6 +242,22 @@ def _finite_number(v: Any) -> bool:
     return type(v) in (int, float) and is_finite(v)
 
 
+def _least_parameters(net: dict[str, Any]) -> int:
+    """How many numbers the (checked) network description's layers hold at least (its gSDE noise not counted)."""
+    n_obs, n_act = net["observation_space"]["shape"][0], net["action_space"]["shape"][0]
+    arch = net["net_arch"]
+    pi, vf = (arch.get("pi", []), arch.get("vf", [])) if isinstance(arch, dict) else (arch, arch)
+
+    def mlp(widths: list[int]) -> tuple[int, int]:  # (weights and biases, output width)
+        n, prev = 0, n_obs
+        for w in widths:
+            n, prev = n + prev * w + w, w
+        return n, prev
+
+    (n_pi, last_pi), (n_vf, last_vf) = mlp(pi), mlp(vf)
+    return n_pi + n_vf + last_pi * n_act + n_act + last_vf + 1 + (0 if net["use_sde"] else n_act)
+
+
 def build_network(net: dict[str, Any]) -> Any:
     """The torch module a (checked) network description names, with fresh weights."""
     from gymnasium import spaces
@@ -288,8 +306,9 @@ def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
                               f"{mean.shape} and {var.shape}")
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
         raise PolicyFileError(f"normalization file {path}: mean and var must be finite, var >= 0")
-    if not (clip_obs > 0 and eps > 0 and math.isfinite(eps)):
-        raise PolicyFileError(f"normalization file {path}: clip_obs and epsilon must be > 0, got {clip_obs}, {eps}")
+    if not (math.isfinite(clip_obs) and clip_obs > 0 and 1e-12 <= eps <= 1.0):
+        raise PolicyFileError(f"normalization file {path}: clip_obs must be a finite number > 0 and epsilon in "
+                              f"[1e-12, 1], got {clip_obs}, {eps}")
     return ObsNormalization(mean.astype(np.float64), var.astype(np.float64), clip_obs, eps)
 
 
@@ -310,6 +329,12 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
         state = load_tensors(files.weights.read_bytes())
     except (SafetensorError, OSError, ValueError) as exc:
         raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
+    if not all(t.is_floating_point() and bool(t.isfinite().all()) for t in state.values()):
+        raise PolicyFileError(f"weights file {files.weights}: every weight must be a finite float")
+    held, least = sum(t.numel() for t in state.values()), _least_parameters(net)
+    if held < least:  # (before building it: a few bytes of metadata could ask for gigabytes of layers)
+        raise PolicyFileError(f"weights file {files.weights} holds {held} numbers; the network of {files.metadata.name} "
+                              f"has at least {least}")
     network = build_network(net)
     try:
         network.load_state_dict(state, strict=True)

@@ -19,12 +19,14 @@ Run directory layout (``<log_dir>/<run_name>/``)::
     tb/PPO_1/                        TensorBoard events (a resumed run appends to the same folder)
     eval.csv                         one row per evaluation (the learning curve)
     checkpoints/latest.json          points at the newest complete checkpoint
-    checkpoints/step_<n>/            model.zip, vecnormalize.pkl, progress.json
+    checkpoints/step_<n>/            policy.safetensors, policy_vecnormalize.npz, policy.json, optimizer.safetensors,
+                                     training.json, progress.json (pickle-free: :func:`save_checkpoint`)
     final/                           model.zip, vecnormalize.pkl, summary.json after the last step, and
                                      policy.safetensors, policy_vecnormalize.npz, policy.json (pickle-free)
 
-Checkpoints and ``final/model.zip`` are stable-baselines3 zips (pickles): a run's own files, for resuming.
-What is shipped or shared is the pickle-free policy.
+Resuming reads only pickle-free files, so a run folder from anywhere can be resumed safely. ``final/model.zip``
+is a stable-baselines3 zip (a pickle), loaded only with ``trust_pickle``; what is shipped or shared is the
+pickle-free policy.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import logging
 import math
 import os
 import pickle
+import re
 import shutil
 import time
 from pathlib import Path
@@ -103,6 +106,93 @@ def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, An
         write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", extra)
     write_json_atomic(tmp / "progress.json", extra)
     return _replace_folder(tmp, folder)
+
+
+CHECKPOINT_FILES = ("policy.json", "optimizer.safetensors", "training.json", "progress.json")
+CHECKPOINT_NAME = re.compile(r"step_\d{10}")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or does not fit its run; the message names the folder."""
+
+
+def save_checkpoint(model: Any, vecnorm: Any, folder: Path, progress: dict[str, Any]) -> Path:
+    """A resumable checkpoint in ``folder``, pickle-free (resuming never unpickles, whoever wrote the run
+    folder): the policy as exported (``policy.*``), the optimizer's tensors (``optimizer.safetensors``) and its
+    settings, update count and the normalization's running statistics (``training.json``), and ``progress``
+    (``progress.json``); staged and made visible at once (a kill never leaves half a checkpoint)."""
+    from safetensors.torch import save as save_tensors
+
+    folder = Path(folder)
+    tmp = folder.parent / f".{folder.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", {"num_timesteps": model.num_timesteps})
+    opt = model.policy.optimizer.state_dict()
+    tensors = {f"{i}/{name}": v.detach().cpu().contiguous() for i, st in opt["state"].items()
+               for name, v in st.items() if th.is_tensor(v)}
+    scalars = {f"{i}/{name}": v for i, st in opt["state"].items() for name, v in st.items() if not th.is_tensor(v)}
+    write_atomic(tmp / "optimizer.safetensors", save_tensors(tensors))
+
+    def stats(rms: Any) -> dict[str, Any]:
+        return {"mean": np.asarray(rms.mean, float).tolist(), "var": np.asarray(rms.var, float).tolist(), "count": float(rms.count)}
+
+    write_json_atomic(tmp / "training.json", {
+        "optimizer": {"param_groups": opt["param_groups"], "scalars": scalars}, "n_updates": int(model._n_updates),
+        "obs_rms": stats(vecnorm.obs_rms) if vecnorm is not None else None,
+        "ret_rms": stats(vecnorm.ret_rms) if vecnorm is not None else None})
+    write_json_atomic(tmp / "progress.json", progress)
+    return _replace_folder(tmp, folder)
+
+
+def _json_value(v: Any) -> bool:
+    """A plain setting of an optimizer (a finite number, a flag, None, or a list of finite numbers)."""
+    if v is None or isinstance(v, bool):
+        return True
+    if isinstance(v, list):
+        return all(type(x) in (int, float) and math.isfinite(x) for x in v)
+    return type(v) in (int, float) and math.isfinite(v)
+
+
+def restore_checkpoint(model: Any, vecnorm: Any, folder: Path) -> None:
+    """Load a checkpoint of :func:`save_checkpoint` into a freshly built ``model`` (and its ``vecnorm``):
+    CheckpointError naming the folder if a file is missing, unreadable or does not fit the run."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load as load_tensors
+
+    folder = Path(folder)
+    try:
+        network, _, _ = read_policy(folder / "policy")
+        model.policy.load_state_dict(network.state_dict(), strict=True)
+        training = json.loads((folder / "training.json").read_text())
+        opt = training["optimizer"]
+        groups, scalars = opt["param_groups"], opt["scalars"]
+        if not (isinstance(groups, list) and all(isinstance(g, dict) and all(_json_value(v) for v in g.values())
+                                                 for g in groups) and isinstance(scalars, dict)
+                and all(_json_value(v) for v in scalars.values())):
+            raise ValueError("training.json: optimizer settings must be plain numbers, flags or lists of numbers")
+        state: dict[int, dict[str, Any]] = {}
+        entries = [*load_tensors((folder / "optimizer.safetensors").read_bytes()).items(), *scalars.items()]
+        for key, value in entries:
+            index, name = key.split("/", 1)
+            state.setdefault(int(index), {})[name] = value
+        groups = [{k: tuple(v) if isinstance(v, list) and k != "params" else v for k, v in g.items()} for g in groups]
+        model.policy.optimizer.load_state_dict({"state": state, "param_groups": groups})  # (betas as torch keeps them)
+        n_updates = training["n_updates"]
+        if type(n_updates) is not int or n_updates < 0:
+            raise ValueError(f"training.json: n_updates must be an integer >= 0, got {n_updates!r}")
+        model._n_updates = n_updates
+        if vecnorm is not None:
+            for name in ("obs_rms", "ret_rms"):
+                rms, saved = getattr(vecnorm, name), training[name]
+                mean, var = (np.asarray(saved[k], dtype=np.float64).reshape(np.shape(rms.mean)) for k in ("mean", "var"))
+                count = float(saved["count"])
+                if not (np.isfinite(mean).all() and np.isfinite(var).all() and (var >= 0).all() and math.isfinite(count)
+                        and count > 0):
+                    raise ValueError(f"training.json: {name} must hold finite statistics (var >= 0, count > 0)")
+                rms.mean, rms.var, rms.count = mean, var, count
+    except (OSError, ValueError, KeyError, TypeError, IndexError, RuntimeError, SafetensorError, RecursionError) as exc:
+        raise CheckpointError(f"checkpoint {folder} cannot be resumed from: {brief(exc, 300)}") from None
 
 
 def _replace_folder(tmp: Path, folder: Path) -> Path:
@@ -254,6 +344,7 @@ def _sb3_zip(p: Path) -> Path:
                 return zip_path
         raise FileNotFoundError(f"no policy in {p}: expected policy{WEIGHTS_SUFFIX} (pickle-free) or model.zip, "
                                 f"there or in {p / 'final'}")
+    given = p
     if p.suffix == ".pkl":  # the normalization pickle named instead of its model
         stem = p.name[: -len("_vecnormalize.pkl")] if p.name.endswith("_vecnormalize.pkl") else "model"
         p = p.with_name(stem + ".zip")
@@ -261,7 +352,7 @@ def _sb3_zip(p: Path) -> Path:
         raise FileNotFoundError(f"no policy at {p}: expected STEM{WEIGHTS_SUFFIX} + STEM{NORMALIZATION_SUFFIX} + "
                                 f"STEM{METADATA_SUFFIX}, or a stable-baselines3 .zip")
     if not p.exists():
-        raise FileNotFoundError(f"no policy at {p}")
+        raise FileNotFoundError(f"no policy at {given}" + (f" (a normalization file; its model would be {p})" if p != given else ""))
     return p
 
 
@@ -421,11 +512,10 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
     ``demos`` (raw observations, action labels, weights: :func:`agents.imitation.demo_samples`) for
     ``cfg.bc_demos``' regularization.
 
-    stable-baselines3's own pieces do the scheduling and saving: ``EveryNTimesteps`` triggers the
-    evaluations, ``CheckpointCallback`` (``save_vecnormalize=True``) saves the checkpoints. What SB3 lacks
-    is kept, each said why below.
+    stable-baselines3's ``EveryNTimesteps`` triggers the evaluations. What SB3 lacks (or saves as pickles: the
+    checkpoints) is kept, each said why below.
     """
-    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback, EveryNTimesteps
+    from stable_baselines3.common.callbacks import BaseCallback, CallbackList, EveryNTimesteps
 
     class Curriculum(BaseCallback):
         # Kept: SB3 has no reward curriculum nor a schedule on the policy's std.
@@ -502,34 +592,19 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
             # shown by the CLI unless a progress bar is drawn (the lines would break it)
             log.log(logging.INFO if self.verbose or cfg.progress_bar is False else logging.DEBUG, "%s", _eval_line(row))
 
-    class RunCheckpoint(CheckpointCallback):
-        # Kept around SB3's saving: its files are written in place, so each checkpoint is staged in a folder
-        # renamed at once (a kill never leaves a half checkpoint) with progress.json for resume (wall time,
+    class RunCheckpoint(BaseCallback):
+        # Not SB3's CheckpointCallback: its checkpoints are zips of pickles, written in place. These are
+        # pickle-free (save_checkpoint), staged and renamed at once, with progress.json for resume (wall time,
         # last evaluation), and only the newest keep_checkpoints are kept.
-        def __init__(self) -> None:
-            super().__init__(save_freq=max(cfg.checkpoint_freq // cfg.num_envs, 1), save_path=str(run_dir / "checkpoints"),
-                             save_vecnormalize=True)
-            self._staging: Path | None = None
-
-        def _checkpoint_path(self, checkpoint_type: str = "", extension: str = "") -> str:
-            name = {"": "model", "vecnormalize_": "vecnormalize"}.get(checkpoint_type, checkpoint_type.rstrip("_"))
-            return str(self._staging / f"{name}.{extension}")
-
         def _on_step(self) -> bool:
-            if self.n_calls % self.save_freq != 0:
+            if self.n_calls % max(cfg.checkpoint_freq // cfg.num_envs, 1) != 0:
                 return True
             step = self.num_timesteps
-            root = Path(self.save_path)
-            folder = root / f"step_{step:010d}"
-            self._staging = root / f".{folder.name}.tmp"
-            shutil.rmtree(self._staging, ignore_errors=True)
-            self._staging.mkdir(parents=True)
-            super()._on_step()  # SB3 saves model.zip and vecnormalize.pkl (via _checkpoint_path) into the staging
-            write_json_atomic(self._staging / "progress.json", {
+            root = run_dir / "checkpoints"
+            folder = save_checkpoint(self.model, _vecnorm_of(self.model.get_env()), root / f"step_{step:010d}", {
                 "num_timesteps": step, "total_timesteps": cfg.total_timesteps,
                 "wall_time": state["wall_time"] + time.time() - state["t0"], "last_eval": state["last_eval"],
                 "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "braking": cfg.braking, "seed": cfg.seed})
-            _replace_folder(self._staging, folder)
             write_json_atomic(root / "latest.json", {"checkpoint": folder.name, "num_timesteps": step})
             complete = sorted(p for p in root.glob("step_*") if (p / "progress.json").exists())
             broken = [p for p in root.glob("step_*") if p.is_dir() and not (p / "progress.json").exists()]
@@ -645,15 +720,64 @@ def _truncate_eval_csv(path: Path, step: int) -> None:
     write_atomic(path, "".join(lines[:1] + [line for line in lines[1:] if keep(line)]))
 
 
+def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
+    """A run's config.json, checked: its PPOConfig and the commands recorded (ValueError naming the file)."""
+    try:
+        meta = json.loads(Path(path).read_text())
+        if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
+            raise ValueError('it holds no "config" object')
+        commands = meta.get("commands", [])
+        if not (isinstance(commands, list) and all(isinstance(c, str) for c in commands)):
+            raise ValueError('"commands" must be a list of strings')
+        return PPOConfig.from_dict(meta["config"]), list(commands)
+    except (OSError, ValueError, TypeError, RecursionError) as exc:  # (JSON and config errors are ValueErrors)
+        raise ValueError(f"{path} is not a readable run config: {brief(exc, 300)}") from None
+
+
+def read_progress(folder: Path, total_timesteps: int) -> tuple[dict[str, Any], int]:
+    """A checkpoint's progress.json, checked, and its step count (CheckpointError naming the folder)."""
+    try:
+        progress = json.loads((Path(folder) / "progress.json").read_text())
+        step, wall = progress["num_timesteps"], progress["wall_time"]
+        if type(step) is not int or not 0 <= step <= total_timesteps:
+            raise ValueError(f"num_timesteps must be an integer in [0, {total_timesteps}], got {step!r}")
+        if type(wall) not in (int, float) or not (math.isfinite(wall) and wall >= 0):
+            raise ValueError(f"wall_time must be a finite number of seconds >= 0, got {wall!r}")
+        return progress, step
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise CheckpointError(f"checkpoint {folder} cannot be resumed from: progress.json: {brief(exc, 300)}") from None
+
+
+def check_env_settings(cfg: PPOConfig) -> None:
+    """The run's env built once with its settings: ValueError (the env's, naming the setting) if it refuses them."""
+    import warnings
+
+    import gymnasium as gym
+
+    with warnings.catch_warnings():  # (an older env's deprecation is said where the run builds its envs)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        gym.make(cfg.env_id, **cfg.env_kwargs()).close()
+
+
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     """The newest complete checkpoint folder of a run, or None."""
     root = Path(run_dir) / "checkpoints"
-    ptr = root / "latest.json"
-    if ptr.exists():
-        folder = root / json.loads(ptr.read_text())["checkpoint"]
-        if (folder / "model.zip").exists() and (folder / "progress.json").exists():
-            return folder
-    folders = sorted(p for p in root.glob("step_*") if (p / "progress.json").exists())
+
+    def complete(folder: Path) -> bool:
+        return all((folder / f).is_file() for f in CHECKPOINT_FILES)
+
+    try:  # (the pointer is a shortcut: a pointer that is unreadable or names no checkpoint folder is passed over)
+        name = json.loads((root / "latest.json").read_text())["checkpoint"]
+        if isinstance(name, str) and CHECKPOINT_NAME.fullmatch(name) and complete(root / name):
+            return root / name
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    folders = sorted(p for p in root.glob("step_*") if CHECKPOINT_NAME.fullmatch(p.name) and complete(p))
+    if not folders:
+        old = sorted(p for p in root.glob("step_*") if (p / "model.zip").is_file())
+        if old:  # (a stable-baselines3 zip: resuming from it would unpickle)
+            raise CheckpointError(f"{old[-1]} is an older checkpoint (a stable-baselines3 zip, a pickle) that this "
+                                  f"version does not resume from: train again from step 0 (remove {root})")
     return folders[-1] if folders else None
 
 
@@ -746,7 +870,6 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
     checkpoint (model, optimizer, VecNormalize statistics, step count) and trains for the rest of the
     same ``total_timesteps``; TensorBoard events and ``eval.csv`` continue where the checkpoint was.
     """
-    from stable_baselines3 import PPO
     from stable_baselines3.common.utils import set_random_seed
 
     th.set_num_threads(max(1, cfg.torch_threads))
@@ -758,11 +881,9 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         saved = run_dir / "config.json"
         if not saved.exists():
             raise FileNotFoundError(f"nothing to resume: {saved} does not exist")
-        meta = json.loads(saved.read_text())
         given = cfg
-        cfg = PPOConfig.from_dict(meta["config"])
+        cfg, commands = read_run_config(saved)
         cfg.progress_bar = given.progress_bar
-        commands = list(meta.get("commands", []))
         if ckpt is None:
             log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
@@ -772,6 +893,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         from agents.imitation import demo_samples, read_demo_folder
 
         demos = demo_samples(read_demo_folder(cfg.bc_demos, cfg.env_id), cfg.env_id, cfg.braking)
+    check_env_settings(cfg)  # (before config.json is written: a run is never saved with settings its env refuses)
     if command:
         commands.append(command)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -779,13 +901,12 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     tb_dir = run_dir / "tb"
     if ckpt is not None:
-        progress = json.loads((ckpt / "progress.json").read_text())
-        step = int(progress["num_timesteps"])
-        vn_path = ckpt / "vecnormalize.pkl"
+        progress, step = read_progress(ckpt, cfg.total_timesteps)
         # Fresh episodes after the interruption; a different env seed so they are not a replay.
-        env = make_env(cfg, seed=cfg.seed + step, vecnormalize=vn_path if vn_path.exists() else None)
-        set_random_seed(cfg.seed + step)
-        model = PPO.load(str(ckpt / "model.zip"), env=env, device="cpu", tensorboard_log=str(tb_dir))
+        env = make_env(cfg, seed=cfg.seed + step)
+        model = build_model(cfg, env, tb_dir)
+        restore_checkpoint(model, _vecnorm_of(env), ckpt)
+        set_random_seed(cfg.seed + step)  # (after the build, which seeds with cfg.seed)
         model.num_timesteps = step
         state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))
         _truncate_eval_csv(run_dir / "eval.csv", step)

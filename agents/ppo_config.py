@@ -46,7 +46,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "target": ("a range (lo, hi) of target ratios to T_min within [1, 3]",
                lambda v: len(v) == 2 and all(_is_num(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
-    "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v < 2**31),  # (env seeds add the step)
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "num_envs": (f"an integer in [1, {MAX_NUM_ENVS}]", lambda v: _is_int(v) and 1 <= v <= MAX_NUM_ENVS),
     "log_dir": ("a non-empty folder name", lambda v: isinstance(v, str) and v.strip() != ""),

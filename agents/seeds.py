@@ -75,10 +75,13 @@ def expand(cfg: PPOConfig, seeds: Sequence[int], sweep: dict[str, list[Any]] | N
 
 
 def run_state(cfg: PPOConfig) -> str:
-    """``"done"`` (final/summary.json), ``"started"`` (config or checkpoints on disk) or ``"new"``."""
+    """``"done"`` (final/summary.json), ``"started"`` (a checkpoint on disk) or ``"new"`` (a run stopped before
+    its first checkpoint starts again with the config given now, not the one it saved)."""
+    from agents.ppo import latest_checkpoint
+
     if (cfg.run_dir / "final" / "summary.json").exists():
         return "done"
-    return "started" if (cfg.run_dir / "config.json").exists() else "new"
+    return "started" if latest_checkpoint(cfg.run_dir) is not None else "new"
 
 
 def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str, Any]:

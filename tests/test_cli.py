@@ -383,9 +383,17 @@ def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     (["train", "--num-envs", "1000000000", "--log-dir", "{tmp}"], "[1, 16384]"),
     (["ocp", "--objective", "speed", "--out", "{tmp}/x.json"], "--objective"),
     (["report"], "--results"),
+    (["evaluate", "--controller", "operator", "--scenario", ""], "--scenario is empty"),
+    (["ocp", "--out", "{tmp}/x.json", "--params", " "], "--params is empty"),
+    (["ocp", "--out", "{tmp}/x.json", "--params", '{"M_veh": 1' + "0" * 5000 + "}"], "--params is not valid JSON"),
+    (["evaluate", "--controller", "ppo", "--model", "{tmp}/evil_vecnormalize.pkl"], "no policy at {tmp}/evil_vecnormalize.pkl"),
+    (["params", "--set", '{"omega_min": 200, "omega_max": 50}'], "omega_min must be below omega_max"),
+    (["train", "--log-dir", "{tmp}", "--seed", "99999999999999999999"], "--seed must be an integer in [0, 2**31 - 1]"),
+    (["train", "--log-dir", "{tmp}", "--max-time", "0.1"], "max_time must be a number of seconds in [5 dt, 3600]"),
 ])
 def test_user_errors_are_one_line(tmp_path, capsys, argv, needle):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    needle = needle.replace("{tmp}", str(tmp_path))
     if argv[0] == "evaluate":
         argv += ["--out", str(tmp_path / "eval.json")]
     code, _, err = _run(capsys, *argv)
@@ -393,6 +401,16 @@ def test_user_errors_are_one_line(tmp_path, capsys, argv, needle):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("wl: error:") and needle in lines[0], err
     assert not (tmp_path / "eval.json").exists()
+    assert not list(tmp_path.glob("*/config.json"))  # (a refused run leaves no config behind)
+
+
+def test_a_scenario_file_named_with_spaces_around_it(tmp_path, capsys):
+    path = tmp_path / "s.json"
+    path.write_text('{"payload": 6000}')
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--braking", "tc", "--scenario", f" {path} ",
+                        "--no-score", "--out", str(tmp_path / "e.json"))
+    assert code == 0, err
+    assert json.loads((tmp_path / "e.json").read_text())["per_episode"][0]["scenario"]["payload"] == 6000
 
 
 def test_missing_shipped_policy_names_the_path(tmp_path, capsys, monkeypatch):

@@ -162,6 +162,30 @@ def test_env_arguments_are_checked(kw, name):
         gym.make_vec("WheelLoader-v1", num_envs=2, vectorization_mode="vector_entry_point", **kw)
 
 
+def test_numpy_scalars_are_the_numbers_they_hold():
+    """Arguments from numpy (a float32 time step, an int64 substep count or seed) are taken as the numbers they
+    hold, the same env as with Python numbers; a numpy bool is still no number. (They were refused, the message
+    quoting a value in range.)"""
+    import gymnasium as gym
+    import numpy as np
+
+    import wl_env  # noqa: F401
+
+    kw = {"dt": np.float32(0.1), "substeps": np.int64(2), "init_noise": np.float32(0.5), "w_fuel": np.float64(2.0)}
+    a, b = gym.make("WheelLoader-v2", **kw), gym.make("WheelLoader-v2", **{k: v.item() for k, v in kw.items()})
+    np.testing.assert_array_equal(a.reset(seed=3)[0], b.reset(seed=3)[0])
+    assert a.unwrapped.core.dt == float(np.float32(0.1)) and type(a.unwrapped.core.dt) is float
+    t = gym.make("WheelLoaderTarget-v3")
+    assert t.reset(seed=0, options={"target_time": np.float32(10.0)})[1] is not None and t.unwrapped.target_time == 10.0
+    v = gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point")
+    np.testing.assert_array_equal(v.reset(seed=np.int64(3))[0], v.reset(seed=3)[0])
+    for bad in (1.5, -1, [1, "a"]):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            v.reset(seed=bad)
+    with pytest.raises(ValueError, match="dt"):
+        gym.make("WheelLoader-v2", dt=np.bool_(True))
+
+
 def test_vector_env_num_envs_is_an_integer():
     import gymnasium as gym
 

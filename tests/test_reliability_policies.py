@@ -141,6 +141,9 @@ def test_pickle_in_a_normalization_npz_is_refused(tmp_path, capsys, marker):
     ({"mean": np.zeros(11), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e-8, "norm_obs": True}, "12 floats"),
     ({"mean": np.full(12, np.nan), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e-8, "norm_obs": True}, "finite"),
     ({"mean": np.zeros(12), "var": np.ones(12), "clip_obs": 10.0, "norm_obs": True}, "no entry 'epsilon'"),
+    # (each passed once: NaN at the first step, or a policy that failed every episode quietly)
+    ({"mean": np.zeros(12), "var": np.zeros(12), "clip_obs": np.inf, "epsilon": 1e-300, "norm_obs": True}, "finite number > 0"),
+    ({"mean": np.zeros(12), "var": np.ones(12), "clip_obs": 10.0, "epsilon": 1e308, "norm_obs": True}, "epsilon in"),
 ])
 def test_normalization_entries_are_checked(tmp_path, entries, needle):
     stem = _copy_shipped(tmp_path)
@@ -156,7 +159,7 @@ def test_normalization_entries_are_checked(tmp_path, entries, needle):
     ({"activation_fn": "Evil"}, "network.activation_fn"),
     ({"net_arch": {"pi": [10**9]}}, "network.net_arch"),
     ({"log_std_init": 10**400}, "network.log_std_init"),  # was a bare OverflowError
-    ({"observation_space": {"shape": [13], "low": [0.0] * 13, "high": [1.0] * 13}}, "does not fit"),
+    ({"observation_space": {"shape": [13], "low": [0.0] * 13, "high": [1.0] * 13}}, "has at least"),
 ])
 def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, needle):
     stem = _copy_shipped(tmp_path)
@@ -165,6 +168,44 @@ def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, nee
     meta["network"].update(tamper)
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(PolicyFileError, match=needle):
+        load_policy(stem)
+
+
+def test_weights_must_be_finite_and_braking_known(tmp_path):
+    from safetensors.torch import load, save
+
+    stem = _copy_shipped(tmp_path)
+    weights = tmp_path / "ppo_tc.safetensors"
+    state = load(weights.read_bytes())
+    state["action_net.bias"][0] = float("nan")
+    weights.write_bytes(save(state))
+    _reseal(stem, "weights", weights)
+    with pytest.raises(PolicyFileError, match="every weight must be a finite float"):
+        load_policy(stem)
+    (tmp_path / "b").mkdir()
+    stem = _copy_shipped(tmp_path / "b")
+    meta_path = stem.with_name("ppo_tc.json")
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "braking": "foo"}))
+    with pytest.raises(PolicyFileError, match='braking must be "service" or "tc"'):
+        load_policy(stem)
+
+
+def test_metadata_larger_than_its_weights_is_refused_before_building(tmp_path, monkeypatch):
+    """A small file declaring the largest allowed network (16 layers of 4096 each side: ~2 GB to build) is refused
+    by counting its weights, before any layer is built."""
+    import agents.policy_files as pf
+
+    stem = _copy_shipped(tmp_path)
+    meta_path = tmp_path / "ppo_tc.json"
+    meta = json.loads(meta_path.read_text())
+    meta["network"]["net_arch"] = {"pi": [4096] * 16, "vf": [4096] * 16}
+    meta_path.write_text(json.dumps(meta))
+
+    def never(net):
+        raise AssertionError("the network was built")
+
+    monkeypatch.setattr(pf, "build_network", never)
+    with pytest.raises(PolicyFileError, match="holds 10313 numbers; the network of ppo_tc.json has at least 5"):
         load_policy(stem)
 
 
@@ -451,3 +492,113 @@ def test_warnings_of_the_agents_reach_the_cli_through_logging(tmp_path, capsys, 
     assert code == 0 and "warning: the policy" in err and "trained with tc braking, evaluated with service" in err
     record = next(r for r in caplog.records if "trained with tc braking" in r.getMessage())
     assert record.name == "agents.evaluate" and record.levelno == logging.WARNING
+
+
+# ------------------------------------------------------------------------------------------ run folders
+def _checkpointed_run(tmp_path: Path) -> PPOConfig:
+    """A tiny run stopped after its first checkpoints (as a kill would leave it)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from agents.ppo import train
+
+    class Stop(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= 2048:
+                raise KeyboardInterrupt
+            return True
+
+    cfg = PPOConfig(num_envs=4, n_steps=64, batch_size=64, net_arch=(8,), total_timesteps=4096, eval_freq=10**6,
+                    checkpoint_freq=1024, score=False, progress_bar=False, log_dir=str(tmp_path), run_name="r")
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, callbacks=[Stop()])
+    return cfg
+
+
+def test_a_checkpoint_restores_the_model_exactly_and_holds_no_pickle(tmp_path):
+    """What resuming loads is what was saved: the weights, Adam's moments and settings, the update count and the
+    normalization's running statistics, bit for bit; and the checkpoint holds no pickle."""
+    from agents.ppo import latest_checkpoint, restore_checkpoint, save_checkpoint
+
+    cfg = PPOConfig(num_envs=2, n_steps=32, batch_size=32, net_arch=(8,), score=False, progress_bar=False,
+                    log_dir=str(tmp_path), run_name="x")
+    env = make_env(cfg)
+    model = build_model(cfg, env, tmp_path / "tb")
+    model.learn(128)  # (the optimizer has state, the statistics have moved)
+    folder = save_checkpoint(model, env, tmp_path / "run" / "checkpoints" / "step_0000000128", {"num_timesteps": 128, "wall_time": 1.0})
+    assert latest_checkpoint(tmp_path / "run") == folder
+    assert not [p for p in folder.iterdir() if p.suffix in (".zip", ".pkl")]
+    env2 = make_env(cfg, seed=7)
+    fresh = build_model(cfg, env2, tmp_path / "tb2")
+    restore_checkpoint(fresh, env2, folder)
+    for (k, a), (_, b) in zip(model.policy.state_dict().items(), fresh.policy.state_dict().items(), strict=True):
+        assert np.array_equal(a.numpy(), b.numpy()), k
+    s1, s2 = model.policy.optimizer.state_dict(), fresh.policy.optimizer.state_dict()
+    assert s1["param_groups"] == s2["param_groups"] and s1["state"].keys() == s2["state"].keys()
+    for i in s1["state"]:
+        for name in s1["state"][i]:
+            assert np.array_equal(np.asarray(s1["state"][i][name]), np.asarray(s2["state"][i][name])), (i, name)
+    assert fresh._n_updates == model._n_updates > 0
+    for name in ("obs_rms", "ret_rms"):
+        a, b = getattr(env, name), getattr(env2, name)
+        assert np.array_equal(a.mean, b.mean) and np.array_equal(a.var, b.var) and a.count == b.count
+
+
+def test_resuming_never_unpickles_and_refuses_bad_run_files(tmp_path, marker):
+    """A run folder is resumed from its pickle-free files only: pickles planted in its checkpoint never run. Its
+    config.json, progress.json and latest.json are checked, each error naming the file; a pointer to a folder
+    outside the checkpoints is passed over."""
+    from agents.ppo import CheckpointError, latest_checkpoint, train
+
+    cfg = _checkpointed_run(tmp_path)
+    ckpt = latest_checkpoint(cfg.run_dir)
+    _evil_sb3_zip(ckpt / "model.zip", marker)
+    (ckpt / "vecnormalize.pkl").write_bytes(_evil_pickle(marker))
+    config, progress, pointer = cfg.run_dir / "config.json", ckpt / "progress.json", cfg.run_dir / "checkpoints" / "latest.json"
+    good = {f: f.read_text() for f in (config, progress)}
+    named = PPOConfig(log_dir=cfg.log_dir, run_name="r", progress_bar=False)
+    for bad in ("{}", "[1]", "not json", json.dumps({"config": {"seed": -1}})):
+        config.write_text(bad)
+        with pytest.raises(ValueError, match="config.json is not a readable run config"):
+            train(named, resume=True)
+    config.write_text(good[config])
+    for bad in ({}, {"num_timesteps": "2048", "wall_time": 1.0}, {"num_timesteps": 10**9, "wall_time": 1.0},
+                {"num_timesteps": 1024, "wall_time": float("nan")}):
+        progress.write_text(json.dumps(bad))
+        with pytest.raises(CheckpointError, match="progress.json"):
+            train(named, resume=True)
+    progress.write_text(good[progress])
+    (ckpt / "training.json").write_text(json.dumps({"optimizer": {"param_groups": [{"lr": "exec"}], "scalars": {}}}))
+    with pytest.raises(CheckpointError, match=f"checkpoint {ckpt}"):
+        train(named, resume=True)
+    pointer.write_text(json.dumps({"checkpoint": "../../r"}))
+    assert latest_checkpoint(cfg.run_dir) == ckpt  # (the pointer names no checkpoint folder: the newest one is taken)
+    assert not marker.exists()
+
+
+def test_an_older_pickled_checkpoint_is_refused_by_name(tmp_path, marker):
+    from agents.ppo import CheckpointError, latest_checkpoint
+
+    old = tmp_path / "run" / "checkpoints" / "step_0000001024"
+    old.mkdir(parents=True)
+    _evil_sb3_zip(old / "model.zip", marker)
+    (old / "progress.json").write_text(json.dumps({"num_timesteps": 1024, "wall_time": 1.0}))
+    with pytest.raises(CheckpointError, match="older checkpoint .*pickle.* does not resume from"):
+        latest_checkpoint(tmp_path / "run")
+    assert not marker.exists()
+
+
+def test_a_run_is_not_saved_with_settings_its_env_refuses(tmp_path):
+    """The env's checks run before config.json is written; a run stopped before its first checkpoint starts again
+    with the settings given now (agents.seeds)."""
+    from agents.ppo import train
+    from agents.seeds import run_state
+
+    cfg = PPOConfig(max_time=0.1, score=False, progress_bar=False, log_dir=str(tmp_path), run_name="bad")
+    with pytest.raises(ValueError, match="max_time"):
+        train(cfg)
+    assert not (cfg.run_dir / "config.json").exists()
+    cfg.run_dir.mkdir(parents=True)
+    (cfg.run_dir / "config.json").write_text(json.dumps({"config": cfg.to_dict() | {"max_time": 40.0}}))
+    assert run_state(cfg) == "new"
+    with pytest.raises(ValueError, match="seed must be an integer in \\[0, 2\\*\\*31 - 1\\]"):
+        PPOConfig(seed=2**40)

@@ -191,6 +191,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     if args.sample and not args.suite:
         raise ValueError("--sample N takes N scenarios of a --suite: give --suite")
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
+    if scenarios and args.sample and args.sample > len(scenarios):
+        log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
                                  scenario=scenario or (scenarios[0] if scenarios else None),
                                  targeted=args.target_time is not None or args.target_ratio is not None)
@@ -299,8 +301,8 @@ def _seed(text: str) -> int:
 def _json_option(text: str, option: str) -> Any:
     try:
         return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{option} is not valid JSON ({exc})") from None
+    except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
+        raise ValueError(f"{option} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
     except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
         raise ValueError(f"{option} is not valid JSON (nested too deeply)") from None
 
@@ -308,23 +310,30 @@ def _json_option(text: str, option: str) -> Any:
 def _params_from(args: argparse.Namespace):
     from wl_env.params import LoaderParams
 
-    return LoaderParams.from_dict(_json_option(args.params, "--params")) if getattr(args, "params", None) else None
+    text = getattr(args, "params", None)
+    if text is None:
+        return None
+    if not text.strip():
+        raise ValueError("--params is empty: give a JSON object of LoaderParams fields")
+    return LoaderParams.from_dict(_json_option(text, "--params"))
 
 
 def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
     """The --scenario (JSON text or a JSON file; a missing field is nominal, the braking --braking's), or None."""
     from wl_env.scenario import Scenario
 
-    if not getattr(args, "scenario", None):
+    if getattr(args, "scenario", None) is None:
         return None
+    if not args.scenario.strip():
+        raise ValueError("--scenario is empty: give a JSON object or a JSON file")
     try:
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
     given = args.braking is not None if braking_given is None else braking_given
     if given:
-        data = json.loads(Path(args.scenario).read_text()) if not args.scenario.strip().startswith("{") else \
-            json.loads(args.scenario)
+        text = args.scenario.strip()
+        data = json.loads(text if text.startswith("{") else Path(text).read_text())  # (parse read it: it is valid)
         if "braking" in data and data["braking"] != args.braking:
             raise ValueError(f"--braking {args.braking} contradicts the --scenario's braking {data['braking']!r}")
         s = s.replace(braking=args.braking)

@@ -13,7 +13,7 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, is_finite, resolve, shown
+from wl_env.params import LoaderParams, is_finite, plain, resolve, shown
 from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
@@ -96,6 +96,7 @@ def n_actions(assist: bool, coast: bool) -> int:
 
 def check_target_time(target_time: Any) -> float:
     """A target cycle time in (0, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
+    target_time = plain(target_time)
     if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and is_finite(target_time)
             and 0.0 < target_time < TIME_SCALE):
         raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s (the episode ends at {TIME_SCALE:g} s), "
@@ -319,6 +320,7 @@ class WheelLoaderEnv(gym.Env):
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
         self._source, self.braking = scenario_source(scenario, braking)
+        init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:

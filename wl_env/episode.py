@@ -15,7 +15,7 @@ import numpy as np
 from wl_env import cycle, limits
 from wl_env.codec import FUEL_ACTIONS, Codec
 from wl_env.model import governed_injection, governor_request
-from wl_env.params import LoaderParams, is_finite, shown
+from wl_env.params import LoaderParams, is_finite, plain, shown
 from wl_env.physics import torque_converter
 from wl_env.physics.backend import ops_for
 from wl_env.physics.flatten import Flattened, config_key, flatten_cached
@@ -62,7 +62,8 @@ class RewardConfig:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            v = getattr(self, f.name)
+            v = plain(getattr(self, f.name))
+            object.__setattr__(self, f.name, v)  # (a numpy scalar kept as the Python number it holds)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and is_finite(v)):
                 raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {shown(v)}")
             if v < 0:
@@ -70,6 +71,9 @@ class RewardConfig:
         for name in ("fuel_ref_g", "time_ref"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"RewardConfig.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+MAX_EPISODE_TIME = 3600.0  # s: a cycle takes 8-25 s; an hour bounds an episode's work (and its arrays)
 
 
 class CycleStepper(Flattened):
@@ -95,12 +99,14 @@ class CycleStepper(Flattened):
     ) -> None:
         if fuel_action not in FUEL_ACTIONS:
             raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
+        dt, substeps, max_time = plain(dt), plain(substeps), plain(max_time)
         if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and 0.0 < dt <= 1.0):
             raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {shown(dt)}")
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
-        if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time) and max_time >= 5 * dt):
-            raise ValueError(f"max_time must be a finite number of seconds >= 5 dt, got {shown(max_time)}")
+        if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time)
+                                              and 5 * dt <= max_time <= MAX_EPISODE_TIME):
+            raise ValueError(f"max_time must be a number of seconds in [5 dt, {MAX_EPISODE_TIME:g}], got {shown(max_time)}")
         self.params = params
         self.braking = cycle.check_braking(braking)
         self.sim = Simulator(params, braking)

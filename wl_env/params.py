@@ -257,6 +257,8 @@ class LoaderParams:
 
     def _validate(self) -> None:
         """The checks between fields (each field's own type and range are checked by :func:`_coerce`)."""
+        if not self.omega_min < self.omega_max:
+            raise ValueError(f"LoaderParams.omega_min must be below omega_max, got {self.omega_min} >= {self.omega_max} rad/s")
         if not self.omega_min < self.omega_0 < self.omega_max:
             raise ValueError(
                 f"LoaderParams.omega_0 must lie in (omega_min, omega_max) = ({self.omega_min}, {self.omega_max}), "
@@ -361,6 +363,14 @@ def is_finite(value: Any) -> bool:
         return math.isfinite(value)
     except OverflowError:
         return False
+
+
+def plain(value: Any) -> Any:
+    """A numpy scalar as the Python number it holds (np.float32(0.1) -> 0.1, np.bool_ -> bool, which number
+    checks still refuse); anything else as it is. For arguments checked with ``isinstance(v, (int, float))``."""
+    import numpy as np
+
+    return value.item() if isinstance(value, np.generic) and value.dtype.kind in "biuf" else value
 
 
 def shown(value: Any, limit: int = 80) -> str:

@@ -35,7 +35,7 @@ from wl_env.env import (
     target_features,
 )
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import MAX_NUM_ENVS, SCENARIO_FIELDS, LoaderParams, ParamsView, resolve, shown
+from wl_env.params import MAX_NUM_ENVS, SCENARIO_FIELDS, LoaderParams, ParamsView, plain, resolve, shown
 from wl_env.scenario import Scenario
 from wl_env.suites import Suite
 
@@ -70,6 +70,7 @@ class WheelLoaderVectorEnv(VectorEnv):
             raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}], got {shown(num_envs)}")
         if render_mode is not None:
             raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
+        num_envs, init_noise = plain(num_envs), plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
@@ -113,9 +114,18 @@ class WheelLoaderVectorEnv(VectorEnv):
         if options:
             raise ValueError(f"WheelLoaderVectorEnv.reset takes no options, got {shown(options)}")
         if seed is not None:
-            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
+            seed = plain(seed)
+            if isinstance(seed, int) and not isinstance(seed, bool):
+                seeds = [seed + i for i in range(self.num_envs)]
+            elif isinstance(seed, (list, tuple)):
+                seeds = [plain(s) for s in seed]
+            else:
+                raise ValueError(f"seed must be an integer >= 0, a list of num_envs={self.num_envs} of them, or None; "
+                                 f"got {shown(seed)}")
             if len(seeds) != self.num_envs:
                 raise ValueError(f"seed list must have num_envs={self.num_envs} entries, got {len(seeds)}")
+            if not all(s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0) for s in seeds):
+                raise ValueError(f"seed must be an integer >= 0 (or None) for each env, got {shown(seed)}")
             self._rngs = [np.random.default_rng(s) for s in seeds]  # as gymnasium's np_random(seed)
         self._reset_where(np.ones(self.num_envs, dtype=bool))
         self._started = True

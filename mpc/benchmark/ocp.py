@@ -160,7 +160,19 @@ class OCPResult:
 _NLP_CACHE: dict[tuple, dict[str, Any]] = {}
 # Built NLPs kept per process (a suite's points take dozens of meshes, pareto.MESH_LADDER; 50-200 MB each,
 # 1-5 s to build): $WL_NLP_CACHE_SIZE, for a long suite solve on a machine with the memory.
-NLP_CACHE_SIZE = int(os.environ.get("WL_NLP_CACHE_SIZE", "12"))
+NLP_CACHE_ENV = "WL_NLP_CACHE_SIZE"
+
+
+def nlp_cache_size() -> int:
+    """$WL_NLP_CACHE_SIZE (default 12): an integer in [1, 1000], else ValueError naming it."""
+    raw = os.environ.get(NLP_CACHE_ENV, "12").strip()
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= 1000:
+        raise ValueError(f"${NLP_CACHE_ENV} must be an integer in [1, 1000] (OCP NLPs kept per process), got {raw!r}")
+    return n
 
 
 def release_nlps() -> None:
@@ -182,7 +194,7 @@ class CycleOCP:
         self.specs = cycle.phase_specs(self.braking, self.params)
         key = (self.braking, machine_key(self.params), replace(self.settings, smoothing=(0.0,)))  # (k: a parameter)
         if key not in _NLP_CACHE:
-            if len(_NLP_CACHE) >= NLP_CACHE_SIZE:  # the least recently used goes (each holds ~50-100 MB)
+            if len(_NLP_CACHE) >= nlp_cache_size():  # the least recently used goes (each holds ~50-100 MB)
                 del _NLP_CACHE[next(iter(_NLP_CACHE))]
             _NLP_CACHE[key] = self._build()
         _NLP_CACHE[key] = _NLP_CACHE.pop(key)  # (most recently used last)

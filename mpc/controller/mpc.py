@@ -58,6 +58,7 @@ from mpc.controller.solver import (
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
+from wl_env.env import check_target_time
 from wl_env.params import SCENARIO_FIELDS, LoaderParams, resolve
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
@@ -234,28 +235,37 @@ class MPCConfig:
     replan_lag_steps: int | None = None
 
     def __post_init__(self) -> None:
+        def real(v: Any) -> bool:  # (no bools, strings or NaN for a number)
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+        def count(v: Any, lo: int, hi: int) -> bool:
+            return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.mode == "target_time" and not (
-                isinstance(self.target_time, (int, float)) and math.isfinite(self.target_time) and self.target_time > 0):
-            raise ValueError(f"mode 'target_time' needs a target_time > 0 (s), got {self.target_time!r}")
-        if self.mode == "weighted" and (self.w_fuel is None or not 0.0 <= self.w_fuel <= 1.0):
+        if self.mode == "target_time" or self.target_time is not None:
+            check_target_time(self.target_time)
+        if self.mode == "weighted" and not (real(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
             raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {self.w_fuel!r}")
-        if self.deadline_ms is not None and not (isinstance(self.deadline_ms, (int, float))
-                                                 and math.isfinite(self.deadline_ms) and self.deadline_ms > 0):
+        if self.deadline_ms is not None and not (real(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {self.deadline_ms!r}")
+        if not isinstance(self.realtime, bool):
+            raise ValueError(f"realtime must be True or False, got {self.realtime!r}")
         if self.realtime and self.deadline_ms is not None:
             raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
-        if self.time_budget is not None and not self.time_budget > 0:
+        if self.time_budget is not None and not (real(self.time_budget) and self.time_budget > 0):
             raise ValueError(f"time_budget must be > 0 s or None, got {self.time_budget!r}")
-        if not (isinstance(self.max_iter, int) and self.max_iter >= 1):
-            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
-        if not (isinstance(self.spare_steps, int) and self.spare_steps >= 1):
-            raise ValueError(f"spare_steps must be an integer >= 1, got {self.spare_steps!r}")
-        if not (len(self.rate_weight) == 2 and all(math.isfinite(w) and w >= 0 for w in self.rate_weight)):
+        if not count(self.max_iter, 1, 100_000):
+            raise ValueError(f"max_iter must be an integer in [1, 100000], got {self.max_iter!r}")
+        if not count(self.spare_steps, 1, 100):
+            raise ValueError(f"spare_steps must be an integer in [1, 100], got {self.spare_steps!r}")
+        if not (isinstance(self.rate_weight, (tuple, list)) and len(self.rate_weight) == 2
+                and all(real(w) and w >= 0 for w in self.rate_weight)):
             raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {self.rate_weight!r}")
-        if not 0.0 <= self.tighten < 0.5:
+        if not (real(self.tighten) and 0.0 <= self.tighten < 0.5):
             raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
+        if not (real(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
+            raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {self.omega_margin!r}")
         if self.horizon_steps is not None:
             if not (isinstance(self.horizon_steps, int) and not isinstance(self.horizon_steps, bool)
                     and 2 <= self.horizon_steps <= 1000):
