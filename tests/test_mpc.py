@@ -19,6 +19,7 @@ from mpc.controller.schedule import apportion, steps_of
 from mpc.controller.solver import IpoptSolver, SolverResult
 from wl_env.model import estimated_derivatives
 from wl_env.params import DEFAULT_PARAMS as P
+from wl_env.scenario import Scenario
 from wl_env.simulator import Simulator
 
 
@@ -226,6 +227,9 @@ def test_bad_configuration_raises():
             MPCConfig(**kw)
     with pytest.raises(ValueError, match="braking"):
         MPCController("engine")
+    heavy = Scenario(payload=12000.0, braking="tc")
+    with pytest.raises(ValueError, match="mismatch run must be built with the run's model"):  # (it planned the plant's)
+        run_closed_loop("tc", controller=MPCController("tc", heavy.params()), scenario=heavy, mismatch=True, score=False)
     with pytest.raises(ValueError, match="dt"):
         MPCController("tc", dt=math.nan)
     with pytest.raises(ValueError, match="obs"):

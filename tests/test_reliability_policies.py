@@ -561,7 +561,7 @@ def test_resuming_never_unpickles_and_refuses_bad_run_files(tmp_path, marker):
         with pytest.raises(ValueError, match="config.json is not a readable run config"):
             train(named, resume=True)
     config.write_text(good[config])
-    for bad in ({}, {"num_timesteps": "2048", "wall_time": 1.0}, {"num_timesteps": 10**9, "wall_time": 1.0},
+    for bad in ({}, {"num_timesteps": "2048", "wall_time": 1.0}, {"num_timesteps": -5, "wall_time": 1.0},
                 {"num_timesteps": 1024, "wall_time": float("nan")}):
         progress.write_text(json.dumps(bad))
         with pytest.raises(CheckpointError, match="progress.json"):

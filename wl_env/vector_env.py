@@ -66,11 +66,12 @@ class WheelLoaderVectorEnv(VectorEnv):
         assist: bool = False,
         coast: bool = False,
     ) -> None:
+        num_envs = plain(num_envs)
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and 1 <= num_envs <= MAX_NUM_ENVS):
             raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}], got {shown(num_envs)}")
         if render_mode is not None:
             raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
-        num_envs, init_noise = plain(num_envs), plain(init_noise)
+        init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs

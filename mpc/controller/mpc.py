@@ -1292,7 +1292,13 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
     env = gym.make("WheelLoader-v2", braking=braking, params=plant)
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps, solver=solver)
-    ep = run_episode(env, ctrl, seed=seed)
+    told = None
+    if controller is not None and scenario is not None:
+        if mismatch and controller.params != model:  # (no reset tells a controller a model of its own)
+            raise ValueError("a given controller in a mismatch run must be built with the run's model (the scenario's "
+                             "cycle with the nominal payload and rolling resistance): pass no controller")
+        told = None if mismatch else scenario  # (its reset plans this cycle; it planned another before)
+    ep = run_episode(env, ctrl, seed=seed, scenario=told)
     s = None
     if score and ep.completed:
         from mpc.benchmark.scoring import score_run
