@@ -697,6 +697,11 @@ def test_suite_solve_writes_each_scenario_resumes_and_assembles(tmp_path, capsys
     assert wl.cli.main(argv) == 0
     assert len(fake_solve.calls) == n and len(sorted((cache / "suites").glob("nominal_*/*.json"))) == 2
     assert "2 scenarios" in capsys.readouterr().out
+    service, tc = sorted((cache / "suites").glob("nominal_*/*.json"))
+    tc.write_bytes(service.read_bytes())  # an entry under another scenario's name: set aside and rebuilt, not counted
+    assert wl.cli.main(argv) == 0, capsys.readouterr().err
+    assert "braking 'service', expected 'tc'" in capsys.readouterr().err and list(tc.parent.glob(f"{tc.name}.bad-*"))
+    assert json.loads(out.read_text())["entries"][tc.stem]["braking"] == "tc"
 
 
 def test_the_horizon_solver_flag_offers_exactly_the_configs_solvers():

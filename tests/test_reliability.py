@@ -314,6 +314,7 @@ CORRUPTIONS = {
     "not-monotone": lambda text, data: _set(data, fuel_g=data["fuel_g"][::-1]),
     "changed-number": lambda text, data: json.dumps({**data, "fuel_g": [f * 0.5 for f in data["fuel_g"]]}),
     "other-parameters": lambda text, data: _set(data, params_fingerprint="0123456789abcdef"),
+    "other-braking": lambda text, data: _set(data, braking="tc"),  # (its fingerprint is the same machine's)
     # were a bare OverflowError and a RecursionError: a traceback instead of a recomputed entry
     "huge-int": lambda text, data: _set(data, wall_time=10**400),
     "nested-too-deeply": lambda text, data: '{"T": ' + "[" * 100_000 + "]" * 100_000 + "}",
@@ -357,6 +358,36 @@ def test_bad_point_is_set_aside_and_solved_again(tmp_path, fake, caplog, how):
     assert fake.calls == [("service", "fuel", None)]  # that point alone
     assert str(point) in caplog.text and list(folder.glob("min_fuel.json.bad-*"))
     assert all(math.isfinite(f) for f in front.fuel_g)
+
+
+def test_optima_of_the_other_braking_are_never_taken(tmp_path, fake, caplog):
+    """A service front's folder copied under the TC name (the fingerprint is the machine's, the same for both):
+    every entry is set aside by name and the TC front solved, never scored against service optima."""
+    import shutil
+
+    pareto.pareto_front("service", 3, cache=tmp_path)
+    tc = pareto.front_folder("tc", 3, cache=tmp_path)
+    shutil.copytree(pareto.front_folder("service", 3, cache=tmp_path), tc)
+    fake.calls.clear()
+    with caplog.at_level(logging.WARNING):
+        front = pareto.pareto_front("tc", 3, cache=tmp_path)
+    assert front.braking == "tc" and fake.calls and {c[0] for c in fake.calls} == {"tc"}
+    assert "braking 'service', expected 'tc'" in caplog.text
+    assert list(tc.glob("front.json.bad-*")) and list(tc.glob("min_time.json.bad-*"))
+
+
+@pytest.mark.parametrize("kind", ["fifo", "symlink-loop", "symlink-to-device"])
+def test_an_entry_that_is_no_regular_file_is_set_aside(tmp_path, fake, caplog, kind):
+    """Not read (a FIFO would block, a device never end, a loop raise): set aside by name and recomputed."""
+    good = pareto.pareto_front("service", 3, cache=tmp_path)
+    front_file = pareto.front_folder("service", 3, cache=tmp_path) / "front.json"
+    front_file.unlink()
+    {"fifo": lambda: os.mkfifo(front_file), "symlink-loop": lambda: front_file.symlink_to(front_file),
+     "symlink-to-device": lambda: front_file.symlink_to("/dev/zero")}[kind]()
+    with caplog.at_level(logging.WARNING):
+        again = pareto.pareto_front("service", 3, cache=tmp_path)
+    assert again.fuel_g == good.fuel_g and fake.calls.count(("service", "time", None)) == 1  # (points kept)
+    assert f"bad cache entry {front_file}" in caplog.text and list(front_file.parent.glob("front.json.bad-*"))
 
 
 def test_entries_carry_schema_checksum_and_parameters(tmp_path, fake):

@@ -228,8 +228,8 @@ def load_results(folder: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no {RESULTS_FILE} in {folder} (write one with `wl run --out {folder}`)")
     try:
         results = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except (ValueError, OSError) as exc:  # (JSONDecodeError, UnicodeDecodeError, an int of too many digits)
+        raise ValueError(f"{path} is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
     except RecursionError:  # (a RuntimeError)
         raise ValueError(f"{path} is not valid JSON: nested too deeply") from None
 

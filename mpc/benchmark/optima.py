@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -72,18 +72,20 @@ def _settings(mesh: Sequence[int]) -> OCPSettings:
     return OCPSettings(intervals=tuple(int(n) for n in mesh))
 
 
-def _cached(path: Path, T: float | None = None) -> OCPResult | None:
+def _cached(path: Path, braking: str, params: LoaderParams, objective: str = "fuel_at_time",
+            T: float | None = None) -> OCPResult | None:
     """The optimum saved at ``path`` if present and valid (:func:`mpc.benchmark.pareto.cached_result`: a bad
-    entry is reported, set aside and solved again) and, given T, solved for that cycle time."""
-    r = cached_result(path)
+    entry, or one of another braking, parameters or objective, is reported, set aside and solved again) and,
+    given T, solved for that cycle time."""
+    r = cached_result(path, params.fingerprint(), objective, braking)
     return r if r is not None and (T is None or abs(r.T - T) <= 1e-6 * max(1.0, T)) else None
 
 
-def _load_or_solve(path: Path, solve: Callable[[], OCPResult], what: str) -> OCPResult:
-    r = _cached(path)
+def _load_or_solve(path: Path, braking: str, params: LoaderParams, objective: str, what: str) -> OCPResult:
+    r = _cached(path, braking, params, objective)
     if r is None:
         log.info(f"solving {what} (not in the cache)")
-        r = solve()
+        r = solve_ocp(braking, objective, params=params)
         save_result(r, path)
     return r
 
@@ -95,13 +97,11 @@ def front_optima(braking: str, n_points: int, params: LoaderParams,
     t0 = time.perf_counter()
     front = pareto_front(braking, n_points=n_points, params=params, cache=cache, progress=log.info)
     folder = front_folder(braking, n_points, params, cache)
-    r_time = _load_or_solve(folder / "min_time.json", lambda: solve_ocp(braking, "time", params=params),
-                            f"the {braking} minimum-time cycle")
-    r_fuel = _load_or_solve(folder / "min_fuel.json", lambda: solve_ocp(braking, "fuel", params=params),
-                            f"the {braking} minimum-fuel cycle")
+    r_time = _load_or_solve(folder / "min_time.json", braking, params, "time", f"the {braking} minimum-time cycle")
+    r_fuel = _load_or_solve(folder / "min_fuel.json", braking, params, "fuel", f"the {braking} minimum-fuel cycle")
     solved = []
     for f in sorted(folder.glob("point_*.json")):  # forward and backward continuation solves
-        r = _cached(f)
+        r = _cached(f, braking, params)
         if r is not None:
             solved.append(r)
     points = []
@@ -170,7 +170,7 @@ def polish_front(braking: str, alt: FrontOptima, params: LoaderParams,
         if i in (0, len(front.T) - 1):  # the time and fuel optima themselves
             continue
         path = folder / f"T_{T:.4f}.json"
-        r = _cached(path, T)
+        r = _cached(path, braking, params, T=T)
         if r is None:
             old = by_T.get(round(T, 6))
             log.info(f"[{braking}] checking front point {i + 1}/{len(front.T)} (T = {T:.3f} s, {fuel[i]:.3f} g) "
@@ -200,7 +200,7 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
     """Minimum fuel at the cycle time T (cached) on ``mesh`` (a front's; None: the default): warm starts
     from the two of ``points`` around T and the template multi-start, the leanest kept. OCPError if all fail."""
     path = optima_folder(braking, params, cache) / f"fuel_at_T{T:.4f}.json"
-    cached = _cached(path, T)
+    cached = _cached(path, braking, params, T=T)
     if cached is not None:
         return cached
     below = [r for r in points if r.T <= T]
@@ -228,7 +228,7 @@ def lean_time_optimum(braking: str, r_time: OCPResult, params: LoaderParams, cac
     if first_point is not None and abs(first_point.T - T) <= 1e-6 * T:
         return first_point
     path = optima_folder(braking, params, cache) / f"lean_time_opt_x{factor:.4f}.json"
-    cached = _cached(path, T)
+    cached = _cached(path, braking, params, T=T)
     if cached is not None:
         return cached
     log.info(f"[{braking}] leanest cycle at {factor:g} x T_min = {T:.4f} s")

@@ -231,14 +231,12 @@ def _result_from(data: dict[str, Any]) -> OCPResult:
     return OCPResult(**{k: v for k, v in data.items() if k in OCPResult.__dataclass_fields__})
 
 
-def cached_result(path: str | os.PathLike, fingerprint: str | None = None, objective: str | None = None) -> OCPResult | None:
-    """The valid cached OCP result at ``path`` (of ``objective``, if given), or None: missing, or bad (then
-    logged and set aside)."""
-    def check(d: dict[str, Any]) -> str | None:
-        return check_result(d) or (f"objective {d['objective']!r}, expected {objective!r}"
-                                   if objective is not None and d["objective"] != objective else None)
-
-    data = store.load_entry(path, RESULT_KIND, check, fingerprint)
+def cached_result(path: str | os.PathLike, fingerprint: str | None = None, objective: str | None = None,
+                  braking: str | None = None) -> OCPResult | None:
+    """The valid cached OCP result at ``path`` (solved for ``fingerprint``, of ``objective`` and ``braking``,
+    each if given), or None: missing, or bad (then logged and set aside)."""
+    expect = {k: v for k, v in (("objective", objective), ("braking", braking)) if v is not None}
+    data = store.load_entry(path, RESULT_KIND, check_result, fingerprint, expect)
     return None if data is None else _result_from(data)
 
 
@@ -282,7 +280,7 @@ def min_time_result(braking: str, n_points: int = DEFAULT_POINTS, params: Loader
     missing or bad."""
     p = resolve(params)
     path = front_folder(braking, n_points, p, cache) / "min_time.json"
-    r = cached_result(path, p.fingerprint(), "time")
+    r = cached_result(path, p.fingerprint(), "time", braking)
     if r is None:
         r = solve_ocp(braking, "time", params=p)
         save_result(r, path)
@@ -331,7 +329,7 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
     machine, own = machine_key(p), scenario_fields(p)
     best, best_d = None, math.inf
     for f in (cache_dir(cache) / "pareto").glob(f"{braking}_*_n{n_points}_{CACHE_VERSION}/front.json"):
-        data = store.load_entry(f, FRONT_KIND, check_front)
+        data = store.load_entry(f, FRONT_KIND, check_front, expect={"braking": braking})
         if data is None or data.get("machine") != machine or not data.get("scenario_fields"):
             continue
         d = param_distance(own, data["scenario_fields"])
@@ -371,18 +369,15 @@ def pareto_front(
     folder = front_folder(braking, n_points, p, cache)
     front_file = folder / "front.json"
 
-    def matches(d: dict[str, Any]) -> str | None:
-        return check_front(d) or (f"a {d['braking']} front, expected {braking}" if d["braking"] != braking else None)
-
     if use_cache:
-        data = store.load_entry(front_file, FRONT_KIND, matches, fingerprint)
+        data = store.load_entry(front_file, FRONT_KIND, check_front, fingerprint, {"braking": braking})
         if data is not None:
             return ParetoFront._from(data)
     near = nearest_front(braking, n_points, p, cache) if neighbour else None
     guide: dict[str, OCPResult] = {}
     if near is not None:  # the neighbour's solves, by name
         for f in near.glob("*.json"):
-            r = cached_result(f) if f.name != "front.json" else None
+            r = cached_result(f, braking=braking) if f.name != "front.json" else None
             if r is not None:
                 guide[f.stem] = r
     say(f"[{braking}] solving the Pareto front ({n_points} points; each solved point is cached in {folder})"
@@ -393,7 +388,7 @@ def pareto_front(
     def cached_solve(name: str, **kwargs: Any) -> OCPResult:
         path = folder / f"{name}.json"
         if use_cache:
-            cached = cached_result(path, fingerprint, kwargs["objective"])
+            cached = cached_result(path, fingerprint, kwargs["objective"], braking)
             T = kwargs.get("T")
             if cached is not None and (T is None or abs(cached.T - T) <= 1e-6 * T):
                 return cached
@@ -568,7 +563,7 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
     # Slower than the fuel-optimal cycle: fuel at that T is its own optimum (cached like the front).
     p = resolve(params)
     path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}" / f"T_{T:.3f}.json"
-    cached = cached_result(path, p.fingerprint(), "fuel_at_time")
+    cached = cached_result(path, p.fingerprint(), "fuel_at_time", braking)
     if cached is not None:
         return cached.fuel_g
     r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,

@@ -82,7 +82,7 @@ def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | N
                 n_points: int = DEFAULT_POINTS) -> tuple[ParetoFront, str] | None:
     """(the front of this cycle, "shipped" or "cached") without solving anything, or None."""
     path = front_folder(cycle.check_braking(braking), n_points, params, cache) / "front.json"
-    data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint())
+    data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint(), {"braking": braking})
     if data is not None:
         return ParetoFront._from(data), "cached"
     key = f"{braking}_{params.fingerprint()}"
@@ -94,13 +94,14 @@ def _guides(braking: str, params: LoaderParams, cache: str | os.PathLike | None)
     near = nearest_front(braking, DEFAULT_POINTS, params, cache)
     if near is None:
         return []
-    return [r for f in sorted(near.glob("*.json")) if f.name != "front.json" for r in [cached_result(f)] if r is not None]
+    return [r for f in sorted(near.glob("*.json")) if f.name != "front.json"
+            for r in [cached_result(f, braking=braking)] if r is not None]
 
 
 def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
     """The cycle's minimum time, solved (cached): from the nearest front's minimum-time cycle and the templates."""
     path = optima_folder(braking, params, cache) / "min_time.json"
-    r = cached_result(path, params.fingerprint(), "time")
+    r = cached_result(path, params.fingerprint(), "time", braking)
     if r is not None:
         return r
     warm = [g for g in _guides(braking, params, cache) if g.objective == "time"]

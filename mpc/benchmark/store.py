@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import os
+import stat
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -85,14 +86,29 @@ def _float_sized_int(text: str) -> int:
     return v
 
 
-def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None) -> dict[str, Any]:
+MAX_ENTRY_BYTES = 256 * 2**20  # (the largest entries, a suite's fronts, are a few MB)
+
+
+def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,
+               expect: dict[str, Any] | None = None) -> dict[str, Any]:
     """The payload of the entry at ``path`` (without schema and checksum); BadEntry if it is not a good
-    entry of ``kind`` (solved for ``fingerprint``, if given). FileNotFoundError if there is none."""
+    entry of ``kind`` (solved for ``fingerprint``, and holding the field values of ``expect``, if given:
+    e.g. its braking alternative and objective, which the file's name alone does not vouch for).
+    FileNotFoundError if there is none."""
     path = Path(path)
     try:
+        info = path.stat()
+        if stat.S_ISDIR(info.st_mode):
+            raise BadEntry(path, "a folder, not a file")
+        if not stat.S_ISREG(info.st_mode):  # (a FIFO or a device would block or never end)
+            raise BadEntry(path, "not a regular file")
+        if info.st_size > MAX_ENTRY_BYTES:
+            raise BadEntry(path, f"{info.st_size} bytes, more than an entry holds ({MAX_ENTRY_BYTES})")
         raw = path.read_bytes()
-    except IsADirectoryError:
-        raise BadEntry(path, "a folder, not a file") from None
+    except FileNotFoundError:
+        raise
+    except OSError as exc:  # a symlink loop, no permission, ...
+        raise BadEntry(path, f"unreadable ({exc.strerror or exc})") from None
     try:
         data = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float,
                           parse_int=_float_sized_int)
@@ -114,17 +130,20 @@ def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
         raise BadEntry(path, "checksum mismatch (the content was changed after it was written)")
     if fingerprint is not None and data.get("params_fingerprint") != fingerprint:
         raise BadEntry(path, f"solved for parameters {data.get('params_fingerprint')!r}, not {fingerprint!r}")
+    for name, value in (expect or {}).items():
+        if data.get(name) != value:
+            raise BadEntry(path, f"{name} {data.get(name)!r}, expected {value!r}")
     return {k: v for k, v in data.items() if k not in ("schema", "checksum")}
 
 
-def set_aside(path: str | os.PathLike, stat: os.stat_result | None = None) -> Path | None:
+def set_aside(path: str | os.PathLike, seen: os.stat_result | None = None) -> Path | None:
     """Rename a bad entry to ``<name>.bad-<timestamp>``; returns the new path, or None if the file is
-    gone or was replaced since ``stat`` was taken (another process already recomputed it)."""
+    gone or was replaced since ``seen`` was taken (its lstat; another process already recomputed it)."""
     path = Path(path)
     try:
-        now = path.stat()
-        if stat is not None and (now.st_ino, now.st_mtime_ns, now.st_size) != (
-                stat.st_ino, stat.st_mtime_ns, stat.st_size):
+        now = path.lstat()  # (the entry itself: a bad symlink is set aside, not its target)
+        if seen is not None and (now.st_ino, now.st_mtime_ns, now.st_size) != (
+                seen.st_ino, seen.st_mtime_ns, seen.st_size):
             return None
         stamp = time.strftime("%Y%m%dT%H%M%S") + f".{time.time_ns() % 10**9:09d}"
         target = path.with_name(f"{path.name}.bad-{stamp}")
@@ -134,16 +153,17 @@ def set_aside(path: str | os.PathLike, stat: os.stat_result | None = None) -> Pa
         return None
 
 
-def load_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None) -> dict[str, Any] | None:
+def load_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,
+               expect: dict[str, Any] | None = None) -> dict[str, Any] | None:
     """:func:`read_entry`, or None if there is no entry or a bad one (which is logged and set aside)."""
     path = Path(path)
     try:
-        stat = path.stat()
-        return read_entry(path, kind, check, fingerprint)
+        seen = path.lstat()
+        return read_entry(path, kind, check, fingerprint, expect)
     except FileNotFoundError:
         return None
     except BadEntry as exc:
-        moved = set_aside(path, stat)
+        moved = set_aside(path, seen)
         where = f"moved to {moved.name}" if moved else "already replaced"
-        log.warning(f"warning: bad cache entry {exc} -- {where}; recomputing it")
+        log.warning(f"bad cache entry {exc} -- {where}; recomputing it")
         return None
