@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import statistics
+import sys
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -64,11 +65,13 @@ class ScheduledDriver:
 
 
 def run(o: Options) -> dict[str, Any]:
+    if not 1 <= o.scenarios <= 1000:
+        raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
     if not 0.0 < o.engine_fraction <= 1.0:
-        raise ValueError(f"engine_fraction must be in (0, 1], got {o.engine_fraction}")
+        raise ValueError(f"--engine-fraction must be in (0, 1], got {o.engine_fraction}")
     if o.braking_cap is not None:
         if not assist.BRAKING_FRACTION[0] < o.braking_cap <= assist.MAX_BRAKING_FRACTION:
-            raise ValueError(f"braking_cap must be in ({assist.BRAKING_FRACTION[0]}, {assist.MAX_BRAKING_FRACTION}], "
+            raise ValueError(f"--braking-cap must be in ({assist.BRAKING_FRACTION[0]}, {assist.MAX_BRAKING_FRACTION}], "
                              f"got {o.braking_cap}")
         assist.BRAKING_FRACTION = (assist.BRAKING_FRACTION[0], o.braking_cap)  # (this process only: a measurement)
     env = gym.make(ENV_ID, braking=o.braking)
@@ -114,5 +117,12 @@ def run(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    with cli_logging():
-        run(tyro.cli(Options))
+    with cli_logging(names=("bench_assist_floor",)):
+        try:
+            run(tyro.cli(Options))
+        except ValueError as exc:  # bad options: the message names them, no traceback
+            print(f"bench_assist_floor: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        except KeyboardInterrupt:  # (the JSON is written at the end, atomically: nothing partial is left)
+            print("bench_assist_floor: interrupted", file=sys.stderr)
+            sys.exit(130)
