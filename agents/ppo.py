@@ -209,11 +209,9 @@ def _replace_folder(tmp: Path, folder: Path) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------- env
-def make_env(cfg: PPOConfig, num_envs: int | None = None, seed: int | None = None, vecnormalize: Any = None):
-    """The training env: native vector env -> SB3 VecEnv -> VecMonitor (-> VecNormalize).
-
-    ``vecnormalize`` (a path or a ``VecNormalize``) restores saved normalization statistics.
-    """
+def make_env(cfg: PPOConfig, num_envs: int | None = None, seed: int | None = None):
+    """The training env: native vector env -> SB3 VecEnv -> VecMonitor (-> VecNormalize, fresh: a checkpoint's
+    statistics are restored by :func:`restore_checkpoint`)."""
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     env = make_sb3_vec_env(num_envs or cfg.num_envs, seed=cfg.seed if seed is None else seed, env_id=cfg.env_id,
@@ -221,11 +219,6 @@ def make_env(cfg: PPOConfig, num_envs: int | None = None, seed: int | None = Non
     env = VecMonitor(env)
     if not (cfg.norm_obs or cfg.norm_reward):
         return env
-    if isinstance(vecnormalize, (str, os.PathLike)):
-        return VecNormalize.load(str(vecnormalize), env)
-    if vecnormalize is not None:
-        vecnormalize.set_venv(env)
-        return vecnormalize
     return VecNormalize(env, norm_obs=cfg.norm_obs, norm_reward=cfg.norm_reward, gamma=cfg.gamma, clip_obs=10.0)
 
 
