@@ -41,6 +41,8 @@ def parse_sweep(items: Sequence[str]) -> dict[str, list[Any]]:
             raise ValueError(f"--sweep expects FIELD=V1,V2,..., got {item!r}")
         if name not in fields or name in ("seed", "run_name", "log_dir"):
             raise ValueError(f"--sweep {name}: not a PPOConfig field that can be swept")
+        if name in sweep:
+            raise ValueError(f"--sweep {name} is given twice: give its values once, FIELD=V1,V2,...")
         default = getattr(PPOConfig(), name)
         kind = type(default) if default is not None else float
         if kind in (dict, tuple, list):
@@ -52,6 +54,8 @@ def parse_sweep(items: Sequence[str]) -> dict[str, list[Any]]:
                 parsed.append({"true": True, "false": False}[text.lower()] if kind is bool else kind(text))
             except (KeyError, ValueError):
                 raise ValueError(f"--sweep {name}: {text!r} is not a {kind.__name__}") from None
+        if len(set(parsed)) != len(parsed):
+            raise ValueError(f"--sweep {name}: a value repeats in {values.strip()!r}")
         sweep[name] = parsed
     return sweep
 
@@ -87,10 +91,17 @@ def run_state(cfg: PPOConfig) -> str:
 def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str, Any]:
     """Train (or resume, or just read back) one run; its summary. Plain data in and out: a worker's or a
     Ray task's entry point."""
-    from agents.ppo import train
+    from agents.ppo import read_run_config, train
 
     cfg = PPOConfig.from_dict(cfg_dict)
     state = run_state(cfg)
+    if state != "new":  # (a run on disk is taken as this one only if it was made with the same settings)
+        saved, _ = read_run_config(cfg.run_dir / "config.json")
+        same = {"progress_bar", "torch_threads"}  # (how it shows and threads, not what it learns)
+        differ = sorted(k for k, v in cfg.to_dict().items() if k not in same and saved.to_dict().get(k) != v)
+        if differ:
+            raise ValueError(f"{cfg.run_dir} holds a run made with other settings ({', '.join(differ)}): give another "
+                             f"--log-dir or --run-name, or the same settings to {state == 'done' and 'read it back' or 'resume it'}")
     if state == "done":
         return json.loads((cfg.run_dir / "final" / "summary.json").read_text())
     return train(cfg, resume=state == "started", command=command)

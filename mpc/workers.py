@@ -48,6 +48,7 @@ def ray_session(address: str) -> Iterator[Any]:
         raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
     started = not ray.is_initialized()
     if started:
+        check_reachable(address)
         ray.init(address=None if address == "local" else address, include_dashboard=False,
                  logging_level=logging.WARNING, log_to_driver=False)
     try:
@@ -55,6 +56,24 @@ def ray_session(address: str) -> Iterator[Any]:
     finally:
         if started:
             ray.shutdown()
+
+
+RAY_CONNECT_TIMEOUT = 5.0  # s: Ray itself retries an unreachable head for minutes, deaf to Ctrl-C
+
+
+def check_reachable(address: str) -> None:
+    """ConnectionError naming ``address`` if it is ``host:port`` (or ``ray://host:port``) and nothing answers
+    there within RAY_CONNECT_TIMEOUT; other forms (``local``, ``auto``) are left to Ray."""
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=RAY_CONNECT_TIMEOUT).close()
+    except OSError as exc:
+        raise ConnectionError(f"--ray {address}: no Ray head answers there ({exc.strerror or exc}); start one with "
+                              f"`ray start --head`, or give --ray without an address for a local instance") from None
 
 
 class WorkerTraceback(Exception):

@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agents.evaluate import default_policy_path, evaluate_controller, load_controller  # noqa: E402
 from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
 from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
+from wl.cli import _float_in, _int_in  # noqa: E402  (the command line's checked option types)
 
 
 def pct(v: float | None) -> str:
@@ -90,12 +91,12 @@ def suite_mode(args: argparse.Namespace) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--episodes", type=int, default=100)
-    ap.add_argument("--init-noise", type=float, default=1.0)
-    ap.add_argument("--seed", type=int, default=10_000)
+    ap.add_argument("--episodes", type=_int_in(1, 100_000), default=100)
+    ap.add_argument("--init-noise", type=_float_in(0, 1), default=1.0)
+    ap.add_argument("--seed", type=_int_in(0, 2**31 - 1), default=10_000)
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
     ap.add_argument("--suite", choices=["test", "corners"], help="run the suite mode (see above)")
-    ap.add_argument("--mpc-sample", type=int, default=10, help="--suite: scenarios per braking the MPC runs")
+    ap.add_argument("--mpc-sample", type=_int_in(1, 1000), default=10, help="--suite: scenarios per braking the MPC runs")
     ap.add_argument("--runs", nargs="+", metavar="RUN_DIR", help="--suite: instead, these runs' policies (e.g. one per "
                     "seed) at the three targets, and each metric's median and interquartile range over them")
     args = ap.parse_args()

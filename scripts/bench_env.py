@@ -96,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         args.repeats, args.single_steps, args.vector_env_steps = 3, 1_000, 10_000
     if args.repeats < 1 or args.single_steps < 1 or args.vector_env_steps < 1 or min(args.num_envs) < 1:
         ap.error("repeats, step counts and num-envs must be >= 1")
+    if not 0 <= args.seed < 2**32:
+        ap.error(f"--seed must be an integer in [0, 2**32 - 1], got {args.seed}")
 
     rng = np.random.default_rng(args.seed)
     load_before = os.getloadavg()

@@ -50,6 +50,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         ap.error(f"--fps must be > 0, got {args.fps}")
     if args.max_steps is not None and args.max_steps < 0:
         ap.error(f"--max-steps must be >= 0, got {args.max_steps}")
+    if args.seed < 0:
+        ap.error(f"--seed must be >= 0, got {args.seed}")
     return args
 
 
@@ -77,7 +79,14 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    r = run(args)
+    try:
+        r = run(args)
+    except (ValueError, OSError) as exc:  # a bad --controller or --model: one line naming it, no traceback
+        print(f"render_cycle.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # (the animation is written at the end: nothing partial is left)
+        print("render_cycle.py: interrupted", file=sys.stderr)
+        return 130
     info = r["info"]
     size_kb = os.path.getsize(args.out) / 1024
     summary = f"wrote {args.out} ({r['frames']} frames at {args.fps:g} fps, {size_kb:.0f} kB)"

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import shlex
 import sys
 from dataclasses import dataclass
@@ -68,6 +69,21 @@ class Options:
     # statistics, and keeps its critic (for PPO fine-tuning from the clone: --init-policy <run>/final/policy)
     env_id: str = "WheelLoaderTarget-v1"  # the clone's env (v0: action 0 the injection; v2/v3: the assisted driver,
     # labelled from v1 demonstrations)
+
+    def __post_init__(self) -> None:
+        """The numbers checked by name before anything runs (a bad one used to surface after the demonstrations,
+        ~20 s each, or not at all: --epochs 0 shipped an untrained clone)."""
+        rules = {"episodes": (1, 10_000), "epochs": (1, 100_000), "batch_size": (1, 2**20), "workers": (1, 256),
+                 "export_episodes": (1, 10_000), "dagger_rounds": (0, 100), "dagger_episodes": (1, 10_000)}
+        for name, (lo, hi) in rules.items():
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi):
+                raise ValueError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
+        for name, lo, hi in (("learning_rate", 0.0, 1.0), ("beta", 0.0, 1.0), ("fast_share", 0.0, 1.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi) or (name == "learning_rate" and v == 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be a number in {'(' if name == 'learning_rate' else '['}"
+                                 f"{lo:g}, {hi:g}], got {v!r}")
 
 
 def write_policy_copy(stem: str | Path, out: Path) -> None:

@@ -276,6 +276,21 @@ def test_step_after_the_end_raises_until_reset():
     env.step(env.action_space.sample())
 
 
+def test_a_failed_reset_leaves_no_episode_to_step():
+    """A reset refused part-way (its scenario set, its target not) used to leave the new start with the old
+    target, and step() ran it; now step() raises until a reset succeeds."""
+    env = gym.make("WheelLoaderTarget-v3").unwrapped
+    env.reset(seed=0, options={"target_time": 10.0})
+    env.step(env.action_space.sample())
+    with pytest.raises(ValueError, match="target_time"):
+        env.reset(seed=0, options={"scenario": {"payload": 12000.0}, "target_time": 50.0})
+    with pytest.raises(RuntimeError, match="reset failed"):
+        env.step(env.action_space.sample())
+    env.reset(seed=0, options={"scenario": {"payload": 12000.0}, "target_time": 12.0})
+    assert env.target_time == 12.0
+    env.step(env.action_space.sample())
+
+
 def test_a_stalled_engine_stops_at_zero_and_ends_the_episode():
     """Payload x3 with no fuel: the engine stalls; its speed is clamped at 0 (it does not turn backwards)
     and the episode ends as a failure with a finite observation."""

@@ -243,7 +243,9 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
      "graft_base needs env_id WheelLoaderTarget-v3"),
     (["--braking", "tc", "--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/ppo_target_service"],
      "drives service braking"),
-    (["--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/no_such_policy"], "no_such_policy")])
+    (["--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/no_such_policy"], "no_such_policy"),
+    (["--epochs", "0"], "--epochs must be an integer in [1, 100000]"),  # (was an untrained clone, exit 0)
+    (["--beta", "2"], "--beta must be a number in [0, 1]")])  # (was refused after the demonstrations)
 def test_train_bc_refuses_what_an_assisted_driver_cannot_take(tmp_path, args, message):
     """The assisted drivers' braking labels come from the expert's own cycle: DAgger (the clone drives) is
     refused by name; a graft is v3's only; a clone's base of another braking, or missing, is refused. Exit 2, no

@@ -3,6 +3,7 @@ instance with the same layout; a finished run is not trained again, an interrupt
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -25,7 +26,8 @@ def test_sweep_and_seeds_expand_to_one_named_run_each(tmp_path):
                                       "tiny_learning_rate0.0003_n_epochs2_s0", "tiny_learning_rate0.0003_n_epochs2_s3"]
     assert [(c.learning_rate, c.n_epochs, c.seed) for c in cfgs][1] == (1e-4, 2, 3)
     for bad, word in ((["learning_rate"], "FIELD=V1"), (["nope=1"], "nope"), (["n_epochs=two"], "two"),
-                      (["reward=1"], "single value"), (["seed=1,2"], "seed")):
+                      (["reward=1"], "single value"), (["seed=1,2"], "seed"),
+                      (["n_epochs=1", "n_epochs=2"], "given twice"), (["n_epochs=1,1"], "a value repeats")):
         with pytest.raises(ValueError, match=word):
             parse_sweep(bad)
     with pytest.raises(ValueError, match="repeat"):
@@ -50,6 +52,8 @@ def test_seeds_train_locally_report_their_spread_and_are_not_trained_twice(tmp_p
     stamp = (cfgs[0].run_dir / "final" / "summary.json").stat().st_mtime_ns
     assert train_runs(cfgs) == results  # finished: read back, not trained again
     assert (cfgs[0].run_dir / "final" / "summary.json").stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="holds a run made with other settings \\(gamma\\)"):  # (was read back as it)
+        train_runs(expand(dataclasses.replace(_tiny(tmp_path), gamma=0.5), [0]))
 
 
 def test_an_interrupted_target_run_of_a_sweep_resumes_its_step_count(tmp_path):

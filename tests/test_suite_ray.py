@@ -34,3 +34,18 @@ def test_the_suite_solves_on_a_local_ray_instance_with_the_local_layout(tmp_path
     assert json.loads(r.file.read_text())["entries"].keys() == r.entries.keys()
     again = solve_suite("corners", cache=tmp_path, ray_address="local", limit=3, job="fakes:fake_front_job")
     assert again.solved == 0  # resumed: every entry on disk
+
+
+def test_an_unreachable_ray_address_fails_at_once_by_name():
+    """Ray itself retries an unreachable head for minutes, deaf to Ctrl-C (measured: still running after 170 s)."""
+    import time
+
+    from mpc.workers import check_reachable
+
+    t0 = time.perf_counter()
+    with pytest.raises(ConnectionError, match="--ray 127.0.0.1:1: no Ray head answers there"):
+        check_reachable("127.0.0.1:1")
+    with pytest.raises(ConnectionError, match="ray://127.0.0.1:1"):
+        check_reachable("ray://127.0.0.1:1")
+    assert time.perf_counter() - t0 < 12.0
+    check_reachable("local")  # (left to Ray)

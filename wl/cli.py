@@ -149,6 +149,9 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     else:
         config = MPCConfig(mode="time", **rt)
     plant = None
+    if (args.payload_scale != 1.0 or args.rolling_scale != 1.0) and args.scenario is not None:
+        raise ValueError("--payload-scale and --rolling-scale scale the nominal plant; a --scenario sets the plant's "
+                         "payload and rolling_resistance itself (with --mismatch the model keeps the nominal ones)")
     if args.payload_scale != 1.0 or args.rolling_scale != 1.0:
         from wl_env.params import resolve
 
@@ -320,6 +323,7 @@ def _params_from(args: argparse.Namespace):
 
 def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
     """The --scenario (JSON text or a JSON file; a missing field is nominal, the braking --braking's), or None."""
+    from wl_env.params import SCENARIO_FIELDS
     from wl_env.scenario import Scenario
 
     if getattr(args, "scenario", None) is None:
@@ -330,6 +334,10 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
+    given_params = _json_option(args.params, "--params") if (getattr(args, "params", None) or "").strip() else {}
+    overridden = sorted(set(given_params) & set(SCENARIO_FIELDS)) if isinstance(given_params, dict) else []
+    if overridden:  # (the scenario sets them: the --params values would be dropped without a word)
+        raise ValueError(f"--params sets {', '.join(overridden)}, which the --scenario sets: give them in the scenario")
     given = args.braking is not None if braking_given is None else braking_given
     if given:
         text = args.scenario.strip()

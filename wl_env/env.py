@@ -353,6 +353,7 @@ class WheelLoaderEnv(gym.Env):
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
+        self._done = True  # (until this reset succeeds: one that fails leaves no half-reset episode to step)
         if options is not None and not isinstance(options, dict):
             raise ValueError(f"WheelLoaderEnv.reset's options must be a dict or None, got {shown(options)}")
         options = dict(options or {})
@@ -376,7 +377,6 @@ class WheelLoaderEnv(gym.Env):
             H += float(du[1]) * self.init_noise * 0.1
         self._y = (float(omega), 0.0, float(H), 0.0, 0.0, 0.0)
         self._phase, self._t, self._rev_err, self._violation = 1, 0.0, math.nan, 0.0
-        self._done = False
         self._features = self.codec.encode_observation(self._y, self._phase, self._t)
         # The cycle this episode runs, its actual start included: what it is scored against.
         self.episode_params = p.replace(omega_0=float(omega), H_0=float(H)) if self.init_noise > 0.0 else p
@@ -384,6 +384,7 @@ class WheelLoaderEnv(gym.Env):
         if self.observe_target:
             self.min_time_estimate, self.target_time = episode_target(
                 self.episode_scenario or self.scenario, self.target_ratios, self.np_random, target_time, target_ratio)
+        self._done = False
         if self.render_mode == "human":
             self.render()
         info = {"t": 0.0, "phase": 1, "fuel_g": 0.0, "scenario": self.episode_scenario}
@@ -409,7 +410,7 @@ class WheelLoaderEnv(gym.Env):
         if not self._y:
             raise RuntimeError("call reset() before step()")
         if self._done:
-            raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
+            raise RuntimeError("the episode has ended (terminated or truncated) or its reset failed: call reset() before step()")
         a = action_array(action, "action")
         if a.shape != self.action_space.shape:
             names = ("[engine-speed request, bucket, braking fraction, coasting fraction]" if self.coast else
