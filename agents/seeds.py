@@ -97,11 +97,12 @@ def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str,
     state = run_state(cfg)
     if state != "new":  # (a run on disk is taken as this one only if it was made with the same settings)
         saved, _ = read_run_config(cfg.run_dir / "config.json")
-        same = {"progress_bar", "torch_threads"}  # (how it shows and threads, not what it learns)
-        differ = sorted(k for k, v in cfg.to_dict().items() if k not in same and saved.to_dict().get(k) != v)
+        ignored = {"progress_bar", "torch_threads"}  # (how it shows and threads, not what it learns)
+        differ = sorted(k for k, v in cfg.to_dict().items() if k not in ignored and saved.to_dict().get(k) != v)
         if differ:
+            then = "read it back" if state == "done" else "resume it"
             raise ValueError(f"{cfg.run_dir} holds a run made with other settings ({', '.join(differ)}): give another "
-                             f"--log-dir or --run-name, or the same settings to {state == 'done' and 'read it back' or 'resume it'}")
+                             f"--log-dir or --run-name, or the same settings to {then}")
     if state == "done":
         return json.loads((cfg.run_dir / "final" / "summary.json").read_text())
     return train(cfg, resume=state == "started", command=command)
