@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import platform
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,9 +63,15 @@ def loo_errors(X: np.ndarray, y: np.ndarray) -> np.ndarray:
 def main(o: Options) -> None:
     from mpc.benchmark.reference import shipped_fronts
     from mpc.workers import run_in_workers
+    from wl.cli import _out_file  # (the command line's check of an output file: before the solves, not after)
     from wl_env.suites import load_suite
-    from wl_env.suites.min_time import quadratic_terms
+    from wl_env.suites.min_time import N_FEATURES, quadratic_terms
 
+    n_terms = quadratic_terms([[0.0] * N_FEATURES]).shape[1]
+    if not 2 * n_terms <= o.draws <= 10_000:
+        raise ValueError(f"--draws must be an integer in [{2 * n_terms}, 10000] (twice the model's {n_terms} terms), "
+                         f"got {o.draws}")
+    _out_file(o.out)
     jobs = {b: ("fit_min_time:solve_min_times", (b, o.draws, o.seed, o.cache)) for b in ("service", "tc")}
     results = run_in_workers(jobs, log_level=logging.INFO)
     shipped = shipped_fronts()
@@ -99,4 +106,8 @@ def main(o: Options) -> None:
 
 if __name__ == "__main__":
     with cli_logging():
-        main(tyro.cli(Options))
+        try:
+            main(tyro.cli(Options))
+        except ValueError as exc:  # bad options: the message names them, no traceback
+            print(f"fit_min_time: error: {exc}", file=sys.stderr)
+            sys.exit(2)

@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("source", help="a run directory (with eval.csv) or an eval CSV file")
     ap.add_argument("--out", required=True, help="PNG to write")
-    ap.add_argument("--braking", default=None, help="braking alternative (default: from the run's config.json)")
+    ap.add_argument("--braking", default=None, choices=["service", "tc"],
+                    help="braking alternative (default: from the run's config.json)")
     ap.add_argument("--title", default=None)
     ap.add_argument("--no-front", action="store_true", help="do not draw the optimum's references")
     ap.add_argument("--front", default=None, metavar="JSON",
@@ -109,6 +110,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     src = Path(args.source)
     csv_path = src / "eval.csv" if src.is_dir() else src
+    if not csv_path.is_file():
+        ap.error(f"no learning curve at {csv_path} (a run directory with eval.csv, or an eval CSV file)")
+    if Path(args.out).suffix.lower() != ".png" or Path(args.out).is_dir():
+        ap.error(f"--out must name a .png file, got {args.out!r}")
+    if args.front and not Path(args.front).is_file():
+        ap.error(f"--front {args.front}: no such file")
     braking = args.braking
     if braking is None and (src / "config.json").exists():
         braking = json.loads((src / "config.json").read_text())["config"]["braking"]
@@ -122,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as e:  # noqa: BLE001
             print(f"warning: no Pareto front ({e})", file=sys.stderr)
     rows = read_eval_csv(csv_path)
+    if not rows:
+        ap.error(f"{csv_path} holds no evaluation rows: nothing to plot")
     if front is not None:  # score the rows logged while no front was at hand
         from mpc.benchmark.scoring import score_run
 
@@ -130,7 +139,10 @@ def main(argv: list[str] | None = None) -> int:
                 s = score_run(r["T"], r["fuel_g"], braking, front=front)
                 r["time_gap"], r["fuel_gap"] = s.time_gap, s.fuel_gap
     title = args.title or f"PPO, {braking} braking: deterministic evaluations during training"
-    print(plot(rows, braking, title, Path(args.out), front))
+    try:
+        print(plot(rows, braking, title, Path(args.out), front))
+    except OSError as exc:  # an --out folder that cannot be written: one line naming it
+        ap.error(f"--out {args.out}: {exc.strerror or exc}")
     return 0
 
 

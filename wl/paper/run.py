@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,16 +66,28 @@ def parse_args(argv: list[str] | None = None, description: str | None = None) ->
 
 
 def main(argv: list[str] | None = None, description: str | None = None) -> int:
-    """The command line: :func:`parse_args` then :func:`reproduce`; returns the exit code."""
-    reproduce(parse_args(argv, description))
+    """The command line: :func:`parse_args` then :func:`reproduce`; returns the exit code (2: a bad option,
+    one line naming it; 130: interrupted, nothing partial written)."""
+    options = parse_args(argv, description)
+    try:
+        reproduce(options)
+    except ValueError as exc:
+        print(f"reproduce_paper: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("reproduce_paper: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 
 def reproduce(options: PaperOptions) -> dict[str, Any]:
     """Solve (or read from the cache) every optimum, draw Figs. 6-9, write table.md and results.json into
     ``options.out``; returns the results."""
+    from wl_env.atomic_io import check_output_folder
+
     p = resolve(None)
     out, cache = Path(options.out), options.cache
+    check_output_folder(out, f"--out {out}")  # (before the solves, ~minutes; not when the figures are saved)
     t0 = time.perf_counter()
     log.info(f"parameters {p.fingerprint()}, cache {cache_dir(cache)}, {options.points} points per front -> {out}")
     alts = {b: front_optima(b, options.points, p, cache) for b in BRAKING_MODES}
