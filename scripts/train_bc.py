@@ -79,11 +79,11 @@ class Options:
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi):
                 raise ValueError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, lo, hi in (("learning_rate", 0.0, 1.0), ("beta", 0.0, 1.0), ("fast_share", 0.0, 1.0)):
+        for name, allowed, ok in (("learning_rate", "(0, 1]", lambda v: 0 < v <= 1), ("beta", "[0, 1]", lambda v: 0 <= v <= 1),
+                                  ("fast_share", "[0, 1]", lambda v: 0 <= v <= 1)):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi) or (name == "learning_rate" and v == 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be a number in {'(' if name == 'learning_rate' else '['}"
-                                 f"{lo:g}, {hi:g}], got {v!r}")
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and ok(v)):
+                raise ValueError(f"--{name.replace('_', '-')} must be a number in {allowed}, got {v!r}")
 
 
 def write_policy_copy(stem: str | Path, out: Path) -> None:

@@ -310,15 +310,21 @@ def _json_option(text: str, option: str) -> Any:
         raise ValueError(f"{option} is not valid JSON (nested too deeply)") from None
 
 
-def _params_from(args: argparse.Namespace):
-    from wl_env.params import LoaderParams
-
+def _params_overrides(args: argparse.Namespace) -> Any:
+    """The --params JSON as given (None if absent); ValueError naming it if it is empty or not JSON."""
     text = getattr(args, "params", None)
     if text is None:
         return None
     if not text.strip():
         raise ValueError("--params is empty: give a JSON object of LoaderParams fields")
-    return LoaderParams.from_dict(_json_option(text, "--params"))
+    return _json_option(text, "--params")
+
+
+def _params_from(args: argparse.Namespace):
+    from wl_env.params import LoaderParams
+
+    overrides = _params_overrides(args)
+    return None if overrides is None else LoaderParams.from_dict(overrides)
 
 
 def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
@@ -334,8 +340,8 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
-    given_params = _json_option(args.params, "--params") if (getattr(args, "params", None) or "").strip() else {}
-    overridden = sorted(set(given_params) & set(SCENARIO_FIELDS)) if isinstance(given_params, dict) else []
+    overrides = _params_overrides(args)
+    overridden = sorted(set(overrides) & set(SCENARIO_FIELDS)) if isinstance(overrides, dict) else []
     if overridden:  # (the scenario sets them: the --params values would be dropped without a word)
         raise ValueError(f"--params sets {', '.join(overridden)}, which the --scenario sets: give them in the scenario")
     given = args.braking is not None if braking_given is None else braking_given

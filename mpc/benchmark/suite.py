@@ -143,11 +143,11 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     folder.mkdir(parents=True, exist_ok=True)
     chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
     wanted = [sc for chain in chains.values() for sc in chain]
-    def expected(sc: Scenario) -> dict[str, Any]:  # (an entry's name alone does not vouch for its cycle)
-        return {"params_fingerprint": sc.params().fingerprint(), "braking": sc.braking}
+    def load(sc: Scenario, read: Any) -> Any:  # (the entry's name alone does not vouch for its cycle: both checked)
+        return read(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry, sc.params().fingerprint(),
+                    {"braking": sc.braking})
 
-    have = {entry_key(sc) for sc in wanted if store.load_entry(folder / f"{entry_key(sc)}.json", FRONT_KIND,
-                                                                 check_entry, expect=expected(sc)) is not None}
+    have = {entry_key(sc) for sc in wanted if load(sc, store.load_entry) is not None}
     todo = {b: [sc for sc in chain if entry_key(sc) not in have] for b, chain in chains.items()}
     todo = {b: c for b, c in todo.items() if c}
     n_todo = sum(map(len, todo.values()))
@@ -168,9 +168,7 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
                                                                                *args)) for i, p in enumerate(pieces)})
             failed = {k: v for f in done.values() for k, v in f.items()}
     wall = time.perf_counter() - t0
-    entries = {entry_key(sc): store.read_entry(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry,
-                                               expect=expected(sc))
-               for sc in wanted if entry_key(sc) not in failed}
+    entries = {entry_key(sc): load(sc, store.read_entry) for sc in wanted if entry_key(sc) not in failed}
     for e in entries.values():
         for k in ("schema", "checksum"):
             e.pop(k, None)
