@@ -712,3 +712,13 @@ def test_the_horizon_solver_flag_offers_exactly_the_configs_solvers():
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     flag = next(a for a in sub.choices["mpc"]._actions if "--horizon-solver" in a.option_strings)
     assert tuple(flag.choices) == HORIZON_SOLVERS
+
+
+def test_the_nominal_ppo_on_another_scenario_warns(capsys, tmp_path):
+    """The shipped ppo_<braking> was trained on the paper's cycle alone: asked for another, the CLI says so."""
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--scenario", '{"payload": 7000}', "--episodes", 1,
+                        "--no-score", "--out", tmp_path / "other.json")
+    assert code == 0 and "nominal cycle only" in err and "--target-ratio" in err
+    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--episodes", 1, "--no-score",
+                        "--out", tmp_path / "nominal.json")
+    assert code == 0 and "nominal cycle only" not in err

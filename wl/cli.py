@@ -182,6 +182,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import aggregate, evaluate_controller, load_controller, summary_line
     from wl_env.atomic_io import write_json_atomic
+    from wl_env.scenario import Scenario
     from wl_env.suites import load_suite
 
     out = _out_file(args.out)  # an unwritable --out fails now, not after the episodes
@@ -196,9 +197,13 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
+    targeted = args.target_time is not None or args.target_ratio is not None
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
-                                 scenario=scenario or (scenarios[0] if scenarios else None),
-                                 targeted=args.target_time is not None or args.target_ratio is not None)
+                                 scenario=scenario or (scenarios[0] if scenarios else None), targeted=targeted)
+    if args.controller.strip() == "ppo" and args.model is None and not targeted and (
+            scenarios or (scenario is not None and scenario != Scenario.nominal(braking))):
+        log.warning(f"the shipped ppo_{braking} knows the paper's nominal cycle only; on other scenarios use the "
+                    "target-conditioned policy (--target-ratio R or --target-time T) or --controller bc")
     what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{args.episodes} episode(s)"
     log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
     r = evaluate_controller(controller, braking, episodes=args.episodes, init_noise=args.init_noise,
