@@ -26,17 +26,27 @@ ABORT_STATUSES = frozenset({"User_Requested_Stop", "NonIpopt_Exception_Thrown"})
 
 _flag = threading.Event()
 _repeat = True
+_signal = signal.SIGINT  # the signal that set the flag
 
 
 def _handler(signum: int, frame: Any) -> None:
+    global _signal
     first = not _flag.is_set()
+    if first:
+        _signal = signal.Signals(signum)
     _flag.set()
     if first or _repeat:
         raise KeyboardInterrupt
 
 
+def exit_code() -> int:
+    """The shell's code for the signal that stopped the work: 130 for Ctrl-C, 143 for SIGTERM."""
+    return 128 + int(_signal)
+
+
 def interrupted() -> bool:
-    """True once SIGINT arrived in this process (since the handler was installed)."""
+    """True once SIGINT (or, under :func:`handling`, SIGTERM) arrived in this process (since the handler was
+    installed)."""
     return _flag.is_set()
 
 
@@ -54,22 +64,26 @@ def install(repeat: bool = True) -> Any:
     and clear the flag; returns the previous handler. ``repeat=False`` ignores further SIGINTs once the
     first one is being handled (worker processes, which get Ctrl-C from the terminal and again from
     their parent)."""
-    global _repeat
+    global _repeat, _signal
     if threading.current_thread() is not threading.main_thread():
         return None
     _flag.clear()
+    _signal = signal.SIGINT
     _repeat = repeat
     return signal.signal(signal.SIGINT, _handler)
 
 
 @contextmanager
 def handling() -> Iterator[None]:
-    """The handler installed for the block, the previous one restored after it (the CLI's main, which
-    tests also call in process)."""
+    """The handler installed for the block, for SIGINT and SIGTERM (a scheduler's or ``timeout``'s stop
+    cleans up as Ctrl-C does: it left a temporary folder of ``wl suite solve --check`` behind), the
+    previous ones restored after it (the CLI's main, which tests also call in process)."""
     previous = install()
+    previous_term = signal.signal(signal.SIGTERM, _handler) if previous is not None else None
     try:
         yield
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+            signal.signal(signal.SIGTERM, previous_term)
             _flag.clear()

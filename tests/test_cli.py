@@ -722,3 +722,12 @@ def test_the_nominal_ppo_on_another_scenario_warns(capsys, tmp_path):
     code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--episodes", 1, "--no-score",
                         "--out", tmp_path / "nominal.json")
     assert code == 0 and "nominal cycle only" not in err
+
+
+def test_version_is_the_package_metadata(capsys):
+    """`wl --version` and pyproject.toml say the same (they had drifted: 0.2.0 against 0.1.0)."""
+    import tomllib
+
+    code, out, _ = _run(capsys, "--version")
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
+    assert code == 0 and out.strip() == project["version"]

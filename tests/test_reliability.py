@@ -53,14 +53,15 @@ def _read_until(proc: subprocess.Popen, needle: str, count: int = 1, timeout: fl
     return lines
 
 
-def _interrupt(proc: subprocess.Popen, group: bool = False, timeout: float = 10.0) -> tuple[int, float, str]:
-    """SIGINT to ``proc`` (or its whole process group, as Ctrl-C in a terminal); (exit code, seconds to exit,
-    the rest of stderr)."""
+def _interrupt(proc: subprocess.Popen, group: bool = False, timeout: float = 10.0,
+               sig: int = signal.SIGINT) -> tuple[int, float, str]:
+    """SIGINT (or ``sig``) to ``proc`` (or its whole process group, as Ctrl-C in a terminal); (exit code, seconds
+    to exit, the rest of stderr)."""
     t0 = time.monotonic()
     if group:
-        os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, sig)
     else:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
     try:
         _, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -146,8 +147,10 @@ def test_sigint_inside_ipopt_raises_keyboard_interrupt(handler):
     assert outcome == "interrupted"
 
 
-def test_wl_ocp_interrupted_exits_130_and_writes_nothing(tmp_path):
-    """SIGINT while IPOPT runs (CasADi's warning shows it landed there): exit 130, no result, no cache."""
+@pytest.mark.parametrize(("sig", "exit_code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_wl_ocp_interrupted_exits_130_and_writes_nothing(tmp_path, sig, exit_code):
+    """SIGINT while IPOPT runs (CasADi's warning shows it landed there): exit 130, no result, no cache.
+    SIGTERM (a scheduler's, ``timeout``'s) the same, with exit 143."""
     cache = tmp_path / "cache"
     hit_ipopt = False
     for attempt in range(3):  # (a signal landing in Python between the log line and the solve is retried)
@@ -156,8 +159,8 @@ def test_wl_ocp_interrupted_exits_130_and_writes_nothing(tmp_path):
                    cache)
         _read_until(proc, "IPOPT: ")  # logged just before each IPOPT call (each lasts 0.1-1 s)
         time.sleep(0.05)
-        code, latency, err = _interrupt(proc)
-        assert code == 130, err
+        code, latency, err = _interrupt(proc, sig=sig)
+        assert code == exit_code, err
         assert latency < 2.0, latency
         assert "wl: interrupted" in err and "Traceback" not in err
         assert not out.exists()
@@ -546,3 +549,24 @@ def test_training_resumes_after_sigkill(tmp_path):
     assert resumed.returncode == 0, resumed.stderr
     summary = json.loads((tmp_path / "k" / "final" / "summary.json").read_text())
     assert 3072 <= summary["num_timesteps"] < 3072 + 4 * 64
+
+
+def test_the_suite_check_leaves_no_temporary_folder(tmp_path, monkeypatch):
+    """`wl suite solve --check` solves afresh in a temporary folder: removed after, also when interrupted
+    (it was left behind every time)."""
+    import tempfile
+
+    from mpc.benchmark import suite as suite_mod
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    seen = []
+
+    def fake_solve(suite, cache=None, **kwargs):
+        seen.append(Path(cache))
+        assert Path(cache).is_dir() and Path(cache).name.startswith("wl-check-")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(suite_mod, "solve_suite", fake_solve)
+    with pytest.raises(KeyboardInterrupt):
+        suite_mod.check_shipped("nominal")
+    assert seen and not seen[0].exists() and not list(tmp_path.iterdir())

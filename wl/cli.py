@@ -3,7 +3,7 @@
 Each subcommand is a small function over the packages; errors a user can fix come out as one line
 ``wl: error: ...`` with exit code 2, never as a traceback. Every option is checked before any work
 (numbers for type, finiteness and range, output paths for being writable); Ctrl-C stops the work within
-about a second with exit code 130 and writes no result (:mod:`mpc.interrupt`). Progress goes through
+about a second with exit code 130 (SIGTERM: 143) and writes no result (:mod:`mpc.interrupt`). Progress goes through
 :mod:`logging` to stderr.
 """
 
@@ -553,7 +553,7 @@ def _one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ``wl`` command line ``argv``; returns the exit code (0, 1 for a run that did not complete,
-    2 for a user error, 130 for an interrupt).
+    2 for a user error, 130 for an interrupt, 143 for SIGTERM).
 
     Called as the program (``argv`` None: ``wl``, ``python -m wl``), an interrupt ends the process at once
     with exit code 130: the outputs are atomic and the workers already stopped, and the interpreter's
@@ -580,10 +580,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     code = _run_command(args)
-    if code == 130 and as_program and args.command != "train":
+    if code in (130, 143) and as_program and args.command != "train":
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
+        os._exit(code)
     return code
 
 
@@ -598,11 +598,11 @@ def _run_command(args: argparse.Namespace) -> int:
             return int(args.func(args) or 0)
         except KeyboardInterrupt:
             print("wl: interrupted", file=sys.stderr)
-            return 130
+            return interrupt.exit_code()
         except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
             if interrupt.interrupted():  # an interrupt a library turned into an error
                 print("wl: interrupted", file=sys.stderr)
-                return 130
+                return interrupt.exit_code()
             print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
             return 2
 

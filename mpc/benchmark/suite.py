@@ -229,8 +229,10 @@ def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int
                   workers: int | None = None, ray_address: str | None = None) -> list[dict[str, Any]]:
     """Solve the suite afresh (in ``cache``) and compare with the shipped optima: one row per scenario with
     the relative differences of T_min and of the fuel at the shipped points, and ``ok``."""
+    if cache is None:  # a fresh solve in a folder of its own, removed after (also on Ctrl-C): nothing cached to reuse
+        with tempfile.TemporaryDirectory(prefix="wl-check-") as tmp:
+            return check_shipped(suite, tmp, limit, workers, ray_address)
     shipped = shipped_fronts()
-    cache = cache or tempfile.mkdtemp(prefix="wl-check-")  # a fresh solve: nothing cached to reuse
     fresh = solve_suite(suite, cache=cache, workers=workers, ray_address=ray_address, limit=limit)
     rows = []
     for key, e in fresh.entries.items():
