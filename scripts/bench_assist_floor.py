@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import statistics
-import sys
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -31,7 +30,7 @@ import wl_env  # noqa: F401  (registers the envs)
 import wl_env.assist as assist
 from mpc.benchmark.reference import min_time_of
 from wl_env.atomic_io import write_json_atomic
-from wl_env.logs import cli_logging
+from wl_env.logs import run_script
 from wl_env.suites import load_suite
 
 log = logging.getLogger("bench_assist_floor")
@@ -117,12 +116,4 @@ def run(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    with cli_logging(names=("bench_assist_floor",)):
-        try:
-            run(tyro.cli(Options))
-        except ValueError as exc:  # bad options: the message names them, no traceback
-            print(f"bench_assist_floor: error: {exc}", file=sys.stderr)
-            sys.exit(2)
-        except KeyboardInterrupt:  # (the JSON is written at the end, atomically: nothing partial is left)
-            print("bench_assist_floor: interrupted", file=sys.stderr)
-            sys.exit(130)
+    run_script("bench_assist_floor", lambda: run(tyro.cli(Options)))

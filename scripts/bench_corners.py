@@ -16,7 +16,6 @@ from __future__ import annotations
 import itertools
 import logging
 import statistics
-import sys
 import time
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -26,7 +25,7 @@ import tyro
 
 from wl_env.atomic_io import write_json_atomic
 from wl_env.cycle import check_braking
-from wl_env.logs import cli_logging
+from wl_env.logs import run_script
 from wl_env.scenario import FIELDS, Scenario
 
 log = logging.getLogger("bench_corners")
@@ -145,12 +144,4 @@ def _operator(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    with cli_logging(names=("bench_corners",)):
-        try:
-            run(tyro.cli(Options))
-        except ValueError as exc:  # bad options: the message names them, no traceback
-            print(f"bench_corners: error: {exc}", file=sys.stderr)
-            sys.exit(2)
-        except KeyboardInterrupt:  # (the JSON is written at the end, atomically: nothing partial is left)
-            print("bench_corners: interrupted", file=sys.stderr)
-            sys.exit(130)
+    run_script("bench_corners", lambda: run(tyro.cli(Options)))

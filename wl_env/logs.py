@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -49,3 +49,18 @@ def cli_logging(level: int = logging.INFO, names: tuple[str, ...] = PACKAGES) ->
         for lg, previous in zip(loggers, levels, strict=True):
             lg.removeHandler(handler)
             lg.setLevel(previous)
+
+
+def run_script(name: str, main: Callable[[], Any]) -> None:
+    """A script's entry point: ``main()`` with the script's own logger (``name``) on stderr; a
+    ValueError (a bad option, named in its message) as one line ``name: error: ...`` and exit 2, Ctrl-C as
+    exit 130 (the scripts write their outputs atomically at the end: nothing partial is left)."""
+    with cli_logging(names=(name,)):
+        try:
+            main()
+        except ValueError as exc:
+            print(f"{name}: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            print(f"{name}: interrupted", file=sys.stderr)
+            sys.exit(130)
