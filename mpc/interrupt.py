@@ -85,5 +85,5 @@ def handling() -> Iterator[None]:
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
-            signal.signal(signal.SIGTERM, previous_term)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)  # (None: set from C)
             _flag.clear()
