@@ -12,8 +12,8 @@ worse local optimum. The tools here solve one cycle time from several starts and
 * :func:`lean_time_optimum`: minimum fuel at 1.001 T_min, the leanest practically time-optimal cycle.
 
 What is solved here is saved as :class:`OCPResult` files under :func:`optima_folder`; the Pareto cache
-is only read (and filled by ``pareto_front`` itself), but for a cycle that failed an older re-simulation
-check, which is checked again and saved so.
+is only read (and filled by ``pareto_front`` itself; :func:`~mpc.benchmark.pareto.cached_result` saves again
+a cycle that failed an older re-simulation check).
 """
 
 from __future__ import annotations
@@ -78,29 +78,8 @@ def _cached(path: Path, braking: str, params: LoaderParams, objective: str = "fu
     """The optimum saved at ``path`` if present and valid (:func:`mpc.benchmark.pareto.cached_result`: a bad
     entry, or one of another braking, parameters or objective, is reported, set aside and solved again) and,
     given T, solved for that cycle time."""
-    r = cached_result(path, params.fingerprint(), objective, braking)
-    if r is None or (T is not None and abs(r.T - T) > 1e-6 * max(1.0, T)):
-        return None
-    return _checked_again(r, params, path)
-
-
-def _checked_again(r: OCPResult, params: LoaderParams, path: Path) -> OCPResult:
-    """``r``, or, where it failed an older re-simulation check, checked by the current one (a second: its
-    cycle is kept) and saved so: else a cache would serve the old failure for good (``wl evaluate``: "no
-    verified optimum")."""
-    from mpc.benchmark.verify import CHECK_VERSION, verify_result
-
-    v = r.verification or {}
-    if passed(r) or not v or v.get("check_version") == CHECK_VERSION:
-        return r
-    r.verification = {**verify_result(r, params), "mesh_history": v.get("mesh_history", [])}
-    r.verification["passed"] = verification_passed(r.verification)
-    log.info(f"{path}: failed an older re-simulation check; "
-             f"{'passes' if r.verification['passed'] else 'fails'} the current one")
-    if r.verification["passed"]:
-        r.success, r.status = True, r.status.replace(" (re-simulation check failed)", "")
-    save_result(r, path)
-    return r
+    r = cached_result(path, objective=objective, braking=braking, params=params)
+    return r if r is not None and (T is None or abs(r.T - T) <= 1e-6 * max(1.0, T)) else None
 
 
 def _load_or_solve(path: Path, braking: str, params: LoaderParams, objective: str, what: str) -> OCPResult:

@@ -101,7 +101,7 @@ def _guides(braking: str, params: LoaderParams, cache: str | os.PathLike | None)
 def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
     """The cycle's minimum time, solved (cached): from the nearest front's minimum-time cycle and the templates."""
     path = optima_folder(braking, params, cache) / "min_time.json"
-    r = cached_result(path, params.fingerprint(), "time", braking)
+    r = cached_result(path, objective="time", braking=braking, params=params)
     if r is not None:
         return r
     warm = [g for g in _guides(braking, params, cache) if g.objective == "time"]
