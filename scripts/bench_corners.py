@@ -8,7 +8,8 @@ drawn with ``--seed``): the minimum-time OCP, then the minimum fuel at ``--ratio
 ``solve_ocp``'s re-simulation check, and the environment's T_min estimate (``wl_env.suites.min_time``) against
 the OCP's. ``--mpc N``: the default synchronous MPC on N of those corners (drawn with ``--seed``), in
 minimum-time mode and at the ``--ratio`` T_min target. ``--operator``: the rule-based operator on every corner
-taken. Nothing is cached: each OCP is solved (8-15 s per corner, both solves).
+taken (``--no-ocp``: the operator alone, in seconds). Nothing is cached: each OCP is solved (8-15 s per corner,
+both solves).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class Options:
     ratio: float = 1.15  # the fixed-time solve's (and the MPC's target's) cycle time, times T_min
     mpc: int = 0  # corners to run the MPC on (of those taken)
     operator: bool = False  # also run the operator on every corner taken
+    ocp: bool = True  # --no-ocp: skip the yardstick (the operator's limits at every corner take seconds)
     seed: int = 37
     out: str | None = None  # JSON of the per-corner records and the summary
 
@@ -56,6 +58,8 @@ def check(o: Options) -> None:
         raise ValueError(f"--corners must be an integer in [1, {n}], got {o.corners}")
     if not 1.0 < o.ratio <= 3.0:
         raise ValueError(f"--ratio must lie in (1, 3], got {o.ratio}")
+    if o.mpc and not o.ocp:
+        raise ValueError("--mpc scores the MPC against each corner's T_min: it needs the OCPs (drop --no-ocp)")
     if not 0 <= o.mpc <= o.corners:
         raise ValueError(f"--mpc must be an integer in [0, --corners ({o.corners})], got {o.mpc}")
     if not 0 <= o.seed <= 2**32 - 1:
@@ -71,7 +75,7 @@ def run(o: Options) -> dict[str, Any]:
     every = corner_scenarios(o.braking)
     taken = sorted(rng.choice(len(every), o.corners, replace=False).tolist()) if o.corners < len(every) else list(range(len(every)))
     records = []
-    for i in taken:
+    for i in taken if o.ocp else ():
         sc, t0 = every[i], time.perf_counter()
         rec: dict[str, Any] = {"corner": i, "scenario": sc.to_dict()}
         try:
@@ -94,15 +98,16 @@ def run(o: Options) -> dict[str, Any]:
                    if r not in ok],
         "estimate_error_median": statistics.median(errors) if errors else None,
         "estimate_error_abs_max": max(map(abs, errors)) if errors else None,
-        "solve_s_median": statistics.median(r["solve_s"] for r in records)}
+        "solve_s_median": statistics.median(r["solve_s"] for r in records) if records else None}
     if o.mpc:
         summary["mpc"] = _mpc(o, [r for r in records if "T_min" in r], every, rng)
     if o.operator:
         summary["operator"] = _operator(o, [every[i] for i in taken])
-    print(f"{o.braking}: {summary['both_checks_passed']} of {summary['corners']} corners pass both re-simulation checks "
-          f"(minimum time, minimum fuel at {o.ratio:g} T_min)"
-          + (f"; T_min estimate error median {100 * summary['estimate_error_median']:+.2f} %, at most "
-             f"{100 * summary['estimate_error_abs_max']:.2f} %" if errors else ""))
+    if o.ocp:
+        print(f"{o.braking}: {summary['both_checks_passed']} of {summary['corners']} corners pass both re-simulation "
+              f"checks (minimum time, minimum fuel at {o.ratio:g} T_min)"
+              + (f"; T_min estimate error median {100 * summary['estimate_error_median']:+.2f} %, at most "
+                 f"{100 * summary['estimate_error_abs_max']:.2f} %" if errors else ""))
     for name in ("mpc", "operator"):
         if name in summary:
             print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in summary[name].items() if k != "runs"))

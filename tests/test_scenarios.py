@@ -218,6 +218,23 @@ def test_the_operator_and_the_mpc_drive_the_scenarios_cycle():
         assert e["max_violation"] == 0.0, name
 
 
+@pytest.mark.parametrize("payload", [6000.0, 13000.0])
+def test_the_tc_operator_keeps_the_limit_where_its_lift_would_end_before_the_braking(payload):
+    """A 10 m reverse to a 3.5 m truck: lifting from the start, the bucket stood at the dump height 1.2 s before
+    the braking point, the wheels held the unloaded engine at ~148 rad/s, and the shift into forward gear braked
+    at up to 2.6 times the deceleration limit (max_violation 1.55-1.58). The driver now times the lift to run
+    into the braking."""
+    from agents.operator import OperatorPolicy
+    from wl_env.rollout import run_episode
+
+    env = gym.make("WheelLoader-v2", braking="tc")
+    for rolling in (0.015, 0.05):
+        s = Scenario(payload=payload, reverse_distance=10.0, forward_distance=4.0, rolling_resistance=rolling,
+                     dump_height=3.5, start_engine_speed=800.0, start_bucket_height=1.2, braking="tc")
+        r = run_episode(env, OperatorPolicy("tc"), seed=0, scenario=s, trajectory=False)
+        assert r.success and r.max_violation == 0.0, (rolling, r.max_violation)
+
+
 def test_the_min_time_estimate_is_within_one_percent_of_every_test_optimum():
     """wl_env.suites.min_time, fitted on train draws only, against the 50 shipped test-suite optima per
     braking alternative (measured: median 0.14 % / 0.12 %, max 0.69 % / 0.45 %)."""
