@@ -100,3 +100,35 @@ def test_the_fuel_reference_agrees_with_direct_multistarted_solves(index):
         direct = multistart_fixed_time("service", T, p, OCPSettings(intervals=point_mesh(durations, 0.15)), [r_time])
         assert direct is not None and direct.verification["passed"]
         assert front.fuel_at(T) == pytest.approx(direct.fuel_g, rel=3e-3), (s.label(), T)
+
+
+def test_a_re_solved_point_is_spliced_into_its_front_and_the_file_still_checks(monkeypatch):
+    """scripts/resolve_unverified_points.py: a point left out as unverified, verified now, joins its front
+    in order of T; the front's fuel stays non-increasing and the suite file's own check accepts it."""
+    import importlib.util
+    import json
+    import sys
+
+    from mpc.benchmark.reference import check_suite_file
+
+    path = REFERENCE_DIR.parents[2] / "scripts" / "resolve_unverified_points.py"
+    spec = importlib.util.spec_from_file_location("resolve_unverified_points", path)
+    script = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, script)  # (its dataclass looks its module up there)
+    spec.loader.exec_module(script)
+    data = json.loads((REFERENCE_DIR / "test.json").read_text())
+    key, shipped = sorted(data["entries"].items())[0]
+    # one of its middle points, as a front that had left it out would hold it
+    point = next(p for p in shipped["points"] if abs(p["T"] - shipped["T"][len(shipped["T"]) // 2]) <= 1e-9)
+    keep = [n for n, T in enumerate(shipped["T"]) if abs(T - point["T"]) > 1e-9]
+    entry = {**shipped, "T": [shipped["T"][n] for n in keep], "fuel_g": [shipped["fuel_g"][n] for n in keep],
+             "points": [{**p, "verified": False} if p is point else p for p in shipped["points"]]}
+    assert check_suite_file({**data, "entries": {**data["entries"], key: entry}}) is None
+    spliced = script.splice(entry, point)
+    assert spliced["T"] == shipped["T"] and np.allclose(spliced["fuel_g"], shipped["fuel_g"])
+    assert check_suite_file({**data, "entries": {**data["entries"], key: spliced}}) is None
+    assert sum(p.get("verified", False) for p in spliced["points"]) == sum(p.get("verified", False) for p in shipped["points"])
+    # a point spliced above a slower point's fuel is capped to it, as the front's solve caps local optima
+    high = script.splice(entry, {**point, "fuel_g": 1e3})
+    i = next(i for i, T in enumerate(high["T"]) if abs(T - point["T"]) <= 1e-9)
+    assert i > 0 and high["fuel_g"][i] == high["fuel_g"][i - 1]
