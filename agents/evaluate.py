@@ -303,7 +303,7 @@ def check_act_timeout(act_timeout: float | None) -> None:
 
 # ---------------------------------------------------------------------------------------------- evaluation
 def check_target(target_time: float | None, target_ratio: float | None) -> None:
-    """A clear error for a target cycle time out of range (s, in (0, 40)) or a ratio to T_min out of [1, 3]."""
+    """A clear error for a target cycle time out of range (s, in [1, 40)) or a ratio to T_min out of [1, 3]."""
     from wl_env.env import check_target_time
 
     if target_time is not None and target_ratio is not None:

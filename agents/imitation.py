@@ -216,17 +216,34 @@ def _write_demo(path: Path, demo: dict[str, Any]) -> None:
     write_atomic(path, buf.getvalue())
 
 
+# a demonstration's meta fields the readers use, by type (bool before int: isinstance(True, int))
+_DEMO_META: dict[str, type | tuple[type, ...]] = {
+    "env_id": str, "success": bool, "learner": (str, type(None)), "fast": bool, "max_violation": (int, float), "T": (int, float),
+    "target_time": (int, float), "fuel_g": (int, float)}
+
+
 def read_demo(path: str | Path) -> dict[str, Any]:
     """One demonstration file, checked (ValueError naming the file if it is not one)."""
     try:
         with np.load(path, allow_pickle=False) as f:
             obs, actions, meta = f["obs"], f["actions"], json.loads(str(f["meta"]))
             extra = {"weights": f["weights"]} if "weights" in f.files else {}
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, RecursionError) as exc:
         raise ValueError(f"{path} is not a demonstration file: {exc}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: its meta must be a JSON object, got {type(meta).__name__}")
+    absent = [k for k in ("env_id", "success", "max_violation") if k not in meta]
+    if absent:
+        raise ValueError(f"{path}: its meta has no field {absent[0]!r}")
+    bad = [k for k, kind in _DEMO_META.items() if k in meta and not isinstance(meta[k], kind)]
+    if bad or set(meta) & {"obs", "actions", "weights"}:
+        raise ValueError(f"{path}: its meta field {(bad or sorted(set(meta) & {'obs', 'actions', 'weights'}))[0]!r} "
+                         f"is {'of the wrong type' if bad else 'an array name'}")
+    if any(a.dtype.kind != "f" for a in (obs, actions, *extra.values())):
+        raise ValueError(f"{path}: obs, actions and weights must be float arrays, got {obs.dtype} and {actions.dtype}")
     if obs.ndim != 2 or obs.shape[1] != N_TARGET_OBS or actions.shape != (len(obs), 4) or not (
             np.isfinite(obs).all() and np.isfinite(actions).all()):
-        raise ValueError(f"{path}: expected finite obs ({len(obs)}, {N_TARGET_OBS}) and actions ({len(obs)}, 4), "
+        raise ValueError(f"{path}: expected finite obs (n, {N_TARGET_OBS}) and actions (n, 4), "
                          f"got {obs.shape} and {actions.shape}")
     if extra and (extra["weights"].shape != actions.shape or not np.isfinite(extra["weights"]).all()):
         raise ValueError(f"{path}: expected finite weights {actions.shape}, got {extra['weights'].shape}")

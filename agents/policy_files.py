@@ -191,6 +191,12 @@ def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     _check_network(meta.get("network"), path)
     if meta.get("braking") not in (None, "service", "tc"):
         raise PolicyFileError(f"{path}: braking must be \"service\" or \"tc\" (or absent), got {meta.get('braking')!r}")
+    config = meta.get("config")
+    if config is not None and not isinstance(config, dict):
+        raise PolicyFileError(f"{path}: config must be an object (the training options), got {type(config).__name__}")
+    env_id = (config or {}).get("env_id")
+    if env_id is not None and not isinstance(env_id, str):
+        raise PolicyFileError(f"{path}: config.env_id must be an env id string, got {env_id!r}")
     recorded = meta.get("files")
     for key, file in (("weights", files.weights), ("normalization", files.normalization)):
         entry = recorded.get(key) if isinstance(recorded, dict) else None
@@ -280,10 +286,29 @@ def build_network(net: dict[str, Any]) -> Any:
     return policy.eval()
 
 
+MAX_NORMALIZATION_VALUES = 4096  # per entry: the statistics are a few floats per observation
+
+
+def _check_entry_sizes(path: Path) -> None:
+    """Each entry's shape, from its .npy header, before any array is read: a crafted header would have numpy
+    allocate what it claims (2^45 floats: a MemoryError), a crafted entry be inflated whole."""
+    with zipfile.ZipFile(path) as z:
+        for info in z.infolist():
+            with z.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(f, max_header_size=1000)
+            if math.prod(shape) > MAX_NORMALIZATION_VALUES or info.file_size > 64 * MAX_NORMALIZATION_VALUES:
+                raise PolicyFileError(f"normalization file {path}: entry {info.filename!r} holds {shape} values "
+                                      f"({info.file_size} bytes); the statistics are at most "
+                                      f"{MAX_NORMALIZATION_VALUES} values each")
+
+
 def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
     """The statistics of a ``_vecnormalize.npz`` (no pickle), checked; None if the policy does not normalize."""
     try:
-        with np.load(path, allow_pickle=False) as f:
+        _check_entry_sizes(path)
+        with np.load(path, allow_pickle=False, max_header_size=1000) as f:
             absent = [k for k in NORMALIZATION_ENTRIES if k not in f.files]
             if absent:
                 raise PolicyFileError(f"normalization file {path} has no entry {', '.join(map(repr, absent))} "

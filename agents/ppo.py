@@ -269,8 +269,9 @@ class PPOPolicy:
         n_obs = network.observation_space.shape[0]
         self.env_id = (self.meta.get("config") or {}).get("env_id") or ENV_OF_OBS[n_obs]
         if N_OBS_OF_ENV.get(self.env_id) != n_obs:
-            raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} has "
-                                  f"{N_OBS_OF_ENV.get(self.env_id, 'no known number of')}")
+            known = N_OBS_OF_ENV.get(self.env_id)
+            raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} "
+                                  + (f"has {known}" if known is not None else f"is none of {sorted(N_OBS_OF_ENV)}"))
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:

@@ -20,6 +20,7 @@ TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as 
 # whose driver may end a leg early and coast (4 actions)
 TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3")
 SUITE_NAMES = ("nominal", "train", "test", "corners")
+MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
 
 
@@ -53,7 +54,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "run_name": ("a name without path separators", lambda v: isinstance(v, str) and "/" not in v and "\\" not in v
                  and v not in (".", "..")),
     "time_limit": ("a finite number of seconds >= 0 (0: off)", lambda v: _is_num(v) and v >= 0),
-    "torch_threads": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "torch_threads": (f"an integer in [1, {MAX_TORCH_THREADS}]", lambda v: _is_int(v) and 1 <= v <= MAX_TORCH_THREADS),
     "progress_bar": ("true or false", lambda v: isinstance(v, bool)),
     "w_fuel": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
     "w_time": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
@@ -227,6 +228,11 @@ class PPOConfig:
         unknown = (set(self.reward) | set(self.curriculum_start)) - set(RewardConfig.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)}")
+        for name in ("reward", "curriculum_start"):  # (each field's range, now: not at the first reset)
+            try:
+                RewardConfig(**getattr(self, name))
+            except ValueError as exc:
+                raise ConfigError(name, f"RewardConfig fields in their ranges ({exc})", getattr(self, name)) from None
 
     @property
     def name(self) -> str:

@@ -134,13 +134,17 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         cfg.reward = {**PPOConfig().reward, **cfg.reward}
     # output paths checked before the training, not after it
     check_output_folder(cfg.log_dir, f"--log-dir {cfg.log_dir}")
-    if ns.export:
+    if ns.export is not None:
+        if not ns.export.strip():
+            raise ValueError("--export must name the policy's path (PATH.safetensors, ...), got an empty string")
         export = Path(ns.export)
         for suffix in (".safetensors", "_vecnormalize.npz", ".json"):
             if export.with_name(export.name + suffix).is_dir():
                 raise ValueError(f"--export {ns.export}: {export.name + suffix} is a folder")
         check_output_folder(export.parent, f"--export {ns.export}")
-    if getattr(ns, "cache", None):
+    if getattr(ns, "cache", None) is not None:
+        if not ns.cache.strip():
+            raise ValueError("--cache must name a folder, got an empty string")
         check_output_folder(ns.cache, f"--cache {ns.cache}")
     if ns.resume and set(given) - RUN_NAMING:
         log.warning("--resume uses the run's saved config; options other than the run's name are ignored")
@@ -166,7 +170,7 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
         if ns.export:
             meta = export_policy(cfg.run_dir, Path(ns.export).parent, Path(ns.export).name,
-                                 n_episodes=ns.export_episodes)
+                                 n_episodes=ns.export_episodes, score=cfg.score)  # (--no-score: no front solved)
             print(json.dumps(meta["evaluation"], indent=2, default=str))
         return 0
     finally:
@@ -195,5 +199,6 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
     if ns.export:
         export = Path(ns.export)
         for c in cfgs:
-            export_policy(c.run_dir, export.parent, f"{export.name}_{c.name}", n_episodes=ns.export_episodes)
+            export_policy(c.run_dir, export.parent, f"{export.name}_{c.name}", n_episodes=ns.export_episodes,
+                          score=c.score)
     return 0

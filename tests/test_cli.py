@@ -481,7 +481,7 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["ocp", "--params", "{not json"], "--params", "JSON"),
     (["mpc", "--deadline-ms", "150", "--out", "x.json"], "--deadline-ms", "(0, 100] ms"),
     (["evaluate", "--controller", "mpc", "--target-ratio", "0.5", "--out", "x.json"], "--target-ratio", "[1, 3]"),
-    (["evaluate", "--controller", "mpc", "--target-time", "50", "--out", "x.json"], "--target-time", "(0, 40) s"),
+    (["evaluate", "--controller", "mpc", "--target-time", "50", "--out", "x.json"], "--target-time", "[1, 40) s"),
     (["mpc", "--deadline-ms", "0", "--out", "x.json"], "--deadline-ms", "(0, 100] ms"),
     (["mpc", "--rate-weight", "0.1", "-1", "--out", "x.json"], "--rate-weight", "[0, 1e+06]"),
     (["train", "--n-epochs", "0"], "--n-epochs", ">= 1"),
@@ -492,8 +492,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--curriculum-fraction", "nan"], "--curriculum-fraction", "[0, 1]"),
     (["train", "--learning-rate", "inf"], "--learning-rate", "> 0"),
     (["train", "--export-episodes", "-3"], "--export-episodes", ">= 0"),
-    (["mpc", "--target-time", "nan"], "--target-time", "(0, 40)"),
-    (["mpc", "--target-time=-1"], "--target-time", "(0, 40)"),
+    (["mpc", "--target-time", "nan"], "--target-time", "[1, 40)"),
+    (["mpc", "--target-time=-1"], "--target-time", "[1, 40)"),
+    (["evaluate", "--controller", "mpc", "--target-time", "5e-324", "--out", "x.json"], "--target-time", "[1, 40) s"),
     (["mpc", "--w-fuel", "2"], "--w-fuel", "[0, 1]"),
     (["mpc", "--payload-scale", "inf"], "--payload-scale", "[0, 10]"),
     (["pareto", "--points", "2"], "--points", "[3, 100]"),
@@ -525,6 +526,11 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--seeds", "0", "0"], "seeds", "repeat"),
     (["train", "--seeds", "0", "--sweep", "gamma=high"], "--sweep gamma", "float"),
     (["train", "--seeds", "0", "--workers", "0"], "--workers", ">= 1"),
+    (["train", "--torch-threads", "100000"], "--torch-threads", "[1, 1024]"),  # (segfaulted)
+    (["train", "--reward", "target_distance=1e308"], "target_distance", "[0, 1e+06]"),  # (a reward of -inf)
+    (["train", "--export", ""], "--export", "empty"),
+    (["pareto", "--cache", ""], "--cache", "empty"),  # (the working folder, unasked)
+    (["evaluate", "--controller", "operator", "--out", ""], "--out", "empty"),
 ]
 
 

@@ -194,6 +194,8 @@ def test_bad_reset_options_raise_naming_them():
     for options, match in [(["scenario"], "options must be a dict"), ("scenario", "options must be a dict"),
                            ({"target_ratio": 5.0}, r"target_ratio must be a ratio to T_min in \[1, 3\]"),
                            ({"target_ratio": 10**400}, "target_ratio"), ({"target_time": 10**400}, "target_time"),
+                           # (5e-324 s passed and made the first reward -inf and the lateness inf)
+                           ({"target_time": 5e-324}, r"target_time must lie in \[1, 40\) s"),
                            ({"scenario": {"payload": 10**400}}, r"Scenario\.payload must lie in"),
                            ({"scenario": "trian"}, r"suite name \('nominal', 'train', 'test', 'corners'\)")]:
         with pytest.raises(ValueError, match=match):
@@ -211,6 +213,8 @@ def test_bad_configuration_raises():
         gym.make("WheelLoader-v1", dt=0.0)
     with pytest.raises(ValueError, match="w_fuel"):
         gym.make("WheelLoader-v1", w_fuel=float("nan"))
+    with pytest.raises(ValueError, match=r"target_distance must lie in \[0, 1e\+06\]"):  # (1e308: reward -inf)
+        gym.make("WheelLoader-v1", reward={"target_distance": 1e308})
     with pytest.raises(ValueError, match="num_envs"):
         gym.make_vec("WheelLoader-v1", num_envs=0, vectorization_mode="vector_entry_point")
     venv = gym.make_vec("WheelLoader-v1", num_envs=2, vectorization_mode="vector_entry_point")

@@ -3,6 +3,7 @@ behaviour-cloning baseline, fine-tuning from it, and the shipped target-conditio
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +78,14 @@ def test_demonstrations_resume_and_reject_a_foreign_file(tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         read_demo(tmp_path / "bad.npz")
+    # a crafted meta: not an object, a field of the wrong type, an array name that would replace the checked array
+    good = dict(np.load(tmp_path / "episode_00000.npz"))
+    meta = json.loads(str(good["meta"]))
+    for name, m, obs in (("list", [1], good["obs"]), ("env_id", {**meta, "env_id": ["x"]}, good["obs"]),
+                         ("obs", {**meta, "obs": 1}, good["obs"]), ("float", meta, good["obs"].astype(str))):
+        np.savez(tmp_path / f"{name}.npz", obs=obs, actions=good["actions"], meta=np.array(json.dumps(m)))
+        with pytest.raises(ValueError, match=f"{name}.npz"):
+            read_demo(tmp_path / f"{name}.npz")
     for bad in (dict(expert="oracle"), dict(target=(0.5, 1.0)), dict(fast_share=2.0), dict(seed=-1), dict(beta=1.5)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             DemoSettings("service", **bad)

@@ -171,6 +171,39 @@ def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, nee
         load_policy(stem)
 
 
+@pytest.mark.parametrize("config, needle", [("abc", "config must be an object"), ([1], "config must be an object"),
+                                            ({"env_id": ["x"]}, "config.env_id"), ({"env_id": "Foo-v0"}, "none of")])
+def test_the_metadata_config_is_checked(tmp_path, config, needle):
+    """The metadata has no checksum of its own: its training config is checked like the rest (was a bare
+    AttributeError or TypeError)."""
+    stem = _copy_shipped(tmp_path)
+    meta_path = tmp_path / "ppo_tc.json"
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "config": config}))
+    with pytest.raises(PolicyFileError, match=needle):
+        load_policy(stem)
+
+
+def test_a_normalization_header_that_claims_a_huge_array_is_refused_before_reading_it(tmp_path):
+    """A .npy header claiming 2^45 floats made numpy allocate 256 TiB (MemoryError); the shapes are read from
+    the headers first."""
+    import io
+    import zipfile
+
+    stem = _copy_shipped(tmp_path)
+    npz = tmp_path / "ppo_tc_vecnormalize.npz"
+    with zipfile.ZipFile(npz) as z:
+        entries = {i.filename: z.read(i) for i in z.infolist()}
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (2**45,)})
+    entries["mean.npy"] = buf.getvalue() + b"\0" * 64
+    with zipfile.ZipFile(npz, "w") as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    _reseal(stem, "normalization", npz)
+    with pytest.raises(PolicyFileError, match="mean.npy"):
+        load_policy(stem)
+
+
 def test_weights_must_be_finite_and_braking_known(tmp_path):
     from safetensors.torch import load, save
 

@@ -57,6 +57,8 @@ def _out_file(path: str, option: str = "--out") -> Path:
     """An output file's path, checked before the work: not a folder, its folder creatable and writable."""
     from wl_env.atomic_io import check_output_folder
 
+    if not str(path).strip():
+        raise ValueError(f"{option} must name a file, got an empty string")
     out = Path(path)
     if out.is_dir():
         raise ValueError(f"{option} {path} is a folder; give a file name")
@@ -68,6 +70,8 @@ def _out_dir(path: str, option: str = "--out") -> Path:
     """An output folder, created and probed for writing before the work."""
     from wl_env.atomic_io import check_output_folder
 
+    if not str(path).strip():  # (Path("") is the working folder: the results would land there unasked)
+        raise ValueError(f"{option} must name a folder, got an empty string")
     return check_output_folder(path, f"{option} {path}")
 
 
@@ -113,7 +117,7 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
 
         params = scenario.params(resolve(params))
     out = _out_dir(args.out)
-    if args.cache:
+    if args.cache is not None:
         _out_dir(args.cache, "--cache")
     brakings = ("service", "tc") if args.braking in (None, "both") else (args.braking,)
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
@@ -130,7 +134,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     from wl_env.atomic_io import write_json_atomic
 
     out = _out_file(args.out)
-    if args.cache:
+    if args.cache is not None:
         _out_dir(args.cache, "--cache")
     if args.realtime and args.deadline_ms is not None:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
@@ -186,7 +190,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     from wl_env.suites import load_suite
 
     out = _out_file(args.out)  # an unwritable --out fails now, not after the episodes
-    if args.cache:
+    if args.cache is not None:
         _out_dir(args.cache, "--cache")
     scenario = _scenario_from(args)
     if scenario is not None and args.suite:
@@ -227,7 +231,7 @@ def _run_cmd(args: argparse.Namespace) -> int:
     from wl.report import run_all
 
     _out_dir(args.out)
-    if args.cache:
+    if args.cache is not None:
         _out_dir(args.cache, "--cache")
     run_all(args.out, cache=args.cache, full_suite=args.full_suite)
     print((Path(args.out) / "leaderboard.md").read_text())
@@ -362,7 +366,7 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
 def _suite_cmd(args: argparse.Namespace) -> int:
     from mpc.benchmark.suite import check_shipped, solve_suite
 
-    if args.cache:
+    if args.cache is not None:
         _out_dir(args.cache, "--cache")
     ray = args.ray
     if args.check:
@@ -434,8 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "rolling resistance (the plant has the scenario's): the estimator learns the difference")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--min-time", action="store_true", help="minimum cycle time (default)")
-    g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
-                   help="minimum fuel, finishing by T seconds, in (0, 40) (the episode ends at 40 s)")
+    g.add_argument("--target-time", type=_float_in(1, 40, open_hi=True, unit=" s"), metavar="T",
+                   help="minimum fuel, finishing by T seconds, in [1, 40) (the episode ends at 40 s)")
     g.add_argument("--w-fuel", type=_unit_float, metavar="W", help="weighted fuel/time objective, fuel weight W in [0, 1]")
     p.add_argument("--deadline-ms", type=_float_in(0, 100, open_lo=True, unit=" ms"), metavar="MS",
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
@@ -483,8 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-solve", action="store_true", help="score only against shipped or cached optima (an "
                    "episode of another cycle is an error instead of a solve)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--target-time", type=_float_in(0, 40, open_lo=True, open_hi=True, unit=" s"), metavar="T",
-                   help="each episode's target cycle time, in (0, 40) s (the controller's reset takes target_time)")
+    g.add_argument("--target-time", type=_float_in(1, 40, open_hi=True, unit=" s"), metavar="T",
+                   help="each episode's target cycle time, in [1, 40) s (the controller's reset takes target_time)")
     g.add_argument("--target-ratio", type=_float_in(1, 3, unit=" (times T_min)"), metavar="R",
                    help="each episode's target: R times its own minimum cycle time, R in [1, 3]")
     p.add_argument("--model", metavar="PATH", help="ppo, bc: the policy, PATH.safetensors with PATH_vecnormalize.npz and "

@@ -52,7 +52,7 @@ SCENARIO_OBS_HIGH = np.concatenate([OBS_HIGH, np.ones(len(FIELDS), dtype=np.floa
 # WheelLoaderTarget-v0: v2's, then the episode's target cycle time (/ 40 s) and its ratio to T_min less 1
 TARGET_OBS_NAMES = (*SCENARIO_OBS_NAMES, "target_time/(40 s)", "target_time/T_min - 1")
 N_TARGET_OBS = len(TARGET_OBS_NAMES)
-# (a target given in seconds may lie anywhere in (0, 40) s: up to ~6.3 T_min, down to ~0 T_min)
+# (a target given in seconds may lie anywhere in [1, 40) s: up to ~6.3 T_min, down to ~0.16 T_min)
 TARGET_OBS_LOW = np.concatenate([SCENARIO_OBS_LOW, np.array([0.0, -1.0], dtype=np.float32)])
 TARGET_OBS_HIGH = np.concatenate([SCENARIO_OBS_HIGH, np.array([1.0, 6.0], dtype=np.float32)])
 

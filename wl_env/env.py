@@ -13,17 +13,22 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, is_finite, plain, resolve, shown
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, plain, resolve, shown
 from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
 
-def scenario_source(scenario: Scenario | dict | str | None, braking: str | None) -> tuple[Scenario | Suite | None, str]:
-    """(a fixed Scenario, a Suite to draw from, or None for the given params; the braking alternative)."""
+def scenario_source(scenario: Scenario | dict | str | None, braking: str | None,
+                    machine: LoaderParams | None = None) -> tuple[Scenario | Suite | None, str]:
+    """(a fixed Scenario, a Suite to draw from, or None for the given params; the braking alternative). A suite
+    is checked against ``machine``, if given: each of its cycles must fit it (:meth:`Suite.check_machine`)."""
     if braking is not None:  # (not `braking or "service"`: a falsy braking such as "" or {} is an error)
         cycle.check_braking(braking)
     if isinstance(scenario, str) and scenario in SUITES:
-        return load_suite(scenario), braking or "service"
+        suite, braking = load_suite(scenario), braking or "service"
+        if machine is not None:
+            suite.check_machine(machine, braking)
+        return suite, braking
     if scenario is None:
         return None, braking or "service"
     if isinstance(scenario, str) and not scenario.strip().startswith(("{", "[")) and not is_file(scenario):
@@ -31,6 +36,17 @@ def scenario_source(scenario: Scenario | dict | str | None, braking: str | None)
                          f"JSON file, got {shown(scenario)}")
     s = resolve_scenario(scenario, braking)
     return s, s.braking
+
+
+def check_no_overridden(params: Any, source: Scenario | Suite | None) -> None:
+    """A ``params`` dict that sets a field a scenario sets (payload, distances, ...) beside that scenario would be
+    dropped without a word: refused, naming the fields (as ``wl --params`` with ``--scenario``)."""
+    if source is None or not isinstance(params, dict):
+        return
+    overridden = sorted(set(params) & set(SCENARIO_FIELDS))
+    if overridden:
+        raise ValueError(f"params sets {', '.join(overridden)}, which the scenario sets: give them in the scenario "
+                         f"(a dict of Scenario fields) or leave the scenario out")
 
 
 def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -> Scenario | None:
@@ -94,12 +110,16 @@ def n_actions(assist: bool, coast: bool) -> int:
     return N_COAST_ACTIONS if coast else N_ASSIST_ACTIONS if assist else 4
 
 
+MIN_TARGET_TIME = 1.0  # s: far below any cycle (its lateness then stays finite; a target of 5e-324 s made it inf)
+
+
 def check_target_time(target_time: Any) -> float:
-    """A target cycle time in (0, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
+    """A target cycle time in [1, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
     target_time = plain(target_time)
     if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and is_finite(target_time)
-            and 0.0 < target_time < TIME_SCALE):
-        raise ValueError(f"target_time must lie in (0, {TIME_SCALE:g}) s (the episode ends at {TIME_SCALE:g} s), "
+            and MIN_TARGET_TIME <= target_time < TIME_SCALE):
+        raise ValueError(f"target_time must lie in [{MIN_TARGET_TIME:g}, {TIME_SCALE:g}) s (the episode ends at "
+                         f"{TIME_SCALE:g} s; the shortest cycle of the scenario ranges takes ~5.7 s), "
                          f"got {shown(target_time)}")
     return float(target_time)
 
@@ -319,7 +339,8 @@ class WheelLoaderEnv(gym.Env):
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
-        self._source, self.braking = scenario_source(scenario, braking)
+        self._source, self.braking = scenario_source(scenario, braking, self.machine)
+        check_no_overridden(params, self._source)
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
@@ -365,7 +386,7 @@ class WheelLoaderEnv(gym.Env):
             raise ValueError(f"WheelLoaderEnv.reset takes {allowed}, got {sorted(options)}")
         if not self.observe_target and (target_time is not None or target_ratio is not None):
             raise ValueError("a target cycle time is an option of WheelLoaderTarget-v0 (observe_target=True)")
-        source = self._source if chosen is None else scenario_source(chosen, self.braking)[0]
+        source = self._source if chosen is None else scenario_source(chosen, self.braking, self.machine)[0]
         if isinstance(source, Suite):
             source = source.sample(self.np_random, self.braking)
         self._set_scenario(source)

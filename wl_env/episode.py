@@ -34,6 +34,9 @@ MAX_FLAT_SUBSTEPS = 8
 FLATTEN_AFTER_STEPS = 300
 
 
+MAX_REWARD_WEIGHT = 1e6  # each term of a step's reward stays finite in float32 under any weight up to this
+
+
 @dataclass(frozen=True)
 class RewardConfig:
     """Reward weights. Per step: -(w_fuel * fuel/fuel_ref_g + w_time * dt/time_ref) - penalties + shaping.
@@ -66,8 +69,8 @@ class RewardConfig:
             object.__setattr__(self, f.name, v)  # (a numpy scalar kept as the Python number it holds)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and is_finite(v)):
                 raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {shown(v)}")
-            if v < 0:
-                raise ValueError(f"RewardConfig.{f.name} must be >= 0, got {v!r}")
+            if not 0 <= v <= MAX_REWARD_WEIGHT:  # (1e308 passed as finite and made the first reward -inf)
+                raise ValueError(f"RewardConfig.{f.name} must lie in [0, {MAX_REWARD_WEIGHT:g}], got {v!r}")
         for name in ("fuel_ref_g", "time_ref"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"RewardConfig.{name} must be > 0, got {getattr(self, name)!r}")

@@ -135,8 +135,17 @@ class Scenario:
 
     # ------------------------------------------------------------------ what it means for the model
     def params(self, base: LoaderParams = DEFAULT_PARAMS) -> LoaderParams:
-        """The machine ``base`` driving this cycle (``Scenario.nominal().params()`` is DEFAULT_PARAMS)."""
-        return base.replace(**{s.param: getattr(self, name) * s.to_param for name, s in FIELDS.items()})
+        """The machine ``base`` driving this cycle (``Scenario.nominal().params()`` is DEFAULT_PARAMS); a
+        ValueError naming the scenario's field if the machine cannot take it (a start engine speed above its
+        omega_max, say)."""
+        try:
+            return base.replace(**{s.param: getattr(self, name) * s.to_param for name, s in FIELDS.items()})
+        except ValueError as exc:  # (LoaderParams names its own field, in its units: say which of ours set it)
+            name = next((n for n, s in FIELDS.items() if f"LoaderParams.{s.param} " in str(exc)), None)
+            if name is None:
+                raise
+            raise ValueError(f"Scenario.{name} = {getattr(self, name):g} {FIELDS[name].unit} does not fit this "
+                             f"machine: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

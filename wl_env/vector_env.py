@@ -25,6 +25,7 @@ from wl_env.env import (
     action_array,
     check_assist,
     check_flag,
+    check_no_overridden,
     check_target_ratios,
     episode_target,
     lateness_charge,
@@ -84,7 +85,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         self.target_ratios = check_target_ratios(target)
         self.target_time, self.min_time_estimate = np.full(num_envs, np.nan), np.full(num_envs, np.nan)
         self.machine = resolve(params)
-        self._source, self.braking = scenario_source(scenario, braking)
+        self._source, self.braking = scenario_source(scenario, braking, self.machine)
+        check_no_overridden(params, self._source)
         self.init_noise = float(init_noise)
         if isinstance(self._source, Suite):  # one scenario per loader, drawn at each reset
             self.params: LoaderParams | ParamsView = ParamsView(

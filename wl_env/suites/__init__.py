@@ -13,6 +13,7 @@ writes the files); a test checks the file against a fresh draw and against ``tra
 
 from __future__ import annotations
 
+import itertools
 import json
 from dataclasses import dataclass
 from functools import cache
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES, check_braking
+from wl_env.params import LoaderParams
 from wl_env.scenario import FIELDS, Scenario
 
 FOLDER = Path(__file__).resolve().parent
@@ -75,6 +77,21 @@ class Suite:
         if n is None or n >= len(options):
             return options
         return tuple(options[round(i * (len(options) - 1) / max(n - 1, 1))] for i in range(n))
+
+    def check_machine(self, machine: LoaderParams, braking: str) -> None:
+        """ValueError naming the suite, the scenario and its field if ``machine`` cannot drive one of the suite's
+        cycles: every scenario of the list, or every corner of the ranges a sampler draws from (each field's
+        range maps onto one machine parameter independently, so the corners bound them all). Checked when an
+        env takes the suite, not at the draw that fails mid-training."""
+        options = (tuple(Scenario(**dict(zip(FIELDS, corner, strict=True)), braking=braking)
+                         for corner in itertools.product(*((f.lo, f.hi) for f in FIELDS.values())))
+                   if self.sampler else self.of(braking))
+        for sc in options:
+            try:
+                sc.params(machine)
+            except ValueError as exc:
+                raise ValueError(f"suite {self.name!r} holds a cycle this machine cannot drive ({sc.label()}): "
+                                 f"{exc}") from None
 
     def sample(self, rng: np.random.Generator, braking: str) -> Scenario:
         """One scenario of the braking alternative: a fresh draw (sampler) or one of the list, uniformly."""
