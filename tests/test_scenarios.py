@@ -261,3 +261,30 @@ def test_a_malformed_min_time_model_is_refused_by_name(tmp_path, monkeypatch):
             mt.estimate_min_time(Scenario.nominal("service"))
     finally:
         mt._model.cache_clear()
+
+
+def test_a_suite_the_machine_cannot_drive_is_refused_when_the_env_is_made():
+    """omega_max 207 rad/s is under the 2000 rpm (209 rad/s) start of the ranges: the vector env used to build,
+    reset and raise at an autoreset 152 steps into training, naming LoaderParams.omega_0."""
+    from wl_env.params import resolve
+
+    for make in (lambda: gym.make("WheelLoader-v2", scenario="train", params={"omega_max": 207.0}),
+                 lambda: gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point",
+                                      scenario="train", params={"omega_max": 207.0})):
+        with pytest.raises(ValueError, match=r"suite 'train' .*Scenario\.start_engine_speed = 2000 rpm"):
+            make()
+    with pytest.raises(ValueError, match=r"Scenario\.start_engine_speed = 1600 rpm does not fit"):
+        Scenario(start_engine_speed=1600.0).params(resolve({"omega_max": 160.0}))
+    env = gym.make("WheelLoader-v2", params={"omega_max": 200.0})  # the machine alone is fine
+    with pytest.raises(ValueError, match="suite 'test'"):  # (its fastest start: 1945 rpm, 203.7 rad/s)
+        env.reset(seed=0, options={"scenario": "test"})
+
+
+def test_params_that_set_a_scenarios_fields_beside_the_scenario_are_refused():
+    """They were dropped without a word: M_load 12000 and reverse_distance 8 m ran as 7000 kg and 6.6 m."""
+    for make in (lambda **kw: gym.make("WheelLoader-v2", **kw),
+                 lambda **kw: gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point", **kw)):
+        with pytest.raises(ValueError, match="params sets M_load, reverse_distance, which the scenario sets"):
+            make(params={"M_load": 12000.0, "reverse_distance": 8.0}, scenario={"payload": 7000.0})
+    env = gym.make("WheelLoader-v2", params={"M_load": 12000.0}).unwrapped  # no scenario: the params are the cycle
+    assert env.params.M_load == 12000.0
