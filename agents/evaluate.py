@@ -31,7 +31,7 @@ import numpy as np
 from wl_env import cycle
 from wl_env.controller import Controller
 from wl_env.params import LoaderParams, shown
-from wl_env.scenario import Scenario
+from wl_env.scenario import Scenario, resolve_scenario
 
 log = logging.getLogger(__name__)
 
@@ -383,6 +383,13 @@ def evaluate_controller(
     import wl_env  # noqa: F401  (registers WheelLoader-v1/v2)
     from wl_env.rollout import run_episode
 
+    # (dicts, JSON text and files too, as the env takes them; anything else is a ValueError naming it)
+    if scenarios is not None:
+        if isinstance(scenarios, (str, bytes, dict)) or not hasattr(scenarios, "__iter__"):
+            raise ValueError(f"scenarios must be a list of scenarios, got {type(scenarios).__name__}")
+        scenarios = [resolve_scenario(s, braking) for s in scenarios]
+    elif scenario is not None:
+        scenario = resolve_scenario(scenario, braking)
     if scenarios is not None:
         if not scenarios:
             raise ValueError("scenarios is empty: nothing to evaluate")

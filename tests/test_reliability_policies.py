@@ -495,6 +495,10 @@ def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
     ({"episodes": 10**20}, "episodes must be an integer in [1, 100000]"),  # was an OverflowError
     ({"act_timeout": 1e308}, "act_timeout (--act-timeout) must be a number of seconds in (0, 86400]"),
     ({"target_ratio": 10**400}, "target_ratio must lie in [1, 3]"),
+    # (an AttributeError on .braking before; dicts and JSON are now taken, as the env takes them)
+    ({"scenarios": {"payload": 7000.0}}, "scenarios must be a list of scenarios"),
+    ({"scenario": 5}, "scenario must be a Scenario"),
+    ({"scenarios": [{"payload": 1.0, "braking": "tc"}]}, "Scenario.payload must lie in"),
 ])
 def test_evaluation_settings_are_checked_by_name(kw, needle):
     from agents.evaluate import evaluate_controller
