@@ -21,6 +21,7 @@ import pkgutil
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -408,9 +409,12 @@ def evaluate_controller(
     if min_time not in ("optimum", "estimate"):
         raise ValueError(f"min_time must be 'optimum' or 'estimate', got {min_time!r}")
     say = progress or (lambda msg: None)
-    env_id = env_id or getattr(controller, "env_id", "WheelLoader-v2")
+    chosen, env_id = env_id, env_id or getattr(controller, "env_id", "WheelLoader-v2")
     kwargs = {**(env_kwargs or {}), "braking": braking}
-    envs = {noise: gym.make(env_id, **{**kwargs, "init_noise": noise}) for noise in {0.0, float(init_noise)}}
+    with warnings.catch_warnings():  # (the env a policy was trained on, not the user's choice: no "out of date")
+        if chosen is None:
+            warnings.simplefilter("ignore", DeprecationWarning)
+        envs = {noise: gym.make(env_id, **{**kwargs, "init_noise": noise}) for noise in {0.0, float(init_noise)}}
     guarded = GuardedController(controller, name or type(controller).__name__, act_timeout,
                                 n_actions=envs[0.0].action_space.shape[0])
     records: list[dict[str, Any]] = []

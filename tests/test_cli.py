@@ -497,6 +497,7 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["evaluate", "--controller", "mpc", "--target-time", "5e-324", "--out", "x.json"], "--target-time", "[1, 40) s"),
     (["mpc", "--w-fuel", "2"], "--w-fuel", "[0, 1]"),
     (["mpc", "--payload-scale", "inf"], "--payload-scale", "[0, 10]"),
+    (["mpc", "--params", '{"M_load": 150000}', "--payload-scale", "10"], "--payload-scale", "[0, 200000] kg"),
     (["pareto", "--points", "2"], "--points", "[3, 100]"),
     (["evaluate", "--controller", "operator", "--seed=-1"], "--seed", ">= 0"),
     (["evaluate", "--controller", "operator", "--episodes", "99999999999999999999"], "--episodes", "[1, 100000]"),

@@ -219,6 +219,10 @@ def test_bad_configuration_raises():
         MPCConfig(mode="weighted", w_fuel=1.5)
     with pytest.raises(ValueError, match="realtime and deadline_ms"):
         MPCConfig(realtime=True, deadline_ms=50.0)
+    with pytest.raises(ValueError, match="w_fuel is mode 'weighted''s; mode 'time' takes none"):  # (was ignored)
+        MPCConfig(mode="time", w_fuel=0.5)
+    with pytest.raises(ValueError, match="target_time is mode 'target_time''s; mode 'weighted' takes none"):
+        MPCConfig(mode="weighted", w_fuel=0.5, target_time=11.0)
     for kw, name in ((dict(mode="target_time", target_time=1e9), "target_time must lie in \\[1, 40\\) s"),
                      (dict(mode="weighted", w_fuel="0.5"), "w_fuel"), (dict(time_budget="1"), "time_budget"),
                      (dict(max_iter=True), "max_iter"), (dict(rate_weight=5), "rate_weight"),

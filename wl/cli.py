@@ -159,7 +159,12 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.payload_scale != 1.0 or args.rolling_scale != 1.0:
         from wl_env.params import resolve
 
-        plant = resolve(_params_from(args)).variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
+        machine = resolve(_params_from(args))
+        try:
+            plant = machine.variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
+        except ValueError as exc:  # (the machine's field alone would not say which option scaled it)
+            raise ValueError(f"--payload-scale {args.payload_scale:g} / --rolling-scale {args.rolling_scale:g} give a "
+                             f"plant out of range: {exc}") from None
     scenario = _scenario_from(args)
     braking = scenario.braking if scenario is not None else args.braking or "service"
     if args.mismatch and scenario is None:

@@ -252,6 +252,11 @@ class MPCConfig:
             check_target_time(self.target_time)
         if self.mode == "weighted" and not (real(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
             raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {self.w_fuel!r}")
+        # (a value another mode would ignore without a word)
+        if self.mode != "weighted" and self.w_fuel is not None:
+            raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {self.w_fuel!r}")
+        if self.mode != "target_time" and self.target_time is not None:
+            raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {self.target_time!r}")
         if self.deadline_ms is not None and not (real(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {self.deadline_ms!r}")
         if not isinstance(self.realtime, bool):
