@@ -2,13 +2,15 @@
 
     python scripts/bench_corners.py --braking service --out corners_service.json
     python scripts/bench_corners.py --braking tc --mpc 8 --operator
+    python scripts/bench_corners.py --braking tc --operator --learned --no-ocp
 
 Every corner of the seven scenario ranges (2^7 = 128 per braking alternative; ``--corners N`` takes N of them,
 drawn with ``--seed``): the minimum-time OCP, then the minimum fuel at ``--ratio`` T_min, each with
 ``solve_ocp``'s re-simulation check, and the environment's T_min estimate (``wl_env.suites.min_time``) against
 the OCP's. ``--mpc N``: the default synchronous MPC on N of those corners (drawn with ``--seed``), in
 minimum-time mode and at the ``--ratio`` T_min target. ``--operator``: the rule-based operator on every corner
-taken (``--no-ocp``: the operator alone, in seconds). Nothing is cached: each OCP is solved (8-15 s per corner,
+taken; ``--learned``: the shipped target-conditioned policies (ppo, bc) there at 1, 1.15 and 1.5 T_min
+(``--no-ocp``: these alone, in seconds). Nothing is cached: each OCP is solved (8-15 s per corner,
 both solves).
 """
 
@@ -39,7 +41,8 @@ class Options:
     ratio: float = 1.15  # the fixed-time solve's (and the MPC's target's) cycle time, times T_min
     mpc: int = 0  # corners to run the MPC on (of those taken)
     operator: bool = False  # also run the operator on every corner taken
-    ocp: bool = True  # --no-ocp: skip the yardstick (the operator's limits at every corner take seconds)
+    learned: bool = False  # also the shipped target-conditioned ppo and bc at 1, 1.15 and 1.5 T_min (estimated)
+    ocp: bool = True  # --no-ocp: skip the yardstick (the operator's and policies' limits at every corner: seconds)
     seed: int = 37
     out: str | None = None  # JSON of the per-corner records and the summary
 
@@ -103,12 +106,14 @@ def run(o: Options) -> dict[str, Any]:
         summary["mpc"] = _mpc(o, [r for r in records if "T_min" in r], every, rng)
     if o.operator:
         summary["operator"] = _operator(o, [every[i] for i in taken])
+    if o.learned:
+        summary.update(_learned(o, [every[i] for i in taken]))
     if o.ocp:
         print(f"{o.braking}: {summary['both_checks_passed']} of {summary['corners']} corners pass both re-simulation "
               f"checks (minimum time, minimum fuel at {o.ratio:g} T_min)"
               + (f"; T_min estimate error median {100 * summary['estimate_error_median']:+.2f} %, at most "
                  f"{100 * summary['estimate_error_abs_max']:.2f} %" if errors else ""))
-    for name in ("mpc", "operator"):
+    for name in [k for k in summary if k in ("mpc", "operator") or k.startswith(("ppo", "bc"))]:
         if name in summary:
             print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in summary[name].items() if k != "runs"))
     if o.out:
@@ -138,14 +143,42 @@ def _mpc(o: Options, solved: list[dict[str, Any]], every: list[Scenario], rng: n
             "min_time_gap_range": [round(min(fastest), 4), round(max(fastest), 4)] if fastest else None, "runs": runs}
 
 
+def _limits(res: dict[str, Any]) -> dict[str, Any]:
+    eps = res["per_episode"]
+    return {"cycles": len(eps), "on_marks": sum(e["success"] for e in eps),
+            "with_violation": sum(e["max_violation"] > 0 for e in eps),
+            "max_violation": max(e["max_violation"] for e in eps),
+            "corners_with_violation": [c for c, e in zip(res["corners"], eps, strict=True) if e["max_violation"] > 0]}
+
+
 def _operator(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
     from agents.evaluate import evaluate_controller, load_controller
 
     res = evaluate_controller(load_controller("operator", o.braking), o.braking, scenarios=scenarios, score=False)
-    eps = res["per_episode"]
-    return {"cycles": len(eps), "on_marks": sum(e["success"] for e in eps),
-            "with_violation": sum(e["max_violation"] > 0 for e in eps),
-            "max_violation": max(e["max_violation"] for e in eps)}
+    return _limits({**res, "corners": _numbers(scenarios)})
+
+
+def _learned(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
+    """The shipped target-conditioned policies (ppo, bc) at each corner, at 1, 1.15 and 1.5 times its estimated
+    T_min (nothing solved): whether they keep the limits where they were not trained (they learn on draws)."""
+    from agents.evaluate import evaluate_controller, load_controller
+
+    out = {}
+    for name in ("ppo", "bc"):
+        controller = load_controller(name, o.braking, targeted=True)
+        for ratio in (1.0, 1.15, 1.5):
+            res = evaluate_controller(controller, o.braking, scenarios=scenarios, score=False, target_ratio=ratio,
+                                      min_time="estimate")
+            late = sorted(e.get("lateness") or 0.0 for e in res["per_episode"])
+            out[f"{name} at {ratio:g} T_min"] = {**_limits({**res, "corners": _numbers(scenarios)}),
+                                                "lateness_median": statistics.median(late)}
+    return out
+
+
+def _numbers(scenarios: list[Scenario]) -> list[int]:
+    """Each scenario's corner number (its binary order, as corner_scenarios gives them)."""
+    every = corner_scenarios(scenarios[0].braking)
+    return [every.index(s) for s in scenarios]
 
 
 if __name__ == "__main__":
