@@ -320,7 +320,7 @@ def check_settings(episodes: int, init_noise: float, seed: int) -> None:
     """Raise ValueError for settings no evaluation can run with."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= MAX_EPISODES:
         raise ValueError(f"episodes must be an integer in [1, {MAX_EPISODES}], got {_short(episodes)}")
-    if not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
+    if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
         raise ValueError(f"init_noise must lie in [0, 1], got {_short(init_noise)}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an integer >= 0, got {_short(seed)}")

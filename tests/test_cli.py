@@ -532,6 +532,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--export", ""], "--export", "empty"),
     (["pareto", "--cache", ""], "--cache", "empty"),  # (the working folder, unasked)
     (["evaluate", "--controller", "operator", "--out", ""], "--out", "empty"),
+    (["evaluate", "--controller", "ppo", "--model", ""], "--model", "empty"),  # (searched the working folder)
+    (["ocp", "--params", "null"], "--params", "JSON object"),  # (taken as no overrides)
 ]
 
 

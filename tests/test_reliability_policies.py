@@ -497,6 +497,7 @@ def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
     ({"target_ratio": 10**400}, "target_ratio must lie in [1, 3]"),
     # (an AttributeError on .braking before; dicts and JSON are now taken, as the env takes them)
     ({"scenarios": {"payload": 7000.0}}, "scenarios must be a list of scenarios"),
+    ({"init_noise": True}, "init_noise must lie in [0, 1]"),  # (taken as 1.0)
     ({"scenario": 5}, "scenario must be a Scenario"),
     ({"scenarios": [{"payload": 1.0, "braking": "tc"}]}, "Scenario.payload must lie in"),
 ])

@@ -41,6 +41,9 @@ def test_the_reset_options_set_the_target_and_v2_refuses_them():
         gym.make("WheelLoader-v2").reset(seed=0, options={"target_time": 12.0})
     with pytest.raises(ValueError, match="ratio to T_min in \\[1, 3\\]"):
         gym.make("WheelLoaderTarget-v0", target=(2.0, 1.0))
+    # numpy numbers are the numbers they hold (np.float32 was refused)
+    assert gym.make("WheelLoaderTarget-v0", target=np.float32(1.5)).unwrapped.target_ratios == (1.5, 1.5)
+    assert gym.make("WheelLoaderTarget-v0", target=[np.float64(1.2), 2]).unwrapped.target_ratios == (1.2, 2.0)
 
 
 def _run(env, ctrl, seed, options):

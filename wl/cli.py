@@ -206,6 +206,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
+    if args.model is not None and not args.model.strip():  # (Path("") is the working folder)
+        raise ValueError("--model must name a policy (PATH.safetensors, ...), got an empty string")
     targeted = args.target_time is not None or args.target_ratio is not None
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
                                  scenario=scenario or (scenarios[0] if scenarios else None), targeted=targeted)
@@ -331,7 +333,10 @@ def _params_overrides(args: argparse.Namespace) -> Any:
         return None
     if not text.strip():
         raise ValueError("--params is empty: give a JSON object of LoaderParams fields")
-    return _json_option(text, "--params")
+    value = _json_option(text, "--params")
+    if not isinstance(value, dict):  # (null was taken as no overrides; `wl params --set null` refuses it)
+        raise ValueError(f"--params must be a JSON object of LoaderParams fields, got {type(value).__name__}")
+    return value
 
 
 def _params_from(args: argparse.Namespace):

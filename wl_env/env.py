@@ -77,6 +77,7 @@ TARGET_RATIOS = (1.0, 2.5)  # the target env's default: targets drawn from T_min
 def check_target_ratios(target: Any, name: str = "target") -> tuple[float, float]:
     """A target ratio to T_min (one number) or a range to draw from uniformly, within [1, 3]; ``name`` is
     the parameter the error names (``target``, or reset's option ``target_ratio``)."""
+    target = plain(target) if not isinstance(target, (tuple, list)) else type(target)(map(plain, target))
     lo, hi = (target, target) if isinstance(target, (int, float)) and not isinstance(target, bool) else (
         tuple(target) if isinstance(target, (tuple, list)) and len(target) == 2 else (None, None))
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v) and 1.0 <= v <= 3.0
