@@ -16,7 +16,6 @@ both solves).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import statistics
 import time
@@ -30,6 +29,7 @@ from wl_env.atomic_io import write_json_atomic
 from wl_env.cycle import check_braking
 from wl_env.logs import run_script
 from wl_env.scenario import FIELDS, Scenario
+from wl_env.suites import corner_scenarios
 
 log = logging.getLogger("bench_corners")
 
@@ -45,13 +45,6 @@ class Options:
     ocp: bool = True  # --no-ocp: skip the yardstick (the operator's and policies' limits at every corner: seconds)
     seed: int = 37
     out: str | None = None  # JSON of the per-corner records and the summary
-
-
-def corner_scenarios(braking: str) -> list[Scenario]:
-    """The 128 corners of the ranges, in binary order of (payload, reverse, forward, c_r, dump height, start
-    speed, start height), low = 0."""
-    return [Scenario(**{n: (f.lo, f.hi)[b] for (n, f), b in zip(FIELDS.items(), bits, strict=True)}, braking=braking)
-            for bits in itertools.product((0, 1), repeat=len(FIELDS))]
 
 
 def check(o: Options) -> None:
@@ -105,17 +98,16 @@ def run(o: Options) -> dict[str, Any]:
     if o.mpc:
         summary["mpc"] = _mpc(o, [r for r in records if "T_min" in r], every, rng)
     if o.operator:
-        summary["operator"] = _operator(o, [every[i] for i in taken])
+        summary["operator"] = _operator(o, every, taken)
     if o.learned:
-        summary.update(_learned(o, [every[i] for i in taken]))
+        summary.update(_learned(o, every, taken))
     if o.ocp:
         print(f"{o.braking}: {summary['both_checks_passed']} of {summary['corners']} corners pass both re-simulation "
               f"checks (minimum time, minimum fuel at {o.ratio:g} T_min)"
               + (f"; T_min estimate error median {100 * summary['estimate_error_median']:+.2f} %, at most "
                  f"{100 * summary['estimate_error_abs_max']:.2f} %" if errors else ""))
     for name in [k for k in summary if k in ("mpc", "operator") or k.startswith(("ppo", "bc"))]:
-        if name in summary:
-            print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in summary[name].items() if k != "runs"))
+        print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in summary[name].items() if k != "runs"))
     if o.out:
         write_json_atomic(o.out, {"options": asdict(o), "summary": summary, "records": records})
     return summary
@@ -143,22 +135,24 @@ def _mpc(o: Options, solved: list[dict[str, Any]], every: list[Scenario], rng: n
             "min_time_gap_range": [round(min(fastest), 4), round(max(fastest), 4)] if fastest else None, "runs": runs}
 
 
-def _limits(res: dict[str, Any]) -> dict[str, Any]:
+def _limits(res: dict[str, Any], taken: list[int]) -> dict[str, Any]:
+    """On the marks and within the limits, of an evaluation of the corners ``taken`` (their numbers)."""
     eps = res["per_episode"]
     return {"cycles": len(eps), "on_marks": sum(e["success"] for e in eps),
             "with_violation": sum(e["max_violation"] > 0 for e in eps),
             "max_violation": max(e["max_violation"] for e in eps),
-            "corners_with_violation": [c for c, e in zip(res["corners"], eps, strict=True) if e["max_violation"] > 0]}
+            "corners_with_violation": [c for c, e in zip(taken, eps, strict=True) if e["max_violation"] > 0]}
 
 
-def _operator(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
+def _operator(o: Options, every: list[Scenario], taken: list[int]) -> dict[str, Any]:
     from agents.evaluate import evaluate_controller, load_controller
 
-    res = evaluate_controller(load_controller("operator", o.braking), o.braking, scenarios=scenarios, score=False)
-    return _limits({**res, "corners": _numbers(scenarios)})
+    res = evaluate_controller(load_controller("operator", o.braking), o.braking, scenarios=[every[i] for i in taken],
+                              score=False)
+    return _limits(res, taken)
 
 
-def _learned(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
+def _learned(o: Options, every: list[Scenario], taken: list[int]) -> dict[str, Any]:
     """The shipped target-conditioned policies (ppo, bc) at each corner, at 1, 1.15 and 1.5 times its estimated
     T_min (nothing solved): whether they keep the limits where they were not trained (they learn on draws)."""
     from agents.evaluate import evaluate_controller, load_controller
@@ -167,18 +161,12 @@ def _learned(o: Options, scenarios: list[Scenario]) -> dict[str, Any]:
     for name in ("ppo", "bc"):
         controller = load_controller(name, o.braking, targeted=True)
         for ratio in (1.0, 1.15, 1.5):
-            res = evaluate_controller(controller, o.braking, scenarios=scenarios, score=False, target_ratio=ratio,
-                                      min_time="estimate")
-            late = sorted(e.get("lateness") or 0.0 for e in res["per_episode"])
-            out[f"{name} at {ratio:g} T_min"] = {**_limits({**res, "corners": _numbers(scenarios)}),
+            res = evaluate_controller(controller, o.braking, scenarios=[every[i] for i in taken], score=False,
+                                      target_ratio=ratio, min_time="estimate")
+            late = [e.get("lateness") or 0.0 for e in res["per_episode"]]
+            out[f"{name} at {ratio:g} T_min"] = {**_limits(res, taken),
                                                 "lateness_median": statistics.median(late)}
     return out
-
-
-def _numbers(scenarios: list[Scenario]) -> list[int]:
-    """Each scenario's corner number (its binary order, as corner_scenarios gives them)."""
-    every = corner_scenarios(scenarios[0].braking)
-    return [every.index(s) for s in scenarios]
 
 
 if __name__ == "__main__":

@@ -35,6 +35,14 @@ ROUNDING = {"payload": -1, "reverse_distance": 2, "forward_distance": 2, "rollin
             "dump_height": 2, "start_engine_speed": 0, "start_bucket_height": 2}
 
 
+def corner_scenarios(braking: str) -> list[Scenario]:
+    """The 2^7 = 128 corners of the scenario ranges, in binary order of (payload, reverse, forward, c_r, dump
+    height, start speed, start height), low = 0."""
+    return [Scenario(**{n: (f.lo, f.hi)[b] for (n, f), b in zip(FIELDS.items(), bits, strict=True)},
+                     braking=check_braking(braking))
+            for bits in itertools.product((0, 1), repeat=len(FIELDS))]
+
+
 def draw(rng: np.random.Generator, braking: str) -> Scenario:
     """One scenario, uniform over the ranges (rounded, :data:`ROUNDING`)."""
     values = {}
@@ -83,10 +91,7 @@ class Suite:
         cycles: every scenario of the list, or every corner of the ranges a sampler draws from (each field's
         range maps onto one machine parameter independently, so the corners bound them all). Checked when an
         env takes the suite, not at the draw that fails mid-training."""
-        options = (tuple(Scenario(**dict(zip(FIELDS, corner, strict=True)), braking=braking)
-                         for corner in itertools.product(*((f.lo, f.hi) for f in FIELDS.values())))
-                   if self.sampler else self.of(braking))
-        for sc in options:
+        for sc in corner_scenarios(braking) if self.sampler else self.of(braking):
             try:
                 sc.params(machine)
             except ValueError as exc:
