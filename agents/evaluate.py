@@ -70,6 +70,8 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     """
     cycle.check_braking(braking)
     spec = spec.strip()
+    if model is not None and not str(model).strip():  # (Path("") is the working folder: it searched there)
+        raise ValueError("--model must name a policy (PATH.safetensors, ...), got an empty string")
     if spec in ("ppo", "bc"):
         kind = "bc" if spec == "bc" else "ppo-target" if targeted else "ppo"
         return _load_ppo(braking, model, trust_pickle, kind)

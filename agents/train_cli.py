@@ -143,8 +143,6 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
                 raise ValueError(f"--export {ns.export}: {export.name + suffix} is a folder")
         check_output_folder(export.parent, f"--export {ns.export}")
     if getattr(ns, "cache", None) is not None:
-        if not ns.cache.strip():
-            raise ValueError("--cache must name a folder, got an empty string")
         check_output_folder(ns.cache, f"--cache {ns.cache}")
     if ns.resume and set(given) - RUN_NAMING:
         log.warning("--resume uses the run's saved config; options other than the run's name are ignored")

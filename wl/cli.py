@@ -70,8 +70,6 @@ def _out_dir(path: str, option: str = "--out") -> Path:
     """An output folder, created and probed for writing before the work."""
     from wl_env.atomic_io import check_output_folder
 
-    if not str(path).strip():  # (Path("") is the working folder: the results would land there unasked)
-        raise ValueError(f"{option} must name a folder, got an empty string")
     return check_output_folder(path, f"{option} {path}")
 
 
@@ -206,8 +204,6 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
-    if args.model is not None and not args.model.strip():  # (Path("") is the working folder)
-        raise ValueError("--model must name a policy (PATH.safetensors, ...), got an empty string")
     targeted = args.target_time is not None or args.target_ratio is not None
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
                                  scenario=scenario or (scenarios[0] if scenarios else None), targeted=targeted)
@@ -348,7 +344,7 @@ def _params_from(args: argparse.Namespace):
 
 def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
     """The --scenario (JSON text or a JSON file; a missing field is nominal, the braking --braking's), or None."""
-    from wl_env.params import SCENARIO_FIELDS
+    from wl_env.params import scenario_overrides
     from wl_env.scenario import Scenario
 
     if getattr(args, "scenario", None) is None:
@@ -359,8 +355,7 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
-    overrides = _params_overrides(args)
-    overridden = sorted(set(overrides) & set(SCENARIO_FIELDS)) if isinstance(overrides, dict) else []
+    overridden = scenario_overrides(_params_overrides(args))
     if overridden:  # (the scenario sets them: the --params values would be dropped without a word)
         raise ValueError(f"--params sets {', '.join(overridden)}, which the --scenario sets: give them in the scenario")
     given = args.braking is not None if braking_given is None else braking_given

@@ -52,7 +52,9 @@ def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
     """Create ``folder`` if missing and probe it with a real write (permission bits say nothing for root or
     a read-only file system), so a bad output path fails before the work, not after it. ValueError
     starting with ``what`` (e.g. ``"--out results/x.json"``) if it is a file, cannot be created or is
-    not writable."""
+    not writable, or an empty string (``Path("")`` is the working folder: outputs would land there unasked)."""
+    if not str(folder).strip():
+        raise ValueError(f"{what.strip()}: an empty path names no folder")
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{what}: {folder} is not a folder")

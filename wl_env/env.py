@@ -13,7 +13,7 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, plain, resolve, shown
+from wl_env.params import LoaderParams, is_finite, plain, resolve, scenario_overrides, shown
 from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
@@ -41,9 +41,7 @@ def scenario_source(scenario: Scenario | dict | str | None, braking: str | None,
 def check_no_overridden(params: Any, source: Scenario | Suite | None) -> None:
     """A ``params`` dict that sets a field a scenario sets (payload, distances, ...) beside that scenario would be
     dropped without a word: refused, naming the fields (as ``wl --params`` with ``--scenario``)."""
-    if source is None or not isinstance(params, dict):
-        return
-    overridden = sorted(set(params) & set(SCENARIO_FIELDS))
+    overridden = scenario_overrides(params) if source is not None else []
     if overridden:
         raise ValueError(f"params sets {', '.join(overridden)}, which the scenario sets: give them in the scenario "
                          f"(a dict of Scenario fields) or leave the scenario out")

@@ -454,6 +454,12 @@ def resolve(params: LoaderParams | dict | None) -> LoaderParams:
 # symbols of an NLP parametric in the scenario. The model reads them, and M_tot and F_roll derived from them.
 SCENARIO_FIELDS = ("M_load", "c_r", "H_T", "H_0", "omega_0", "reverse_distance", "forward_distance")
 
+
+def scenario_overrides(params: Any) -> list[str]:
+    """The fields a ``params`` dict of overrides sets that a scenario also sets (beside a scenario they would be
+    dropped without a word: the env and the command line refuse them, naming these)."""
+    return sorted(set(params) & set(SCENARIO_FIELDS)) if isinstance(params, dict) else []
+
 # loaders in one vector env (wl_env.vector_env; PPOConfig.num_envs): each holds its own state arrays and random
 # generator (~2 kB); the training's 64 are far below, and a mistyped count (1e9) is refused by name instead of
 # exhausting the memory
