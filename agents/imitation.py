@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.ppo_config import TARGET_ENV_IDS, PPOConfig
+from agents.ppo_config import COAST_ENV_IDS, TARGET_ENV_IDS, PPOConfig
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_TARGET_OBS
 
@@ -55,12 +55,12 @@ class DemoSettings:
     env_id: str = "WheelLoaderTarget-v1"  # v1: action 0 an engine-speed request (the governor's); v0: the injection
 
     def __post_init__(self) -> None:
-        if self.env_id not in TARGET_ENV_IDS[:2] and not (self.env_id == TARGET_ENV_IDS[3] and self.learner
+        if self.env_id not in TARGET_ENV_IDS[:2] and not (self.env_id in COAST_ENV_IDS and self.learner
                                                            and self.expert == "mpc"):
-            # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 a DAgger
+            # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 and v4 a DAgger
             # learner drives and the MPC's plans label its states, plan_labels)
-            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])} (or {TARGET_ENV_IDS[3]} with a "
-                             f"learner and the MPC as the expert: DAgger), got {self.env_id!r}")
+            raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])} (or {' or '.join(COAST_ENV_IDS)} "
+                             f"with a learner and the MPC as the expert: DAgger), got {self.env_id!r}")
         if self.expert not in EXPERTS:
             raise ValueError(f"expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         from wl_env.cycle import check_braking
@@ -108,7 +108,7 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         from agents.ppo import load_policy
 
         learner = load_policy(settings.learner)
-    if settings.env_id == TARGET_ENV_IDS[3]:
+    if settings.env_id in COAST_ENV_IDS:
         return _driver_dagger_episode(settings, env, expert, learner, rng, obs, scenario, target_time, fast)
     observations, actions = [], []
     done = False
@@ -300,10 +300,10 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
-COAST = 3  # WheelLoaderTarget-v3's coasting fraction's action index
-# The assisted drivers (WheelLoaderTarget-v2, v3) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
+COAST = 3  # WheelLoaderTarget-v3's and v4's coasting fraction's action index
+# The assisted drivers (WheelLoaderTarget-v2, v3, v4) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
 # its own machine (injection, brake, shift) and its actions are labelled as the driver's (driver_labels).
-DRIVER_ENV_IDS = TARGET_ENV_IDS[2:4]
+DRIVER_ENV_IDS = TARGET_ENV_IDS[2:]
 DEMO_ENV_ID = {**{e: e for e in TARGET_ENV_IDS[:2]}, **dict.fromkeys(DRIVER_ENV_IDS, TARGET_ENV_IDS[1])}
 METHOD = "behaviour cloning (MPC)"  # the method a clone's metadata names
 SHIFT_RAMP = 0.4  # per step: the shift label's slope before the expert's shift (see shift_labels)
@@ -395,7 +395,7 @@ def labels(demo: dict[str, Any], env_id: str, braking: str) -> tuple[np.ndarray,
     if "weights" in demo:  # (labelled when collected: a driver's DAgger episode, plan_labels)
         return demo["actions"], demo["weights"]
     if env_id in DRIVER_ENV_IDS:
-        return driver_labels(demo["obs"], demo["actions"], demo["scenario"], braking, coast=env_id == DRIVER_ENV_IDS[1])
+        return driver_labels(demo["obs"], demo["actions"], demo["scenario"], braking, coast=env_id in COAST_ENV_IDS)
     actions = np.clip(shift_labels(demo["obs"], demo["actions"]), -1.0, 1.0)
     return actions, action_weights(demo["obs"], actions)
 

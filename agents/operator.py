@@ -20,6 +20,7 @@ from wl_env.assist import (
     brake_torque,
     braking_point,
     bucket_command,
+    lift_done_early,
     stopping_deceleration,
     stopping_distance,
     tc_braking_speed,
@@ -27,11 +28,8 @@ from wl_env.assist import (
 from wl_env.codec import Codec
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, resolve
-from wl_env.physics import lift
 from wl_env.scenario import Scenario
 from wl_env.step import OMEGA_FLOOR
-
-_SPEED_FOR_TIMING = 1.0  # m/s: the least speed the driver times the lift with (the machine starts from rest)
 
 
 class OperatorPolicy:
@@ -90,22 +88,10 @@ class OperatorPolicy:
             # ease off before the braking point, to the engine speed at which the shift brakes as planned
             fuel = self._tc_throttle(omega, V, H, V_b, self.a_plan, 1)
         lift = self.lift_accel
-        if phase == 1 and self.braking == "tc" and self._lift_done_early(omega, speed, H, to_go):
-            lift = -V_b / self.dt  # hold the bucket: its lift must run into the braking (see _lift_done_early)
+        if phase == 1 and self.braking == "tc" and lift_done_early(omega, speed, H, to_go, self.a_plan, p):
+            lift = -V_b / self.dt  # hold the bucket: its lift must run into the braking (see lift_done_early)
         u_ab = float(bucket_command(H, V_b, lift, p, self.dt))  # lift, and stop at H_T
         return self.codec.encode_action(fuel, u_ab, brake, shift)
-
-    def _lift_done_early(self, omega: float, speed: float, H: float, to_go: float) -> bool:
-        """Whether the lift left, at the pump's speed now, would end before the machine stops from the braking
-        point. A TC-braking driver then holds the bucket: the pump's load is what brings the engine down through
-        the lift-off, and a machine that reaches the braking point with the bucket at the dump height meets the
-        shift with the engine held up by the wheels (corners with a 10 m reverse and a 3.5 m truck: 1.6-2.6 m/s,
-        147-190 rad/s, the converter braking up to 2.6 times the limit; measured, stop 38)."""
-        p = self.params
-        v_lift = float(min(lift.max_lift_speed_pieces(H, max(omega, p.omega_min), p)))
-        lift_time = max(p.H_T - H, 0.0) / max(v_lift, 1e-3)
-        to_brake = max(to_go - stopping_distance(speed, self.a_plan), 0.0) / max(speed, _SPEED_FOR_TIMING)
-        return lift_time < to_brake + speed / self.a_plan
 
     def _tc_throttle(self, omega: float, V: float, H: float, V_b: float, a_req: float, phase: int) -> float:
         """Injection (mg) that moves the engine towards the speed at which the converter, in forward gear,

@@ -62,7 +62,7 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import TARGET_ENV_IDS, PPOConfig
+from agents.ppo_config import COAST_ENV_IDS, TARGET_ENV_IDS, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
@@ -827,7 +827,7 @@ def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
     with th.no_grad():
         model.policy.action_net.bias[0] = raw(cfg.fuel_bias_init)
         model.policy.action_net.bias[1] = raw(cfg.bucket_bias_init)
-        if cfg.env_id == "WheelLoaderTarget-v3":  # (its fourth action is the coasting fraction)
+        if cfg.env_id in COAST_ENV_IDS:  # (their fourth action is the coasting fraction)
             model.policy.action_net.bias[3] = raw(cfg.coast_bias_init)
         elif model.policy.action_net.bias.shape[0] == 4:  # (WheelLoaderTarget-v2's assist shifts by itself)
             model.policy.action_net.bias[3] = raw(cfg.shift_bias_init)

@@ -14,11 +14,13 @@ from wl_env.params import MAX_NUM_ENVS, is_finite
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
 ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2",
-           "WheelLoaderTarget-v3")
+           "WheelLoaderTarget-v3", "WheelLoaderTarget-v4")
 TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
 # v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions); v3: v2
-# whose driver may end a leg early and coast (4 actions)
-TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3")
+# whose driver may end a leg early and coast (4 actions); v4: v3 whose assist times the lift with TC braking
+TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3",
+                  "WheelLoaderTarget-v4")
+COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 actions)
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
