@@ -17,7 +17,7 @@ ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoa
            "WheelLoaderTarget-v3", "WheelLoaderTarget-v4")
 TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
 # v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions); v3: v2
-# whose driver may end a leg early and coast (4 actions); v4: v3 whose assist times the lift with TC braking
+# whose driver may end a leg early and coast (4 actions); v4: v3 with the assist's guards (wl_env.assist)
 TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3",
                   "WheelLoaderTarget-v4")
 COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 actions)
@@ -116,7 +116,8 @@ class PPOConfig:
                 "(scenarios observed), WheelLoaderTarget-v0 (v2 with a target cycle time per episode) or "
                 "WheelLoaderTarget-v1 (v0 with an engine-speed request as action 0, through the engine's governor) or "
                 "WheelLoaderTarget-v2 (v1 through the stopping assist: request, bucket, braking fraction) or "
-                "WheelLoaderTarget-v3 (v2 with a 4th action: the coasting fraction, where a leg ends early to coast)"})
+                "WheelLoaderTarget-v3 (v2 with a 4th action: the coasting fraction, where a leg ends early to coast) or "
+                "WheelLoaderTarget-v4 (v3 with the assist's guards: creep floor, last lift, TC lift timing)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={

@@ -196,20 +196,18 @@ SHIPPED = [(k, b) for k in ("ppo-target", "bc") for b in ("service", "tc")]
 
 @pytest.mark.parametrize("kind,braking", SHIPPED)
 def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, braking):
-    """Each shipped target-conditioned policy loads pickle-free, drives its env (service: WheelLoaderTarget-v3,
-    the coasting assist; TC: v4, its lift guard) through a held-out cycle at a 1.5 T_min target with its marks
-    met and no violation; its metadata records how it was made, stage by stage (PPO: the v2 run, the graft, the
-    fine-tuning; the imitation baseline: the MPC episodes, the clone, the fine-tuning; TC: then the v4
-    fine-tuning), every stage's command but the last one's (the policy's own)."""
+    """Each shipped target-conditioned policy loads pickle-free, drives WheelLoaderTarget-v4 (the coasting
+    assist with its guards) through a held-out cycle at a 1.5 T_min target with its marks met and no violation;
+    its metadata records how it was made, stage by stage (PPO: the v2 run, the graft, the v3 fine-tuning; the
+    imitation baseline: the MPC episodes, the clone, the v3 fine-tuning; then the v4 fine-tuning, the policy's
+    own command)."""
     from agents.evaluate import default_policy_path, evaluate_controller
     from wl_env.suites import load_suite
 
     policy = load_policy(default_policy_path(braking, kind))
-    env_id = {"service": "WheelLoaderTarget-v3", "tc": "WheelLoaderTarget-v4"}[braking]
-    assert policy.env_id == env_id and policy.braking == braking  # (its config says; the assist)
+    assert policy.env_id == "WheelLoaderTarget-v4" and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
-    stages = [bool(stage.get("commands")) for stage in policy.meta["stages"]]
-    assert stages == [True] * (len(stages) - 1) + [False] and len(stages) == {"service": 3, "tc": 4}[braking]
+    assert [bool(stage.get("commands")) for stage in policy.meta["stages"]] == [True, True, True, False]
     scenario = load_suite("test").of(braking)[0]
     e = evaluate_controller(policy, braking, scenarios=[scenario], target_ratio=1.5, solve=False)["per_episode"][0]
     assert e["success"] and e["max_violation"] == 0.0, e
@@ -254,7 +252,7 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
     (["--env-id", "WheelLoaderTarget-v2", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v2"),
     (["--env-id", "WheelLoaderTarget-v2", "--graft-base", "agents/policies/ppo_target_v2_tc"],
      "graft_base needs env_id WheelLoaderTarget-v3"),
-    (["--braking", "tc", "--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/ppo_target_service"],
+    (["--braking", "tc", "--env-id", "WheelLoaderTarget-v4", "--clone-base", "agents/policies/ppo_target_service"],
      "drives service braking"),
     (["--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/no_such_policy"], "no_such_policy"),
     (["--epochs", "0"], "--epochs must be an integer in [1, 100000]"),  # (was an untrained clone, exit 0)
@@ -305,7 +303,7 @@ def test_a_clone_from_a_base_keeps_its_critic_and_statistics_and_fits_the_expert
 
     demos = collect_demos(DemoSettings("service", seed=3, expert="operator"), 3, tmp_path / "demos")
     base = POLICIES / "ppo_target_service"
-    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v3", scenario="train", init_noise=0.0,
+    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v4", scenario="train", init_noise=0.0,
                     log_dir=str(tmp_path), run_name="clone", progress_bar=False)
     result = clone(demos, cfg, epochs=30, validation_share=0.34, base=base)
     cloned, shipped = load_policy(cfg.run_dir), load_policy(base)
@@ -318,7 +316,7 @@ def test_a_clone_from_a_base_keeps_its_critic_and_statistics_and_fits_the_expert
     loss = [float(np.mean(w * (p.network.get_distribution(th.as_tensor(p.normalize(obs))).distribution.mean
                                 .detach().numpy() - y) ** 2)) for p in (cloned, shipped)]
     assert loss[0] < 0.5 * loss[1], (loss, result)
-    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v3 policy"):
+    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v4 policy"):
         clone(demos, PPOConfig(**{**cfg.__dict__, "run_name": "again"}), epochs=1, base=POLICIES / "ppo_target_v2_service")
 
 

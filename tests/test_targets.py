@@ -378,7 +378,7 @@ def test_an_all_out_driver_of_the_assist_finishes_within_a_few_percent_of_t_min(
         bench.run(bench.Options(engine_fraction=1.5))
 
 
-# ---------------------------------------------------------------- WheelLoaderTarget-v4: the TC lift guard
+# ---------------------------------------------------------------- WheelLoaderTarget-v4: the assist's guards
 def test_the_tc_lift_guard_keeps_the_deceleration_limit_at_the_corners_where_v3_breaks_it():
     """A driver that lifts at once and brakes hardest: in v3 its bucket reaches the dump height early, the shift
     into forward gear meets an engine the wheels hold up and the converter brakes over the limit at 52 of the 128
@@ -397,32 +397,68 @@ def test_the_tc_lift_guard_keeps_the_deceleration_limit_at_the_corners_where_v3_
     assert all(i["is_success"] for i in runs["WheelLoaderTarget-v4"])
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=300, deadline=None)
 @given(braking=st.sampled_from(["service", "tc"]), phase=st.integers(1, 4),
        state=st.tuples(st.floats(57.0, 240.0), st.floats(-3.0, 3.0), st.floats(0.0, 6.0), st.floats(-0.5, 1.5)),
        to_go=st.floats(-1.0, 12.0), driver=st.tuples(*[st.floats(-3.0, 3.0)] * 4))
-def test_the_tc_lift_guard_changes_only_the_tc_bucket_and_lift_off(braking, phase, state, to_go, driver):
-    """v4 is v3 with service braking. With TC braking it shifts and brakes as v3 does, asks the engine down no
-    later than v3 (a lower aim through the lift-off) and keeps the bucket under the curve that stops it at the
-    dump height; in phase 1 before the lift-off it only holds the bucket, never lifts it faster."""
-    from wl_env.assist import assisted_action, bucket_command
+def test_the_guards_change_the_action_only_where_they_say(braking, phase, state, to_go, driver):
+    """v4 against v3 at any state: the same brake; a shift wherever v3 shifts, and also a leg standing on its
+    mark; a higher request only as the creep floor (a machine crawling short of its mark in phase 1 or 3), a
+    lower one only through the TC lift-off; a bucket different from v3's only where a guard says (phases 1-2
+    with TC braking, phase 4's last lift) and always under the curve that stops it at the dump height."""
+    from wl_env.assist import CREEP_SPEED, MIN_MOVING_SPEED, assisted_action, bucket_command
+    from wl_env.episode import DISTANCE_TOL
     from wl_env.params import DEFAULT_PARAMS as p
 
     y = (*state, 0.0, 0.0)
     v3, v4 = (np.array([float(v) for v in assisted_action(y, phase, to_go, driver, p, braking, 0.1, coast=True,
-                                                          tc_lift_guard=guard)]) for guard in (False, True))
-    if braking == "service":
-        assert np.array_equal(v3, v4)
-        return
-    assert v4[2] == v3[2] and v4[3] == v3[3] and v4[0] <= v3[0] + 1e-12, (v3, v4)
+                                                          guards=guards)]) for guards in (False, True))
+    speed = abs(state[1])
+    leg = phase in (1, 3)
+    assert v4[2] == v3[2], (v3, v4)
+    on_mark = leg and speed < MIN_MOVING_SPEED and abs(to_go) <= DISTANCE_TOL
+    assert v4[3] == v3[3] or (v4[3] > 0 > v3[3] and on_mark), (v3, v4)
+    crawling = leg and v4[3] < 0 and speed < CREEP_SPEED and to_go > DISTANCE_TOL
+    tc_lift = braking == "tc" and phase in (1, 2)
+    assert v4[0] <= v3[0] + 1e-12 or crawling, (v3, v4)
+    assert v4[0] >= v3[0] - 1e-12 or tc_lift, (v3, v4)
+    last_braking = phase == 4 or (phase == 3 and v4[3] > 0)
+    assert v4[1] == v3[1] or tc_lift or last_braking, (v3, v4)
     assert 2.5 * v4[1] <= float(bucket_command(state[2], state[3], 2.5, p, 0.1)) + 1e-9
-    if phase == 1 and v4[3] < 0 and v4[0] == v3[0]:  # (a leg going on, not in the lift-off)
-        assert v4[1] <= v3[1] + 1e-12
 
 
-def test_the_tc_lift_guard_is_a_flag_of_the_assist():
-    assert gym.make("WheelLoaderTarget-v4").unwrapped.tc_lift_guard is True
-    with pytest.raises(ValueError, match="tc_lift_guard=True needs assist=True"):
-        gym.make("WheelLoaderTarget-v1", tc_lift_guard=True)
-    with pytest.raises(ValueError, match="tc_lift_guard must be True or False"):
-        gym.make("WheelLoaderTarget-v4", tc_lift_guard="yes")
+@pytest.mark.parametrize("braking", ["service", "tc"])
+def test_the_creep_floor_and_the_last_lift_finish_a_cycle_an_idling_driver_would_not(braking):
+    """A 13 t machine at c_r 0.05 with the driver idling the engine (the v3 policies' failures at 1.5 T_min):
+    standing 30 cm short of the truck, v3 leaves it standing, v4 asks the engine speed that moves it off at
+    CREEP_ACCELERATION (the model's own acceleration there); standing on its mark, v4 ends the leg; braking to
+    the stop with 1.5 m of lift left, v4 lifts."""
+    from wl_env import cycle
+    from wl_env.assist import CREEP_ACCELERATION, assisted_action
+    from wl_env.codec import encode_speed_request
+    from wl_env.model import derivatives
+    from wl_env.params import DEFAULT_PARAMS
+
+    p = Scenario(braking=braking, payload=13000.0, rolling_resistance=0.05).params(DEFAULT_PARAMS)
+    idle = (-1.0, -1.0, 1.0, 1.0)
+
+    def act(y, phase, to_go, guards):
+        return [float(v) for v in assisted_action(y, phase, to_go, idle, p, braking, 0.1, coast=True, guards=guards)]
+
+    standing = (p.omega_min + 5.0, 0.0, p.H_T, 0.0, 0.0, 0.0)
+    v3, v4 = act(standing, 3, 0.3, False), act(standing, 3, 0.3, True)
+    assert v3[0] == -1.0 and v4[0] > -1.0 and v4[3] < 0
+    spec = cycle.phase_specs(braking, p)[2]
+    omega = next(w for w in np.linspace(p.omega_min, p.omega_max, 4000) if encode_speed_request(w, p) >= v4[0])
+    assert derivatives(omega, 0.0, p.H_T, 0.0, 0.0, 0.0, 0.0, spec.gear, spec.direction, p)[1] >= 0.99 * CREEP_ACCELERATION
+    assert act(standing, 3, 0.03, False)[3] < 0 < act(standing, 3, 0.03, True)[3]  # on the mark: the leg ends
+    braking_to_stop = (120.0, 0.5, p.H_T - 1.5, 0.0, 0.0, 0.0)  # (0.8 s to the stop; the lift left, ~2 s)
+    assert act(braking_to_stop, 4, 0.2, True)[1] > act(braking_to_stop, 4, 0.2, False)[1]
+
+
+def test_the_guards_are_a_flag_of_the_assist():
+    assert gym.make("WheelLoaderTarget-v4").unwrapped.guards is True
+    with pytest.raises(ValueError, match="guards=True needs assist=True"):
+        gym.make("WheelLoaderTarget-v1", guards=True)
+    with pytest.raises(ValueError, match="guards must be True or False"):
+        gym.make("WheelLoaderTarget-v4", guards="yes")

@@ -1,7 +1,8 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
-``import wl_env`` registers ``WheelLoaderTarget-v4`` (v3 whose assist, with TC braking, times the lift so the
-shift into forward gear keeps the deceleration limit), ``WheelLoaderTarget-v3`` (v2 whose driver may also end a leg early: the
+``import wl_env`` registers ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
+its mark moves on, the lift reaches the dump height, and with TC braking the shift into forward gear keeps the
+deceleration limit), ``WheelLoaderTarget-v3`` (v2 whose driver may also end a leg early: the
 machine coasts in neutral and the assist brakes late), ``WheelLoaderTarget-v2`` (v1 driven through a stopping assist: the driver
 sets the engine-speed request, the bucket and the braking point; the assist stops on the marks),
 ``WheelLoaderTarget-v1`` (v0 with action 0 an engine-speed request to the
@@ -20,9 +21,9 @@ __version__ = "0.2.0"
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
-    # v3 whose assist times the lift with TC braking (the shift's converter braking within the limit)
+    # v3 whose assist guards the driver (creep floor, last lift, TC lift timing: wl_env.assist)
     "WheelLoaderTarget-v4": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
-                             "assist": True, "coast": True, "tc_lift_guard": True},
+                             "assist": True, "coast": True, "guards": True},
     # v2 whose assist lets the driver end a leg early and coast in neutral, braking late (a 4th action)
     "WheelLoaderTarget-v3": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
                              "assist": True, "coast": True},

@@ -84,12 +84,12 @@ def check_target_ratios(target: Any, name: str = "target") -> tuple[float, float
     return float(lo), float(hi)
 
 
-def check_assist(assist: Any, fuel_action: str, coast: Any = False, tc_lift_guard: Any = False) -> bool:
+def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any = False) -> bool:
     """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor; its coasting
-    variant (``coast``, WheelLoaderTarget-v3) and its TC lift guard (``tc_lift_guard``, v4) need it."""
-    for name, v in (("assist", assist), ("coast", coast), ("tc_lift_guard", tc_lift_guard)):
+    variant (``coast``, WheelLoaderTarget-v3) and its guards (``guards``, v4) need it."""
+    for name, v in (("assist", assist), ("coast", coast), ("guards", guards)):
         check_flag(name, v)
-    for name, v in (("coast", coast), ("tc_lift_guard", tc_lift_guard)):
+    for name, v in (("coast", coast), ("guards", guards)):
         if v and not assist:
             raise ValueError(f"{name}=True needs assist=True (it is a variant of the stopping assist)")
     if assist and fuel_action != "engine_speed":
@@ -231,12 +231,13 @@ class WheelLoaderEnv(gym.Env):
     stop would need and brake late and hard). A coasting fraction at or above the braking fraction ends the
     leg at the braking point, as in v2.
 
-    WheelLoaderTarget-v4 (``assist=True, coast=True, tc_lift_guard=True``): v3's actions; with TC braking the
-    assist also times the lift (:mod:`wl_env.assist`, "The TC lift guard"): it holds the bucket while the lift
-    left would end before the stop, lifts a bucket left idle through the lift-off and the braking while the
-    engine is above its metered speed, and eases the engine off to the speed at which the converter would brake
-    at 88 % of the limit (v3: 95 %). So the shift into forward gear keeps the deceleration limit across the
-    scenario ranges. With service braking v4 is v3.
+    WheelLoaderTarget-v4 (``assist=True, coast=True, guards=True``): v3's actions, and three guards in the assist
+    (:mod:`wl_env.assist`, "The guards") for what a driver can get wrong at the edges of the scenario ranges:
+    a machine crawling or standing short of its mark in phase 1 or 3 gets at least the engine speed that moves
+    it off (and a leg standing on its mark ends); in phase 4 a lift that would outlast the stop goes on at full
+    acceleration; with TC braking the lift is timed so the shift into forward gear keeps the deceleration
+    limit (a lift that would end early is held for the braking, an idle bucket lifts while the engine is above
+    its metered speed, the lift-off aims at 88 % of the limit instead of 95 %).
 
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
@@ -302,9 +303,9 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
-    * WheelLoaderTarget-v4: v3 whose assist, with TC braking, times the lift so the shift into forward gear
-      keeps the deceleration limit (``tc_lift_guard``; v3's shipped drivers broke it at 9-22 of the 128
-      corners of the scenario ranges, by up to 72 %).
+    * WheelLoaderTarget-v4: v3 with the assist's guards (``guards``): the creep floor, the last lift and, with TC
+      braking, the lift timing. At the 128 corners of the scenario ranges v3's shipped TC drivers broke the
+      deceleration limit at 7-22 (by up to 72 %), and its service drivers stood short of the truck at up to 6.
     * WheelLoaderTarget-v3: v2 with a fourth driver action, the coasting fraction at whose braking point the
       leg ends early to coast in neutral (``coast``); the service brakes act from the braking point.
     * WheelLoaderTarget-v2: v1 driven through the stopping assist (``assist``): three driver actions.
@@ -341,10 +342,10 @@ class WheelLoaderEnv(gym.Env):
         fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
         coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
-        tc_lift_guard: bool = False,  # WheelLoaderTarget-v4: the assist times the lift with TC braking
+        guards: bool = False,  # WheelLoaderTarget-v4: the assist's guards (creep floor, last lift, TC lift timing)
     ) -> None:
-        self.assist = check_assist(assist, fuel_action, coast, tc_lift_guard)
-        self.coast, self.tc_lift_guard = coast, tc_lift_guard
+        self.assist = check_assist(assist, fuel_action, coast, guards)
+        self.coast, self.guards = coast, guards
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = check_flag("observe_target", observe_target)
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
@@ -455,7 +456,7 @@ class WheelLoaderEnv(gym.Env):
             y, phase = self._y, self._phase
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
                                                         self.params, self.braking, self.core.dt, self.coast,
-                                                        self.tc_lift_guard)]
+                                                        self.guards)]
         t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
