@@ -237,7 +237,8 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
     ``coast`` (WheelLoaderTarget-v3): the driver has a fourth action, the coasting fraction at whose braking
     point the leg ends (:func:`early_shift`), and the service brakes act only from the braking point at the
     braking fraction on: the machine coasts in neutral until then (the fuel-optimal cycles do this).
-    ``guards`` (WheelLoaderTarget-v4): the creep floor, and with TC braking the lift timing (module docstring)."""
+    ``guards`` (WheelLoaderTarget-v4): the creep floor, the last lift and, with TC braking, the lift timing
+    (module docstring)."""
     request_action, bucket_action, fraction_action = (np.clip(np.asarray(a, dtype=float), -1.0, 1.0) for a in driver[:3])
     V, H, V_b = y[1], y[2], y[3]
     speed = np.abs(V)
