@@ -456,6 +456,22 @@ def test_the_creep_floor_and_the_last_lift_finish_a_cycle_an_idling_driver_would
     assert act(braking_to_stop, 4, 0.2, True)[1] > act(braking_to_stop, 4, 0.2, False)[1]
 
 
+def test_the_creep_speed_is_the_machines_and_follows_a_redrawn_loader():
+    """The creep floor's engine speed, computed once per machine: a batch of three gives each machine's own, and
+    a loader redrawn in place (as the vector env's autoreset does) gets its new machine's, not the cached one."""
+    from wl_env.assist import creep_speed
+    from wl_env.params import DEFAULT_PARAMS, ParamsView
+
+    machines = [Scenario(braking="service", payload=m, rolling_resistance=c).params(DEFAULT_PARAMS)
+                for m, c in ((6000.0, 0.015), (13000.0, 0.05), (9000.0, 0.03))]
+    view = ParamsView(DEFAULT_PARAMS, M_load=np.array([q.M_load for q in machines]), c_r=np.array([q.c_r for q in machines]))
+    own = [float(creep_speed(q, "service")) for q in machines]
+    assert own[0] < own[2] < own[1]  # (heavier and harder to roll: a faster engine)
+    np.testing.assert_array_equal(creep_speed(view, "service"), own)
+    view.values["M_load"][1], view.values["c_r"][1] = machines[0].M_load, machines[0].c_r
+    np.testing.assert_array_equal(creep_speed(view, "service"), [own[0], own[0], own[2]])
+
+
 def test_the_guards_are_a_flag_of_the_assist():
     assert gym.make("WheelLoaderTarget-v4").unwrapped.guards is True
     with pytest.raises(ValueError, match="guards=True needs assist=True"):

@@ -149,17 +149,29 @@ def tc_braking_speed(V: Any, H: Any, V_b: Any, deceleration: Any, p: LoaderParam
     return _speed_for(decel, deceleration, p.omega_min * TC_SPEED_FLOOR + 0.0 * V, p.omega_max + 0.0 * V)
 
 
-def creep_speed(phase: Any, H: Any, V_b: Any, p: LoaderParams, braking: str) -> Any:
-    """rad/s: the engine speed at which the machine, standing in the gear of ``phase`` (1 or 3), moves off at
-    ``CREEP_ACCELERATION`` (at most omega_max)."""
-    specs = cycle.phase_specs(braking, p)
-    gear = np.where(phase == 1, specs[0].gear, specs[2].gear)
-    direction = np.where(phase == 1, specs[0].direction, specs[2].direction)
+def creep_speed(p: LoaderParams, braking: str) -> Any:
+    """rad/s: the engine speed at which the machine, standing in gear, moves off at ``CREEP_ACCELERATION`` (at
+    most omega_max). The converter at stall against the rolling resistance: the same in phases 1 and 3 and
+    whatever the bucket does, so it is a property of the machine, computed once per machine (the vector env
+    asked for it on nearly every step: a third of its throughput, measured)."""
+    values = getattr(p, "values", None)  # a ParamsView: one machine per loader
+    key = (braking, p) if values is None else (braking, p.base, *(np.asarray(values[f]).tobytes() for f in ("M_load", "c_r")))
+    speed = _CREEP_SPEEDS.get(key)
+    if speed is None:
+        spec = cycle.phase_specs(braking, p)[2]
+        standing = 0.0 * np.asarray(p.M_load)
 
-    def acceleration(omega: Any) -> Any:
-        return direction * derivatives(omega, 0.0, H, V_b, 0.0, 0.0, 0.0, gear, direction, p)[1]
+        def acceleration(omega: Any) -> Any:
+            return derivatives(omega, standing, standing, standing, 0.0, 0.0, 0.0, spec.gear, spec.direction, p)[1]
 
-    return _speed_for(acceleration, CREEP_ACCELERATION, p.omega_min + 0.0 * H, p.omega_max + 0.0 * H)
+        speed = _speed_for(acceleration, CREEP_ACCELERATION, p.omega_min + standing, p.omega_max + standing)
+        if len(_CREEP_SPEEDS) >= 256:  # (the vector env draws a new set of machines at every autoreset)
+            _CREEP_SPEEDS.clear()
+        _CREEP_SPEEDS[key] = speed
+    return speed
+
+
+_CREEP_SPEEDS: dict[tuple, Any] = {}
 
 
 def _speed_for(rate: Any, target: Any, lo0: Any, hi0: Any) -> Any:
@@ -262,7 +274,7 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
     if guards:  # the creep floor: a machine crawling or standing short of its mark moves on
         crawling = ((phase == 1) | (phase == 3)) & ~shift & (speed < CREEP_SPEED) & (distance_to_go > DISTANCE_TOL)
         if np.any(crawling):
-            floor = encode_speed_request(creep_speed(phase, H, V_b, p, braking), p)
+            floor = encode_speed_request(creep_speed(p, braking), p)
             request = np.where(crawling, np.maximum(request, floor), request)
     ab_lo, ab_hi = p.U_ab_bounds
     asked = 0.5 * (ab_hi + ab_lo) + bucket_action * 0.5 * (ab_hi - ab_lo)
