@@ -208,7 +208,7 @@ def lift_done_early(omega: Any, speed: Any, H: Any, distance_to_go: Any, deceler
 
 def lift_time(omega: Any, H: Any, p: LoaderParams) -> Any:
     """s the lift left to the dump height takes at the pump's speed at engine speed ``omega`` (rad/s)."""
-    v_lift = np.minimum(*lift.max_lift_speed_pieces(H, np.maximum(omega, p.omega_min), p))
+    v_lift = lift.max_lift_speed(H, np.maximum(omega, p.omega_min), p)
     return np.maximum(p.H_T - H, 0.0) / np.maximum(v_lift, 1e-3)
 
 
