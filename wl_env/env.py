@@ -84,12 +84,13 @@ def check_target_ratios(target: Any, name: str = "target") -> tuple[float, float
     return float(lo), float(hi)
 
 
-def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any = False) -> bool:
+def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any = False, lift_floor: Any = False) -> bool:
     """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor; its coasting
-    variant (``coast``, WheelLoaderTarget-v3) and its guards (``guards``, v4) need it."""
-    for name, v in (("assist", assist), ("coast", coast), ("guards", guards)):
+    variant (``coast``, WheelLoaderTarget-v3), its guards (``guards``, v4) and the lift's engine floor
+    (``lift_floor``, v5) need it."""
+    for name, v in (("assist", assist), ("coast", coast), ("guards", guards), ("lift_floor", lift_floor)):
         check_flag(name, v)
-    for name, v in (("coast", coast), ("guards", guards)):
+    for name, v in (("coast", coast), ("guards", guards), ("lift_floor", lift_floor)):
         if v and not assist:
             raise ValueError(f"{name}=True needs assist=True (it is a variant of the stopping assist)")
     if assist and fuel_action != "engine_speed":
@@ -239,6 +240,10 @@ class WheelLoaderEnv(gym.Env):
     limit (a lift that would end early is held for the braking, an idle bucket lifts while the engine is above
     its metered speed, the lift-off aims at 88 % of the limit instead of 95 %).
 
+    WheelLoaderTarget-v5 (``lift_floor=True`` as well): v4, and in the last stop (phase 4) a lifting bucket keeps
+    the engine-speed request at least 1.3 omega_min (``wl_env.assist.LIFT_ENGINE_FLOOR``): the lift's load rises
+    within a step faster than the governor meters, and stalled idling engines under the last lift.
+
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
     engine to the request within the interval under the load at its start (the model inverted in U_mf,
@@ -303,6 +308,8 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v5: v4 with the lift's engine floor in the last stop (``lift_floor``). At the 128 corners
+      of the scenario ranges v4's shipped service drivers stalled the engine under the last lift at 5 (1.5 T_min).
     * WheelLoaderTarget-v4: v3 with the assist's guards (``guards``): the creep floor, the last lift and, with TC
       braking, the lift timing. At the 128 corners of the scenario ranges v3's shipped TC drivers broke the
       deceleration limit at 7-22 (by up to 72 %), and its service drivers stood short of the truck at up to 6.
@@ -343,9 +350,10 @@ class WheelLoaderEnv(gym.Env):
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
         coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
         guards: bool = False,  # WheelLoaderTarget-v4: the assist's guards (creep floor, last lift, TC lift timing)
+        lift_floor: bool = False,  # WheelLoaderTarget-v5: the engine-speed floor under the last stop's lift
     ) -> None:
-        self.assist = check_assist(assist, fuel_action, coast, guards)
-        self.coast, self.guards = coast, guards
+        self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor)
+        self.coast, self.guards, self.lift_floor = coast, guards, lift_floor
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = check_flag("observe_target", observe_target)
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
@@ -456,7 +464,7 @@ class WheelLoaderEnv(gym.Env):
             y, phase = self._y, self._phase
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
                                                         self.params, self.braking, self.core.dt, self.coast,
-                                                        self.guards)]
+                                                        self.guards, self.lift_floor)]
         t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
