@@ -1,7 +1,7 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
 ``import wl_env`` registers ``WheelLoaderTarget-v5`` (v4 whose assist keeps an idling engine clear of a stall
-under the last stop's lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
+under the lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
 its mark moves on, the lift reaches the dump height, and with TC braking the shift into forward gear keeps the
 deceleration limit), ``WheelLoaderTarget-v3`` (v2 whose driver may also end a leg early: the
 machine coasts in neutral and the assist brakes late), ``WheelLoaderTarget-v2`` (v1 driven through a stopping assist: the driver
@@ -22,7 +22,7 @@ __version__ = "0.2.0"
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
-    # v4 with the lift's engine floor in the last stop (wl_env.assist: an idling engine stalled under the last lift)
+    # v4 with the lift's engine floor (wl_env.assist: an idling engine stalled under the lift)
     "WheelLoaderTarget-v5": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
                              "assist": True, "coast": True, "guards": True, "lift_floor": True},
     # v3 whose assist guards the driver (creep floor, last lift, TC lift timing: wl_env.assist)

@@ -240,9 +240,9 @@ class WheelLoaderEnv(gym.Env):
     limit (a lift that would end early is held for the braking, an idle bucket lifts while the engine is above
     its metered speed, the lift-off aims at 88 % of the limit instead of 95 %).
 
-    WheelLoaderTarget-v5 (``lift_floor=True`` as well): v4, and in the last stop (phase 4) a lifting bucket keeps
-    the engine-speed request at least 1.3 omega_min (``wl_env.assist.LIFT_ENGINE_FLOOR``): the lift's load rises
-    within a step faster than the governor meters, and stalled idling engines under the last lift.
+    WheelLoaderTarget-v5 (``lift_floor=True`` as well): v4, and a lifting bucket keeps the engine-speed request at
+    least 1.3 omega_min (``wl_env.assist.LIFT_ENGINE_FLOOR``; the TC metering aside): the lift's load rises within
+    a step faster than the governor meters, and stalled idling engines under the lift.
 
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
@@ -308,8 +308,8 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
-    * WheelLoaderTarget-v5: v4 with the lift's engine floor in the last stop (``lift_floor``). At the 128 corners
-      of the scenario ranges v4's shipped service drivers stalled the engine under the last lift at 5 (1.5 T_min).
+    * WheelLoaderTarget-v5: v4 with the lift's engine floor (``lift_floor``). At the 128 corners of the scenario
+      ranges v4's shipped service drivers stalled the engine under the last lift at 5 (1.5 T_min).
     * WheelLoaderTarget-v4: v3 with the assist's guards (``guards``): the creep floor, the last lift and, with TC
       braking, the lift timing. At the 128 corners of the scenario ranges v3's shipped TC drivers broke the
       deceleration limit at 7-22 (by up to 72 %), and its service drivers stood short of the truck at up to 6.
@@ -350,7 +350,7 @@ class WheelLoaderEnv(gym.Env):
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
         coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
         guards: bool = False,  # WheelLoaderTarget-v4: the assist's guards (creep floor, last lift, TC lift timing)
-        lift_floor: bool = False,  # WheelLoaderTarget-v5: the engine-speed floor under the last stop's lift
+        lift_floor: bool = False,  # WheelLoaderTarget-v5: the engine-speed floor under a lifting bucket
     ) -> None:
         self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor)
         self.coast, self.guards, self.lift_floor = coast, guards, lift_floor
