@@ -31,7 +31,7 @@ import numpy as np
 
 from wl_env import cycle
 from wl_env.controller import Controller
-from wl_env.params import LoaderParams, shown
+from wl_env.params import LoaderParams, plain, shown
 from wl_env.scenario import Scenario, resolve_scenario
 
 log = logging.getLogger(__name__)
@@ -328,6 +328,40 @@ def check_settings(episodes: int, init_noise: float, seed: int) -> None:
         raise ValueError(f"seed must be an integer >= 0, got {_short(seed)}")
 
 
+def check_env_kwargs(env_id: Any, env_kwargs: Any, braking: str) -> None:
+    """ValueError naming ``env_id`` unless it is a registered WheelLoader env, and ``env_kwargs`` unless it is a
+    dict of its arguments that leaves the evaluation's own (``init_noise``; ``braking``, if it differs) alone:
+    they were overridden without a word."""
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401  (registers the envs)
+
+    ids = sorted(k for k in gym.registry if isinstance(k, str) and k.startswith("WheelLoader"))
+    if not isinstance(env_id, str) or env_id not in ids:
+        raise ValueError(f"env_id must be one of {', '.join(ids)}, got {shown(env_id)}")
+    if env_kwargs is None:
+        return
+    if not isinstance(env_kwargs, dict):
+        raise ValueError(f"env_kwargs must be a dict of {env_id}'s keyword arguments, got {shown(env_kwargs)}")
+    if "init_noise" in env_kwargs:
+        raise ValueError("env_kwargs sets init_noise, which is the evaluation's own argument (episode 0 starts "
+                         "at the nominal state): give init_noise=")
+    if "braking" in env_kwargs and env_kwargs["braking"] != braking:
+        raise ValueError(f"env_kwargs braking={shown(env_kwargs['braking'])} contradicts the evaluation's braking "
+                         f"{braking!r}")
+    entry = gym.spec(env_id).entry_point
+    cls = gym.envs.registration.load_env_creator(entry) if isinstance(entry, str) else entry
+    try:
+        params = inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        known = set(params) | set(inspect.signature(gym.make).parameters) - {"id", "kwargs"}  # (gym.make's own too)
+        unknown = sorted(set(map(str, env_kwargs)) - known)
+        if unknown:
+            raise ValueError(f"env_kwargs: {env_id} takes no argument(s) {unknown}; known: {sorted(known)}")
+
+
 def evaluate_controller(
     controller: Controller,
     braking: str | None = None,
@@ -401,6 +435,9 @@ def evaluate_controller(
     elif scenario is not None:
         braking = braking or scenario.braking
     braking = cycle.check_braking(braking or "service")
+    # (numpy scalars as the numbers they hold: np.int64(1) episodes was "must be an integer in [1, ...]")
+    episodes, init_noise, seed, target_ratio, act_timeout = map(plain, (episodes, init_noise, seed, target_ratio,
+                                                                       act_timeout))
     check_settings(episodes, init_noise, seed)  # (before the plan: it multiplies by episodes)
     plan = list(scenarios) if scenarios is not None else [scenario or Scenario.nominal(braking)] * episodes
     for s in plan:
@@ -410,8 +447,13 @@ def evaluate_controller(
     check_act_timeout(act_timeout)
     if min_time not in ("optimum", "estimate"):
         raise ValueError(f"min_time must be 'optimum' or 'estimate', got {min_time!r}")
-    say = progress or (lambda msg: None)
+    if unknown not in ("raise", "skip"):
+        raise ValueError(f"unknown must be 'raise' or 'skip', got {shown(unknown)}")
+    if progress is not None and not callable(progress):
+        raise ValueError(f"progress must be a function of one message or None, got {shown(progress)}")
     chosen, env_id = env_id, env_id or getattr(controller, "env_id", "WheelLoader-v2")
+    check_env_kwargs(env_id, env_kwargs, braking)
+    say = progress or (lambda msg: None)
     kwargs = {**(env_kwargs or {}), "braking": braking}
     with warnings.catch_warnings():  # (the env a policy was trained on, not the user's choice: no "out of date")
         if chosen is None:

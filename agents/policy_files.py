@@ -46,6 +46,7 @@ NORMALIZATION_ENTRIES = ("mean", "var", "clip_obs", "epsilon", "norm_obs")
 ACTIVATIONS = ("Tanh", "ReLU", "ELU", "LeakyReLU", "SiLU", "GELU", "Sigmoid")
 POLICY_CLASSES = ("ActorCriticPolicy", "BoundedMeanPolicy")
 MAX_LAYER_WIDTH, MAX_LAYERS, MAX_DIM = 4096, 16, 1024
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # a space's bounds are float32 (a larger one turned inf, with a warning)
 
 
 class PolicyFileError(ValueError):
@@ -231,6 +232,8 @@ def _check_network(net: Any, path: Path) -> None:
             fail(f"{key} must be true or false, got {net.get(key)!r}")
     if not _finite_number(net.get("log_std_init")):
         fail(f"log_std_init must be a finite number, got {net.get('log_std_init')!r}")
+    if net["squash_output"] and not net["use_sde"]:  # (stable-baselines3 asserts it)
+        fail("squash_output must be false unless use_sde is true (stable-baselines3 squashes gSDE actions only)")
     if net["class"] == "BoundedMeanPolicy" and not (_finite_number(net.get("mean_bound")) and net["mean_bound"] > 0):
         fail(f"mean_bound must be a number > 0, got {net.get('mean_bound')!r}")
     for key in ("observation_space", "action_space"):
@@ -240,8 +243,9 @@ def _check_network(net: Any, path: Path) -> None:
             fail(f"{key}.shape must be [n] with 1 <= n <= {MAX_DIM}, got {shape!r}")
         for bound in ("low", "high"):
             values = space.get(bound)
-            if not (isinstance(values, list) and len(values) == shape[0] and all(_finite_number(v) for v in values)):
-                fail(f"{key}.{bound} must be {shape[0]} finite numbers")
+            if not (isinstance(values, list) and len(values) == shape[0]
+                    and all(_finite_number(v) and abs(v) <= FLOAT32_MAX for v in values)):
+                fail(f"{key}.{bound} must be {shape[0]} finite numbers (float32: within +-{FLOAT32_MAX:.4g})")
 
 
 def _finite_number(v: Any) -> bool:
@@ -275,8 +279,9 @@ def build_network(net: dict[str, Any]) -> Any:
     def box(d: dict[str, Any]) -> spaces.Box:
         return spaces.Box(np.array(d["low"], np.float32), np.array(d["high"], np.float32), dtype=np.float32)
 
-    kwargs: dict[str, Any] = {k: net[k] for k in ("ortho_init", "use_sde", "log_std_init", "full_std", "use_expln",
+    kwargs: dict[str, Any] = {k: net[k] for k in ("ortho_init", "use_sde", "full_std", "use_expln",
                                                  "squash_output", "share_features_extractor", "normalize_images")}
+    kwargs["log_std_init"] = float(net["log_std_init"])  # (an int of 30 digits overflowed torch's int64)
     kwargs.update(net_arch=net["net_arch"], activation_fn=getattr(nn, net["activation_fn"]))
     if net["class"] == "BoundedMeanPolicy":
         cls, kwargs["mean_bound"] = BoundedMeanPolicy, float(net["mean_bound"])

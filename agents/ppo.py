@@ -402,6 +402,10 @@ def _check_spaces(network: Any, path: Path) -> None:
         raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
                               f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},), WheelLoaderTarget-v0 ({N_TARGET_OBS},), "
                               f"WheelLoaderTarget-v2 ({N_TARGET_OBS},) and ({N_ASSIST_ACTIONS},)")
+    space = network.action_space  # (predict clips its actions to these bounds: other ones change every action)
+    if not (np.all(space.low == -1.0) and np.all(space.high == 1.0)):
+        raise PolicyFileError(f"policy {path}: its action space must be the envs' Box(-1, 1), got low "
+                              f"{space.low.tolist()}, high {space.high.tolist()}")
 
 
 # ---------------------------------------------------------------------------------------------- evaluation

@@ -47,7 +47,19 @@ def _key_value(text: str) -> tuple[str, float]:
     key, sep, value = text.partition("=")
     if not sep:
         raise argparse.ArgumentTypeError(f"expected key=value, got {text!r}")
-    return key.strip(), float(value)
+    try:
+        return key.strip(), float(value)
+    except ValueError:  # (argparse said "invalid _key_value value", naming neither the key nor what a value is)
+        raise argparse.ArgumentTypeError(f"{key.strip()}: expected a number, got {text!r}") from None
+
+
+def ray_address(text: str) -> str:
+    """An argparse type: a Ray address (:func:`mpc.workers.is_ray_address`), checked before any work."""
+    from mpc.workers import RAY_ADDRESS_FORMS, is_ray_address
+
+    if not is_ray_address(text):
+        raise argparse.ArgumentTypeError(f"must be {RAY_ADDRESS_FORMS}, got {text!r}")
+    return text
 
 
 def add_dataclass_args(parser: argparse.ArgumentParser, cls: type) -> None:
@@ -115,7 +127,7 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
                         help="a hyperparameter grid: a run per combination (and per seed of --seeds)")
     parser.add_argument("--workers", type=_count, default=1,
                         help="with --seeds/--sweep: runs trained at once on this machine, each in its own process")
-    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+    parser.add_argument("--ray", nargs="?", const="local", default=None, type=ray_address, metavar="ADDRESS",
                         help="with --seeds/--sweep: run them as Ray tasks on the cluster at ADDRESS (no ADDRESS: a "
                         "local Ray instance); the run directories are the same")
     parser.add_argument("--cache", metavar="DIR", default=None,

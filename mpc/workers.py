@@ -48,6 +48,7 @@ def ray_session(address: str) -> Iterator[Any]:
         raise RuntimeError("--ray needs Ray: pip install -e \".[ray]\"") from None
     started = not ray.is_initialized()
     if started:
+        check_ray_address(address)
         check_reachable(address)
         ray.init(address=None if address == "local" else address, include_dashboard=False,
                  logging_level=logging.WARNING, log_to_driver=False)
@@ -56,6 +57,32 @@ def ray_session(address: str) -> Iterator[Any]:
     finally:
         if started:
             ray.shutdown()
+
+
+RAY_ADDRESS_FORMS = "local, auto or [ray://]HOST:PORT with PORT in [1, 65535] (or nothing: a local Ray instance)"
+
+
+def check_ray_address(address: Any, option: str = "--ray") -> str:
+    """``address`` if :func:`is_ray_address`, else ValueError naming ``option``: Ray's own error ("Invalid
+    address format") names neither, comes after the work's setup, and ``ray://`` without a port waits a minute."""
+    if not is_ray_address(address):
+        raise ValueError(f"{option} must be {RAY_ADDRESS_FORMS}, got {address!r}")
+    return address
+
+
+def is_ray_address(address: Any) -> bool:
+    """``local``, ``auto``, ``HOST:PORT`` or ``ray://HOST:PORT`` (PORT in [1, 65535]); another ``scheme://`` is
+    left to Ray."""
+    if not isinstance(address, str):
+        return False
+    scheme, sep, _ = address.partition("://")
+    return address in ("local", "auto") or bool(sep and scheme.isidentifier() and scheme != "ray") or _host_port(
+        address.removeprefix("ray://"))
+
+
+def _host_port(text: str) -> bool:
+    host, sep, port = text.rpartition(":")
+    return bool(sep and host.strip("[]").strip() and port.isascii() and port.isdigit() and 1 <= int(port) <= 65535)
 
 
 RAY_CONNECT_TIMEOUT = 5.0  # s: Ray itself retries an unreachable head for minutes, deaf to Ctrl-C

@@ -19,8 +19,9 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repo, if not installed
 
 from wl_env import cycle  # noqa: E402
+from wl_env.atomic_io import check_output_folder  # noqa: E402
 from wl_env.env import WheelLoaderEnv  # noqa: E402
-from wl_env.rendering import mp4_available, save_animation  # noqa: E402
+from wl_env.rendering import MAX_FPS, MIN_FPS, check_fps, mp4_available, save_animation  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -30,7 +31,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="stop the reversing machine with the service brakes or the torque converter")
     ap.add_argument("--out", default=None, help="output file, .gif or .mp4 (default: cycle_<braking>.gif)")
     ap.add_argument("--fps", type=float, default=float(WheelLoaderEnv.metadata["render_fps"]),
-                    help="frames per second of the animation (10 = real time at dt = 0.1 s)")
+                    help=f"frames per second of the animation, in [{MIN_FPS:g}, {MAX_FPS:g}] (10 = real time at dt = 0.1 s)")
     ap.add_argument("--controller", default="operator",
                     help="who drives: ppo, operator, mpc, module:Class or path/to/file.py:Class (as wl evaluate)")
     ap.add_argument("--model", default=None, help="policy file for --controller ppo (default: the shipped one)")
@@ -46,8 +47,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if ext == ".mp4" and not mp4_available():
         ap.error("writing .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
                  "or write a .gif (Pillow) instead")
-    if not args.fps > 0:
-        ap.error(f"--fps must be > 0, got {args.fps}")
+    try:  # (before the run: inf wrote a GIF without delays, 1e-300 failed after the whole rendering)
+        check_fps(args.fps, "--fps")
+        if os.path.isdir(args.out):
+            raise ValueError(f"--out {args.out} is a folder; give a file name")
+        check_output_folder(os.path.dirname(args.out) or ".", f"--out {args.out}")
+    except ValueError as exc:
+        ap.error(str(exc))
     if args.max_steps is not None and args.max_steps < 0:
         ap.error(f"--max-steps must be >= 0, got {args.max_steps}")
     if args.seed < 0:

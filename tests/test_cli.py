@@ -388,6 +388,8 @@ def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     (["ocp", "--out", "{tmp}/x.json", "--params", '{"M_veh": 1' + "0" * 5000 + "}"], "--params is not valid JSON"),
     (["evaluate", "--controller", "ppo", "--model", "{tmp}/evil_vecnormalize.pkl"], "no policy at {tmp}/evil_vecnormalize.pkl"),
     (["params", "--set", '{"omega_min": 200, "omega_max": 50}'], "omega_min must be below omega_max"),
+    (["params", "--set", ""], "--set is empty"),  # (printed the defaults)
+    (["params", "--set", "[1]"], "--set must be a JSON object"),
     (["train", "--log-dir", "{tmp}", "--seed", "99999999999999999999"], "--seed must be an integer in [0, 2**31 - 1]"),
     (["train", "--log-dir", "{tmp}", "--max-time", "0.1"], "max_time must be a number of seconds in [5 dt, 3600]"),
 ])
@@ -471,10 +473,10 @@ def _attempt(capsys, argv: list[str]) -> tuple[int | None, str]:
 
 
 BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
-    (["ocp", "--objective", "fuel", "--time", "0"], "--time", "(0, 60]"),
-    (["ocp", "--objective", "fuel", "--time=-5"], "--time", "(0, 60]"),
-    (["ocp", "--objective", "fuel", "--time", "nan"], "--time", "(0, 60]"),
-    (["ocp", "--objective", "fuel", "--time", "inf"], "--time", "(0, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "0"], "--time", "[0.4, 60]"),
+    (["ocp", "--objective", "fuel", "--time=-5"], "--time", "[0.4, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "nan"], "--time", "[0.4, 60]"),
+    (["ocp", "--objective", "fuel", "--time", "inf"], "--time", "[0.4, 60]"),
     (["ocp", "--objective", "fuel", "--time", "100"], "--time", "30 s"),
     (["ocp", "--objective", "time", "--w-fuel", "0.5"], "--w-fuel", "--objective weighted"),
     (["ocp", "--objective", "weighted", "--w-fuel", "1.5"], "--w-fuel", "[0, 1]"),
@@ -534,6 +536,12 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["evaluate", "--controller", "operator", "--out", ""], "--out", "empty"),
     (["evaluate", "--controller", "ppo", "--model", ""], "--model", "empty"),  # (searched the working folder)
     (["ocp", "--params", "null"], "--params", "JSON object"),  # (taken as no overrides)
+    # (passed (0, 60], then failed in the start guess: "zero-size array to reduction operation minimum")
+    (["ocp", "--objective", "fuel", "--time", "0.0001"], "--time", "[0.4, 60]"),
+    (["report", "--results", ""], "--results", "empty"),  # (searched the working folder)
+    (["train", "--reward", "w_fuel=abc"], "--reward", "w_fuel: expected a number"),  # ("invalid _key_value value")
+    # (Ray's "Invalid address format:" after the suite's setup; ray:// without a port hung)
+    (["train", "--seeds", "0", "1", "--ray", "ray://"], "--ray", "[ray://]HOST:PORT"),
 ]
 
 
@@ -548,6 +556,37 @@ def test_bad_input_is_one_line_naming_the_option_and_range(tmp_path, capsys, no_
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("wl: error:"), err
     assert option in lines[0] and allowed in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("argv, option, allowed", [
+    (["--ray", ""], "--ray", "[ray://]HOST:PORT with PORT in [1, 65535]"),
+    (["--ray", "foo"], "--ray", "[ray://]HOST:PORT"),
+    (["--ray", "head:0"], "--ray", "PORT in [1, 65535]"),
+    (["--out", ""], "--out", "empty"),  # (an empty --out was the default file: the solve started)
+    (["--check", "--out", "x.json"], "--out", "--check"),  # (ignored without a word)
+])
+def test_suite_solve_options_fail_before_the_solve(monkeypatch, capsys, argv, option, allowed):
+    import mpc.benchmark.suite
+
+    def work(*args, **kwargs):
+        raise Reached("suite")
+
+    monkeypatch.setattr(mpc.benchmark.suite, "solve_suite", work)
+    monkeypatch.setattr(mpc.benchmark.suite, "check_shipped", work)
+    code, err = _attempt(capsys, ["suite", "solve", "--suite", "corners", *argv])
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and option in lines[0] and allowed in lines[0], err
+
+
+def test_ray_addresses():
+    from mpc.workers import check_ray_address, is_ray_address
+
+    for ok in ("local", "auto", "10.0.0.1:6379", "ray://head:10001", "[::1]:10001", "anyscale://cluster"):
+        assert is_ray_address(ok) and check_ray_address(ok) == ok
+    for bad in ("", " ", "ray://", "ray://head", "head", "head:", ":10001", "head:70000", "head:x", None, 6379):
+        assert not is_ray_address(bad)
+        with pytest.raises(ValueError, match="--ray must be local, auto or"):
+            check_ray_address(bad)
 
 
 def test_huge_input_is_one_short_line_and_the_limits_are_the_apis(tmp_path, capsys, no_work):

@@ -49,6 +49,16 @@ def test_deterministic_under_a_seed(braking):
     assert not np.array_equal(rollout(7), rollout(8))
 
 
+def test_reset_takes_a_numpy_seed_and_refuses_others_by_name():
+    """A numpy integer seeds as the int it holds; a negative, fractional, string or bool seed is a ValueError
+    naming it (gymnasium's own error is not one, and it took True for seed 1), as the vector env's."""
+    env = gym.make("WheelLoaderTarget-v5", init_noise=0.5)
+    np.testing.assert_array_equal(env.reset(seed=np.int64(3))[0], env.reset(seed=3)[0])
+    for bad in (-1, 1.5, "1", True):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0 or None"):
+            env.reset(seed=bad)
+
+
 @pytest.mark.parametrize("braking", BRAKINGS)
 def test_vector_env_equals_single_envs(braking):
     n = 6

@@ -89,6 +89,14 @@ def test_impossible_cycle_time_raises_with_solver_status():
         solve_ocp("service", "fuel_at_time", T=4.0, verify=False)
 
 
+@pytest.mark.parametrize("T", [1e-4, 5e-324, 0.39, 10**400, np.float64(61.0)])
+def test_a_cycle_time_the_nlp_cannot_hold_is_refused_before_the_solve(T):
+    """Each of the 4 phases lasts at least 0.1 s: T = 1e-4 s passed (0, 60] and failed in the start guess
+    ("zero-size array to reduction operation minimum"); 10**400 was an OverflowError."""
+    with pytest.raises(ValueError, match=r"T must be a finite cycle time in \[0.4, 60\] s"):
+        solve_ocp("service", "fuel_at_time", T=T, verify=False)
+
+
 def test_height_out_of_reach_is_rejected():
     with pytest.raises(ValueError, match="H_T"):
         solve_ocp("service", "time", params={"H_T": 5.3})

@@ -160,6 +160,11 @@ def test_normalization_entries_are_checked(tmp_path, entries, needle):
     ({"net_arch": {"pi": [10**9]}}, "network.net_arch"),
     ({"log_std_init": 10**400}, "network.log_std_init"),  # was a bare OverflowError
     ({"observation_space": {"shape": [13], "low": [0.0] * 13, "high": [1.0] * 13}}, "has at least"),
+    ({"squash_output": True}, "network.squash_output"),  # was stable-baselines3's bare AssertionError
+    # (a float32 overflow: the bound turned inf with a RuntimeWarning)
+    ({"observation_space": {"shape": [12], "low": [-1e308] * 12, "high": [1.0] * 12}}, "float32"),
+    # (predict clipped every action to these: [0.05, 0.1] instead of the envs' [-1, 1], without a word)
+    ({"action_space": {"shape": [4], "low": [0.05] * 4, "high": [0.1] * 4}}, "Box\\(-1, 1\\)"),
 ])
 def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, needle):
     stem = _copy_shipped(tmp_path)
@@ -169,6 +174,19 @@ def test_metadata_names_only_known_classes_and_sane_shapes(tmp_path, tamper, nee
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(PolicyFileError, match=needle):
         load_policy(stem)
+
+
+def test_a_huge_integer_log_std_init_loads_as_the_float_it_is(tmp_path):
+    """``"log_std_init": 10**30`` (a finite number, so accepted) overflowed torch's int64 (a bare OverflowError);
+    it only seeds a parameter the weights then set."""
+    stem = _copy_shipped(tmp_path)
+    meta_path = tmp_path / "ppo_tc.json"
+    meta = json.loads(meta_path.read_text())
+    meta["network"]["log_std_init"] = 10**30
+    meta_path.write_text(json.dumps(meta))
+    shipped, tampered = load_policy(POLICIES / "ppo_tc"), load_policy(stem)
+    obs = np.zeros(12, np.float32)
+    assert np.array_equal(shipped.act(obs), tampered.act(obs))
 
 
 @pytest.mark.parametrize("config, needle", [("abc", "config must be an object"), ([1], "config must be an object"),
@@ -500,6 +518,15 @@ def test_act_timeout_leaves_a_well_behaved_controller_alone(tmp_path, capsys):
     ({"init_noise": True}, "init_noise must lie in [0, 1]"),  # (taken as 1.0)
     ({"scenario": 5}, "scenario must be a Scenario"),
     ({"scenarios": [{"payload": 1.0, "braking": "tc"}]}, "Scenario.payload must lie in"),
+    # (each was a bare TypeError or gymnasium error from gym.make, or silently overridden / accepted)
+    ({"env_kwargs": {"foo": 1}}, "env_kwargs: WheelLoader-v2 takes no argument(s) ['foo']"),
+    ({"env_kwargs": "x"}, "env_kwargs must be a dict"),
+    ({"env_kwargs": {"braking": "service"}}, "contradicts the evaluation's braking 'tc'"),
+    ({"env_kwargs": {"init_noise": 0.5}}, "env_kwargs sets init_noise"),
+    ({"env_id": "Foo-v0"}, "env_id must be one of WheelLoader-v1"),
+    ({"env_id": 5}, "env_id must be one of"),
+    ({"unknown": "ignore"}, "unknown must be 'raise' or 'skip'"),
+    ({"progress": 5}, "progress must be a function"),
 ])
 def test_evaluation_settings_are_checked_by_name(kw, needle):
     from agents.evaluate import evaluate_controller
@@ -508,6 +535,18 @@ def test_evaluation_settings_are_checked_by_name(kw, needle):
     with pytest.raises(ValueError) as exc:
         evaluate_controller(OperatorPolicy("tc"), "tc", score=False, **kw)
     assert needle in str(exc.value)
+
+
+def test_numpy_scalar_settings_are_the_numbers_they_hold():
+    """np.int64(1) episodes was refused as "must be an integer in [1, 100000], got np.int64(1)" (the env takes
+    numpy scalars)."""
+    from agents.evaluate import evaluate_controller
+    from agents.operator import OperatorPolicy
+
+    r = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=np.int64(2), init_noise=np.float32(0.5),
+                            seed=np.int64(3), score=False)
+    plain = evaluate_controller(OperatorPolicy("tc"), "tc", episodes=2, init_noise=0.5, seed=3, score=False)
+    assert [e["T"] for e in r["per_episode"]] == [e["T"] for e in plain["per_episode"]]
 
 
 def test_user_classes_resolve_by_dotted_name(bad_module):

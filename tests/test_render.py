@@ -2,6 +2,7 @@
 and scripts/render_cycle.py writing an animated GIF."""
 
 import importlib.util
+import math
 import os
 import subprocess
 import sys
@@ -159,6 +160,29 @@ def test_save_gif_is_atomic_and_keeps_frames(tmp_path):
         rendering.save_animation(frames, str(tmp_path / "a.avi"))
     with pytest.raises(ValueError):
         rendering.save_gif([], str(tmp_path / "b.gif"))
+
+
+@pytest.mark.parametrize("fps", [math.inf, math.nan, 0, -1, 1e-300, 1000.0, True, "10"])
+def test_an_animation_frame_rate_out_of_range_is_refused_by_name(tmp_path, fps):
+    """inf wrote a GIF without frame delays (round(1000 / inf) = 0), 1e-300 an OverflowError in Pillow."""
+    frames = [np.zeros((6, 8, 3), np.uint8)] * 2
+    for path in (tmp_path / "a.gif", tmp_path / "a.mp4"):
+        with pytest.raises(ValueError, match=r"fps must be a finite number of frames per second in \[0.01, 100\]"):
+            rendering.save_animation(frames, str(path), fps=fps)
+    assert not list(tmp_path.iterdir())
+    assert rendering.check_fps(np.float32(20.0)) == 20.0
+
+
+def test_render_cycle_script_checks_fps_and_out_before_the_run(tmp_path, capsys):
+    script = _load_script()
+    for argv, needle in [(["--fps", "inf"], "--fps must be a finite number"), (["--fps", "1e-300"], "[0.01, 100]"),
+                         (["--out", str(tmp_path / "f.gif" / "x.gif")], "is not a folder"),
+                         (["--out", str(tmp_path / "d.gif")], "is a folder")]:
+        (tmp_path / "f.gif").write_text("a file")
+        (tmp_path / "d.gif").mkdir(exist_ok=True)
+        with pytest.raises(SystemExit):
+            script.parse_args(["--out", str(tmp_path / "c.gif"), *argv])
+        assert needle in capsys.readouterr().err
 
 
 def test_render_cycle_script_writes_gif(tmp_path):

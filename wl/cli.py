@@ -43,7 +43,12 @@ class _Parser(argparse.ArgumentParser):
 def _params_cmd(args: argparse.Namespace) -> int:
     from wl_env.params import PROVENANCE, LoaderParams
 
-    p = LoaderParams.from_dict(_json_option(args.set, "--set")) if args.set else LoaderParams()
+    if args.set is not None and not args.set.strip():  # (not `if args.set`: an empty --set printed the defaults)
+        raise ValueError("--set is empty: give a JSON object of LoaderParams fields")
+    overrides = _json_option(args.set, "--set") if args.set is not None else {}
+    if not isinstance(overrides, dict):
+        raise ValueError(f"--set must be a JSON object of LoaderParams fields, got {type(overrides).__name__}")
+    p = LoaderParams.from_dict(overrides)
     if args.json:
         print(json.dumps(p.to_dict(), indent=1))
         return 0
@@ -81,7 +86,7 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
     if args.time is not None:
         if args.objective != "fuel":
             raise ValueError("--time fixes the cycle time of the minimum-fuel problem: use it with --objective fuel")
-        check_cycle_time(args.time, "--time")  # before the work: a positive finite time the OCP can hold
+        check_cycle_time(args.time, "--time")  # before the work: a finite time the OCP can hold
         objective = "fuel_at_time"
     if args.w_fuel is not None and args.objective != "weighted":
         raise ValueError(f"--w-fuel is the fuel weight of --objective weighted; with --objective {args.objective} "
@@ -244,6 +249,8 @@ def _run_cmd(args: argparse.Namespace) -> int:
 def _report_cmd(args: argparse.Namespace) -> int:
     from wl.report import load_results, render
 
+    if not args.results.strip():  # (Path("") is the working folder)
+        raise ValueError("--results must name the folder of `wl run`'s results.json, got an empty string")
     results = load_results(args.results)
     out = _out_dir(args.out or args.results, "--out" if args.out else "--results")
     written = render(results, out)
@@ -374,6 +381,8 @@ def _suite_cmd(args: argparse.Namespace) -> int:
     if args.cache is not None:
         _out_dir(args.cache, "--cache")
     ray = args.ray
+    if args.check and args.out is not None:  # (it compares with the shipped optima and writes no suite file)
+        raise ValueError("--out names the suite file a solve writes; --check writes none: leave --out out")
     if args.check:
         rows = check_shipped(args.suite, cache=args.cache, limit=args.limit, workers=args.workers, ray_address=ray)
         bad = [r for r in rows if not r["ok"]]
@@ -383,7 +392,7 @@ def _suite_cmd(args: argparse.Namespace) -> int:
                 else f" ({r.get('problem')})"))
         print(f"{len(rows) - len(bad)} of {len(rows)} shipped optima agree with a fresh solve")
         return 1 if bad else 0
-    out = _out_file(args.out) if args.out else None
+    out = _out_file(args.out) if args.out is not None else None  # (an empty --out is an error, not the default)
     r = solve_suite(args.suite, cache=args.cache, out=out, workers=args.workers, ray_address=ray, limit=args.limit)
     import statistics
 
@@ -418,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
     p.add_argument("--objective", choices=["time", "fuel", "weighted"], default="time")
-    p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel, in (0, 60] "
+    p.add_argument("--time", type=float, metavar="T", help="fixed cycle time (s) for --objective fuel, in [0.4, 60] "
                    "(each phase is bounded to 30 s; the fuel-optimal cycle takes about 21.5 s)")
     p.add_argument("--w-fuel", type=_unit_float, metavar="W", help="fuel weight W1 in [0, 1] for --objective weighted")
     p.add_argument("--hessian", choices=["exact", "limited-memory"], help="IPOPT's Hessian (default exact)")
@@ -514,7 +523,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
     p.set_defaults(func=_evaluate_cmd)
 
-    from agents.train_cli import add_train_args
+    from agents.train_cli import add_train_args, ray_address
 
     p = sub.add_parser("train", help="train a PPO policy (stable-baselines3 on the native vector env)",
                        description="Train a PPO policy for WheelLoader-v1; every field of agents.ppo.PPOConfig is a "
@@ -530,7 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--suite", required=True, choices=["nominal", "test", "corners"])
     q.add_argument("--check", action="store_true", help="solve afresh and compare with the shipped optima "
                    "(exit 1 on a mismatch)")
-    q.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS", help="run on a Ray cluster (ADDRESS, e.g. "
+    q.add_argument("--ray", nargs="?", const="local", type=ray_address, metavar="ADDRESS", help="run on a Ray cluster (ADDRESS, e.g. "
                    "ray://host:10001, or none: a Ray instance on this machine); default: local processes")
     q.add_argument("--workers", type=_positive_int, metavar="N", help="local processes (default: the CPU count)")
     q.add_argument("--limit", type=_positive_int, metavar="N", help="only N scenarios per braking alternative")

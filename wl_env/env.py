@@ -393,6 +393,9 @@ class WheelLoaderEnv(gym.Env):
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        seed = plain(seed)  # (a numpy integer; gymnasium's own refusal is not a ValueError and takes True for 1)
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+            raise ValueError(f"seed must be an integer >= 0 or None, got {shown(seed)}")
         super().reset(seed=seed)
         self._done = True  # (until this reset succeeds: one that fails leaves no half-reset episode to step)
         if options is not None and not isinstance(options, dict):

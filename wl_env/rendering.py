@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.atomic_io import atomic_path
+from wl_env.params import is_finite, plain, shown
 
 WIDTH, HEIGHT = 600, 400  # pixels of a frame
 _DPI = 100
@@ -429,12 +430,24 @@ def show(frame: np.ndarray, handle: tuple[Any, Any] | None = None, *, fps: float
 
 
 # --------------------------------------------------------------------------- animations
+MIN_FPS, MAX_FPS = 0.01, 100.0  # a GIF's frame delay is a whole number of 1/100 s, at most 655 s
+
+
+def check_fps(fps: Any, name: str = "fps") -> float:
+    """A frame rate in [MIN_FPS, MAX_FPS] as a float; ValueError naming ``name`` otherwise (inf made a GIF of
+    delay 0, 1e-300 an OverflowError after the whole rendering)."""
+    fps = plain(fps)  # (a numpy scalar)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (is_finite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        raise ValueError(f"{name} must be a finite number of frames per second in [{MIN_FPS:g}, {MAX_FPS:g}], got "
+                         f"{shown(fps)}")
+    return float(fps)
+
+
 def save_gif(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps: float = 10.0) -> int:
     """Write frames as an animated GIF (Pillow), atomically; returns the number of frames written."""
     from PIL import Image
 
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps!r}")
+    fps = check_fps(fps)
     images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
     if not images:
         raise ValueError("no frames to write")
@@ -463,6 +476,7 @@ def mp4_available() -> bool:
 
 def save_mp4(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps: float = 10.0) -> int:
     """Write frames as an H.264 MP4 with imageio-ffmpeg (``pip install imageio-ffmpeg``), atomically."""
+    fps = check_fps(fps)
     try:
         import imageio_ffmpeg
     except ImportError:

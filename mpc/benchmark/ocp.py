@@ -31,7 +31,7 @@ from mpc import interrupt
 from wl_env import cycle, limits
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
-from wl_env.params import DEFAULT_PARAMS, SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
+from wl_env.params import DEFAULT_PARAMS, SCENARIO_FIELDS, LoaderParams, ParamsView, is_finite, resolve, shown
 from wl_env.physics import lift
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,9 @@ N_PARAMETERS = 5  # length of the NLP parameter vector, see nlp_parameters()
 # not reported as infeasible.
 MAX_PHASE_DURATION = 30.0
 MAX_CYCLE_TIME = 2 * MAX_PHASE_DURATION
+# Each of the cycle's phases lasts at least cycle.MIN_PHASE_DURATION: no shorter cycle exists in the NLP (and
+# its start guesses need a few samples per leg). Shorter fixed times are rejected up front as well.
+MIN_CYCLE_TIME = len(cycle.PHASES) * cycle.MIN_PHASE_DURATION
 
 
 def nlp_parameters(w_fuel: float, w_time: float, smoothing: float, params: LoaderParams) -> list[float]:
@@ -587,14 +590,16 @@ def refined_mesh(durations: list[float], base: tuple[int, ...], max_interval: fl
 
 
 def check_cycle_time(T: Any, name: str = "T") -> float:
-    """``T`` as a fixed cycle time in (0, MAX_CYCLE_TIME] s, else ValueError naming ``name``."""
-    ok = isinstance(T, numbers.Real) and not isinstance(T, (bool, np.bool_)) and math.isfinite(T)  # numpy scalars too
-    if not (ok and 0 < T <= MAX_CYCLE_TIME):
+    """``T`` as a fixed cycle time in [MIN_CYCLE_TIME, MAX_CYCLE_TIME] s, else ValueError naming ``name``."""
+    ok = isinstance(T, numbers.Real) and not isinstance(T, (bool, np.bool_)) and is_finite(T)  # numpy scalars too
+    if not (ok and MIN_CYCLE_TIME <= T <= MAX_CYCLE_TIME):
         raise ValueError(
-            f"{name} must be a finite cycle time in (0, {MAX_CYCLE_TIME:g}] s, got {T!r}"
+            f"{name} must be a finite cycle time in [{MIN_CYCLE_TIME:g}, {MAX_CYCLE_TIME:g}] s, got {shown(T)}"
             + (f": each phase of the OCP is bounded to {MAX_PHASE_DURATION:g} s and the braking phases take "
                f"under a second, so no longer cycle exists in it (the fuel-optimal cycle takes about 21.5 s)"
-               if ok and T > MAX_CYCLE_TIME else ""))
+               if ok and T > MAX_CYCLE_TIME else
+               f": each of the {len(cycle.PHASES)} phases lasts at least {cycle.MIN_PHASE_DURATION:g} s (the "
+               f"shortest cycle of the scenario ranges takes ~5.7 s)" if ok and T > 0 else ""))
     return float(T)
 
 
