@@ -65,7 +65,7 @@ least ``LIFT_ENGINE_FLOOR`` times omega_min (outside the TC metering, whose spee
 the injection from the load at the step's start; a lift that speeds up within the step (the last lift's full
 acceleration, or the driver's) loads an idling engine faster than that. The v4 service drivers at 1.5 T_min stalled
 13 t machines at c_r 0.05 in phase 4 (5 of 128 corners, 50-57 rad/s at the end), and a driver idling the engine
-while lifting at full acceleration stalled it in phase 1 at 72 of the 128 TC corners (measured, stop 40). The
+while lifting at full acceleration stalled it at 72 of the 128 TC corners and 14 service ones (measured, stop 40). The
 floor changes a cycle only where the engine would run below it under the lift: 22 of the v4 bc service driver's
 128 corner cycles at 1.5 T_min (-0.40..+0.54 % fuel, its 2 stalls gone), 3 of the v4 ppo service driver's 50
 `test` cycles (within 0.02 %).
