@@ -292,7 +292,7 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
             request = np.where(crawling, np.maximum(request, floor), request)
     ab_lo, ab_hi = p.U_ab_bounds
     asked = 0.5 * (ab_hi + ab_lo) + bucket_action * 0.5 * (ab_hi - ab_lo)
-    metered: Any = False
+    metered: Any = np.False_  # (a numpy bool: ~False is -1)
     if braking == "tc":  # the converter metered by the engine speed: in phase 2, and eased into before it
         lift_off = (phase == 1) & ~shift & (stopping_distance(speed, a_plan) + speed * TC_LIFT_OFF_TIME >= distance_to_go)
         metered = (braking_phase == 2) | lift_off
