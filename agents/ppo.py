@@ -768,7 +768,7 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
         name = json.loads((root / "latest.json").read_text())["checkpoint"]
         if isinstance(name, str) and CHECKPOINT_NAME.fullmatch(name) and complete(root / name):
             return root / name
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):  # (RecursionError: a deeply nested pointer)
         pass
     folders = sorted(p for p in root.glob("step_*") if CHECKPOINT_NAME.fullmatch(p.name) and complete(p))
     if not folders:

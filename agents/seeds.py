@@ -104,8 +104,31 @@ def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str,
             raise ValueError(f"{cfg.run_dir} holds a run made with other settings ({', '.join(differ)}): give another "
                              f"--log-dir or --run-name, or the same settings to {then}")
     if state == "done":
-        return json.loads((cfg.run_dir / "final" / "summary.json").read_text())
+        return read_summary(cfg.run_dir / "final" / "summary.json")
     return train(cfg, resume=state == "started", command=command)
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    """A finished run's summary.json, checked for what :func:`spread` reads (ValueError naming the file): a
+    corrupt or tampered one was returned as it was, and failed later without a name or counted a wrong number."""
+    try:
+        summary = json.loads(Path(path).read_text())
+        if not isinstance(summary, dict):
+            raise ValueError(f"a JSON {type(summary).__name__}, not an object")
+        step, wall, last = summary.get("num_timesteps"), summary.get("wall_time"), summary.get("last_eval")
+        if type(step) is not int or step < 0:
+            raise ValueError(f"num_timesteps must be an integer >= 0, got {step!r}"[:200])
+        if type(wall) not in (int, float) or not (math.isfinite(wall) and wall >= 0):
+            raise ValueError(f"wall_time must be a finite number of seconds >= 0, got {wall!r}"[:200])
+        if last is not None and not isinstance(last, dict):
+            raise ValueError(f"last_eval must be an object of metrics or null, got {type(last).__name__}")
+        for m in METRICS:  # (NaN is a metric not measured; True was counted as 1, 10**400 raised OverflowError)
+            v = (last or {}).get(m)
+            if v is not None and (type(v) not in (int, float) or abs(v) > 1e300):
+                raise ValueError(f"last_eval.{m} must be a number or null, got {v!r}"[:200])
+        return summary
+    except (OSError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+        raise ValueError(f"{path} is not a readable run summary: {' '.join(str(exc).split())[:300]}") from None
 
 
 def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: int = 1,

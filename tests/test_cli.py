@@ -779,3 +779,13 @@ def test_version_is_the_package_metadata(capsys):
     code, out, _ = _run(capsys, "--version")
     project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
     assert code == 0 and out.strip() == project["version"]
+
+
+def test_ctrl_c_while_wl_starts_exits_130_without_a_traceback(monkeypatch, capsys):
+    """Ctrl-C in the 0.3-1 s build_parser spends importing the packages printed a traceback (exit -2)."""
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(wl.cli, "build_parser", interrupted)
+    assert wl.cli.main(["ocp", "--out", "x.json"]) == 130
+    assert capsys.readouterr().err.strip() == "wl: interrupted"

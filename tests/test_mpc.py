@@ -384,3 +384,62 @@ def test_a_plan_reshaped_for_another_scenario_keeps_its_marks_on_the_new_ones(sr
     assert np.array_equal(x[:, :2], states[:, :2])
     lift = (dst["H_T"] - dst["H_0"]) / (src["H_T"] - src["H_0"])
     assert np.allclose(x[:, 3], 0.3 * lift)
+
+
+# ------------------------------------------------------------------ hostile settings (second audit)
+@pytest.mark.parametrize("kwargs", [
+    {"horizon_steps": np.int64(20)}, {"max_iter": np.int64(5)}, {"spare_steps": np.int32(3)},
+    {"tighten": np.float32(0.01)}, {"mode": "target_time", "target_time": np.float32(12.0)},
+    {"horizon_steps": 20, "replan_lag_steps": np.int64(2)}, {"rate_weight": (np.float32(0.1), np.int64(1))},
+])
+def test_mpc_config_takes_numpy_scalars_as_the_numbers_they_hold(kwargs):
+    cfg = MPCConfig(**kwargs)  # (np.int64(20) steps was "must be an integer in [2, 1000]")
+    for name in kwargs:
+        v = getattr(cfg, name)
+        assert all(type(x) in (int, float) for x in v) if isinstance(v, tuple) else type(v) in (int, float, str)
+
+
+@pytest.mark.parametrize("value", [True, 10**400, float("nan"), -1.0, "5"])
+def test_mpc_config_refuses_a_bad_terminal_weight_by_name(value):
+    with pytest.raises(ValueError, match="terminal_weight must be a finite number >= 0"):
+        MPCConfig(terminal_weight=value)  # (True was taken as 1.0; 10**400 raised OverflowError)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"substeps": 0}, r"substeps must be an integer in \[1, 1000\]"),  # (ZeroDivisionError)
+    ({"substeps": 1.7}, r"substeps must be an integer in \[1, 1000\]"),  # (taken as 1)
+    ({"substeps": True}, r"substeps must be an integer in \[1, 1000\]"),
+    ({"substeps": 10**9}, r"substeps must be an integer in \[1, 1000\]"),  # (built its steps for hours)
+    ({"substeps": "x"}, r"substeps must be an integer in \[1, 1000\]"),
+    ({"dt": True}, r"dt \(the control interval\) must lie in \(0, 1\] s"),  # (taken as 1 s)
+    ({"dt": 10**400}, r"dt \(the control interval\) must lie in \(0, 1\] s"),  # (OverflowError)
+    ({"config": {"mode": "time"}}, "config must be an MPCConfig or None, got dict"),  # (AttributeError)
+    ({"solver": "ipopt"}, "solver must be a GridSolver"),
+])
+def test_mpc_controller_refuses_bad_arguments_by_name(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        MPCController("service", **kwargs)
+
+
+def test_mpc_controller_takes_numpy_scalar_dt_and_substeps():
+    ctrl = MPCController("service", dt=np.float64(0.1), substeps=np.int64(1))
+    assert (type(ctrl.dt), type(ctrl.substeps)) == (float, int)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"config": "time"}, "config must be an MPCConfig or None, got str"),
+    ({"scenario": {"braking": "tc"}}, "scenario must be a wl_env.scenario.Scenario or None, got dict"),
+    ({"mismatch": "yes"}, "mismatch must be True or False"),
+    ({"mismatch": True}, "mismatch plans a scenario's cycle .*give a scenario"),  # (was ignored: a nominal run)
+    ({"controller": "mpc"}, "controller must be an MPCController or None, got str"),
+    ({"cache": 5}, "cache must be a folder path or None, got int"),  # (TypeError after the whole cycle)
+])
+def test_run_closed_loop_refuses_bad_arguments_before_the_cycle(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        run_closed_loop("service", **kwargs)
+
+
+def test_run_closed_loop_refuses_a_controller_of_the_other_braking():
+    ctrl = MPCController("service")  # (the tc env ran under the service plan without a word)
+    with pytest.raises(ValueError, match="the controller plans service braking; the run has braking='tc'"):
+        run_closed_loop("tc", controller=ctrl, score=False)

@@ -570,3 +570,74 @@ def test_the_suite_check_leaves_no_temporary_folder(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         suite_mod.check_shipped("nominal")
     assert seen and not seen[0].exists() and not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ files read back (second audit)
+def test_a_shipped_suite_file_with_a_point_without_its_time_is_refused_by_name(tmp_path):
+    """check_suite_file read each point's T before the checksum: KeyError/TypeError, not the file's name."""
+    from mpc.benchmark import store
+    from mpc.benchmark.reference import REFERENCE_DIR, SUITE_KIND, check_suite_file
+
+    data = json.loads((REFERENCE_DIR / "nominal.json").read_text())
+    entry = next(iter(data["entries"].values()))
+    for bad in ({}, {"T": "8.2"}, {"T": [1.0]}, {"T": None}):
+        entry["points"][0] = bad
+        path = tmp_path / "nominal.json"
+        path.write_text(json.dumps(data))
+        with pytest.raises(store.BadEntry, match="nominal.json.*points"):
+            store.read_entry(path, SUITE_KIND, check_suite_file)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),  # (RecursionError)
+    ("[1, 2]", "a JSON list, not an object"),  # (AttributeError)
+    ('{"name": "nominal", "kind": "list", "version": 1e400, "description": "", "scenarios": [{}]}',
+     r"version must be an integer"),  # (OverflowError)
+    ('{"name": "nominal", "kind": "list", "version": true, "description": "", "scenarios": [{}]}',
+     r"version must be an integer"),  # (taken as version 1)
+    ('{"name": "nominal", "kind": "sampler", "version": 1, "description": "", "scenarios": [{}]}',
+     "a sampler suite draws its scenarios"),  # (a list suite turned sampler)
+    ('{"name": "nominal", "kind": "list", "version": 1, "description": "", "scenarios": []}',
+     "a list suite needs a non-empty list"),
+    ('{"name": "nominal", "kind": "list", "version": 1, "description": [1], "scenarios": [{}]}',
+     "description must be a string"),
+    ('{"name": "nomin', "Unterminated string"),  # (a bare JSONDecodeError without the file)
+])
+def test_a_corrupt_suite_file_is_refused_by_name(tmp_path, monkeypatch, text, match):
+    import wl_env.suites as suites
+
+    monkeypatch.setattr(suites, "FOLDER", tmp_path)
+    suites.load_suite.cache_clear()
+    (tmp_path / "nominal.json").write_text(text)
+    try:
+        with pytest.raises(ValueError, match=rf"suite file .*nominal.json is invalid: .*{match}"):
+            suites.load_suite("nominal")
+    finally:
+        suites.load_suite.cache_clear()
+
+
+def test_a_deeply_nested_checkpoint_pointer_is_passed_over(tmp_path):
+    from agents.ppo import latest_checkpoint
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "latest.json").write_text("[" * 100_000 + "]" * 100_000)
+    assert latest_checkpoint(tmp_path) is None  # (RecursionError)
+
+
+@pytest.mark.parametrize("text, match", [
+    ('{"num_timesteps": 100, "wall_time": 1.0, "last_eval": [1]}', "last_eval must be an object"),  # (AttributeError)
+    ('{"num_timesteps": 100, "wall_time": 1.0, "last_eval": {"success_rate": true}}', "last_eval.success_rate"),
+    ('{"num_timesteps": 100, "wall_time": 1.0, "last_eval": {"time_gap": 1' + "0" * 400 + "}}", "last_eval.time_gap"),
+    ('{"num_timesteps": -1, "wall_time": 1.0}', "num_timesteps must be an integer >= 0"),
+    ("[]", "a JSON list, not an object"),
+    ('{"num_timesteps": 1', "Expecting"),
+])
+def test_a_corrupt_run_summary_is_refused_by_name(tmp_path, text, match):
+    from agents.seeds import read_summary
+
+    path = tmp_path / "summary.json"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"summary.json is not a readable run summary: .*{match}"):
+        read_summary(path)
+    path.write_text('{"num_timesteps": 100, "wall_time": 1.0, "last_eval": {"time_gap": NaN}}')
+    assert read_summary(path)["num_timesteps"] == 100  # (NaN: a metric not measured)

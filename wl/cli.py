@@ -580,9 +580,12 @@ def main(argv: list[str] | None = None) -> int:
     """
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
     try:
+        parser = build_parser()  # (it imports the packages: 0.3-1 s in which Ctrl-C printed a traceback)
         args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("wl: interrupted", file=sys.stderr)
+        return 130
     except UsageError as exc:
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
         return 2

@@ -59,7 +59,7 @@ from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.env import check_target_time
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, plain, resolve, shown
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
 from wl_env.scenario import Scenario
@@ -240,61 +240,64 @@ class MPCConfig:
     replan_lag_steps: int | None = None
 
     def __post_init__(self) -> None:
-        def real(v: Any) -> bool:  # (no bools, strings or NaN for a number)
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        def real(v: Any) -> bool:  # (no bools, strings, NaN or an int too large for a float for a number)
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
 
         def count(v: Any, lo: int, hi: int) -> bool:
             return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
 
+        for f in dataclasses.fields(self):  # (a numpy scalar as the Python number it holds: np.int64(20) steps
+            v = getattr(self, f.name)       # was "must be an integer", np.float32 a target JSON cannot write)
+            object.__setattr__(self, f.name, type(v)(map(plain, v)) if isinstance(v, (tuple, list)) else plain(v))
+
         if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+            raise ValueError(f"mode must be one of {MODES}, got {shown(self.mode)}")
         if self.mode == "target_time" or self.target_time is not None:
             check_target_time(self.target_time)
         if self.mode == "weighted" and not (real(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
-            raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {self.w_fuel!r}")
+            raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {shown(self.w_fuel)}")
         # (a value another mode would ignore without a word)
         if self.mode != "weighted" and self.w_fuel is not None:
-            raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {self.w_fuel!r}")
+            raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {shown(self.w_fuel)}")
         if self.mode != "target_time" and self.target_time is not None:
-            raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {self.target_time!r}")
+            raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {shown(self.target_time)}")
         if self.deadline_ms is not None and not (real(self.deadline_ms) and self.deadline_ms > 0):
-            raise ValueError(f"deadline_ms must be > 0 ms or None, got {self.deadline_ms!r}")
+            raise ValueError(f"deadline_ms must be > 0 ms or None, got {shown(self.deadline_ms)}")
         if not isinstance(self.realtime, bool):
-            raise ValueError(f"realtime must be True or False, got {self.realtime!r}")
+            raise ValueError(f"realtime must be True or False, got {shown(self.realtime)}")
         if self.realtime and self.deadline_ms is not None:
             raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
         if self.time_budget is not None and not (real(self.time_budget) and self.time_budget > 0):
-            raise ValueError(f"time_budget must be > 0 s or None, got {self.time_budget!r}")
+            raise ValueError(f"time_budget must be > 0 s or None, got {shown(self.time_budget)}")
         if not count(self.max_iter, 1, 100_000):
-            raise ValueError(f"max_iter must be an integer in [1, 100000], got {self.max_iter!r}")
+            raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
         if not count(self.spare_steps, 1, 100):
-            raise ValueError(f"spare_steps must be an integer in [1, 100], got {self.spare_steps!r}")
+            raise ValueError(f"spare_steps must be an integer in [1, 100], got {shown(self.spare_steps)}")
         if not (isinstance(self.rate_weight, (tuple, list)) and len(self.rate_weight) == 2
                 and all(real(w) and w >= 0 for w in self.rate_weight)):
-            raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {self.rate_weight!r}")
+            raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {shown(self.rate_weight)}")
         if not (real(self.tighten) and 0.0 <= self.tighten < 0.5):
-            raise ValueError(f"tighten must lie in [0, 0.5), got {self.tighten!r}")
+            raise ValueError(f"tighten must lie in [0, 0.5), got {shown(self.tighten)}")
         if not (real(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
-            raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {self.omega_margin!r}")
+            raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {shown(self.omega_margin)}")
         if self.horizon_steps is not None:
             if not (isinstance(self.horizon_steps, int) and not isinstance(self.horizon_steps, bool)
                     and 2 <= self.horizon_steps <= 1000):
-                raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {self.horizon_steps!r}")
+                raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {shown(self.horizon_steps)}")
             if self.realtime or self.deadline_ms is not None:
                 raise ValueError("horizon_steps is synchronous only: not with realtime or deadline_ms")
         if self.horizon_solver not in HORIZON_SOLVERS:
-            raise ValueError(f"horizon_solver must be one of {HORIZON_SOLVERS}, got {self.horizon_solver!r}")
+            raise ValueError(f"horizon_solver must be one of {HORIZON_SOLVERS}, got {shown(self.horizon_solver)}")
         if self.horizon_solver != "ipopt" and self.horizon_steps is None:
             raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps")
         if self.replan_lag_steps is not None:
             if not (isinstance(self.replan_lag_steps, int) and not isinstance(self.replan_lag_steps, bool)
                     and 1 <= self.replan_lag_steps <= 100):
-                raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {self.replan_lag_steps!r}")
+                raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {shown(self.replan_lag_steps)}")
             if self.horizon_steps is None:
                 raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps")
-        if not (isinstance(self.terminal_weight, (int, float)) and math.isfinite(self.terminal_weight)
-                and self.terminal_weight >= 0.0):
-            raise ValueError(f"terminal_weight must be a finite number >= 0, got {self.terminal_weight!r}")
+        if not (real(self.terminal_weight) and self.terminal_weight >= 0.0):
+            raise ValueError(f"terminal_weight must be a finite number >= 0, got {shown(self.terminal_weight)}")
 
 
 class MPCController:
@@ -310,10 +313,18 @@ class MPCController:
                  solver: GridSolver | None = None) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
+        if config is not None and not isinstance(config, MPCConfig):
+            raise ValueError(f"config must be an MPCConfig or None, got {type(config).__name__}")
+        if solver is not None and not all(callable(getattr(solver, m, None)) for m in ("solve", "prepare")):
+            raise ValueError(f"solver must be a GridSolver (solve() and prepare()) or None, got {type(solver).__name__}")
         self.config = config or MPCConfig()
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and 0.0 < dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {dt!r}")
-        self.dt, self.substeps = float(dt), int(substeps)
+        dt, substeps = plain(dt), plain(substeps)
+        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and 0.0 < dt <= 1.0):
+            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {shown(dt)}")
+        # (the environment's range: int() took 1.7 as 1, 0 divided by zero and 10**9 built its steps for hours)
+        if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
+            raise ValueError(f"substeps must be an integer in [1, 1000], got {shown(substeps)}")
+        self.dt, self.substeps = float(dt), substeps
         self.codec = Codec(self.params)
         self.model = step_model(self.braking, self.params, self.dt, self.substeps, float(self.config.omega_margin))
         self._deadline_s = None if self.config.deadline_ms is None else 1e-3 * self.config.deadline_ms
@@ -1287,6 +1298,20 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
     import wl_env  # noqa: F401  (registers the env)
     from wl_env.rollout import run_episode
 
+    if config is not None and not isinstance(config, MPCConfig):
+        raise ValueError(f"config must be an MPCConfig or None, got {type(config).__name__}")
+    if scenario is not None and not isinstance(scenario, Scenario):
+        raise ValueError(f"scenario must be a wl_env.scenario.Scenario or None, got {type(scenario).__name__} "
+                         "(Scenario.parse reads one from JSON)")
+    if not isinstance(mismatch, bool):
+        raise ValueError(f"mismatch must be True or False, got {shown(mismatch)}")
+    if mismatch and scenario is None:  # (it was ignored without a word)
+        raise ValueError("mismatch plans a scenario's cycle with the nominal payload and rolling resistance: "
+                         "give a scenario")
+    if controller is not None and not isinstance(controller, MPCController):
+        raise ValueError(f"controller must be an MPCController or None, got {type(controller).__name__}")
+    if cache is not None and not isinstance(cache, (str, os.PathLike)):  # (not after the cycle, at the score)
+        raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")
     config = config or MPCConfig()
     model = resolve(params)
     plant = resolve(plant_params) if plant_params is not None else model
@@ -1299,7 +1324,9 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         if mismatch:
             base = resolve(params)
             model = model.replace(M_load=base.M_load, c_r=base.c_r)
-    braking = cycle.check_braking(braking or "service")
+    braking = cycle.check_braking(braking or (controller.braking if controller is not None else "service"))
+    if controller is not None and controller.braking != braking:  # (it planned one cycle while the env ran the other)
+        raise ValueError(f"the controller plans {controller.braking} braking; the run has braking={braking!r}")
     env = gym.make("WheelLoader-v2", braking=braking, params=plant)
     core = env.unwrapped.core
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps, solver=solver)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES, check_braking
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, shown
 from wl_env.scenario import FIELDS, Scenario
 
 FOLDER = Path(__file__).resolve().parent
@@ -112,12 +112,27 @@ def load_suite(name: str) -> Suite:
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; suites: {SUITES}")
     path = FOLDER / f"{name}.json"
-    data = json.loads(path.read_text())
-    try:
-        scenarios = tuple(Scenario.from_dict(d) for d in data.get("scenarios", ()))
-        suite = Suite(name=data["name"], version=int(data["version"]), description=data["description"],
-                      scenarios=scenarios, sampler=data.get("kind") == "sampler")
-    except (KeyError, ValueError, TypeError) as exc:
+    try:  # (every problem names the file: a bare JSONDecodeError, OverflowError or RecursionError did not)
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ValueError(f"a JSON {type(data).__name__}, not an object")
+        kind, version, listed = data.get("kind"), data.get("version"), data.get("scenarios")
+        if kind not in ("list", "sampler"):
+            raise ValueError(f"kind must be 'list' or 'sampler', got {shown(kind)}")
+        if isinstance(version, bool) or not (isinstance(version, int) and 1 <= version <= 10**6):
+            raise ValueError(f"version must be an integer in [1, 1000000], got {shown(version)}")
+        if not isinstance(data.get("description"), str):
+            raise ValueError(f"description must be a string, got {shown(data.get('description'))}")
+        if kind == "sampler" and listed is not None:
+            raise ValueError("a sampler suite draws its scenarios: it lists none")
+        if kind == "list" and not (isinstance(listed, list) and listed):
+            raise ValueError(f"a list suite needs a non-empty list of scenarios, got {shown(listed)}")
+        scenarios = tuple(Scenario.from_dict(d) for d in listed or ())
+        suite = Suite(name=data.get("name"), version=version, description=data["description"],
+                      scenarios=scenarios, sampler=kind == "sampler")
+    except RecursionError:
+        raise ValueError(f"suite file {path} is invalid: not valid JSON (nested too deeply)") from None
+    except (KeyError, ValueError, TypeError, OverflowError) as exc:
         raise ValueError(f"suite file {path} is invalid: {exc}") from None
     if suite.name != name:
         raise ValueError(f"suite file {path} names itself {suite.name!r}")
