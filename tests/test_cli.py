@@ -514,6 +514,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["evaluate", "--controller", "operator", "--scenario", '{"braking": "tc"}', "--braking", "service"], "--braking",
      "contradicts"),
     (["evaluate", "--controller", "operator", "--sample", "3"], "--sample", "--suite"),
+    # (each scenario of a suite runs once from its own start: these were ignored without a word)
+    (["evaluate", "--controller", "operator", "--suite", "test", "--episodes", "5"], "--episodes", "--suite"),
+    (["evaluate", "--controller", "operator", "--suite", "test", "--init-noise", "0.5"], "--init-noise", "--suite"),
     (["mpc", "--mismatch"], "--mismatch", "--scenario"),
     (["mpc", "--realtime", "--deadline-ms", "50"], "--realtime", "--deadline-ms"),
     (["mpc", "--horizon-steps", "1"], "--horizon-steps", "[2, 1000]"),

@@ -206,6 +206,11 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     braking = scenario.braking if scenario is not None else args.braking or "service"
     if args.sample and not args.suite:
         raise ValueError("--sample N takes N scenarios of a --suite: give --suite")
+    if args.suite and (args.episodes is not None or args.init_noise is not None):  # (they were ignored without a word)
+        raise ValueError("--episodes and --init-noise set the episodes of one scenario; with --suite each scenario "
+                         "runs once from its own start: leave them out (--sample N takes N scenarios)")
+    episodes = 10 if args.episodes is None else args.episodes
+    init_noise = 1.0 if args.init_noise is None else args.init_noise
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
@@ -216,9 +221,9 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
             scenarios or (scenario is not None and scenario != Scenario.nominal(braking))):
         log.warning(f"the shipped ppo_{braking} knows the paper's nominal cycle only; on other scenarios use the "
                     "target-conditioned policy (--target-ratio R or --target-time T) or --controller bc")
-    what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{args.episodes} episode(s)"
+    what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{episodes} episode(s)"
     log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
-    r = evaluate_controller(controller, braking, episodes=args.episodes, init_noise=args.init_noise,
+    r = evaluate_controller(controller, braking, episodes=episodes, init_noise=init_noise,
                             seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
                             name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
                             scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
@@ -510,10 +515,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "ppo_target_<braking>; bc: bc_target_<braking>); module:Class: passed as model=")
     p.add_argument("--trust-pickle", action="store_true", help="ppo: also load a stable-baselines3 .zip (+ .pkl), "
                    "which unpickles and can run code: for trusted input only, e.g. your own training runs")
-    p.add_argument("--episodes", type=_int_in(1, 100_000), default=10, metavar="N",
-                   help="episodes, 1..100000 (default 10)")
-    p.add_argument("--init-noise", type=_unit_float, default=1.0, metavar="X",
-                   help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0)")
+    p.add_argument("--episodes", type=_int_in(1, 100_000), metavar="N",
+                   help="episodes, 1..100000 (default 10; not with --suite: one per scenario)")
+    p.add_argument("--init-noise", type=_unit_float, metavar="X",
+                   help="start-state perturbation of episodes 1..N-1, 0..1 (default 1.0; not with --suite)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of episode 0; episode i uses S + i")
     p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts (default $WL_CACHE_DIR or "
                    "~/.cache/wheel-loader-gym); a front not cached there is solved first (minutes)")
