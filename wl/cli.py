@@ -119,9 +119,9 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
         from wl_env.params import resolve
 
         params = scenario.params(resolve(params))
-    out = _out_dir(args.out)
-    if args.cache is not None:
+    if args.cache is not None:  # (before --out: a bad --cache left a new, empty --out folder behind)
         _out_dir(args.cache, "--cache")
+    out = _out_dir(args.out)
     brakings = ("service", "tc") if args.braking in (None, "both") else (args.braking,)
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
@@ -136,9 +136,9 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     from mpc.controller.mpc import MPCConfig, run_closed_loop
     from wl_env.atomic_io import write_json_atomic
 
-    out = _out_file(args.out)
-    if args.cache is not None:
+    if args.cache is not None:  # (before --out, whose folder its check may create)
         _out_dir(args.cache, "--cache")
+    out = _out_file(args.out)
     if args.realtime and args.deadline_ms is not None:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
