@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -219,7 +220,7 @@ def _write_demo(path: Path, demo: dict[str, Any]) -> None:
 # a demonstration's meta fields the readers use, by type (bool before int: isinstance(True, int))
 _DEMO_META: dict[str, type | tuple[type, ...]] = {
     "env_id": str, "success": bool, "learner": (str, type(None)), "fast": bool, "max_violation": (int, float), "T": (int, float),
-    "target_time": (int, float), "fuel_g": (int, float)}
+    "target_time": (int, float), "fuel_g": (int, float), "scenario": dict}
 
 
 def read_demo(path: str | Path) -> dict[str, Any]:
@@ -228,11 +229,12 @@ def read_demo(path: str | Path) -> dict[str, Any]:
         with np.load(path, allow_pickle=False) as f:
             obs, actions, meta = f["obs"], f["actions"], json.loads(str(f["meta"]))
             extra = {"weights": f["weights"]} if "weights" in f.files else {}
-    except (OSError, ValueError, KeyError, json.JSONDecodeError, RecursionError) as exc:
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, RecursionError, EOFError, zipfile.BadZipFile) as exc:
+        # (a truncated file: BadZipFile; an empty one: EOFError, neither an OSError)
         raise ValueError(f"{path} is not a demonstration file: {exc}") from None
     if not isinstance(meta, dict):
         raise ValueError(f"{path}: its meta must be a JSON object, got {type(meta).__name__}")
-    absent = [k for k in ("env_id", "success", "max_violation") if k not in meta]
+    absent = [k for k in ("env_id", "success", "max_violation", "scenario") if k not in meta]
     if absent:
         raise ValueError(f"{path}: its meta has no field {absent[0]!r}")
     bad = [k for k, kind in _DEMO_META.items() if k in meta and not isinstance(meta[k], kind)]
@@ -241,12 +243,19 @@ def read_demo(path: str | Path) -> dict[str, Any]:
                          f"is {'of the wrong type' if bad else 'an array name'}")
     if any(a.dtype.kind != "f" for a in (obs, actions, *extra.values())):
         raise ValueError(f"{path}: obs, actions and weights must be float arrays, got {obs.dtype} and {actions.dtype}")
-    if obs.ndim != 2 or obs.shape[1] != N_TARGET_OBS or actions.shape != (len(obs), 4) or not (
+    if obs.ndim != 2 or obs.shape[1] != N_TARGET_OBS or len(obs) == 0 or actions.shape != (len(obs), 4) or not (
             np.isfinite(obs).all() and np.isfinite(actions).all()):
         raise ValueError(f"{path}: expected finite obs (n, {N_TARGET_OBS}) and actions (n, 4), "
                          f"got {obs.shape} and {actions.shape}")
-    if extra and (extra["weights"].shape != actions.shape or not np.isfinite(extra["weights"]).all()):
-        raise ValueError(f"{path}: expected finite weights {actions.shape}, got {extra['weights'].shape}")
+    if extra and (extra["weights"].shape != actions.shape or not np.isfinite(extra["weights"]).all()
+                  or (extra["weights"] < 0).any()):  # (a negative weight turns the fit's loss into one it maximizes)
+        raise ValueError(f"{path}: expected finite weights >= 0 {actions.shape}, got {extra['weights'].shape}")
+    from wl_env.scenario import Scenario
+
+    try:  # (the assisted drivers' labels read it: a bad one failed there with a KeyError, naming no file)
+        Scenario.from_dict(meta["scenario"])
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: its meta field 'scenario' is not a scenario ({exc})") from None
     return {"obs": obs, "actions": actions, **meta, **extra}
 
 

@@ -25,6 +25,9 @@ COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
+# steps per rollout (n_steps * num_envs): SB3's buffer holds ~90 bytes a step (1.5 GB at this cap, the shipped
+# recipe's 8192 far below); more failed with a traceback allocating it (numpy's MemoryError)
+MAX_ROLLOUT = 2**24
 
 
 class ConfigError(ValueError):
@@ -71,7 +74,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "learning_rate": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
     "lr_schedule": ("'constant' or 'linear'", lambda v: v in ("constant", "linear")),
     "n_steps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
-    "batch_size": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
+    "batch_size": ("an integer >= 2", lambda v: _is_int(v) and v >= 2),  # (SB3 asserts it: advantages normalized)
     "n_epochs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "gamma": ("a number in (0, 1]", lambda v: _is_num(v) and 0 < v <= 1),
     "gae_lambda": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
@@ -219,6 +222,11 @@ class PPOConfig:
         for name, (requirement, ok) in _RULES.items():
             if not ok(getattr(self, name)):
                 raise ConfigError(name, requirement, getattr(self, name))
+        # (SB3 asserted >= 2 with a traceback. A batch larger than the rollout takes the whole rollout, as SB3 says
+        # in a warning: the default 2048 with --num-envs 1 does, so it is not refused.)
+        if not 2 <= self.n_steps * self.num_envs <= MAX_ROLLOUT:
+            raise ConfigError("n_steps", f"such that n_steps * num_envs lies in [2, {MAX_ROLLOUT}] (num_envs "
+                              f"{self.num_envs})", self.n_steps)
         if self.scenario and self.env_id == "WheelLoader-v1":
             raise ConfigError("scenario", "'' with WheelLoader-v1 (it does not observe the scenario; use "
                               "WheelLoader-v2 or WheelLoaderTarget-v0/v1)", self.scenario)

@@ -41,6 +41,18 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", metavar="PATH")
     args = ap.parse_args()
+    if args.json is not None:  # (checked now: it was written only at the end, after the work)
+        from wl_env.atomic_io import check_output_file
+
+        try:
+            check_output_file(args.json, "--json")
+        except ValueError as exc:
+            ap.error(str(exc))
+    from wl_env.params import MAX_NUM_ENVS
+
+    for name, lo, hi in (("num_envs", 1, MAX_NUM_ENVS), ("steps", 1, 10**6), ("repeats", 1, 1000)):
+        if not lo <= getattr(args, name) <= hi:  # (--num-envs -1 failed with an IndexError, --repeats 0 likewise)
+            ap.error(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {getattr(args, name)}")
     rng = np.random.default_rng(0)
     n, steps = args.num_envs, args.steps
     pendulum = gym.make_vec("Pendulum-v1", num_envs=n, vectorization_mode="sync")

@@ -29,7 +29,7 @@ import tyro
 import wl_env  # noqa: F401  (registers the envs)
 import wl_env.assist as assist
 from mpc.benchmark.reference import min_time_of
-from wl_env.atomic_io import write_json_atomic
+from wl_env.atomic_io import check_output_file, write_json_atomic
 from wl_env.logs import run_script
 from wl_env.suites import load_suite
 
@@ -68,6 +68,8 @@ def run(o: Options) -> dict[str, Any]:
         raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
     if not 0.0 < o.engine_fraction <= 1.0:
         raise ValueError(f"--engine-fraction must be in (0, 1], got {o.engine_fraction}")
+    if o.out is not None:  # (written at the end: checked before the cycles)
+        check_output_file(o.out, "--out")
     if o.braking_cap is not None:
         if not assist.BRAKING_FRACTION[0] < o.braking_cap <= assist.MAX_BRAKING_FRACTION:
             raise ValueError(f"--braking-cap must be in ({assist.BRAKING_FRACTION[0]}, {assist.MAX_BRAKING_FRACTION}], "

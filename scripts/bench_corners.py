@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import tyro
 
-from wl_env.atomic_io import write_json_atomic
+from wl_env.atomic_io import check_output_file, write_json_atomic
 from wl_env.cycle import check_braking
 from wl_env.logs import run_script
 from wl_env.scenario import FIELDS, Scenario
@@ -60,6 +60,8 @@ def check(o: Options) -> None:
         raise ValueError(f"--mpc must be an integer in [0, --corners ({o.corners})], got {o.mpc}")
     if not 0 <= o.seed <= 2**32 - 1:
         raise ValueError(f"--seed must be an integer in [0, 2**32 - 1], got {o.seed}")
+    if o.out is not None:  # (written at the end: checked before the corners' solves)
+        check_output_file(o.out, "--out")
 
 
 def run(o: Options) -> dict[str, Any]:

@@ -92,10 +92,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small sizes and 3 rounds (a smoke test, not a measurement)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw timings and the summary as JSON")
     args = ap.parse_args(argv)
+    if args.json is not None:  # (checked now: it was written only at the end, after the work)
+        from wl_env.atomic_io import check_output_file
+
+        try:
+            check_output_file(args.json, "--json")
+        except ValueError as exc:
+            ap.error(str(exc))
     if args.quick:
         args.repeats, args.single_steps, args.vector_env_steps = 3, 1_000, 10_000
     if args.repeats < 1 or args.single_steps < 1 or args.vector_env_steps < 1 or min(args.num_envs) < 1:
         ap.error("repeats, step counts and num-envs must be >= 1")
+    from wl_env.params import MAX_NUM_ENVS
+
+    if max(args.num_envs) > MAX_NUM_ENVS:  # (the env refused it with a traceback)
+        ap.error(f"--num-envs must be integers in [1, {MAX_NUM_ENVS}], got {max(args.num_envs)}")
     if not 0 <= args.seed < 2**32:
         ap.error(f"--seed must be an integer in [0, 2**32 - 1], got {args.seed}")
 

@@ -58,6 +58,13 @@ def main() -> None:
     ap.add_argument("--period", type=float, default=0.5, help="seconds between samples")
     ap.add_argument("--json", metavar="PATH", help="also write the figures")
     args = ap.parse_args()
+    if args.json is not None:  # (checked now: it was written only at the end, after the work)
+        from wl_env.atomic_io import check_output_file
+
+        try:
+            check_output_file(args.json, "--json")
+        except ValueError as exc:
+            ap.error(str(exc))
     if not Path("/proc/self/status").exists():
         sys.exit("bench_memory needs Linux's /proc")
     with tempfile.TemporaryDirectory(prefix="wl_bench_memory_") as tmp:

@@ -57,6 +57,13 @@ def main() -> None:
     ap.add_argument("--json", metavar="PATH", help="also write the rows")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # (a child: one cycle, JSON on stdout)
     args = ap.parse_args()
+    if args.json is not None:  # (checked now: it was written only at the end, after the work)
+        from wl_env.atomic_io import check_output_file
+
+        try:
+            check_output_file(args.json, "--json")
+        except ValueError as exc:
+            ap.error(str(exc))
     if args.one:
         h = args.horizon_steps or None
         print(json.dumps(one_cycle(args.braking[0], args.target_time, h, args.horizon_solver)))

@@ -21,10 +21,13 @@ from dataclasses import dataclass
 import tyro
 
 from mpc.benchmark.suite import solve_suite
-from wl_env.atomic_io import write_json_atomic
-from wl_env.logs import cli_logging
+from wl_env.atomic_io import check_output_file, write_json_atomic
+from wl_env.logs import cli_logging, run_script
 
 log = logging.getLogger("bench_suite")
+
+
+MODES = ("chain", "cold", "ray")
 
 
 @dataclass
@@ -33,6 +36,20 @@ class Options:
     points: int = 10  # points per front
     modes: tuple[str, ...] = ("chain", "cold", "ray")  # which solves to time
     out: str = "results/bench_suite.json"
+
+    def __post_init__(self) -> None:
+        """Checked by name before the solves (--modes foo or an unwritable --out failed after them, --scenarios 0
+        divided by zero, --points 0 failed with a traceback)."""
+        from mpc.benchmark.suite import load_suite
+
+        n = min(len(load_suite("test").of(b)) for b in ("service", "tc"))
+        for name, lo, hi in (("scenarios", 1, n), ("points", 3, 100)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"--{name} must be an integer in [{lo}, {hi}], got {v!r}")
+        if not self.modes or not set(self.modes) <= set(MODES) or len(set(self.modes)) < len(self.modes):
+            raise ValueError(f"--modes must be one or more of {', '.join(MODES)}, each once, got {list(self.modes)}")
+        check_output_file(self.out, "--out")
 
 
 def solve_cold(scenario, cache, n_points):
@@ -71,5 +88,5 @@ def main(o: Options) -> dict[str, dict[str, float]]:
 
 
 if __name__ == "__main__":
-    with cli_logging():
-        main(tyro.cli(Options))
+    with cli_logging():  # the solves' progress, as before; run_script: a bad option as one line, exit 2
+        run_script("bench_suite", lambda: main(tyro.cli(Options)))

@@ -110,6 +110,16 @@ def main(o: Options, command: str) -> int:
     if o.graft_base and (o.env_id != DRIVER_ENV_IDS[1] or o.dagger_rounds or o.export):
         raise ValueError(f"graft_base needs env_id {DRIVER_ENV_IDS[1]}, no dagger_rounds and no export "
                          f"(fine-tune the graft with PPO: --init-policy <run>/final/policy)")
+    # the output paths checked now, not after the demonstrations and the fit (an --export into a file's folder failed last)
+    from wl_env.atomic_io import check_output_folder
+
+    check_output_folder(o.log_dir, f"--log-dir {o.log_dir}")
+    if o.demos:
+        check_output_folder(o.demos, f"--demos {o.demos}")
+    if o.export:
+        if not o.export.strip():
+            raise ValueError(f"--export must name the policy's path (PATH.safetensors, ...), got {o.export!r}")
+        check_output_folder(Path(o.export).parent, f"--export {o.export}")
     if o.clone_base or o.graft_base:  # (read and checked now, not after an hour of demonstrations)
         from agents.imitation import read_base
 

@@ -40,7 +40,14 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ns = parser.parse_args(argv)
     with cli_logging():
-        return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
+        try:
+            return run_train(ns, command=f"{PROG} " + " ".join(shlex.quote(a) for a in argv), prog=PROG)
+        except (ValueError, OSError) as exc:  # a bad option, named in the message: no traceback (as `wl train`)
+            print(f"train_ppo: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:  # (before the training's own handler: reading the options, importing torch)
+            print("train_ppo: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -266,6 +266,41 @@ def test_train_script_is_the_same_command_line(capsys):
     assert flags(script_help) == flags(cli_help) and "--total-timesteps" in flags(cli_help)
 
 
+@pytest.mark.parametrize("argv, needle", [
+    (["--batch-size", "1"], "--batch-size must be an integer >= 2"),  # (SB3's AssertionError, a traceback)
+    (["--n-steps", "1", "--num-envs", "1"], "--n-steps must be such that n_steps * num_envs lies in [2, "),
+    (["--n-steps", "100000000", "--num-envs", "1024"], "--n-steps must be such")])  # (a MemoryError allocating 4 TiB)
+def test_train_refuses_a_rollout_ppo_cannot_take(tmp_path, capsys, argv, needle):
+    """Checked with the other fields, in both `wl train` and scripts/train_ppo.py (whose bad options were a
+    traceback and exit 1), before torch or the envs."""
+    import importlib.util
+
+    code, _, err = _run(capsys, "train", *argv, "--log-dir", tmp_path)
+    assert code == 2 and needle in err and not any(tmp_path.iterdir())
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_ppo.py"
+    spec = importlib.util.spec_from_file_location("train_ppo_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main([*argv, "--log-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("train_ppo: error:") and needle in err and "Traceback" not in err
+
+
+def test_benchmarks_check_their_json_before_the_work(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "file").write_text("")
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    bad = str(tmp_path / "file" / "x.json")
+    for argv in (["bench_agents.py", "--json", bad], ["bench_env.py", "--quick", "--json", bad],
+                 ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad]):
+        r = subprocess.run([sys.executable, str(scripts / argv[0]), *argv[1:]], capture_output=True, text=True,
+                           timeout=60)
+        err = " ".join(r.stderr.replace("│", " ").split())  # (tyro boxes and wraps its message)
+        assert r.returncode == 2 and "is not a folder" in err and "Traceback" not in err, argv
+
+
 # ------------------------------------------------------------------------------------------ report
 def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsys):
     out = tmp_path / "results"

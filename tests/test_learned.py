@@ -422,3 +422,36 @@ def test_a_v3_dagger_episode_is_labelled_from_the_mpcs_plans(tmp_path):
                     log_dir=str(tmp_path), run_name="clone", progress_bar=False)
     result = clone([v1, d], cfg, epochs=2, validation_share=0.5)
     assert result.samples == len(v1["obs"]) + len(d["obs"])
+
+
+def test_a_corrupt_demonstration_file_is_refused_by_name(tmp_path):
+    """Truncated or empty files, a missing or foreign scenario (the drivers' labels read it), negative weights
+    (a loss the fit maximizes) and an episode without steps: a ValueError naming the file, nothing unpickled."""
+    collect_demos(DemoSettings("service", seed=3, expert="operator"), 1, tmp_path)
+    src = tmp_path / "episode_00000.npz"
+    good = dict(np.load(src))
+    meta = json.loads(str(good["meta"]))
+    (tmp_path / "truncated.npz").write_bytes(src.read_bytes()[:200])
+    (tmp_path / "empty.npz").write_bytes(b"")
+    cases = {"noscenario": {**good, "meta": np.array(json.dumps({k: v for k, v in meta.items() if k != "scenario"}))},
+             "foreign": {**good, "meta": np.array(json.dumps({**meta, "scenario": {"payload": "x"}}))},
+             "negative": {**good, "weights": -np.ones_like(good["actions"])},
+             "nosteps": {**good, "obs": good["obs"][:0], "actions": good["actions"][:0]}}
+    for name, arrays in cases.items():
+        np.savez(tmp_path / f"{name}.npz", **arrays)
+    for name in ("truncated", "empty", *cases):
+        with pytest.raises(ValueError, match=f"{name}.npz"):
+            read_demo(tmp_path / f"{name}.npz")
+
+
+def test_train_bc_checks_its_output_paths_before_the_demonstrations(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "file").write_text("")
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_bc.py"
+    for flag in ("--export", "--demos"):
+        r = subprocess.run([sys.executable, str(script), flag, str(tmp_path / "file" / "x"), "--log-dir",
+                            str(tmp_path / "runs")], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and f"{flag} {tmp_path / 'file' / 'x'}" in r.stderr and "Traceback" not in r.stderr
+        assert not list((tmp_path / "runs").glob("demos_*"))

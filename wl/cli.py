@@ -60,15 +60,9 @@ def _params_cmd(args: argparse.Namespace) -> int:
 
 def _out_file(path: str, option: str = "--out") -> Path:
     """An output file's path, checked before the work: not a folder, its folder creatable and writable."""
-    from wl_env.atomic_io import check_output_folder
+    from wl_env.atomic_io import check_output_file
 
-    if not str(path).strip():
-        raise ValueError(f"{option} must name a file, got an empty string")
-    out = Path(path)
-    if out.is_dir():
-        raise ValueError(f"{option} {path} is a folder; give a file name")
-    check_output_folder(out.parent, f"{option} {path}")
-    return out
+    return check_output_file(path, option)
 
 
 def _out_dir(path: str, option: str = "--out") -> Path:

@@ -68,6 +68,18 @@ def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
     return folder
 
 
+def check_output_file(path: str | os.PathLike, option: str) -> Path:
+    """An output file's path checked before the work (:func:`check_output_folder` on its folder): ValueError
+    naming ``option`` (e.g. ``"--json"``) if it is empty, a folder, or its folder cannot be created or written
+    in. (The benchmarks wrote their ``--json`` only after minutes of work.)"""
+    if not str(path).strip():
+        raise ValueError(f"{option} must name a file, got an empty string")
+    if Path(path).is_dir():
+        raise ValueError(f"{option} {path} is a folder; give a file name")
+    check_output_folder(Path(path).parent, f"{option} {path}")
+    return Path(path)
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     """Write ``data`` (text as UTF-8) to ``path`` atomically; returns the path."""
     with atomic_path(path) as tmp:
