@@ -64,6 +64,15 @@ def main() -> None:
             check_output_file(args.json, "--json")
         except ValueError as exc:
             ap.error(str(exc))
+    from wl_env.env import check_target_time
+
+    try:  # (checked here, not in the child processes: a NaN was their CalledProcessError, a traceback)
+        if args.target_time is not None:
+            check_target_time(args.target_time)
+        if not 2 <= args.horizon_steps <= 1000 and not (args.one and args.horizon_steps == 0):
+            raise ValueError(f"--horizon-steps must be an integer in [2, 1000], got {args.horizon_steps}")
+    except ValueError as exc:
+        ap.error(str(exc).replace("target_time", "--target-time", 1))
     if args.one:
         h = args.horizon_steps or None
         print(json.dumps(one_cycle(args.braking[0], args.target_time, h, args.horizon_solver)))

@@ -51,6 +51,14 @@ def main() -> None:
     ap.add_argument("--solves", type=int, default=20, help="warm starts to build QPs at")
     ap.add_argument("--solvers", nargs="+", default=["hpipm", "hpipm-speed", "osqp", "qrqp"])
     args = ap.parse_args()
+    if not 1 <= args.solves <= 1000:  # (0 ran the whole cycle, then "no warm-started solve captured", exit 1)
+        ap.error(f"--solves must be an integer in [1, 1000], got {args.solves}")
+    from wl_env.env import check_target_time
+
+    try:
+        check_target_time(args.target)
+    except ValueError as exc:
+        ap.error(str(exc).replace("target_time", "--target", 1))
     kept = capture(args.braking, args.target, args.solves)
     if not kept:
         sys.exit("no warm-started solve from phase 1 was captured")

@@ -301,6 +301,20 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
         assert r.returncode == 2 and "is not a folder" in err and "Traceback" not in err, argv
 
 
+@pytest.mark.parametrize("argv, needle", [
+    (["bench_mpc_memory.py", "--target-time", "nan"], "--target-time must lie in [1, 40) s"),  # (a child's traceback)
+    (["bench_mpc_memory.py", "--horizon-steps", "1"], "--horizon-steps must be an integer in [2, 1000]"),
+    (["bench_rti_qp.py", "--solves", "0"], "--solves must be an integer in [1, 1000]"),  # (after a whole cycle, exit 1)
+    (["bench_rti_qp.py", "--target", "inf"], "--target must lie in [1, 40) s")])
+def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / argv[0]
+    r = subprocess.run([sys.executable, str(script), *argv[1:]], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 # ------------------------------------------------------------------------------------------ report
 def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsys):
     out = tmp_path / "results"
