@@ -100,13 +100,9 @@ def main() -> None:
     ap.add_argument("--runs", nargs="+", metavar="RUN_DIR", help="--suite: instead, these runs' policies (e.g. one per "
                     "seed) at the three targets, and each metric's median and interquartile range over them")
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
     if args.suite:

@@ -41,13 +41,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", metavar="PATH")
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     from wl_env.params import MAX_NUM_ENVS
 
     for name, lo, hi in (("num_envs", 1, MAX_NUM_ENVS), ("steps", 1, 10**6), ("repeats", 1, 1000)):

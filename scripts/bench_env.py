@@ -92,13 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small sizes and 3 rounds (a smoke test, not a measurement)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw timings and the summary as JSON")
     args = ap.parse_args(argv)
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.quick:
         args.repeats, args.single_steps, args.vector_env_steps = 3, 1_000, 10_000
     if args.repeats < 1 or args.single_steps < 1 or args.vector_env_steps < 1 or min(args.num_envs) < 1:

@@ -58,13 +58,9 @@ def main() -> None:
     ap.add_argument("--period", type=float, default=0.5, help="seconds between samples")
     ap.add_argument("--json", metavar="PATH", help="also write the figures")
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if not Path("/proc/self/status").exists():
         sys.exit("bench_memory needs Linux's /proc")
     with tempfile.TemporaryDirectory(prefix="wl_bench_memory_") as tmp:

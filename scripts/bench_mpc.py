@@ -154,13 +154,9 @@ def main() -> None:
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.rate_sweep:
         return rate_sweep(args.rate_sweep)
     targets = args.targets[:1] if args.quick else args.targets

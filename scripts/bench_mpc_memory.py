@@ -57,22 +57,18 @@ def main() -> None:
     ap.add_argument("--json", metavar="PATH", help="also write the rows")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # (a child: one cycle, JSON on stdout)
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     from wl_env.env import check_target_time
 
     try:  # (checked here, not in the child processes: a NaN was their CalledProcessError, a traceback)
         if args.target_time is not None:
-            check_target_time(args.target_time)
+            check_target_time(args.target_time, "--target-time")
         if not 2 <= args.horizon_steps <= 1000 and not (args.one and args.horizon_steps == 0):
             raise ValueError(f"--horizon-steps must be an integer in [2, 1000], got {args.horizon_steps}")
     except ValueError as exc:
-        ap.error(str(exc).replace("target_time", "--target-time", 1))
+        ap.error(str(exc))
     if args.one:
         h = args.horizon_steps or None
         print(json.dumps(one_cycle(args.braking[0], args.target_time, h, args.horizon_solver)))

@@ -107,13 +107,9 @@ def main() -> None:
     ap.add_argument("--skip-pareto", action="store_true")
     ap.add_argument("--pareto-only", action="store_true", help="time the Pareto sweeps only")
     args = ap.parse_args()
-    if args.json is not None:  # (checked now: it was written only at the end, after the work)
-        from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_option
 
-        try:
-            check_output_file(args.json, "--json")
-        except ValueError as exc:
-            ap.error(str(exc))
+    check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     single = [] if args.pareto_only else single_solves(args.repeats)
     full = [] if args.pareto_only else full_solves(max(1, args.repeats // 2))
     pareto, points = ([], {}) if args.skip_pareto else pareto_sweeps(args.pareto_repeats)

@@ -56,9 +56,9 @@ def main() -> None:
     from wl_env.env import check_target_time
 
     try:
-        check_target_time(args.target)
+        check_target_time(args.target, "--target")
     except ValueError as exc:
-        ap.error(str(exc).replace("target_time", "--target", 1))
+        ap.error(str(exc))
     kept = capture(args.braking, args.target, args.solves)
     if not kept:
         sys.exit("no warm-started solve from phase 1 was captured")

@@ -19,7 +19,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repo, if not installed
 
 from wl_env import cycle  # noqa: E402
-from wl_env.atomic_io import check_output_folder  # noqa: E402
+from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.env import WheelLoaderEnv  # noqa: E402
 from wl_env.rendering import MAX_FPS, MIN_FPS, check_fps, mp4_available, save_animation  # noqa: E402
 
@@ -49,9 +49,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                  "or write a .gif (Pillow) instead")
     try:  # (before the run: inf wrote a GIF without delays, 1e-300 failed after the whole rendering)
         check_fps(args.fps, "--fps")
-        if os.path.isdir(args.out):
-            raise ValueError(f"--out {args.out} is a folder; give a file name")
-        check_output_folder(os.path.dirname(args.out) or ".", f"--out {args.out}")
+        check_output_file(args.out, "--out")
     except ValueError as exc:
         ap.error(str(exc))
     if args.max_steps is not None and args.max_steps < 0:

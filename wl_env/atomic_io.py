@@ -80,6 +80,15 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     return Path(path)
 
 
+def check_output_option(parser: Any, path: str | os.PathLike | None, option: str) -> None:
+    """:func:`check_output_file` for a script's option (None: not given), as its ``parser.error``: one line, exit 2."""
+    if path is not None:
+        try:
+            check_output_file(path, option)
+        except ValueError as exc:
+            parser.error(str(exc))
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     """Write ``data`` (text as UTF-8) to ``path`` atomically; returns the path."""
     with atomic_path(path) as tmp:

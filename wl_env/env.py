@@ -114,12 +114,13 @@ def n_actions(assist: bool, coast: bool) -> int:
 MIN_TARGET_TIME = 1.0  # s: far below any cycle (its lateness then stays finite; a target of 5e-324 s made it inf)
 
 
-def check_target_time(target_time: Any) -> float:
-    """A target cycle time in [1, 40) s (the episode ends at 40 s), as a float; ValueError naming it otherwise."""
+def check_target_time(target_time: Any, name: str = "target_time") -> float:
+    """A target cycle time in [1, 40) s (the episode ends at 40 s), as a float; ValueError naming it (``name``)
+    otherwise."""
     target_time = plain(target_time)
     if not (isinstance(target_time, (int, float)) and not isinstance(target_time, bool) and is_finite(target_time)
             and MIN_TARGET_TIME <= target_time < TIME_SCALE):
-        raise ValueError(f"target_time must lie in [{MIN_TARGET_TIME:g}, {TIME_SCALE:g}) s (the episode ends at "
+        raise ValueError(f"{name} must lie in [{MIN_TARGET_TIME:g}, {TIME_SCALE:g}) s (the episode ends at "
                          f"{TIME_SCALE:g} s; the shortest cycle of the scenario ranges takes ~5.7 s), "
                          f"got {shown(target_time)}")
     return float(target_time)
