@@ -34,7 +34,7 @@ MODES = ("chain", "cold", "ray")
 class Options:
     scenarios: int = 6  # scenarios per braking alternative
     points: int = 10  # points per front
-    modes: tuple[str, ...] = ("chain", "cold", "ray")  # which solves to time
+    modes: tuple[str, ...] = MODES  # which solves to time
     out: str = "results/bench_suite.json"
 
     def __post_init__(self) -> None:

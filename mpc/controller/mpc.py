@@ -281,8 +281,7 @@ class MPCConfig:
         if not (real(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
             raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {shown(self.omega_margin)}")
         if self.horizon_steps is not None:
-            if not (isinstance(self.horizon_steps, int) and not isinstance(self.horizon_steps, bool)
-                    and 2 <= self.horizon_steps <= 1000):
+            if not count(self.horizon_steps, 2, 1000):
                 raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {shown(self.horizon_steps)}")
             if self.realtime or self.deadline_ms is not None:
                 raise ValueError("horizon_steps is synchronous only: not with realtime or deadline_ms")
@@ -291,8 +290,7 @@ class MPCConfig:
         if self.horizon_solver != "ipopt" and self.horizon_steps is None:
             raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps")
         if self.replan_lag_steps is not None:
-            if not (isinstance(self.replan_lag_steps, int) and not isinstance(self.replan_lag_steps, bool)
-                    and 1 <= self.replan_lag_steps <= 100):
+            if not count(self.replan_lag_steps, 1, 100):
                 raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {shown(self.replan_lag_steps)}")
             if self.horizon_steps is None:
                 raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps")
