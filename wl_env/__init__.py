@@ -1,7 +1,7 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
-``import wl_env`` registers ``WheelLoaderTarget-v5`` (v4 whose assist keeps an idling engine clear of a stall
-under the lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
+``import wl_env`` registers ``WheelLoaderTarget-v6`` (v5 whose TC lift-off loads the engine with a full lift),
+``WheelLoaderTarget-v5`` (v4 whose assist keeps an idling engine clear of a stall under the lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
 its mark moves on, the lift reaches the dump height, and with TC braking the shift into forward gear keeps the
 deceleration limit), ``WheelLoaderTarget-v3`` (v2 whose driver may also end a leg early: the
 machine coasts in neutral and the assist brakes late), ``WheelLoaderTarget-v2`` (v1 driven through a stopping assist: the driver
@@ -22,6 +22,9 @@ __version__ = "0.2.0"
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
+    # v5 whose TC lift-off loads the engine with a full lift whatever the bucket's speed (wl_env.assist)
+    "WheelLoaderTarget-v6": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
+                             "assist": True, "coast": True, "guards": True, "lift_floor": True, "lift_off_load": True},
     # v4 with the lift's engine floor (wl_env.assist: an idling engine stalled under the lift)
     "WheelLoaderTarget-v5": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
                              "assist": True, "coast": True, "guards": True, "lift_floor": True},

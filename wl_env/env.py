@@ -84,15 +84,19 @@ def check_target_ratios(target: Any, name: str = "target") -> tuple[float, float
     return float(lo), float(hi)
 
 
-def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any = False, lift_floor: Any = False) -> bool:
+def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any = False, lift_floor: Any = False,
+                 lift_off_load: Any = False) -> bool:
     """The driving assist (:mod:`wl_env.assist`) drives through the engine-speed governor; its coasting
-    variant (``coast``, WheelLoaderTarget-v3), its guards (``guards``, v4) and the lift's engine floor
-    (``lift_floor``, v5) need it."""
-    for name, v in (("assist", assist), ("coast", coast), ("guards", guards), ("lift_floor", lift_floor)):
+    variant (``coast``, WheelLoaderTarget-v3), its guards (``guards``, v4), the lift's engine floor
+    (``lift_floor``, v5) and the lift-off's full load (``lift_off_load``, v6: a variant of the guards) need it."""
+    flags = (("coast", coast), ("guards", guards), ("lift_floor", lift_floor), ("lift_off_load", lift_off_load))
+    for name, v in (("assist", assist), *flags):
         check_flag(name, v)
-    for name, v in (("coast", coast), ("guards", guards), ("lift_floor", lift_floor)):
+    for name, v in flags:
         if v and not assist:
             raise ValueError(f"{name}=True needs assist=True (it is a variant of the stopping assist)")
+    if lift_off_load and not guards:
+        raise ValueError("lift_off_load=True needs guards=True (it widens the guards' TC lift)")
     if assist and fuel_action != "engine_speed":
         raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
                          f"got fuel_action={fuel_action!r}")
@@ -245,6 +249,10 @@ class WheelLoaderEnv(gym.Env):
     least 1.3 omega_min (``wl_env.assist.LIFT_ENGINE_FLOOR``; the TC metering aside): the lift's load rises within
     a step faster than the governor meters, and stalled idling engines under the lift.
 
+    WheelLoaderTarget-v6 (``lift_off_load=True`` as well): v5, and with TC braking the guards' lift loads an engine
+    above its metered speed at full acceleration through the lift-off and the braking whatever the bucket's
+    speed (v4 and v5: only a bucket slower than 0.1 m/s). The same as v5 with service braking.
+
     WheelLoaderTarget-v1 (``fuel_action="engine_speed"``): action 0 is an engine-speed request to the
     engine's governor, -1 at omega_min + 5 rad/s, +1 at omega_max. The governor injects what takes the
     engine to the request within the interval under the load at its start (the model inverted in U_mf,
@@ -309,6 +317,9 @@ class WheelLoaderEnv(gym.Env):
 
     ## Version History
 
+    * WheelLoaderTarget-v6: v5 with the lift-off's full load (``lift_off_load``). On 200 fresh `train` draws at
+      T_min a TC driver trained on v5 met the shift into forward gear with its engine high and broke the
+      deceleration limit at 5 (by up to 20 %).
     * WheelLoaderTarget-v5: v4 with the lift's engine floor (``lift_floor``). At the 128 corners of the scenario
       ranges v4's shipped service drivers stalled the engine under the last lift at 5 (1.5 T_min).
     * WheelLoaderTarget-v4: v3 with the assist's guards (``guards``): the creep floor, the last lift and, with TC
@@ -352,9 +363,10 @@ class WheelLoaderEnv(gym.Env):
         coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
         guards: bool = False,  # WheelLoaderTarget-v4: the assist's guards (creep floor, last lift, TC lift timing)
         lift_floor: bool = False,  # WheelLoaderTarget-v5: the engine-speed floor under a lifting bucket
+        lift_off_load: bool = False,  # WheelLoaderTarget-v6: the TC lift-off loads the engine with a full lift
     ) -> None:
-        self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor)
-        self.coast, self.guards, self.lift_floor = coast, guards, lift_floor
+        self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor, lift_off_load)
+        self.coast, self.guards, self.lift_floor, self.lift_off_load = coast, guards, lift_floor, lift_off_load
         self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = check_flag("observe_target", observe_target)
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
@@ -468,7 +480,7 @@ class WheelLoaderEnv(gym.Env):
             y, phase = self._y, self._phase
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
                                                         self.params, self.braking, self.core.dt, self.coast,
-                                                        self.guards, self.lift_floor)]
+                                                        self.guards, self.lift_floor, self.lift_off_load)]
         t0 = self._t
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
         self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
