@@ -142,6 +142,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
             raise ValueError(f"{flag} acts on the short horizons: give --horizon-steps")
     rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "horizon_steps": args.horizon_steps,
           "horizon_solver": args.horizon_solver, "replan_lag_steps": args.replan_lag_steps,
+          "safety_filter": not args.no_safety_filter,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
@@ -178,7 +179,8 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
             + (f"{st['fallbacks']} steps on an overdue plan (the worker's solves: median "
                f"{1e3 * st['background_median_s']:.1f} ms, max {1e3 * st['background_max_s']:.0f} ms)" if config.realtime
                else f"{st['fallbacks']} fallbacks ({st['deadline_misses']} past the deadline)")
-            + (f", {st['replans']} steps planned the whole cycle again" if config.horizon_steps else ""))
+            + (f", {st['replans']} steps planned the whole cycle again" if config.horizon_steps else "")
+            + (f", {st['safety_eased']} controls eased by the safety filter" if config.safety_filter else ""))
     if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
     print(line + f" -> {args.out}")
@@ -467,6 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--replan-lag-steps", type=_int_in(1, 100), metavar="N",
                    help="a short horizon's re-plans (the plant estimate moved) run beside it on a worker thread and "
                    "take over N steps later, N in [1, 100] (default: the step that needs one solves it); needs --horizon-steps")
+    p.add_argument("--no-safety-filter", action="store_true", help="apply the plans' controls as they are (default: "
+                   "a control whose next step the model predicts over the deceleration or speed limit is eased)")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),
                    help="control-rate penalty on U_mf and U_ab (default: MPCConfig's, 0.1 0.1)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides (the MPC's model and the plant)")

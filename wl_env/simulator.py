@@ -84,17 +84,25 @@ class Simulator(Flattened):
             return self._flattened()[1](y, u, gear, d, h)
         return self._advance(y, u, gear, d, h)
 
-    def _advance(self, y: State, u: tuple[Any, Any, Any], gear: Any, d: Any, h: Any) -> tuple[State, dict[str, Any]]:
-        y1, stages, held = step.rk4(y, u, gear, d, h, self.params)
-        return y1, self._excess(stages, y1, u, gear, d, held)
+    def _advance(self, y: State, u: tuple[Any, Any, Any], gear: Any, d: Any, h: Any,
+                 est: Any = None) -> tuple[State, dict[str, Any]]:
+        y1, stages, held = step.rk4(y, u, gear, d, h, self.params, est)
+        return y1, self._excess(stages, y1, u, gear, d, held, est)
 
-    def substep(self, y: State, phase: Any, u: tuple[Any, Any, Any], h: float) -> tuple[State, Any, Any, dict[str, Any]]:
+    def substep(self, y: State, phase: Any, u: tuple[Any, Any, Any], h: float,
+                est: Any = None) -> tuple[State, Any, Any, dict[str, Any]]:
         """Advance h seconds with the effective controls u held.
 
         Returns (state, phase, position of the reversing point if it was reached in the substep or NaN,
         the relative excess over each limit within the substep, :func:`wl_env.step.within_step_excess`).
+        ``est`` (one loader): a planner's plant estimate [accel offset, accel gain, lift gain] on the model's
+        derivatives (:func:`wl_env.model.estimated_derivatives`), e.g. the MPC's prediction of a step.
         """
         gear, d, _ = self.phase_constants(phase)
+        if est is not None:  # (the flattened code has no estimate: the general path)
+            y1, excess = self._advance(y, u, gear, d, h, est)
+            crossed = (d * y[1] > 0.0) and (d * y1[1] < 0.0)
+            return self._cut(y, y1, phase, u, h, est) if crossed else (y1, phase, math.nan, excess)
         y1, excess = self.advance(y, u, gear, d, h)
         crossed = (d * y[1] > 0.0) & (d * y1[1] < 0.0)
         if isinstance(crossed, np.ndarray):
@@ -130,12 +138,14 @@ class Simulator(Flattened):
         sub.params = ParamsView(p.base, **{k: (v[idx] if np.ndim(v) else v) for k, v in p.values.items()})
         return sub
 
-    def _excess(self, stages: list, y1: State, u: tuple, gear: Any, d: Any, held: Any) -> dict[str, Any]:
+    def _excess(self, stages: list, y1: State, u: tuple, gear: Any, d: Any, held: Any,
+                est: Any = None) -> dict[str, Any]:
         """The limits within a substep: at its RK4 stages and its end (the control still held)."""
-        end_rate = step.rhs(y1, u, gear, d, self.params, held=held)
+        end_rate = step.rhs(y1, u, gear, d, self.params, est, held=held)
         return step.within_step_excess(step.driver_limit_points(stages, y1, end_rate), d, self.params)
 
-    def _cut(self, y0: State, y1: State, phase: Any, u: tuple, h: float) -> tuple[State, Any, Any, dict[str, Any]]:
+    def _cut(self, y0: State, y1: State, phase: Any, u: tuple, h: float,
+             est: Any = None) -> tuple[State, Any, Any, dict[str, Any]]:
         """The speed crossed zero within the substep: stop exactly at V = 0, then finish the substep."""
         p = self.params
         ops = ops_for(y0[0])
@@ -145,9 +155,10 @@ class Simulator(Flattened):
         if isinstance(after, np.ndarray):
             after = after.astype(np.int64)
         rest_gear, rest_d, rest_brake = self.phase_constants(after)
-        rest, ys, stop_stages, rest_stages, held = step.cut_substep(y0, y1, u, gear, d, h, p, rest_gear, rest_d, rest_brake)
+        rest, ys, stop_stages, rest_stages, held = step.cut_substep(y0, y1, u, gear, d, h, p, rest_gear, rest_d, rest_brake,
+                                                                   est)
         s_rev = ops.where(at_reversal, ys[4], math.nan)
         # up to the stop, the stop itself (the converter's drag peaks at standstill), then the rest
-        excess = self._excess(stop_stages, ys, u, gear, d, 0.0)
-        rest_excess = self._excess(rest_stages, rest, (u[0], u[1], u[2] * rest_brake), rest_gear, rest_d, held)
+        excess = self._excess(stop_stages, ys, u, gear, d, 0.0, est)
+        rest_excess = self._excess(rest_stages, rest, (u[0], u[1], u[2] * rest_brake), rest_gear, rest_d, held, est)
         return rest, after, s_rev, limits.worst(excess, rest_excess)

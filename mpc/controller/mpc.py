@@ -40,6 +40,7 @@ import numpy as np
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
+from mpc.controller.safety import SHIFT_LOOKAHEAD, SafetyFilter
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
     EXCESS_TOL,
@@ -238,6 +239,10 @@ class MPCConfig:
     # state, the same schedule) and becomes their reference N steps later (the step waits for it if it is
     # not done yet: so the run does not depend on the machine's speed). Needs horizon_steps.
     replan_lag_steps: int | None = None
+    # The one-step safety filter on every applied control (mpc.controller.safety): a step the model, under the
+    # plant estimate, predicts over the deceleration or speed limit has its brake, then its injection, eased.
+    # It acts on controls from plans older than the state (real time, deadlines, fallbacks under model error).
+    safety_filter: bool = True
 
     def __post_init__(self) -> None:
         def real(v: Any) -> bool:  # (no bools, strings, NaN or an int too large for a float for a number)
@@ -263,8 +268,9 @@ class MPCConfig:
             raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {shown(self.target_time)}")
         if self.deadline_ms is not None and not (real(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {shown(self.deadline_ms)}")
-        if not isinstance(self.realtime, bool):
-            raise ValueError(f"realtime must be True or False, got {shown(self.realtime)}")
+        for name in ("realtime", "safety_filter"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {shown(getattr(self, name))}")
         if self.realtime and self.deadline_ms is not None:
             raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
         if self.time_budget is not None and not (real(self.time_budget) and self.time_budget > 0):
@@ -339,6 +345,7 @@ class MPCController:
         self._replan: ReplanJob | None = None  # replan_lag_steps: the re-plan running on the worker
         self._made_with = self.config  # reset(target_time=...) sets a cycle's target on top of it
         self.estimator = ModelErrorEstimator(self.model, self.dt)
+        self.safety = SafetyFilter(self.params, self.braking, self.dt)
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
         self.reset()
 
@@ -367,6 +374,7 @@ class MPCController:
                 self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))
                 self.codec = Codec(params)
                 self.estimator = ModelErrorEstimator(self.model, self.dt)
+                self.safety = SafetyFilter(params, self.braking, self.dt)
         self._sol: Solve | None = None  # the last good solve (its z is the plan, shifted by the counts)
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
@@ -377,6 +385,7 @@ class MPCController:
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self.estimator.reset()
+        self.safety.reset()
         self.schedule.reset()
         self.solve_times: list[float] = []  # per step: the time to its control (realtime: the foreground's)
         self.worker_solve_times: list[float] = []  # realtime: each worker job's solves, plan and move (s)
@@ -385,6 +394,7 @@ class MPCController:
         self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
         self.fallbacks = 0
         self.deadline_misses = 0
+        self.safety_eased = 0  # steps whose control the safety filter eased
         self._estimate_before: np.ndarray | None = None  # the plant estimate at the last step's staleness check
         self.replans = 0  # horizon_steps: steps after the first that solved the whole rest of the cycle
         self.planning_time = 0.0
@@ -412,6 +422,20 @@ class MPCController:
                 self.estimator.update(*self._last, x, phase)
         self._track_prediction_error(x, t)
         u, shift, info = self.control(x, t, phase)
+        if self.config.safety_filter:
+            t0 = time.perf_counter()
+            self.safety.observe(x, phase)
+            stale = bool(info.get("fallback")) or info.get("plan_age", 0) > 0  # (not solved from this state)
+            filtered = self.safety(x, phase + 1 if shift else phase, u, self.estimator.estimate,
+                                   None if shift else self._shift_ahead(phase), stale)
+            u = filtered.control
+            self.safety_eased += bool(filtered.eased)
+            info["safety"] = {"eased": filtered.eased, "excess_before": filtered.excess_before,
+                              "excess_after": filtered.excess_after}
+            spent = time.perf_counter() - t0  # (the step's time to its control includes the filter's)
+            info["solve_time"] += spent
+            if info["status"] != "terminal":
+                self.solve_times[-1] += spent
         self._last = (x, phase + 1 if shift else phase, u)
         self._obs_phase = phase
         theta = self.estimator.theta
@@ -419,6 +443,18 @@ class MPCController:
         info["lift_gain"] = float(self.estimator.lift_gain)
         self.last_info = info
         return self.action(u, shift)
+
+    def _shift_ahead(self, phase: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The plan's controls after the step applied now up to its shift into a phase the converter brakes
+        (TC braking: phase 1 into 2), and the shift's control, if it comes within SHIFT_LOOKAHEAD steps."""
+        plan, i = self._plan, self._plan_index
+        if self.braking != "tc" or phase != 1 or plan is None or i is None:
+            return None
+        later = np.flatnonzero(np.asarray(plan["phase"][i + 1:i + 1 + SHIFT_LOOKAHEAD]) > phase)
+        if later.size == 0:
+            return None
+        j = i + 1 + int(later[0])
+        return np.asarray(plan["controls"][i + 1:j], dtype=float).reshape(-1, 3), np.asarray(plan["controls"][j], dtype=float)
 
     def planned_steps(self) -> dict[str, np.ndarray] | None:
         """The plan the last :meth:`act` applied, from the step it applied on: per step its ``phase``, ``stop``
@@ -1241,7 +1277,7 @@ class MPCController:
                 "p99_s": float(np.percentile(st, 99)), "max_s": float(st.max()),
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
                 "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time),
-                "replans": int(self.replans),
+                "replans": int(self.replans), "safety_eased": int(self.safety_eased),
                 # realtime: the worker's solves per step (plan and schedule move), and how old the plans applied were
                 "background_median_s": float(np.median(bg)), "background_p99_s": float(np.percentile(bg, 99)),
                 "background_max_s": float(bg.max()), "plan_age_max": int(max(self.plan_ages, default=0))}

@@ -1,0 +1,129 @@
+"""The MPC's one-step safety filter (mpc.controller.safety): a control within the limits passes unchanged, one
+over them is eased by the right control (the brake, then the injection), an engine about to stall gets fuel,
+and a plan applied open loop to a mismatched plant keeps the limits through it. The simulator's plant-estimate
+input it predicts with is checked against the environment's own step."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import wl_env  # noqa: F401  (registers the env)
+from mpc.controller.mpc import MPCConfig, MPCController
+from mpc.controller.safety import FILTER_TOL, STALL_MARGIN, SafetyFilter
+from mpc.controller.solver import IpoptSolver, SolverResult
+from wl_env.params import DEFAULT_PARAMS as P
+from wl_env.simulator import Simulator
+
+NOMINAL_ESTIMATE = np.array([0.0, 1.0, 1.0])  # [accel offset, accel gain, lift gain]: the model as it is
+
+states = st.tuples(st.floats(60.0, 230.0), st.floats(-3.0, 3.0), st.floats(0.5, 5.0), st.floats(0.0, 1.0))
+controls = st.tuples(st.floats(0.0, 260.0), st.floats(-2.5, 2.5), st.floats(0.0, P.U_b_max))
+
+
+@settings(max_examples=200, deadline=None)
+@given(braking=st.sampled_from(["service", "tc"]), phase=st.integers(1, 4), state=states, u=controls)
+def test_the_simulator_with_the_nominal_estimate_steps_as_without_one(braking, phase, state, u):
+    """The estimate's path (unflattened) and the environment's (flattened) give the same step, its stop cut and
+    its limits' excess; a lighter-looking plant (gain 1.25) moves the speed."""
+    sim = Simulator(P, braking)
+    y = (*state, -3.0, 0.0)
+    ue = sim.effective_controls(y, phase, *u, 0.1)[:3]
+    plain, est = sim.substep(y, phase, ue, 0.1), sim.substep(y, phase, ue, 0.1, est=NOMINAL_ESTIMATE)
+    np.testing.assert_allclose(est[0], plain[0], rtol=1e-9, atol=1e-9)
+    assert est[1] == plain[1]
+    assert (math.isnan(est[2]) and math.isnan(plain[2])) or est[2] == pytest.approx(plain[2], abs=1e-9)
+    for name in plain[3]:
+        assert est[3][name] == pytest.approx(plain[3][name], abs=1e-9)
+
+
+@settings(max_examples=150, deadline=None)
+@given(braking=st.sampled_from(["service", "tc"]), phase=st.integers(1, 4), state=states, u=controls)
+def test_the_filter_only_eases_and_only_where_it_helps(braking, phase, state, u):
+    """Any state and control: the bucket untouched; brake and injection never raised but for a stall; a control
+    the model keeps within the limits passes unchanged; an eased one is predicted further inside than before."""
+    f = SafetyFilter(P, braking, 0.1)
+    x, u = np.array([*state, -3.0]), np.array(u)
+    out = f(x, phase, u, NOMINAL_ESTIMATE)
+    assert out.control[1] == u[1]
+    if out.eased == "":
+        np.testing.assert_array_equal(out.control, u)
+        assert out.excess_before <= FILTER_TOL or out.excess_after == out.excess_before
+    elif "stall" in out.eased:
+        assert out.control[0] > u[0] and out.control[2] == u[2]
+    else:
+        assert out.control[0] <= u[0] and out.control[2] <= u[2]
+        assert out.excess_after <= out.excess_before
+
+
+def test_the_filter_eases_the_injection_where_the_converter_would_brake_over_the_limit():
+    """TC braking, phase 2 (forward gear, reversing at 1 m/s): at 85 rad/s the converter brakes at ~0.9 of the
+    limit; a full injection speeds the engine up within the step and the drag with it, over the limit. The
+    filter's injection keeps it, on the environment's own step."""
+    f, sim = SafetyFilter(P, "tc", 0.1), Simulator(P, "tc")
+    x, u = np.array([85.0, -1.0, 1.5, 0.3, -5.0]), np.array([200.0, 0.5, 0.0])
+    out = f(x, 2, u, NOMINAL_ESTIMATE)
+    assert out.eased == "U_mf" and out.excess_before > 0.02
+    y = (*x, 0.0)
+    assert sim.substep(y, 2, sim.effective_controls(y, 2, *u, 0.1)[:3], 0.1)[3]["deceleration"] > 0.02
+    assert sim.substep(y, 2, sim.effective_controls(y, 2, *out.control, 0.1)[:3], 0.1)[3]["deceleration"] == 0.0
+    assert 0.0 < out.control[0] < u[0]  # (eased, not cut: the largest injection that keeps the limit)
+
+
+def test_the_filter_eases_the_service_brake_before_the_injection():
+    f = SafetyFilter(P, "service", 0.1)
+    x, u = np.array([100.0, 1.5, 4.0, 0.0, 10.0]), np.array([30.0, 0.0, P.U_b_max])
+    out = f(x, 4, u, NOMINAL_ESTIMATE)
+    assert out.eased == "U_b" and out.excess_before > 0.05 and out.excess_after <= FILTER_TOL
+    assert out.control[0] == u[0] and 0.0 < out.control[2] < u[2]
+
+
+def test_the_filter_fuels_an_engine_about_to_stall():
+    """Reversing in gear on an idling engine with the lift drawing on it: the step would end near omega_min."""
+    f = SafetyFilter(P, "tc", 0.1)
+    x, u = np.array([62.0, -1.7, 1.5, 0.5, -5.0]), np.array([0.0, 2.0, 0.0])
+    sim = f.sim
+    y = (*x, 0.0)
+    assert sim.substep(y, 1, sim.effective_controls(y, 1, *u, 0.1)[:3], 0.1)[0][0] < P.omega_min
+    out = f(x, 1, u, NOMINAL_ESTIMATE)
+    assert out.eased == "U_mf up (stall)"
+    assert sim.substep(y, 1, sim.effective_controls(y, 1, *out.control, 0.1)[:3], 0.1)[0][0] >= P.omega_min + STALL_MARGIN - 1e-6
+
+
+class BlindSolver(IpoptSolver):
+    """IPOPT for the first plan, then every solve fails: the controller applies that plan open loop."""
+
+    blind = False
+
+    def solve(self, *args, **kwargs) -> SolverResult:
+        if self.blind:
+            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
+        return super().solve(*args, **kwargs)
+
+
+def test_a_plan_applied_open_loop_to_a_mismatched_plant_keeps_the_limits():
+    """TC braking, the plant 20 % lighter and rolling 30 % harder than the model, every solve after the first
+    plan failing: the plan's controls run open loop. Without the filter the cycle breaks the deceleration limit
+    by 77 % (its shift meets the converter with the engine too fast; measured); with it, no violation."""
+    plant = P.variant(payload_scale=0.8, rolling_scale=1.3)
+    env = gym.make("WheelLoader-v2", braking="tc", params=plant)
+    solver = BlindSolver()
+    ctrl = MPCController("tc", config=MPCConfig(), solver=solver)
+    obs, _ = env.reset(seed=0)
+    for _ in range(400):
+        action = ctrl.act(obs)
+        solver.blind = True
+        obs, _, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            break
+    assert info["completed"] and not info["stalled"]
+    assert ctrl.fallbacks > 50 and ctrl.safety_eased > 0
+    assert info["violations"]["max_excess"] == 0.0, info["violations"]
+
+
+def test_the_filter_is_a_flag_of_the_config():
+    with pytest.raises(ValueError, match="safety_filter must be True or False"):
+        MPCConfig(safety_filter="yes")
