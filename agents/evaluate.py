@@ -97,7 +97,7 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind:
     path = Path(model).expanduser() if model is not None else default_policy_path(braking, kind)
     if model is None and not path.exists():
         how = {"ppo": f"wl train --braking {braking} --export PATH",
-               "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v5 --scenario train --export PATH",
+               "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v6 --scenario train --export PATH",
                "bc": f"python scripts/train_bc.py --braking {braking} --export PATH"}[kind]
         raise FileNotFoundError(f"no shipped policy at {path} (make one with `{how}`, then pass --model PATH)")
     from agents.ppo import load_policy

@@ -22,13 +22,16 @@ a worker thread (``MPCConfig.replan_lag_steps``), as ``ipopt h10 lag10``.
 per-step time is then the time to the control, and the worker's solves (plan and schedule move, one
 interval ahead) and the oldest plan a step applied are reported beside it.
 
+``--safety-filter both`` runs each also without the one-step safety filter on the applied controls
+(``MPCConfig.safety_filter``, :mod:`mpc.controller.safety`), as ``... no filter``.
+
 The violation column is the environment's own (the driver's limits at every RK4 stage and step end).
 
 Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
-        [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 1000]
+        [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 1000] [--safety-filter both]
 """
 
 from __future__ import annotations
@@ -150,6 +153,8 @@ def main() -> None:
                     "worker, due N steps later (MPCConfig.replan_lag_steps), as '... h10 lag10'")
     ap.add_argument("--terminal-weight", type=float, default=MPCConfig.terminal_weight,
                     help="MPCConfig.terminal_weight of the short-horizon runs")
+    ap.add_argument("--safety-filter", choices=["on", "off", "both"], default="on",
+                    help="MPCConfig.safety_filter (the one-step filter on the applied controls): on, off, or both side by side")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
@@ -171,19 +176,21 @@ def main() -> None:
     if args.horizons and args.deadline_ms is not None:
         ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
-    variants = [(solver, rt, None, None) for solver in args.solvers for rt in realtime
+    filters = {"on": [True], "off": [False], "both": [True, False]}[args.safety_filter]
+    variants = [(solver, rt, None, None, f) for solver in args.solvers for rt in realtime for f in filters
                 if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
-    variants += [(solver, False, h, lag) for solver in args.solvers for h in args.horizons
-                 for lag in [None] + ([args.replan_lag] if args.replan_lag else [])]
+    variants += [(solver, False, h, lag, f) for solver in args.solvers for h in args.horizons
+                 for lag in [None] + ([args.replan_lag] if args.replan_lag else []) for f in filters]
     if not variants:
         ap.error("no run: a short-horizon candidate (ipopt+sqp-rti) runs only with --horizons")
-    for solver, rt, horizon, lag in variants:
-        name = (f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}") + (f" lag{lag}" if lag else "")
+    for solver, rt, horizon, lag, safety in variants:
+        name = ((f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}")
+                + (f" lag{lag}" if lag else "") + ("" if safety else " no filter"))
         for b in args.braking:
             for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
                 print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
                 config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
-                                             replan_lag_steps=lag)
+                                             replan_lag_steps=lag, safety_filter=safety)
                 row = closed_loop(b, config, solver, label, **kw)
                 rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon, "replan_lag_steps": lag})
 
@@ -213,6 +220,8 @@ def main() -> None:
         if any(r.get("horizon_steps") for r in rows if r["solver"] == solver):
             print(f"[{solver}] steps that planned the whole cycle again (the plant estimate moved, or the horizon "
                   f"missed a target): {sum(r['solve_time']['replans'] for r in rows if r['solver'] == solver)}")
+        eased = [r["solve_time"]["safety_eased"] for r in rows if r["solver"] == solver]
+        print(f"[{solver}] controls the safety filter eased: {sum(eased)} (in {sum(e > 0 for e in eased)} runs)")
         handed = sum(r["handed_over"] for r in rows if r["solver"] == solver)
         if handed:
             print(f"[{solver}] solves the candidate failed and IPOPT took: {handed}")

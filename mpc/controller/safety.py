@@ -25,8 +25,8 @@ left too fast cannot be slowed within that step, so the filter also looks ahead 
 controls up to its shift (at most ``SHIFT_LOOKAHEAD`` steps away) would bring the machine there with an engine
 at which even an unfuelled shift breaks the limit, this step's injection is cut to the least that keeps the
 engine running. A control that keeps the limits passes unchanged, and an easing that would not help (less
-injection in a driven phase can let the converter brake harder) is not applied, so a fresh plan (which keeps them to the solver's tolerance under the same estimate)
-is applied as solved.
+injection in a driven phase can let the converter brake harder) is not applied, so a fresh plan (which keeps
+them to the solver's tolerance under the same estimate) is applied as solved.
 """
 
 from __future__ import annotations
@@ -98,6 +98,7 @@ class SafetyFilter:
         return min(MARGIN_STEP * np.ceil(m / MARGIN_STEP - 1e-9), 0.2)
 
     def _within(self, margin: float) -> Simulator:
+        margin = round(margin, 6)  # (sums of MARGIN_STEP: one simulator each)
         sim = self._inside.get(margin)
         if sim is None:
             p, inside = self.sim.params, 1.0 - margin
@@ -105,26 +106,23 @@ class SafetyFilter:
                                                    self.braking)
         return sim
 
-    def excess(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray, margin: float = 0.0) -> float:
-        """The relative excess (0: within) over the deceleration and speed limits of one control step from
-        x = [omega, V, H, V_b, s] in ``phase`` under the commanded control u, the plant estimate ``est``
-        ([accel offset, accel gain, lift gain]) on the model; ``margin``: over the limits that fraction inside
-        (EASE_MARGIN or STALE_MARGIN)."""
+    def _step(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
+              margin: float = 0.0) -> tuple[tuple, int, float]:
+        """One control step from x = [omega, V, H, V_b, s] in ``phase`` under the commanded control u, the plant
+        estimate ``est`` ([accel offset, accel gain, lift gain]) on the model: the end state, its phase and the
+        relative excess (0: within) over the deceleration and speed limits (``margin``: that fraction inside)."""
         sim = self._within(margin) if margin else self.sim
         y = (float(x[0]), float(x[1]), float(x[2]), float(x[3]), float(x[4]), 0.0)
-        ex = sim.substep(y, phase, self._applied(sim, y, phase, u), self.dt, est=np.asarray(est, dtype=float))[3]
-        return float(max(ex["deceleration"], ex["speed"]))
-
-    def _applied(self, sim: Simulator, y: tuple, phase: int, u: np.ndarray) -> tuple[float, float, float]:
-        """The controls the machine applies for u (:func:`wl_env.step.effective_controls`; not the simulator's
-        flattened copy of it, which a new scenario would build first: 20-90 ms, measured)."""
         gear, _, brake = sim.phase_constants(phase)
-        return step.effective_controls(y, gear, brake, float(u[0]), float(u[1]), float(u[2]), self.dt, sim.params)[:3]
+        # (wl_env.step's effective controls, not the simulator's flattened copy: a new scenario builds that first,
+        # 20-90 ms, measured)
+        applied = step.effective_controls(y, gear, brake, float(u[0]), float(u[1]), float(u[2]), self.dt, sim.params)[:3]
+        y1, after, _, ex = sim.substep(y, phase, applied, self.dt, est=np.asarray(est, dtype=float))
+        return y1, int(after), float(max(ex["deceleration"], ex["speed"]))
 
-    def _engine_speed_after(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray) -> float:
-        y = (float(x[0]), float(x[1]), float(x[2]), float(x[3]), float(x[4]), 0.0)
-        return float(self.sim.substep(y, phase, self._applied(self.sim, y, phase, u), self.dt,
-                                      est=np.asarray(est, dtype=float))[0][0])
+    def excess(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray, margin: float = 0.0) -> float:
+        """The relative excess (0: within) over the deceleration and speed limits of the step (:meth:`_step`)."""
+        return self._step(x, phase, u, est, margin)[2]
 
     def _least_injection(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
                          most: float | None = None) -> float:
@@ -133,28 +131,31 @@ class SafetyFilter:
         floor = self.sim.params.omega_min + STALL_MARGIN
         lo, hi = 0.0, float(u[0] if most is None else most)
         trial = u.copy()
-        trial[0] = lo
-        if self._engine_speed_after(x, phase, trial, est) >= floor:
+
+        def runs(u_mf: float) -> bool:
+            trial[0] = u_mf
+            return self._step(x, phase, trial, est)[0][0] >= floor
+
+        if runs(lo):
             return lo
-        trial[0] = hi
-        if self._engine_speed_after(x, phase, trial, est) < floor:
+        if not runs(hi):
             return hi
         for _ in range(BISECTIONS):
-            trial[0] = 0.5 * (lo + hi)
-            lo, hi = (lo, trial[0]) if self._engine_speed_after(x, phase, trial, est) >= floor else (trial[0], hi)
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if runs(mid) else (mid, hi)
         return hi
 
     def shift_excess(self, x: np.ndarray, phase: int, controls: np.ndarray, at_shift: np.ndarray,
                      est: np.ndarray) -> float:
         """The least relative excess the shift out of ``phase`` can have when it comes: ``controls`` (one row
         per step before the shift) applied from x, then the shift's step ``at_shift`` with no injection."""
-        y = (float(x[0]), float(x[1]), float(x[2]), float(x[3]), float(x[4]), 0.0)
-        est = np.asarray(est, dtype=float)
+        y = np.asarray(x, dtype=float)
         for u in controls:
-            y, after, _, _ = self.sim.substep(y, phase, self._applied(self.sim, y, phase, u), self.dt, est=est)
+            y1, after, _ = self._step(y, phase, u, est)
             if after != phase:  # (the leg ended on its own: no shift to come)
                 return 0.0
-        return self.excess(np.array(y[:5]), phase + 1, np.array([0.0, at_shift[1], at_shift[2]]), est)
+            y = np.array(y1[:5])
+        return self.excess(y, phase + 1, np.array([0.0, at_shift[1], at_shift[2]]), est)
 
     def __call__(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
                  ahead: tuple[np.ndarray, np.ndarray] | None = None, stale: bool = False) -> Filtered:
@@ -162,28 +163,28 @@ class SafetyFilter:
         would break a limit (module doc). ``ahead``: the plan's controls after this step up to a shift into a
         phase braked by the converter, and the shift's own; where that shift would break the limit even
         unfuelled, this step's injection is cut (module doc). ``stale``: u comes from a plan made before this
-        state (real time, a fallback): eased where it comes within STALE_MARGIN of the limits."""
-        u = np.array(u, dtype=float)
-        fueled = ""
-        if self._engine_speed_after(x, phase, u, est) < self.sim.params.omega_min + STALL_GUARD:
-            # an engine about to stall (a plan for a lighter machine): the least injection that keeps it running
+        state (real time, a fallback): eased where it comes within ``stale_margin`` of the limits."""
+        original = np.array(u, dtype=float)
+        u = original.copy()
+        y1, after, before = self._step(x, phase, u, est)
+        if y1[0] < self.sim.params.omega_min + STALL_GUARD:
+            # an engine about to stall (a plan for a lighter machine): the least injection that keeps it running;
+            # a stall ends the cycle, so this fuel is not eased for the limits
             least = self._least_injection(x, phase, u, est, most=self.sim.params.U_mf_max)
             if least > u[0]:
-                u[0], fueled = least, "U_mf up (stall)"
-        before = self.excess(x, phase, u, est)
-        if ahead is not None and u[0] > 0.0 and not fueled:
+                u[0] = least
+                return self._keep(x, phase, u, est, before, "U_mf up (stall)")
+        if ahead is not None and u[0] > 0.0:
             later = self.shift_excess(x, phase, np.vstack([u, ahead[0]]), ahead[1], est)
             least = self._least_injection(x, phase, u, est) if later > FILTER_TOL else u[0]
             if least < u[0]:
                 u[0] = least
-                return self._predict(x, phase, u, est, Filtered(u, later, self.excess(x, phase, u, est),
-                                                                "U_mf (the shift ahead)"))
+                return self._keep(x, phase, u, est, later, "U_mf (the shift ahead)")
         decide = self.stale_margin if stale else 0.0
         ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN
-        over = self.excess(x, phase, u, est, decide) > 0.0 if stale else before > FILTER_TOL
-        if not over or fueled:  # (a stall ends the cycle: its fuel is not eased for the limits)
-            return self._predict(x, phase, u, est, Filtered(u, before, before, fueled))
-        original = u.copy()
+        if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > FILTER_TOL):
+            self._predicted = (after, float(y1[1]))
+            return Filtered(u, before, before, "")
         _, _, brake_allowed = self.sim.phase_constants(phase)
         eased, inside = [], self.excess(x, phase, u, est, ease)
         for i, name in ((2, "U_b"), (0, "U_mf")):
@@ -199,20 +200,18 @@ class SafetyFilter:
             inside = self.excess(x, phase, u, est, ease)
             if inside > 0.0:  # not enough alone: this one off, the next one too
                 continue
-            for _ in range(BISECTIONS):  # the largest value that keeps the limits, EASE_MARGIN inside
+            for _ in range(BISECTIONS):  # the largest value that keeps the limits ``ease`` inside
                 u[i] = 0.5 * (lo + hi)
                 lo, hi = (u[i], hi) if self.excess(x, phase, u, est, ease) <= 0.0 else (lo, u[i])
             u[i] = lo
-        after = self.excess(x, phase, u, est)
-        if after > before or (after == before and self.excess(x, phase, u, est, ease)
-                              >= self.excess(x, phase, original, est, ease)):
-            return self._predict(x, phase, original, est, Filtered(original, before, before, ""))  # (did not help)
-        return self._predict(x, phase, u, est, Filtered(u, before, after, "+".join(eased)))
+        if self.excess(x, phase, u, est) > before or (
+                self.excess(x, phase, u, est, ease) >= self.excess(x, phase, original, est, ease)):
+            self._predicted = (after, float(y1[1]))  # (easing did not help: the control as it came)
+            return Filtered(original, before, before, "")
+        return self._keep(x, phase, u, est, before, "+".join(eased))
 
-    def _predict(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray, out: Filtered) -> Filtered:
-        """``out``, its step's end speed kept for :meth:`observe`."""
-        y = (float(x[0]), float(x[1]), float(x[2]), float(x[3]), float(x[4]), 0.0)
-        y1, after, _, _ = self.sim.substep(y, phase, self._applied(self.sim, y, phase, u), self.dt,
-                                           est=np.asarray(est, dtype=float))
-        self._predicted = (int(after), float(y1[1]))
-        return out
+    def _keep(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray, before: float, eased: str) -> Filtered:
+        """The filtered control u, its step's end speed kept for :meth:`observe`."""
+        y1, after, excess = self._step(x, phase, u, est)
+        self._predicted = (after, float(y1[1]))
+        return Filtered(u, before, excess, eased)
