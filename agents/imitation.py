@@ -58,7 +58,7 @@ class DemoSettings:
     def __post_init__(self) -> None:
         if self.env_id not in TARGET_ENV_IDS[:2] and not (self.env_id in COAST_ENV_IDS and self.learner
                                                            and self.expert == "mpc"):
-            # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 to v5 a DAgger
+            # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 to v6 a DAgger
             # learner drives and the MPC's plans label its states, plan_labels)
             raise ValueError(f"env_id must be one of {', '.join(TARGET_ENV_IDS[:2])} (or {' or '.join(COAST_ENV_IDS)} "
                              f"with a learner and the MPC as the expert: DAgger), got {self.env_id!r}")
@@ -309,8 +309,8 @@ def usable(demo: dict[str, Any]) -> bool:
 
 
 SHIFT = 3  # the shift request's action index: > 0 ends phase 1 or 3
-COAST = 3  # WheelLoaderTarget-v3's to v5's coasting fraction's action index
-# The assisted drivers (WheelLoaderTarget-v2 to v5) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
+COAST = 3  # WheelLoaderTarget-v3's to v6's coasting fraction's action index
+# The assisted drivers (WheelLoaderTarget-v2 to v6) are cloned from WheelLoaderTarget-v1 episodes: the expert drives
 # its own machine (injection, brake, shift) and its actions are labelled as the driver's (driver_labels).
 DRIVER_ENV_IDS = TARGET_ENV_IDS[2:]
 DEMO_ENV_ID = {**{e: e for e in TARGET_ENV_IDS[:2]}, **dict.fromkeys(DRIVER_ENV_IDS, TARGET_ENV_IDS[1])}
