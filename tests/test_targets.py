@@ -489,19 +489,21 @@ def test_the_guards_are_a_flag_of_the_assist():
         gym.make("WheelLoaderTarget-v5", lift_floor=1)
 
 
+def _at_tc_corners(env_id, driver, target_ratio):
+    """A constant driver's end infos at every fourth TC corner of the scenario ranges (32), at a target ratio."""
+    from wl_env.suites import corner_scenarios
+
+    env = gym.make(env_id, braking="tc")
+    return [_drive(env, driver, options={"scenario": c, "target_ratio": target_ratio}) for c in corner_scenarios("tc")[::4]]
+
+
 # ------------------------------------------------------- WheelLoaderTarget-v5: the lift's engine floor
 def test_the_lift_floor_keeps_an_idling_engine_running_under_the_lift_at_the_corners():
     """A driver that idles the engine and lifts at full acceleration (TC braking, 1.5 T_min): in v4 the lift's
     load, rising within each step faster than the governor meters, stalls the engine in phase 1 at 72 of the 128
     corners (measured); v5's floor keeps it running at every one (32 corners here, every fourth)."""
-    from wl_env.suites import corner_scenarios
-
-    driver = (-1.0, 1.0, 1.0, 1.0)
-    corners = corner_scenarios("tc")[::4]
-    stalled = {}
-    for env_id in ("WheelLoaderTarget-v4", "WheelLoaderTarget-v5"):
-        env = gym.make(env_id, braking="tc")
-        stalled[env_id] = sum(_drive(env, driver, options={"scenario": c, "target_ratio": 1.5})["stalled"] for c in corners)
+    stalled = {env_id: sum(i["stalled"] for i in _at_tc_corners(env_id, (-1.0, 1.0, 1.0, 1.0), 1.5))
+               for env_id in ("WheelLoaderTarget-v4", "WheelLoaderTarget-v5")}
     assert stalled["WheelLoaderTarget-v4"] >= 10 and stalled["WheelLoaderTarget-v5"] == 0, stalled
 
 
@@ -543,15 +545,8 @@ def test_the_lift_off_load_keeps_the_deceleration_limit_where_a_driver_slows_the
     """A TC driver racing the engine (request +1) and braking the bucket (-1), at T_min: in v5 its lift-offs
     meet the shift into forward gear with the engine high and the converter brakes up to 171 % over the limit
     at 24 of these 32 corners (measured); v6's full lift through the lift-off keeps the limit at every one."""
-    from wl_env.suites import corner_scenarios
-
-    driver = (1.0, -1.0, 1.0, 1.0)
-    corners = corner_scenarios("tc")[::4]
-    over = {}
-    for env_id in ("WheelLoaderTarget-v5", "WheelLoaderTarget-v6"):
-        env = gym.make(env_id, braking="tc")
-        infos = [_drive(env, driver, options={"scenario": c, "target_ratio": 1.0}) for c in corners]
-        over[env_id] = sum(i["violations"]["max_excess"] > 0.0 for i in infos)
+    over = {env_id: sum(i["violations"]["max_excess"] > 0.0 for i in _at_tc_corners(env_id, (1.0, -1.0, 1.0, 1.0), 1.0))
+            for env_id in ("WheelLoaderTarget-v5", "WheelLoaderTarget-v6")}
     assert over["WheelLoaderTarget-v5"] >= 12 and over["WheelLoaderTarget-v6"] == 0, over
 
 
