@@ -127,3 +127,17 @@ def test_a_plan_applied_open_loop_to_a_mismatched_plant_keeps_the_limits():
 def test_the_filter_is_a_flag_of_the_config():
     with pytest.raises(ValueError, match="safety_filter must be True or False"):
         MPCConfig(safety_filter="yes")
+
+
+def test_a_filter_out_of_time_keeps_the_safe_side():
+    """Past its deadline the filter skips its bisections: the brake eased all the way (the safe end of the
+    bisection), not left over the limit, and no time spent searching."""
+    import time
+
+    f = SafetyFilter(P, "service", 0.1)
+    x, u = np.array([100.0, 1.5, 4.0, 0.0, 10.0]), np.array([30.0, 0.0, P.U_b_max])
+    timed = f(x, 4, u, NOMINAL_ESTIMATE)
+    t0 = time.perf_counter()
+    late = f(x, 4, u, NOMINAL_ESTIMATE, until=t0 - 1.0)
+    assert late.eased == "U_b" and late.control[2] == 0.0 < timed.control[2]
+    assert late.excess_after <= FILTER_TOL and time.perf_counter() - t0 < 0.05

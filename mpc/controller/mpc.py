@@ -384,6 +384,7 @@ class MPCController:
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
+        self._step_start: float | None = None  # deadline and real time: when the step began (time.perf_counter() s)
         self.estimator.reset()
         self.safety.reset()
         self.schedule.reset()
@@ -427,7 +428,7 @@ class MPCController:
             self.safety.observe(x, phase)
             stale = bool(info.get("fallback")) or info.get("plan_age", 0) > 0  # (not solved from this state)
             filtered = self.safety(x, phase + 1 if shift else phase, u, self.estimator.estimate,
-                                   None if shift else self._shift_ahead(phase), stale)
+                                   None if shift else self._shift_ahead(phase), stale, self._filter_deadline())
             u = filtered.control
             self.safety_eased += bool(filtered.eased)
             info["safety"] = {"eased": filtered.eased, "excess_before": filtered.excess_before,
@@ -443,6 +444,15 @@ class MPCController:
         info["lift_gain"] = float(self.estimator.lift_gain)
         self.last_info = info
         return self.action(u, shift)
+
+    def _filter_deadline(self) -> float | None:
+        """When the safety filter must be done (``time.perf_counter()`` s): a step with a deadline
+        (deadline_ms, or real time: the interval) by then, less DEADLINE_RESERVE_S for the step's own work after
+        it; None without one."""
+        start = self._step_start
+        if start is None or (self._deadline_s is None and not self.config.realtime):
+            return None
+        return start + (self._deadline_s if self._deadline_s is not None else self.dt) - DEADLINE_RESERVE_S
 
     def _shift_ahead(self, phase: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The plan's controls after the step applied now up to its shift into a phase the converter brakes

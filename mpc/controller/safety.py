@@ -31,6 +31,7 @@ them to the solver's tolerance under the same estimate) is applied as solved.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +82,7 @@ class SafetyFilter:
     def reset(self) -> None:
         """A new cycle: no prediction to learn from yet."""
         self._predicted: tuple[int, float] | None = None  # (phase, V) the last filtered step was predicted to end at
+        self._until: float | None = None  # the current call's deadline (time.perf_counter() s)
         self._accel_err2 = 0.0
 
     def observe(self, x: np.ndarray, phase: int) -> None:
@@ -124,10 +126,13 @@ class SafetyFilter:
         """The relative excess (0: within) over the deceleration and speed limits of the step (:meth:`_step`)."""
         return self._step(x, phase, u, est, margin)[2]
 
+    def _in_time(self) -> bool:
+        return self._until is None or time.perf_counter() < self._until
+
     def _least_injection(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
                          most: float | None = None) -> float:
         """The least U_mf up to ``most`` (default u's) that keeps the engine STALL_MARGIN above omega_min at the
-        step's end (``most`` if none does)."""
+        step's end (``most`` if none does; out of time, the least found so far that does)."""
         floor = self.sim.params.omega_min + STALL_MARGIN
         lo, hi = 0.0, float(u[0] if most is None else most)
         trial = u.copy()
@@ -141,6 +146,8 @@ class SafetyFilter:
         if not runs(hi):
             return hi
         for _ in range(BISECTIONS):
+            if not self._in_time():
+                break
             mid = 0.5 * (lo + hi)
             lo, hi = (lo, mid) if runs(mid) else (mid, hi)
         return hi
@@ -158,12 +165,16 @@ class SafetyFilter:
         return self.excess(y, phase + 1, np.array([0.0, at_shift[1], at_shift[2]]), est)
 
     def __call__(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
-                 ahead: tuple[np.ndarray, np.ndarray] | None = None, stale: bool = False) -> Filtered:
+                 ahead: tuple[np.ndarray, np.ndarray] | None = None, stale: bool = False,
+                 until: float | None = None) -> Filtered:
         """The control u for the step in ``phase`` (the phase after a shift) from state x, eased where it
         would break a limit (module doc). ``ahead``: the plan's controls after this step up to a shift into a
         phase braked by the converter, and the shift's own; where that shift would break the limit even
         unfuelled, this step's injection is cut (module doc). ``stale``: u comes from a plan made before this
-        state (real time, a fallback): eased where it comes within ``stale_margin`` of the limits."""
+        state (real time, a fallback): eased where it comes within ``stale_margin`` of the limits. ``until``
+        (``time.perf_counter()`` s): the step's deadline; past it the bisections stop on the safe side of what
+        they found and the look-ahead is skipped (a control is never late for the filter)."""
+        self._until = until
         original = np.array(u, dtype=float)
         u = original.copy()
         y1, after, before = self._step(x, phase, u, est)
@@ -174,7 +185,7 @@ class SafetyFilter:
             if least > u[0]:
                 u[0] = least
                 return self._keep(x, phase, u, est, before, "U_mf up (stall)")
-        if ahead is not None and u[0] > 0.0:
+        if ahead is not None and u[0] > 0.0 and self._in_time():
             later = self.shift_excess(x, phase, np.vstack([u, ahead[0]]), ahead[1], est)
             least = self._least_injection(x, phase, u, est) if later > FILTER_TOL else u[0]
             if least < u[0]:
@@ -201,6 +212,8 @@ class SafetyFilter:
             if inside > 0.0:  # not enough alone: this one off, the next one too
                 continue
             for _ in range(BISECTIONS):  # the largest value that keeps the limits ``ease`` inside
+                if not self._in_time():  # (lo keeps them)
+                    break
                 u[i] = 0.5 * (lo + hi)
                 lo, hi = (u[i], hi) if self.excess(x, phase, u, est, ease) <= 0.0 else (lo, u[i])
             u[i] = lo
