@@ -484,6 +484,7 @@ class MPCController:
         if self._last is None:
             return
         a = np.asarray(action, dtype=float)
+        self.safety.forget_prediction()  # (its prediction was of this controller's control)
         x, phase = self._last[0], self._obs_phase
         u = np.array(self.codec.decode_action(float(a[0]), float(a[1]), float(a[2])))
         self._last = (x, phase + 1 if a[3] > 0.0 and phase in (1, 3) else phase, u)

@@ -85,6 +85,10 @@ class SafetyFilter:
         self._until: float | None = None  # the current call's deadline (time.perf_counter() s)
         self._accel_err2 = 0.0
 
+    def forget_prediction(self) -> None:
+        """The last filtered control was not the one applied (a shadow expert's): nothing to learn from it."""
+        self._predicted = None
+
     def observe(self, x: np.ndarray, phase: int) -> None:
         """The state the last filtered step ended at: the moving RMS of the predicted acceleration's error."""
         if self._predicted is not None and self._predicted[0] == phase and abs(x[1]) > 0.05:
