@@ -704,6 +704,13 @@ def test_mpc_and_train_take_the_pareto_cache(tmp_path, capsys, no_work):
     assert code is None and no_work[-1][0] == "train", err
 
 
+def test_mpc_safety_filter_is_on_unless_turned_off(tmp_path, capsys, no_work):
+    for extra, on in (([], True), (["--no-safety-filter"], False)):
+        code, err = _attempt(capsys, ["mpc", "--realtime", *extra, "--out", str(tmp_path / "m.json")])
+        config = no_work[-1][1][1]  # run_closed_loop(braking, config, ...)
+        assert code is None and config.safety_filter is on and config.realtime, err
+
+
 def test_train_solves_the_front_in_its_cache_with_progress(tmp_path, capsys, monkeypatch):
     """Scoring on: the trainer's front comes from --cache, and solving it shows progress lines."""
     from fakes import fake_solve
