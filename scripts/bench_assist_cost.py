@@ -1,5 +1,5 @@
 """What the assist's guards cost in training throughput: env-steps per second of the native vector
-``WheelLoaderTarget-v3``, ``-v4`` and ``-v5`` (the same driver actions, uniform in [-1, 1], on ``train`` draws), with
+``WheelLoaderTarget-v3`` to ``-v6`` (the same driver actions, uniform in [-1, 1], on ``train`` draws), with
 Gymnasium's Pendulum-v1 (64 copies, sync) as the reference measured in the same run. Medians of ``--repeats``
 rounds. Usage::
 
@@ -55,7 +55,7 @@ def main() -> None:
     rows = {"Pendulum-v1 (sync)": steps_per_second(pendulum, rng.uniform(-2, 2, (steps, n, 1)).astype(np.float32), args.repeats)}
     for braking in ("service", "tc"):
         actions = rng.uniform(-1, 1, (steps, n, 4)).astype(np.float32)
-        for env_id in ("WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5"):
+        for env_id in ("WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6"):
             venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", braking=braking,
                                 scenario="train")
             rows[f"{env_id} {braking}"] = steps_per_second(venv, actions, args.repeats)
@@ -63,8 +63,8 @@ def main() -> None:
     for name, rate in rows.items():
         print(f"{name:32s} {rate:9.0f} env-steps/s  {rate / ref:5.2f}x Pendulum-v1")
     for braking in ("service", "tc"):
-        v3, v4, v5 = (rows[f"WheelLoaderTarget-v{k} {braking}"] for k in (3, 4, 5))
-        print(f"{braking}: v4 / v3 = {v4 / v3:.2f}, v5 / v4 = {v5 / v4:.2f}")
+        v3, v4, v5, v6 = (rows[f"WheelLoaderTarget-v{k} {braking}"] for k in (3, 4, 5, 6))
+        print(f"{braking}: v4 / v3 = {v4 / v3:.2f}, v5 / v4 = {v5 / v4:.2f}, v6 / v5 = {v6 / v5:.2f}")
     if args.json:
         write_json_atomic(args.json, {"num_envs": n, "steps": steps, "repeats": args.repeats, "steps_per_second": rows})
 
