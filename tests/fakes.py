@@ -5,7 +5,22 @@ from __future__ import annotations
 import numpy as np
 
 from mpc.benchmark.ocp import OCPResult
+from mpc.controller.solver import IpoptSolver, SolverResult
 from wl_env.params import resolve
+
+
+class FailingSolver(IpoptSolver):
+    """IPOPT, except that every solve of the steps in ``failing`` fails (an injected solver;
+    the test sets ``step`` before each step's act)."""
+
+    def __init__(self, failing: set[int]) -> None:
+        super().__init__()
+        self.failing, self.step = failing, -1
+
+    def solve(self, *args, **kwargs) -> SolverResult:
+        if self.step in self.failing:
+            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
+        return super().solve(*args, **kwargs)
 
 
 def tiny_ppo_config(tmp_path, **changes):

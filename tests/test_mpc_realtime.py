@@ -7,25 +7,13 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from fakes import FailingSolver
 
 import wl_env  # noqa: F401  (registers the env)
 from mpc.benchmark.ocp import solve_ocp
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
-from mpc.controller.solver import IpoptSolver, SolverResult, solve_until
+from mpc.controller.solver import IpoptSolver, solve_until
 from wl_env.scenario import Scenario
-
-
-class FailingSolver(IpoptSolver):
-    """IPOPT, except that every solve of the steps in ``failing`` fails (an injected solver)."""
-
-    def __init__(self, failing: set[int]) -> None:
-        super().__init__()
-        self.failing, self.step = failing, -1
-
-    def solve(self, *args, **kwargs) -> SolverResult:
-        if self.step in self.failing:
-            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
-        return super().solve(*args, **kwargs)
 
 
 def test_fallback_applies_the_shifted_plan_on_a_forced_failure():

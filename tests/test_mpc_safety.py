@@ -8,13 +8,13 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from fakes import FailingSolver
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the env)
 from mpc.controller.mpc import MPCConfig, MPCController
 from mpc.controller.safety import FILTER_TOL, STALL_MARGIN, SafetyFilter
-from mpc.controller.solver import IpoptSolver, SolverResult
 from wl_env.params import DEFAULT_PARAMS as P
 from wl_env.simulator import Simulator
 
@@ -93,29 +93,18 @@ def test_the_filter_fuels_an_engine_about_to_stall():
     assert sim.substep(y, 1, sim.effective_controls(y, 1, *out.control, 0.1)[:3], 0.1)[0][0] >= P.omega_min + STALL_MARGIN - 1e-6
 
 
-class BlindSolver(IpoptSolver):
-    """IPOPT for the first plan, then every solve fails: the controller applies that plan open loop."""
-
-    blind = False
-
-    def solve(self, *args, **kwargs) -> SolverResult:
-        if self.blind:
-            return SolverResult(ok=False, status="forced failure (injected solver)", iterations=0)
-        return super().solve(*args, **kwargs)
-
-
 def test_a_plan_applied_open_loop_to_a_mismatched_plant_keeps_the_limits():
     """TC braking, the plant 20 % lighter and rolling 30 % harder than the model, every solve after the first
     plan failing: the plan's controls run open loop. Without the filter the cycle breaks the deceleration limit
     by 77 % (its shift meets the converter with the engine too fast; measured); with it, no violation."""
     plant = P.variant(payload_scale=0.8, rolling_scale=1.3)
     env = gym.make("WheelLoader-v2", braking="tc", params=plant)
-    solver = BlindSolver()
+    solver = FailingSolver(set(range(1, 400)))  # (step 0 plans the cycle; it runs open loop from then on)
     ctrl = MPCController("tc", config=MPCConfig(), solver=solver)
     obs, _ = env.reset(seed=0)
-    for _ in range(400):
+    for k in range(400):
+        solver.step = k
         action = ctrl.act(obs)
-        solver.blind = True
         obs, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             break

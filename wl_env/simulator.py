@@ -99,11 +99,8 @@ class Simulator(Flattened):
         derivatives (:func:`wl_env.model.estimated_derivatives`), e.g. the MPC's prediction of a step.
         """
         gear, d, _ = self.phase_constants(phase)
-        if est is not None:  # (the flattened code has no estimate: the general path)
-            y1, excess = self._advance(y, u, gear, d, h, est)
-            crossed = (d * y[1] > 0.0) and (d * y1[1] < 0.0)
-            return self._cut(y, y1, phase, u, h, est) if crossed else (y1, phase, math.nan, excess)
-        y1, excess = self.advance(y, u, gear, d, h)
+        # (the flattened code has no estimate: with one, the general path)
+        y1, excess = self.advance(y, u, gear, d, h) if est is None else self._advance(y, u, gear, d, h, est)
         crossed = (d * y[1] > 0.0) & (d * y1[1] < 0.0)
         if isinstance(crossed, np.ndarray):
             s_rev = np.full_like(y1[4], np.nan)
@@ -124,6 +121,8 @@ class Simulator(Flattened):
             s_rev[idx] = sr
             return y1, phase, s_rev, excess
         if crossed:
+            if est is not None:
+                return self._cut(y, y1, phase, u, h, est)
             cut = self._flattened()[2] if type(y[0]) is float else self._cut  # one loader: the cut flattened too
             return cut(y, y1, phase, u, h)
         return y1, phase, math.nan, excess

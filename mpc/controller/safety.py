@@ -32,6 +32,7 @@ them to the solver's tolerance under the same estimate) is applied as solved.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,6 +134,16 @@ class SafetyFilter:
     def _in_time(self) -> bool:
         return self._until is None or time.perf_counter() < self._until
 
+    def _boundary(self, good: float, bad: float, ok: Callable[[float], bool]) -> float:
+        """Bisect between a value where ``ok`` holds and one where it does not (BISECTIONS times, or until the
+        call's deadline): the value nearest the boundary on the side that holds."""
+        for _ in range(BISECTIONS):
+            if not self._in_time():
+                break
+            mid = 0.5 * (good + bad)
+            good, bad = (mid, bad) if ok(mid) else (good, mid)
+        return good
+
     def _least_injection(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
                          most: float | None = None) -> float:
         """The least U_mf up to ``most`` (default u's) that keeps the engine STALL_MARGIN above omega_min at the
@@ -147,14 +158,7 @@ class SafetyFilter:
 
         if runs(lo):
             return lo
-        if not runs(hi):
-            return hi
-        for _ in range(BISECTIONS):
-            if not self._in_time():
-                break
-            mid = 0.5 * (lo + hi)
-            lo, hi = (lo, mid) if runs(mid) else (mid, hi)
-        return hi
+        return hi if not runs(hi) else self._boundary(hi, lo, runs)
 
     def shift_excess(self, x: np.ndarray, phase: int, controls: np.ndarray, at_shift: np.ndarray,
                      est: np.ndarray) -> float:
@@ -188,13 +192,13 @@ class SafetyFilter:
             least = self._least_injection(x, phase, u, est, most=self.sim.params.U_mf_max)
             if least > u[0]:
                 u[0] = least
-                return self._keep(x, phase, u, est, before, "U_mf up (stall)")
+                return self._keep(u, before, "U_mf up (stall)", self._step(x, phase, u, est))
         if ahead is not None and u[0] > 0.0 and self._in_time():
             later = self.shift_excess(x, phase, np.vstack([u, ahead[0]]), ahead[1], est)
             least = self._least_injection(x, phase, u, est) if later > FILTER_TOL else u[0]
             if least < u[0]:
                 u[0] = least
-                return self._keep(x, phase, u, est, later, "U_mf (the shift ahead)")
+                return self._keep(u, later, "U_mf (the shift ahead)", self._step(x, phase, u, est))
         decide = self.stale_margin if stale else 0.0
         ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN
         if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > FILTER_TOL):
@@ -202,6 +206,7 @@ class SafetyFilter:
             return Filtered(u, before, before, "")
         _, _, brake_allowed = self.sim.phase_constants(phase)
         eased, inside = [], self.excess(x, phase, u, est, ease)
+        inside_before = inside
         for i, name in ((2, "U_b"), (0, "U_mf")):
             if inside <= 0.0:
                 break
@@ -215,20 +220,21 @@ class SafetyFilter:
             inside = self.excess(x, phase, u, est, ease)
             if inside > 0.0:  # not enough alone: this one off, the next one too
                 continue
-            for _ in range(BISECTIONS):  # the largest value that keeps the limits ``ease`` inside
-                if not self._in_time():  # (lo keeps them)
-                    break
-                u[i] = 0.5 * (lo + hi)
-                lo, hi = (u[i], hi) if self.excess(x, phase, u, est, ease) <= 0.0 else (lo, u[i])
-            u[i] = lo
-        if self.excess(x, phase, u, est) > before or (
-                self.excess(x, phase, u, est, ease) >= self.excess(x, phase, original, est, ease)):
+
+            def keeps(value: float, i: int = i) -> bool:
+                u[i] = value
+                return self.excess(x, phase, u, est, ease) <= 0.0
+
+            u[i] = self._boundary(lo, hi, keeps)  # the largest value that keeps the limits ``ease`` inside
+            inside = self.excess(x, phase, u, est, ease)
+        step_after = self._step(x, phase, u, est)
+        if step_after[2] > before or inside >= inside_before:
             self._predicted = (after, float(y1[1]))  # (easing did not help: the control as it came)
             return Filtered(original, before, before, "")
-        return self._keep(x, phase, u, est, before, "+".join(eased))
+        return self._keep(u, before, "+".join(eased), step_after)
 
-    def _keep(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray, before: float, eased: str) -> Filtered:
-        """The filtered control u, its step's end speed kept for :meth:`observe`."""
-        y1, after, excess = self._step(x, phase, u, est)
+    def _keep(self, u: np.ndarray, before: float, eased: str, stepped: tuple[tuple, int, float]) -> Filtered:
+        """The filtered control u and its step (:meth:`_step`), whose end speed is kept for :meth:`observe`."""
+        y1, after, excess = stepped
         self._predicted = (after, float(y1[1]))
         return Filtered(u, before, excess, eased)
