@@ -113,6 +113,64 @@ def test_a_plan_applied_open_loop_to_a_mismatched_plant_keeps_the_limits():
     assert info["violations"]["max_excess"] == 0.0, info["violations"]
 
 
+def test_stale_plans_on_a_heavier_plant_keep_the_limit_at_the_shift():
+    """TC braking, a plant 20 % heavier than the model, a solve only every 25th step (the others fail: plans up to
+    24 steps old, as the real-time controller applies them). The plant estimate does not correct the engine's load:
+    the engine runs 0.1-0.3 rad/s per step faster than predicted, and the shift met the converter 2.1 % over the
+    limit while the look-ahead predicted it within (measured). With the engine speed's bias in the look-ahead, the
+    filter cuts the fuel in time: no violation."""
+    plant = P.variant(payload_scale=1.2)
+    env = gym.make("WheelLoader-v2", braking="tc", params=plant)
+    solver = FailingSolver({k for k in range(1, 400) if k % 25})
+    ctrl = MPCController("tc", config=MPCConfig(), solver=solver)
+    obs, _ = env.reset(seed=0)
+    bias = []
+    for k in range(400):
+        solver.step = k
+        action = ctrl.act(obs)
+        obs, _, terminated, truncated, info = env.step(action)
+        bias.append(ctrl.safety.engine_speed_bias)
+        if terminated or truncated:
+            break
+    assert info["completed"] and not info["stalled"]
+    assert max(bias[:30]) > 0.05  # (the bias it learned in phase 1, rad/s per step)
+    assert info["violations"]["max_excess"] == 0.0, info["violations"]
+
+
+def test_the_look_ahead_counts_a_faster_engine_against_the_shift():
+    """The same plan to the shift, an engine measured faster than predicted: the shift's predicted excess grows
+    with that bias (a faster engine brakes harder through the converter); a slower one is not credited."""
+    f = SafetyFilter(P, "tc", 0.1)
+    x = np.array([150.0, -2.0, 2.0, 0.3, -4.5])
+    plan = np.tile([0.0, 0.0, 0.0], (6, 1))
+    shift = np.array([0.0, 0.0, 0.0])
+    excess = []
+    for bias in (-2.0, 0.0, 2.0, 4.0):
+        f.engine_speed_bias = bias
+        excess.append(f.shift_excess(x, 1, plan, shift, NOMINAL_ESTIMATE))
+    assert excess[0] == excess[1]
+    assert excess[1] < excess[2] < excess[3], excess
+
+
+def test_where_no_fuel_cut_is_enough_the_filter_lifts_the_bucket_to_load_the_engine():
+    """TC braking, phase 1, 4 steps before a shift the plan takes unfuelled, the engine at 120 rad/s and the bucket
+    rising slowly: even no injection meets the shift over the limit (0.6 of it). A lift at full acceleration loads
+    the engine down to a shift within the limit; near the dump height the lift is only what stops the bucket there."""
+    from wl_env.assist import bucket_command
+
+    f = SafetyFilter(P, "tc", 0.1)
+    x, u = np.array([120.0, -1.9, 2.0, 0.1, -5.0]), np.array([20.0, 0.0, 0.0])
+    ahead = (np.zeros((4, 3)), np.zeros(3))
+    cut_only = f.shift_excess(x, 1, np.vstack([[0.0, 0.0, 0.0], ahead[0]]), ahead[1], NOMINAL_ESTIMATE)
+    out = f(x, 1, u, NOMINAL_ESTIMATE, ahead=ahead)
+    assert cut_only > 0.5
+    assert out.eased == "U_mf+U_ab up (the shift ahead)" and out.control[0] == 0.0 and out.control[1] > 2.0
+    assert f.shift_excess(x, 1, np.vstack([out.control, ahead[0]]), ahead[1], NOMINAL_ESTIMATE) <= FILTER_TOL
+    top = np.array([120.0, -1.9, P.H_T - 0.02, 0.1, -5.0])
+    near = f(top, 1, u, NOMINAL_ESTIMATE, ahead=ahead)
+    assert near.control[1] <= bucket_command(top[2], top[3], P.U_ab_bounds[1], P, 0.1) + 1e-12
+
+
 def test_the_filter_is_a_flag_of_the_config():
     with pytest.raises(ValueError, match="safety_filter must be True or False"):
         MPCConfig(safety_filter="yes")
