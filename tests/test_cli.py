@@ -305,7 +305,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_mpc_memory.py", "--target-time", "nan"], "--target-time must lie in [1, 40) s"),  # (a child's traceback)
     (["bench_mpc_memory.py", "--horizon-steps", "1"], "--horizon-steps must be an integer in [2, 1000]"),
     (["bench_rti_qp.py", "--solves", "0"], "--solves must be an integer in [1, 1000]"),  # (after a whole cycle, exit 1)
-    (["bench_rti_qp.py", "--target", "inf"], "--target must lie in [1, 40) s")])
+    (["bench_rti_qp.py", "--target", "inf"], "--target must lie in [1, 40) s"),
+    (["bench_safety_stale.py", "--every", "0"], "--every must be integers in [1, 100]")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
