@@ -197,15 +197,15 @@ SHIPPED = [(k, b) for k in ("ppo-target", "bc") for b in ("service", "tc")]
 @pytest.mark.parametrize("kind,braking", SHIPPED)
 def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, braking):
     """Each shipped target-conditioned policy loads pickle-free, drives its env (WheelLoaderTarget-v5: the coasting
-    assist with its guards and the lift's engine floor; TC PPO v6: and the lift-off's full load) through a held-out
-    cycle at a 1.5 T_min target with its marks met and no violation; its metadata records how it was made, stage
-    by stage, the last stage's command the policy's own (PPO: one run from scratch, service on v5, TC on v6; the
+    assist with its guards and the lift's engine floor; PPO v6: and with TC braking the lift-off's full load)
+    through a held-out cycle at a 1.5 T_min target with its marks met and no violation; its metadata records how it
+    was made, stage by stage, the last stage's command the policy's own (PPO: one run from scratch on v6; the
     imitation baseline: the MPC episodes, the clone, the v3, v4 and v5 fine-tunings)."""
     from agents.evaluate import default_policy_path, evaluate_controller
     from wl_env.suites import load_suite
 
     policy = load_policy(default_policy_path(braking, kind))
-    env_id = "WheelLoaderTarget-v6" if (kind, braking) == ("ppo-target", "tc") else "WheelLoaderTarget-v5"
+    env_id = "WheelLoaderTarget-v6" if kind == "ppo-target" else "WheelLoaderTarget-v5"
     assert policy.env_id == env_id and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
     earlier = 0 if kind == "ppo-target" else 4  # (stages before its own run, with commands)
@@ -247,7 +247,7 @@ def test_a_later_target_slows_the_cycle_by_a_third_of_the_difference_at_least(ki
     (["--env-id", "WheelLoaderTarget-v2", "--dagger-rounds", "1"], "dagger_rounds must be 0 with env_id WheelLoaderTarget-v2"),
     (["--env-id", "WheelLoaderTarget-v2", "--graft-base", "agents/policies/ppo_target_v2_tc"],
      "graft_base needs env_id WheelLoaderTarget-v3"),
-    (["--braking", "tc", "--env-id", "WheelLoaderTarget-v5", "--clone-base", "agents/policies/ppo_target_service"],
+    (["--braking", "tc", "--env-id", "WheelLoaderTarget-v6", "--clone-base", "agents/policies/ppo_target_service"],
      "drives service braking"),
     (["--env-id", "WheelLoaderTarget-v3", "--clone-base", "agents/policies/no_such_policy"], "no_such_policy"),
     (["--epochs", "0"], "--epochs must be an integer in [1, 100000]"),  # (was an untrained clone, exit 0)
@@ -298,7 +298,7 @@ def test_a_clone_from_a_base_keeps_its_critic_and_statistics_and_fits_the_expert
 
     demos = collect_demos(DemoSettings("service", seed=3, expert="operator"), 3, tmp_path / "demos")
     base = POLICIES / "ppo_target_service"
-    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v5", scenario="train", init_noise=0.0,
+    cfg = PPOConfig(braking="service", env_id="WheelLoaderTarget-v6", scenario="train", init_noise=0.0,
                     log_dir=str(tmp_path), run_name="clone", progress_bar=False)
     result = clone(demos, cfg, epochs=30, validation_share=0.34, base=base)
     cloned, shipped = load_policy(cfg.run_dir), load_policy(base)
@@ -311,7 +311,7 @@ def test_a_clone_from_a_base_keeps_its_critic_and_statistics_and_fits_the_expert
     loss = [float(np.mean(w * (p.network.get_distribution(th.as_tensor(p.normalize(obs))).distribution.mean
                                 .detach().numpy() - y) ** 2)) for p in (cloned, shipped)]
     assert loss[0] < 0.5 * loss[1], (loss, result)
-    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v5 policy"):
+    with pytest.raises(ValueError, match="must be a WheelLoaderTarget-v6 policy"):
         clone(demos, PPOConfig(**{**cfg.__dict__, "run_name": "again"}), epochs=1, base=POLICIES / "ppo_target_v2_service")
 
 
