@@ -219,8 +219,7 @@ class SafetyFilter:
         decide = self.stale_margin if stale else 0.0
         ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN
         if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > FILTER_TOL):
-            self._predicted = (after, float(y1[0]), float(y1[1]))
-            return Filtered(u, before, before, "")
+            return self._keep(u, before, "", (y1, after, before))
         _, _, brake_allowed = self.sim.phase_constants(phase)
         eased, inside = [], self.excess(x, phase, u, est, ease)
         inside_before = inside
@@ -245,9 +244,8 @@ class SafetyFilter:
             u[i] = self._boundary(lo, hi, keeps)  # the largest value that keeps the limits ``ease`` inside
             inside = self.excess(x, phase, u, est, ease)
         step_after = self._step(x, phase, u, est)
-        if step_after[2] > before or inside >= inside_before:
-            self._predicted = (after, float(y1[0]), float(y1[1]))  # (easing did not help: the control as it came)
-            return Filtered(original, before, before, "")
+        if step_after[2] > before or inside >= inside_before:  # (easing did not help: the control as it came)
+            return self._keep(original, before, "", (y1, after, before))
         return self._keep(u, before, "+".join(eased), step_after)
 
     def _shift_guard(self, x: np.ndarray, phase: int, u: np.ndarray, est: np.ndarray,
@@ -277,7 +275,7 @@ class SafetyFilter:
         return (guarded, later, "+".join(changed) + " (the shift ahead)") if changed else None
 
     def _keep(self, u: np.ndarray, before: float, eased: str, stepped: tuple[tuple, int, float]) -> Filtered:
-        """The filtered control u and its step (:meth:`_step`), whose end speed is kept for :meth:`observe`."""
+        """The filtered control u and its step (:meth:`_step`), whose end state is kept for :meth:`observe`."""
         y1, after, excess = stepped
         self._predicted = (after, float(y1[0]), float(y1[1]))
         return Filtered(u, before, excess, eased)
