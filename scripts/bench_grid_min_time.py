@@ -3,8 +3,7 @@
 
 Plans the nominal cycle in minimum-time mode, then solves every schedule with one step fewer within +-R
 steps per phase of the plan's (warm from the plan, then cold if that fails) and prints each one's target
-misses (relative: the reversing point's and the end position's to the reverse distance, the height's to
-H_T) and whether it meets the MPC's tolerance (``mpc.controller.solver.MISS_TOL``).
+misses (m) and whether it meets the MPC's tolerance (``mpc.controller.solver.MISS_TOL_M``).
 
 ``--same-length``: instead, every schedule with as many steps as the plan's within +-R per phase, each
 solved for the least fuel (the target-time mode's NLP at the plan's cycle time, no control-rate penalty),
@@ -33,7 +32,7 @@ import wl_env  # noqa: E402, F401  (registers the envs)
 from mpc.benchmark.scoring import score_run  # noqa: E402
 from mpc.controller import mpc as M  # noqa: E402
 from mpc.controller.schedule import steps_of  # noqa: E402
-from mpc.controller.solver import MISS_TOL, Solve  # noqa: E402
+from mpc.controller.solver import MISS_TOL_M, Solve  # noqa: E402
 
 
 def main() -> None:
@@ -63,7 +62,7 @@ def main() -> None:
     sol, x = ctrl._sol, ctrl.project_state(x, phase)  # (the start state the plan was made from)
     n0 = steps_of(sol.counts)
     print(f"{braking}: the plan's schedule {sol.counts} = {n0} steps ({n0 * ctrl.dt:.1f} s), feasible {sol.feasible}, "
-          f"fuel {sol.fuel_g:.3f} g; the MPC's target tolerance {MISS_TOL:g} (relative)", flush=True)
+          f"fuel {sol.fuel_g:.3f} g; the MPC's target tolerance {MISS_TOL_M} (m)", flush=True)
     nlp = ctrl._nlp(1)
     phases = sorted(sol.counts)
     t0, tried, feasible, closest, cheapest = time.perf_counter(), 0, 0, None, None
@@ -78,16 +77,16 @@ def main() -> None:
             cold = ctrl._solve(1, new, x, warm=None)
             alt = cold if cold.feasible or not alt.ok else alt
         feasible += alt.feasible
-        worst = max(map(abs, alt.misses.values()), default=np.inf) if alt.ok else np.inf
+        worst = max((abs(v) / MISS_TOL_M[k] for k, v in alt.misses_m.items()), default=np.inf) if alt.ok else np.inf
         if closest is None or worst < closest[0]:
             closest = (worst, new)
         if alt.feasible and (cheapest is None or alt.fuel_g < cheapest[0]):
             cheapest = (alt.fuel_g, new)
         print(f"  {new}: ok {alt.ok}, feasible {alt.feasible}, fuel {alt.fuel_g:.3f} g, misses "
-              f"{({k: round(v, 4) for k, v in alt.misses.items()})}, deceleration excess {alt.excess:.1e}", flush=True)
+              f"(m) {({k: round(v, 4) for k, v in alt.misses_m.items()})}, deceleration excess {alt.excess:.1e}", flush=True)
     n = n0 if same_length else n0 - 1
     print(f"{braking}: {tried} schedules of {n} steps solved in {time.perf_counter() - t0:.0f} s, {feasible} meet the "
-          "targets" + (f"; the closest {closest[1]} misses by {closest[0]:.4f} (relative)" if closest else ""))
+          "targets" + (f"; the closest {closest[1]} misses by {closest[0]:.2f} times the tolerance" if closest else ""))
     if same_length and cheapest is not None:
         fuel_opt = score_run(n * ctrl.dt, cheapest[0], braking).fuel_opt_g
         print(f"{braking}: the least fuel on the grid at {n * ctrl.dt:.1f} s: {cheapest[0]:.3f} g ({cheapest[1]}), "

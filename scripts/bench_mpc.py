@@ -30,7 +30,7 @@ The violation column is the environment's own (the driver's limits at every RK4 
 Usage::
 
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
-        [--solvers ipopt fatrop] [--suite-sample 3] [--corners] [--deadline-ms 100] [--realtime both]
+        [--solvers ipopt fatrop] [--suite-sample 3] [--corners | --min-time-only] [--deadline-ms 100] [--realtime both]
         [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 1000] [--safety-filter both]
 """
 
@@ -90,10 +90,16 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
     return row
 
 
-def runs(braking: str, targets: list[float], mismatch: bool, suite_sample: int, corners: bool, deadline_ms: float | None):
-    """(label, config, keyword arguments of closed_loop) of every run of one braking alternative."""
+def runs(braking: str, targets: list[float], mismatch: bool, suite_sample: int, corners: bool, deadline_ms: float | None,
+         min_time_only: bool = False):
+    """(label, config, keyword arguments of closed_loop) of every run of one braking alternative (``min_time_only``:
+    the nominal cycle's and the suite sample's minimum-time runs alone)."""
     base = {"deadline_ms": deadline_ms}
     yield "min time", MPCConfig(mode="time", **base), {}
+    if min_time_only:
+        for i, sc in enumerate(load_suite("test").spread(braking, suite_sample) if suite_sample else ()):
+            yield f"test[{i}] min time", MPCConfig(mode="time", **base), {"scenario": sc}
+        return
     for T in targets:
         yield f"target {T:g} s", MPCConfig(mode="target_time", target_time=T, **base), {}
     for payload, rolling in (MISMATCH if mismatch else []):
@@ -143,6 +149,8 @@ def main() -> None:
     ap.add_argument("--solvers", nargs="+", default=["ipopt"], choices=sorted(SOLVERS), help="the candidates to compare")
     ap.add_argument("--suite-sample", type=int, default=0, metavar="N", help="test-suite scenarios per braking")
     ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
+    ap.add_argument("--min-time-only", action="store_true",
+                    help="only the minimum-time runs: the nominal cycle and the --suite-sample scenarios")
     ap.add_argument("--deadline-ms", type=float, default=None, help="MPCConfig.deadline_ms of every run")
     ap.add_argument("--realtime", choices=["off", "on", "both"], default="off",
                     help="MPCConfig.realtime: the synchronous controller (off), the real-time one (on), or both side by side")
@@ -171,6 +179,8 @@ def main() -> None:
         ap.error("--deadline-ms applies to the synchronous controller (a real-time step's deadline is its interval)")
     if args.replan_lag is not None and not (args.horizons and 1 <= args.replan_lag <= 100):
         ap.error("--replan-lag N needs --horizons and N in [1, 100]")
+    if args.min_time_only and args.corners:
+        ap.error("--min-time-only runs no corner (they are mismatch runs): drop one of them")
     if args.horizons_only and not args.horizons:
         ap.error("--horizons-only needs --horizons")
     if args.horizons and args.deadline_ms is not None:
@@ -187,7 +197,8 @@ def main() -> None:
         name = ((f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}")
                 + (f" lag{lag}" if lag else "") + ("" if safety else " no filter"))
         for b in args.braking:
-            for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms):
+            for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms,
+                                          args.min_time_only):
                 print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
                 config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
                                              replan_lag_steps=lag, safety_filter=safety)

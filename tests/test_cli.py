@@ -306,7 +306,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_mpc_memory.py", "--horizon-steps", "1"], "--horizon-steps must be an integer in [2, 1000]"),
     (["bench_rti_qp.py", "--solves", "0"], "--solves must be an integer in [1, 1000]"),  # (after a whole cycle, exit 1)
     (["bench_rti_qp.py", "--target", "inf"], "--target must lie in [1, 40) s"),
-    (["bench_safety_stale.py", "--every", "0"], "--every must be integers in [1, 100]")])
+    (["bench_safety_stale.py", "--every", "0"], "--every must be integers in [1, 100]"),
+    (["bench_mpc.py", "--min-time-only", "--corners"], "--min-time-only runs no corner")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys

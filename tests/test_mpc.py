@@ -103,8 +103,9 @@ def test_closed_loop_cycle_near_the_optimum(braking, mode):
     # 65-115 ms. The wall-time bound only catches work per step (an NLP build takes > 1 s) that counts none.
     assert ctrl.fallbacks == 0 and np.median(ctrl.step_iterations[1:]) <= 5
     assert r.solve_time["median_s"] < 0.5
-    if mode == "time":  # measured +0.4 % (service), +0.3 % (tc); the environment ends on its 0.1 s grid
-        assert r.episode.T <= 1.02 * solve_ocp(braking, "time", verify=False).T
+    if mode == "time":  # #13's 1 %: measured +0.4 % (service), +0.25 % (tc; +1.44 % while the plans aimed within
+        # 6.6 mm of the reversing point, where no 8.4 s grid cycle came closer than 8.6 mm: solver.MISS_TOL_M)
+        assert r.episode.T <= 1.01 * solve_ocp(braking, "time", verify=False).T
     else:  # on time, and within 3 % of the least fuel of any cycle that long (measured +0.1 %, -0.03 %)
         assert r.episode.T <= 11.0 + 1e-9
         assert r.episode.fuel_g <= 1.03 * solve_ocp(braking, "fuel_at_time", T=r.episode.T, verify=False).fuel_g

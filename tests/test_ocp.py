@@ -208,3 +208,14 @@ def test_a_cached_optimum_that_failed_an_older_check_is_checked_again(highest_tr
     failed_now = dc_replace(stale, verification={**r.verification, "passed": False})  # failed the current check
     save_result(failed_now, path)
     assert not _cached(path, "service", p, T=r.T).success
+
+
+def test_the_optimum_a_step_over_the_minimum_time_is_found_from_the_cycles_own_fastest(tmp_path):
+    """The smoothness yardstick near T_min: TC's minimum-fuel cycle at 8.4 s (0.25 % over its 8.38 s) failed
+    from the templates alone with no other front cached, and #13's bench lost that run's total variation."""
+    from mpc.benchmark.reference import direct_fuel_at
+
+    r = direct_fuel_at("tc", 8.4, DEFAULT_PARAMS, tmp_path)
+    assert r.success and abs(r.T - 8.4) < 1e-9
+    # leaner than the minimum-time cycle, and not below the shipped front at 8.4 s (82.17 g interpolated)
+    assert 82.0 < r.fuel_g < solve_ocp("tc", "time").fuel_g

@@ -605,9 +605,13 @@ class GridNLP:
         """The largest relative excess over the deceleration limit a solution plans (0: none)."""
         return float(max(z[s.ex] for s in self.slots))
 
-    def misses(self, z: np.ndarray) -> dict[str, float]:
-        """The signed relative target misses of a solution."""
-        return {name: float(z[i] - z[i + 1]) for name, i in self._miss_index.items()}
+    def misses_m(self, z: np.ndarray, p: np.ndarray) -> dict[str, float]:
+        """The signed target misses (m) of a solution of the parameters ``p`` (its scenario's legs and dump
+        height scale the relative misses the NLP prices)."""
+        scn = dict(zip(GRID_SCENARIO, np.asarray(p, dtype=float).ravel()[self.scenario_offset:self.h_offset], strict=True))
+        scale = {"reversing point": scn["reverse_distance"], "end position": scn["reverse_distance"],
+                 "end height": scn["H_T"]}
+        return {name: float((z[i] - z[i + 1]) * scale[name]) for name, i in self._miss_index.items()}
 
     def plan(self, z: np.ndarray, counts: dict[int, int], x_start: np.ndarray, dt: float) -> dict[str, np.ndarray]:
         """The active steps of a solution: per step its phase, kind, control and end state."""

@@ -44,7 +44,6 @@ from mpc.controller.safety import SHIFT_LOOKAHEAD, SafetyFilter
 from mpc.controller.schedule import MODES, ScheduleSearch, apportion, moved, steps_of
 from mpc.controller.solver import (
     EXCESS_TOL,
-    MISS_TOL,
     GridSolver,
     IpoptSolver,
     Solve,
@@ -86,11 +85,11 @@ REPLAN_ESTIMATE_CHANGE = np.array([0.02, 0.01, 0.01])
 # 58 re-plans, 27 with the wait, every corner on its marks with no violation either way); the horizon meanwhile
 # plans with the estimate as it is.
 REPLAN_SETTLE = 0.25
-# ... and a short horizon's plan off a target by up to this (relative) is applied, not re-planned. Full plans
-# aim within MISS_TOL and may end at its edge, where a step of drift crossed it (measured: TC minimum time,
-# 1.2e-3 short of the reversing point, a 1.2-1.4 s whole-cycle re-plan). 2.5e-3 is 1.7 cm at a 6.6 m
-# reversing point and 1.25 cm in height, within the episode's 5 cm and 2 cm.
-HORIZON_MISS_TOL = 2.5 * MISS_TOL
+# ... and a short horizon's plan off a target by up to this many times the full plans' tolerance
+# (solver.MISS_TOL_M) is applied, not re-planned. Full plans aim within it and may end at its edge, where a step
+# of drift crossed it (measured: TC minimum time, 8 mm short of the reversing point against 6.6 mm then, a
+# 1.2-1.4 s whole-cycle re-plan). Twice is 2.5 cm in position and 1 cm in height, half the episode's 5 cm and 2 cm.
+HORIZON_MISS_FACTOR = 2.0
 SLOT_ROUNDING = 4  # slots per phase are a multiple of this (NLPs are shared between nearby schedules)
 # The margin kept below the deceleration limit after a plan's first step grows with the plans' one-step
 # engine-speed error (see MPCController._later_margin): per rad/s of RMS error, and at most.
@@ -536,8 +535,8 @@ class MPCController:
                 # (a plan that misses a target, its limits kept, is the best the horizon can do: with
                 # replan_lag_steps it is applied while the whole cycle is re-planned beside it, if the
                 # re-plan is due before the target's step; measured, else the cycle ended off the truck)
-                short = ok and (sol.within(HORIZON_MISS_TOL) or (
-                    sol.excess <= EXCESS_TOL and self._before_targets(sol.misses) and self._replan_beside(x_plan, phase, k)))
+                short = ok and (sol.within(HORIZON_MISS_FACTOR) or (
+                    sol.excess <= EXCESS_TOL and self._before_targets(sol.missed()) and self._replan_beside(x_plan, phase, k)))
                 short_time = solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
@@ -636,7 +635,7 @@ class MPCController:
             return sol
         z, lam_x, lam_g = self._nlp(sol.first_phase).tail(sol.z, sol.lam_x, sol.lam_g, phase)
         return Solve(counts={q: n for q, n in sol.counts.items() if q >= phase}, first_phase=phase, ok=sol.ok,
-                     status=sol.status, J=sol.J, misses=sol.misses, excess=sol.excess, z=z, lam_x=lam_x,
+                     status=sol.status, J=sol.J, misses_m=sol.misses_m, excess=sol.excess, z=z, lam_x=lam_x,
                      lam_g=lam_g, lam_p=None)
 
     # ------------------------------------------------------------------ real time (MPCConfig.realtime)
@@ -1057,11 +1056,10 @@ class MPCController:
             return False
         return before is None or not (np.abs(estimate - before) > REPLAN_SETTLE * REPLAN_ESTIMATE_CHANGE).any()
 
-    def _before_targets(self, misses: dict[str, float]) -> bool:
-        """A re-plan begun now is due (``replan_lag_steps``) before the step of every target missed."""
+    def _before_targets(self, missed: list[str]) -> bool:
+        """A re-plan begun now is due (``replan_lag_steps``) before the step of every target ``missed``."""
         lag = self.config.replan_lag_steps
-        due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name])
-               for name, v in misses.items() if abs(v) > MISS_TOL]
+        due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name]) for name in missed]
         return lag is not None and all(d > lag for d in due)
 
     def _replan_beside(self, x: np.ndarray, phase: int, k: int) -> bool:

@@ -18,7 +18,7 @@ from mpc.controller.solver import Solve
 MODES = ("time", "target_time", "weighted")
 FUEL_REF_G, TIME_REF = 100.0, 10.0  # the weighted mode's normalization (as the OCP's weighted objective)
 # Objective (g) per step in minimum-time mode and per step late in target-time mode: a step outweighs
-# any fuel, not a target miss (MISS_TOL decides that first).
+# any fuel, not a target miss (MISS_TOL_M decides that first).
 STEP_PRICE = 1.0e3
 RETRY_AFTER = 10  # steps before a move that did not pay is tried again (twice as many after each failure)
 
