@@ -294,7 +294,7 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     scripts = Path(__file__).resolve().parents[1] / "scripts"
     bad = str(tmp_path / "file" / "x.json")
     for argv in (["bench_agents.py", "--json", bad], ["bench_env.py", "--quick", "--json", bad],
-                 ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad]):
+                 ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad], ["bench_estimator.py", "--json", bad]):
         r = subprocess.run([sys.executable, str(scripts / argv[0]), *argv[1:]], capture_output=True, text=True,
                            timeout=60)
         err = " ".join(r.stderr.replace("│", " ").split())  # (tyro boxes and wraps its message)
