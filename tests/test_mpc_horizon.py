@@ -167,7 +167,10 @@ def test_the_rti_horizon_holds_the_plan_to_the_last_stop_without_a_re_plan():
     config = MPCConfig(mode="target_time", target_time=13.0, horizon_steps=10, horizon_solver="sqp-rti")
     ctrl = MPCController("service", config=config)
     ep = run_closed_loop("service", config, score=False, controller=ctrl).episode
-    assert ep.completed and ep.success and ep.max_violation == 0.0
+    # (1e-6, as the RTI test above: its 2.7e-8 in the last stop step came here too with the estimator's lift gain
+    # linearized at stop 44, the estimate 2e-8 off the nominal's in the float32 observations; the drift this test
+    # is about was 0.95 % over)
+    assert ep.completed and ep.success and ep.max_violation <= 1e-6
     assert ep.T <= 13.0 + 1e-9
     assert ctrl.replans == 0
 
