@@ -165,8 +165,10 @@ def test_realtime_never_waits_for_a_slow_solver():
         solver.step = k
         plan_before = ctrl._plan
         a, late = _act_timed(ctrl, obs)
-        if k > 0:  # (a step waits for the worker at most the interval real time would give it)
-            assert late < TIMING_SLACK_S, f"step {k}: a control {1e3 * late:.0f} ms after it began"
+        if k > 0:  # (a step waits for the worker at most the interval real time would give it; twice the slack: the
+            # worker's Python work beside it holds the GIL, a step came 56 ms late once in CI at stop 44, and a wait
+            # for one of these 250 ms solves is later still)
+            assert late < 2 * TIMING_SLACK_S, f"step {k}: a control {1e3 * late:.0f} ms after it began"
         leads.append(ctrl.last_info.get("lead", 0))
         if ctrl.last_info["fallback"]:
             overdue.append(k)
