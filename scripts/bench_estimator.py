@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
 from wl_env.atomic_io import check_output_option, write_json_atomic  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 
 CORNERS = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload, rolling resistance) x, as bench_mpc's MISMATCH
@@ -37,7 +38,7 @@ def run(braking: str, payload: float, rolling: float) -> dict:
             "omega_error_rms": float(est.omega_error_rms)}
 
 
-def main() -> int:
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--braking", choices=("service", "tc"), nargs="+", default=["service", "tc"])
     ap.add_argument("--json", metavar="PATH")
@@ -56,12 +57,7 @@ def main() -> int:
                   flush=True)
     if args.json:
         write_json_atomic(args.json, {"command": " ".join(sys.argv), "rows": rows})
-    return 0
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:  # (the JSON is written only at the end: nothing partial is left)
-        print("bench_estimator: interrupted", file=sys.stderr)
-        sys.exit(130)
+    run_script("bench_estimator", main)  # (Ctrl-C: exit 130; the JSON is written only at the end, nothing partial is left)

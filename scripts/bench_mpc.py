@@ -96,18 +96,15 @@ def runs(braking: str, targets: list[float], mismatch: bool, suite_sample: int, 
     the nominal cycle's and the suite sample's minimum-time runs alone)."""
     base = {"deadline_ms": deadline_ms}
     yield "min time", MPCConfig(mode="time", **base), {}
-    if min_time_only:
-        for i, sc in enumerate(load_suite("test").spread(braking, suite_sample) if suite_sample else ()):
-            yield f"test[{i}] min time", MPCConfig(mode="time", **base), {"scenario": sc}
-        return
-    for T in targets:
+    for T in [] if min_time_only else targets:
         yield f"target {T:g} s", MPCConfig(mode="target_time", target_time=T, **base), {}
-    for payload, rolling in (MISMATCH if mismatch else []):
+    for payload, rolling in (MISMATCH if mismatch and not min_time_only else []):
         plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
         yield f"mismatch: payload x{payload}, rolling x{rolling}", MPCConfig(mode="time", **base), {"plant": plant}
     for i, sc in enumerate(load_suite("test").spread(braking, suite_sample) if suite_sample else ()):
         yield f"test[{i}] min time", MPCConfig(mode="time", **base), {"scenario": sc}
-        yield f"test[{i}] 1.15 T_min", MPCConfig(mode="time", **base), {"scenario": sc, "target_ratio": 1.15}
+        if not min_time_only:
+            yield f"test[{i}] 1.15 T_min", MPCConfig(mode="time", **base), {"scenario": sc, "target_ratio": 1.15}
     for i, sc in enumerate(load_suite("corners").of(braking) if corners else ()):
         yield f"corners[{i}] mismatch", MPCConfig(mode="time", **base), {"scenario": sc, "mismatch": True}
 

@@ -25,6 +25,7 @@ import wl_env  # noqa: E402,F401  (registers the envs)
 from mpc.controller.mpc import MPCConfig, MPCController  # noqa: E402
 from mpc.controller.solver import IpoptSolver, SolverResult  # noqa: E402
 from wl_env.atomic_io import check_output_option, write_json_atomic  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 
 PLANTS = [(p, r) for p in (0.8, 1.0, 1.2) for r in (0.7, 1.0, 1.3) if (p, r) != (1.0, 1.0)]  # (payload, rolling) x
@@ -64,7 +65,7 @@ def run(braking: str, every: int, payload: float, rolling: float, safety_filter:
             "wall_s": time.perf_counter() - t0}
 
 
-def main() -> int:
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--every", type=int, nargs="+", default=[3, 6, 12, 25], metavar="N")
     ap.add_argument("--braking", choices=("service", "tc"), nargs="+", default=["tc"])
@@ -93,12 +94,7 @@ def main() -> int:
                   f"{sum(r['success'] for r in mine)} on their marks, {sum(r['stalled'] for r in mine)} stalled", flush=True)
     if args.json:
         write_json_atomic(args.json, {"command": " ".join(sys.argv), "rows": rows})
-    return 0
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:  # (the JSON is written only at the end: nothing partial is left)
-        print("bench_safety_stale: interrupted", file=sys.stderr)
-        sys.exit(130)
+    run_script("bench_safety_stale", main)  # (Ctrl-C: exit 130; the JSON is written only at the end, nothing partial is left)
