@@ -63,6 +63,42 @@ def test_grid_step_is_the_environment_step(braking, plant):
                 assert float(s_stop) == pytest.approx(s_rev, abs=1e-9)
 
 
+@functools.lru_cache(maxsize=None)
+def _nlp_with_solvers(braking, first_phase, slots, open_phase):
+    """A grid NLP and IPOPT on it twice: the derivatives CasADi generates from the whole NLP, and the
+    project's (its slot functions', mapped over the slots)."""
+    from mpc.controller.grid import GridNLP
+
+    nlp = GridNLP(StepModel(braking, P), first_phase, dict(slots), open_phase=open_phase)
+    quiet = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}
+    return nlp, ca.nlpsol("generated", "ipopt", nlp.nlp, quiet), ca.nlpsol("mapped", "ipopt", nlp.nlp,
+                                                                          {**quiet, **nlp.derivative_functions})
+
+
+LAYOUTS = [("tc", 1, ((1, 3), (2, 2), (3, 3), (4, 2)), None), ("service", 3, ((3, 2), (4, 3)), None),
+           ("tc", 1, ((1, 3), (2, 2)), 2), ("service", 2, ((2, 2), (3, 3)), 3), ("tc", 4, ((4, 1),), None)]
+
+
+@settings(max_examples=10, deadline=None)
+@given(layout=st.sampled_from(LAYOUTS), seed=st.integers(0, 2**32 - 1))
+def test_mapped_derivatives_are_the_generated_ones(layout, seed):
+    """The NLP's Hessian of the Lagrangian and constraint Jacobian, assembled from the slot functions'
+    (where neighbouring slots share the state between them, their blocks sum), equal CasADi's from the
+    whole NLP: every nonzero, with the same sparsity, at any point, multipliers and parameters (start,
+    estimate, scenario, step lengths, terminal cost)."""
+    nlp, generated, mapped = _nlp_with_solvers(*layout)
+    rng = np.random.default_rng(seed)
+    point = {"x": rng.uniform(-1.5, 1.5, nlp.n_var), "p": rng.uniform(-1.0, 1.0, nlp.n_par)}
+    for name, extra in (("nlp_hess_l", {"lam_f": rng.uniform(0.1, 2.0), "lam_g": rng.normal(0.0, 10.0, nlp.n_con)}),
+                        ("nlp_jac_g", {})):
+        want = generated.get_function(name).call({**point, **extra})
+        got = mapped.get_function(name).call({**point, **extra})
+        for key, value in want.items():
+            assert got[key].sparsity() == value.sparsity(), (name, key)
+            scale = max(1.0, float(ca.norm_inf(value)))
+            assert float(ca.norm_inf(got[key] - value)) <= 1e-12 * scale, (name, key)
+
+
 def test_estimated_derivatives_follow_the_estimate():
     x, u = (180.0, -1.0, 2.0, 0.4), (100.0, 1.0, 0.0)
     gear, d = -P.gear_ratio, -1.0

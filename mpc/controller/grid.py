@@ -262,6 +262,97 @@ N_XR = N_X + N_R
 SLOT_VARS = 3 + 2 + N_XR  # a full slot's decision variables: control, excess, margin used, end state
 
 
+N_SLOT_PAR = 3 + N_R  # a slot's own parameters: h, active, rate on, and the rate weights
+
+
+@dataclass(frozen=True, eq=False)
+class SlotFunction:
+    """One slot of a :class:`GridNLP` (a control step and its costs), built once per machine and kind:
+    (z, q, shared) -> (rows, objective g, fuel kg). z: the state before the slot (N_XR, scaled), then
+    the slot's own variables (control, excess, margin used, the targets' misses, end state); q: the
+    slot's parameters (N_SLOT_PAR; slot 0 the start, an open NLP's last slot the terminal cost's, after
+    them); shared: the estimate and the scenario. Rows: the shooting gap, slot 0's start equality, then
+    the step's rows and the targets'; ``lb``/``ub`` bound the latter.
+
+    Its Hessian and Jacobian functions (:meth:`derivatives`) serve every NLP of the machine: an NLP's are
+    these, mapped over its slots (:meth:`GridNLP.derivative_functions`), not generated anew per NLP."""
+
+    fn: ca.Function
+    targets: tuple[str, ...]
+    lb: np.ndarray
+    ub: np.ndarray
+    terminal: bool
+
+    @functools.cached_property
+    def derivatives(self) -> tuple[ca.Function, ca.Function]:
+        """(z, q, shared, lam_f, lam_g) -> upper triangle of the Hessian of lam_f f + lam_g . rows in z;
+        (z, q, shared) -> (rows, their Jacobian in z)."""
+        z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
+        rows, f, _ = self.fn(z, q, shared)
+        lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
+        hess, _ = ca.hessian(lam_f * f + ca.dot(lam_g, rows), z)
+        return (ca.Function(f"{self.fn.name()}_hess", [z, q, shared, lam_f, lam_g], [ca.triu(hess)]),
+                ca.Function(f"{self.fn.name()}_jac", [z, q, shared], [rows, ca.jacobian(rows, z)]))
+
+
+@functools.lru_cache(maxsize=None)
+def slot_function(model: StepModel, phase: int, kind: str, first: bool, terminal: bool) -> SlotFunction:
+    """The slot function of ``phase``'s full or stop step for ``model``'s machine (see :class:`SlotFunction`);
+    ``first``: slot 0 (the start equality), ``terminal``: an open NLP's last slot (the terminal cost)."""
+    xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
+    step_fn = model.full[phase] if kind == "full" else model.stop[phase]
+    targets = {(2, "stop"): ("reversing point",), (4, "stop"): ("end position", "end height")}.get((phase, kind), ())
+    n_q = N_SLOT_PAR + (N_XR if first else 0) + (2 * N_XR + 1 if terminal else 0)
+    z = ca.SX.sym("z", 2 * N_XR + 5 + 2 * len(targets))
+    q, shared = ca.SX.sym("q", n_q), ca.SX.sym("shared", N_EST + N_SCN)
+    est, scn = shared[:N_EST], shared[N_EST:]
+    p = _symbolic_params(model.params, scn)
+    x_prev, U, ex, em, Xk = z[:N_XR], z[N_XR:N_XR + 3], z[N_XR + 3], z[N_XR + 4], z[-N_XR:]
+    h, active, rate_on, rate_w = q[0], q[1], q[2], q[3:N_SLOT_PAR]
+    spec = model.specs[phase]
+    cost = []
+    misses = {}
+    for i, name in enumerate(targets):  # a target's signed miss, penalized in L1
+        e = z[N_XR + 5 + 2 * i:N_XR + 7 + 2 * i]
+        misses[name] = e[0] - e[1]
+        cost.append(TARGET_WEIGHT * (e[0] + e[1]))
+    u = U * us
+    x_now, r_now = x_prev[:N_X] * xs, x_prev[N_X:]
+    x_end, rows, fuel_k, s_stop = step_fn.fn(x_now, u, h, est, scn[:N_STEP_SCN])
+    sel = np.zeros(step_fn.n_rows)
+    sel[list(step_fn.decel)] = 1.0
+    path = [(rows - ca.DM(sel) * (ex + em), step_fn.lb, step_fn.ub)]  # (the deceleration's: elastic)
+    if kind == "stop" and phase == 2:  # the reversing point
+        path.append(((s_stop + p.reverse_distance) / p.reverse_distance - misses["reversing point"], 0.0, 0.0))
+    if kind == "stop" and phase == 4:  # the end: at the truck, bucket at H_T and still, the machine at rest
+        path.append(((s_stop - p.final_position) / p.reverse_distance - misses["end position"], 0.0, 0.0))
+        path.append(((x_end[2] - p.H_T) / p.H_T - misses["end height"], 0.0, 0.0))
+        path.append((x_end[3], 0.0, 0.0))
+        # at rest (as the benchmark's end): the engine holds its speed with the last injection
+        d_om = estimated_derivatives(x_end, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
+                                     est[0], est[1], est[2])[0]  # (at omega >= omega_min: no floor)
+        path.append((d_om / 100.0, 0.0, 0.0))
+    # the previous control moves on to this slot's where the slot is a step (h > 0), else stays
+    r_next = r_now + active * (U[:N_R] - r_now)
+    cost.append(rate_on * ca.dot(rate_w, (U[:N_R] - r_now) ** 2))
+    cost.append(IDLE_WEIGHT * (1.0 - active) * ca.dot(U, U))  # an idle slot's control: 0
+    cost.append(DECEL_EXCESS_WEIGHT * ex + DECEL_MARGIN_WEIGHT * em)
+    out = [Xk[:N_X] - x_end / xs, Xk[N_X:] - r_next]
+    if first:
+        out.append(x_prev - q[N_SLOT_PAR:N_SLOT_PAR + N_XR])
+    if terminal:  # the value of the cycle beyond the horizon, to second order about a plan's
+        tp = q[-(2 * N_XR + 1):]
+        dx = Xk - tp[:N_XR]
+        cost.append(ca.dot(tp[N_XR:2 * N_XR], dx) + 0.5 * tp[-1] * ca.dot(dx, dx))
+    out += [r[0] for r in path]
+    name = f"slot_{kind}_{phase}{'_first' if first else ''}{'_terminal' if terminal else ''}"
+    f = 1000.0 * fuel_k + ca.sum1(ca.vertcat(*cost))
+    return SlotFunction(ca.Function(name, [z, q, shared], [ca.vertcat(*out), f, fuel_k]), targets,
+                        np.concatenate([np.broadcast_to(lo, (int(r.numel()),)) for r, lo, _ in path]).astype(float),
+                        np.concatenate([np.broadcast_to(hi, (int(r.numel()),)) for r, _, hi in path]).astype(float),
+                        terminal)
+
+
 @dataclass(frozen=True)
 class Slot:
     """One step of a :class:`GridNLP`: its phase and kind, and where its variables and rows are.
@@ -332,7 +423,6 @@ class GridNLP:
 
     def _build(self) -> None:
         m = self.model
-        xs, us = ca.DM(X_SCALE), ca.DM(U_SCALE)
         kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
         kinds = sorted(kinds + [(ph, "stop") for ph in self.stop_phases], key=lambda k: (k[0], k[1] == "stop"))
         n_slots = len(kinds)
@@ -346,13 +436,9 @@ class GridNLP:
         self.terminal_offset = self._rate_offset + n_slots + N_R
         n_terminal = 2 * N_XR + 1 if self.open_phase is not None else 0
         par = sym.sym("par", self.terminal_offset + n_terminal)
-        est = par[N_XR:N_XR + N_EST]
-        scn = par[self.scenario_offset:self.h_offset]
-        p = _symbolic_params(m.params, scn)  # (the machine's fields are numbers, the scenario's symbols)
-        hs = par[self.h_offset:self._active_offset]
-        is_active = par[self._active_offset:self._rate_offset]
-        rate_on = par[self._rate_offset:self._rate_offset + n_slots]
+        shared = par[N_XR:self.h_offset]  # the estimate and the scenario
         rate_w = par[self._rate_offset + n_slots:self.terminal_offset]
+        p = _symbolic_params(m.params, par[self.scenario_offset:self.h_offset])  # (the machine's fields: numbers)
         w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
         size = {"w": 0, "g": 0}
 
@@ -372,26 +458,19 @@ class GridNLP:
             size["g"] += n
             return size["g"] - n
 
-        cost: list[Any] = []
         self._miss_index: dict[str, int] = {}
-
-        def elastic(name: str) -> Any:  # a target's signed miss, penalized in L1
-            e, off = var(2, 0.0, math.inf)
-            self._miss_index[name] = off
-            cost.append(TARGET_WEIGHT * (e[0] + e[1]))
-            return e[0] - e[1]
-
         r_lb = np.array([0.0, p.U_ab_bounds[0]]) / U_SCALE[:N_R]
         r_ub = np.array([p.U_mf_max, p.U_ab_bounds[1]]) / U_SCALE[:N_R]
         x_lb0 = np.array([p.omega_min, -p.V_max, -math.inf, 0.0, -math.inf])
         x_ub0 = np.array([p.omega_max, p.V_max, math.inf, math.inf, math.inf])
         Xk, _ = var(N_XR, np.concatenate([x_lb0 / X_SCALE, r_lb]), np.concatenate([x_ub0 / X_SCALE, r_ub]))
-        Xk_start = Xk
-        fuel = 0.0
+        cost, fuel = [], []
         slots: list[Slot] = []
+        self._slot_fns: list[SlotFunction] = []
         self.stage_controls, self.stage_rows = [], []  # per slot (stage): its controls and non-gap rows
-        for ph, kind in kinds:
+        for k, (ph, kind) in enumerate(kinds):
             spec = m.specs[ph]
+            sf = slot_function(m, ph, kind, first=k == 0, terminal=self.open_phase is not None and k == n_slots - 1)
             v_lo, v_hi = (-p.V_max, 0.0) if spec.direction < 0 else (0.0, p.V_max)
             if kind == "stop" and ph == 2:
                 v_lo, v_hi = 0.0, p.V_max  # the rest of the step runs in phase 3
@@ -402,62 +481,113 @@ class GridNLP:
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0])
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0])
-            step = m.full[ph] if kind == "full" else m.stop[ph]
-            k = len(slots)
-            w_before = size["w"]
+            w_before, x_prev = size["w"], Xk
             U, u_off = var(3, u_lb / U_SCALE, u_ub / U_SCALE)
             ex, _ = var(1, 0.0, math.inf)
             em, _ = var(1, 0.0, math.inf)  # (its upper bound, the margin, is set per solve)
-            u = U * us
-            x_now, r_now = Xk[:N_X] * xs, Xk[N_X:]
-            x_end, rows, fuel_k, s_stop = step.fn(x_now, u, hs[k], est, scn[:N_STEP_SCN])
-            sel = np.zeros(step.n_rows)
-            sel[list(step.decel)] = 1.0
-            path = [(rows - ca.DM(sel) * (ex + em), step.lb, step.ub)]  # (the deceleration's: elastic)
-            if kind == "stop" and ph == 2:  # the reversing point
-                path.append(((s_stop + p.reverse_distance) / p.reverse_distance - elastic("reversing point"), 0.0, 0.0))
-            if kind == "stop" and ph == 4:  # the end: at the truck, bucket at H_T and still, the machine at rest
-                path.append(((s_stop - p.final_position) / p.reverse_distance - elastic("end position"), 0.0, 0.0))
-                path.append(((x_end[2] - p.H_T) / p.H_T - elastic("end height"), 0.0, 0.0))
-                path.append((x_end[3], 0.0, 0.0))
-                # at rest (as the benchmark's end): the engine holds its speed with the last injection
-                d_om = estimated_derivatives(x_end, ca.vertcat(u[0], 0.0, u[2]), spec.gear, spec.direction, p,
-                                             est[0], est[1], est[2])[0]  # (at omega >= omega_min: no floor)
-                path.append((d_om / 100.0, 0.0, 0.0))
-            # the previous control moves on to this slot's where the slot is a step (h > 0), else stays
-            active = is_active[k]
-            r_next = r_now + active * (U[:N_R] - r_now)
-            cost.append(rate_on[k] * ca.dot(rate_w, (U[:N_R] - r_now) ** 2))
-            cost.append(IDLE_WEIGHT * (1.0 - active) * ca.dot(U, U))  # an idle slot's control: 0
-            cost.append(DECEL_EXCESS_WEIGHT * ex + DECEL_MARGIN_WEIGHT * em)
+            misses = []
+            for name in sf.targets:  # a target's signed miss (the difference of two parts), penalized in L1
+                e, self._miss_index[name] = var(2, 0.0, math.inf)
+                misses.append(e)
             self.stage_controls.append(size["w"] - w_before)
             Xk, x_off = var(N_XR, np.concatenate([x_lb / X_SCALE, r_lb]), np.concatenate([x_ub / X_SCALE, r_ub]))
-            # rows in stage order (as fatrop's structure needs): the shooting gap, then the stage's rows
-            gap = con(ca.vertcat(Xk[:N_X] - x_end / xs, Xk[N_X:] - r_next), 0.0, 0.0)
+            own = [par[:N_XR]] if k == 0 else []
+            if sf.terminal:
+                own.append(par[self.terminal_offset:])
+            per_slot = ca.vertcat(par[self.h_offset + k], par[self._active_offset + k], par[self._rate_offset + k],
+                                  rate_w, *own)
+            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), per_slot, shared)
+            # rows in stage order (as fatrop's structure needs): the shooting gap, (slot 0) the start, the rest
+            gap = con(rows[:N_XR], 0.0, 0.0)
             g_before = size["g"]
             if k == 0:
-                con(Xk_start - par[:N_XR], 0.0, 0.0)  # the measured start and the control applied before it
-            g_off = con(*path[0])
-            for row in path[1:]:
-                con(*row)
+                con(rows[N_XR:2 * N_XR], 0.0, 0.0)  # the measured start and the control applied before it
+            n_own = 2 * N_XR if k == 0 else N_XR
+            g_off = con(rows[n_own:], sf.lb, sf.ub)
             self.stage_rows.append(size["g"] - g_before)
             slots.append(Slot(ph, kind, u_off, x_off, g_off, gap))
-            fuel += fuel_k
-        if self.open_phase is not None:  # the value of the cycle beyond the horizon, to second order about a plan's
-            x_ref, grad, weight = (par[self.terminal_offset:self.terminal_offset + N_XR],
-                                   par[self.terminal_offset + N_XR:self.terminal_offset + 2 * N_XR], par[-1])
-            dx = Xk - x_ref
-            cost.append(ca.dot(grad, dx) + 0.5 * weight * ca.dot(dx, dx))
-        fuel_g = 1000.0 * fuel
-        J = fuel_g + ca.sum1(ca.vertcat(*cost))
+            self._slot_fns.append(sf)
+            cost.append(f_k)
+            fuel.append(fuel_k)
+        fuel_g = 1000.0 * ca.sum1(ca.vertcat(*fuel))
         self.slots = slots
         self.n_var, self.n_con, self.n_par = size["w"], size["g"], int(par.numel())
         self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
         self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
         z = ca.vertcat(*w)
-        self.nlp = {"x": z, "p": par, "f": J, "g": ca.vertcat(*g)}
+        self.nlp = {"x": z, "p": par, "f": ca.sum1(ca.vertcat(*cost)), "g": ca.vertcat(*g)}
         self.equality = self.lbg == self.ubg  # fixed by the build: per solve only inequality rows are relaxed
         self.fuel_g = ca.Function("fuel_g", [z, par], [fuel_g])
+
+    @functools.cached_property
+    def derivative_functions(self) -> dict[str, ca.Function]:
+        """The NLP's Hessian of the Lagrangian (upper triangle) and constraint Jacobian as nlpsol takes them
+        (options ``hess_lag``, ``jac_g``): each slot function's derivatives (:class:`SlotFunction`, built
+        once per machine), mapped over the slots of its kind and summed into place. The same values as
+        CasADi generates from the whole NLP, which costs ~1.5 s per NLP to build (measured at stop 45)."""
+        n, n_g, n_p = self.n_var, self.n_con, self.n_par
+        x, par, lam_f, lam_g = ca.MX.sym("x", n), ca.MX.sym("p", n_p), ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_g)
+        shared = par[N_XR:self.h_offset]
+        n_slots = len(self.slots)
+        groups: dict[int, list[int]] = {}
+        for k, sf in enumerate(self._slot_fns):
+            groups.setdefault(id(sf), []).append(k)
+        h_parts, h_at, j_parts, j_at, g_parts, g_rows = [], [], [], [], [], []
+        for ks in groups.values():
+            sf = self._slot_fns[ks[0]]
+            hess_fn, jac_fn = sf.derivatives
+            z_idx, q_idx, r_idx = [], [], []
+            for k in ks:
+                s = self.slots[k]
+                z0 = s.u - N_XR  # the state before the slot, then the slot's own variables
+                z_idx.append(np.arange(z0, s.x + N_XR))
+                q = [self.h_offset + k, self._active_offset + k, self._rate_offset + k]
+                q += list(range(self._rate_offset + n_slots, self.terminal_offset))
+                if k == 0:
+                    q += list(range(N_XR))
+                if sf.terminal:
+                    q += list(range(self.terminal_offset, n_p))
+                q_idx.append(q)
+                end = self.slots[k + 1].gap if k + 1 < n_slots else n_g
+                r_idx.append(np.arange(s.gap, end))
+            z_idx, r_idx = np.array(z_idx), np.array(r_idx)
+            m = len(ks)
+            Z = ca.reshape(x[z_idx.ravel().tolist()], z_idx.shape[1], m)
+            Q = ca.reshape(par[np.array(q_idx).ravel().tolist()], len(q_idx[0]), m)
+            L = ca.reshape(lam_g[r_idx.ravel().tolist()], r_idx.shape[1], m)
+            H = hess_fn.map(m)(Z, Q, shared, lam_f, L)
+            G, J = jac_fn.map(m)(Z, Q, shared)
+            # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
+            hs, js = hess_fn.sparsity_out(0), jac_fn.sparsity_out(1)
+            hr, hc = (np.array(a) for a in hs.get_triplet())
+            jr, jc = (np.array(a) for a in js.get_triplet())
+            for i in range(m):
+                h_at.append((z_idx[i][hr], z_idx[i][hc]))
+                j_at.append((r_idx[i][jr], z_idx[i][jc]))
+            h_parts.append(H.nz[:])
+            j_parts.append(J.nz[:])
+            g_parts.append(ca.vec(G))
+            g_rows.append(r_idx.ravel())
+
+        def assemble(parts: list, at: list, shape: tuple[int, int]) -> ca.MX:
+            rows, cols = (np.concatenate([a[i] for a in at]) for i in (0, 1))
+            # the nonzeros in column-major order (CasADi's); entries of neighbouring slots' blocks (the state
+            # between them) land on one nonzero and sum
+            keys, nz = np.unique(cols.astype(np.int64) * shape[0] + rows, return_inverse=True)
+            sp = ca.Sparsity.triplet(shape[0], shape[1], (keys % shape[0]).tolist(), (keys // shape[0]).tolist())
+            values = ca.vertcat(*parts)
+            if len(keys) == len(nz):  # (the Jacobian's: each nonzero from one block, a permutation)
+                return ca.MX(sp, values[np.argsort(nz).tolist()])
+            A = ca.DM(ca.Sparsity.triplet(sp.nnz(), len(nz), nz.tolist(), list(range(len(nz)))), 1.0)
+            return ca.MX(sp, ca.mtimes(A, values))
+
+        hess = assemble(h_parts, h_at, (n, n))
+        jac = assemble(j_parts, j_at, (n_g, n))
+        order = np.argsort(np.concatenate(g_rows))
+        g = ca.vertcat(*g_parts)[order.tolist()]
+        return {"hess_lag": ca.Function("grid_hess_lag", [x, par, lam_f, lam_g], [hess],
+                                        ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]),
+                "jac_g": ca.Function("grid_jac_g", [x, par], [g, jac], ["x", "p"], ["g", "jac_g_x"])}
 
     # ------------------------------------------------------------------ per solve
     def arguments(self, counts: dict[int, int], x_start: np.ndarray, est: np.ndarray, dt: float,

@@ -232,7 +232,8 @@ def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float |
         global _DEADLINE_CALLBACK
         _DEADLINE_CALLBACK = _DEADLINE_CALLBACK or _DeadlineCallback()
         opts.update({"iteration_callback": _DEADLINE_CALLBACK, "iteration_callback_ignore_errors": False})
-    return ca.nlpsol("mpc", "ipopt", nlp.nlp, opts)
+    # the NLP's derivatives from its slots' (built once per machine): ~0.6 s to build against ~1.8 s
+    return ca.nlpsol("mpc", "ipopt", nlp.nlp, {**opts, **nlp.derivative_functions})
 
 
 # the full layouts' solvers, and the short horizons' (each a cache of its own, as their NLPs)
