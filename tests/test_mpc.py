@@ -71,8 +71,11 @@ def _nlp_with_solvers(braking, first_phase, slots, open_phase):
 
     nlp = GridNLP(StepModel(braking, P), first_phase, dict(slots), open_phase=open_phase)
     quiet = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}
-    return nlp, ca.nlpsol("generated", "ipopt", nlp.nlp, quiet), ca.nlpsol("mapped", "ipopt", nlp.nlp,
-                                                                          {**quiet, **nlp.derivative_functions})
+    sqp = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False}
+    return nlp, {"ipopt": (ca.nlpsol("generated", "ipopt", nlp.nlp, quiet),
+                           ca.nlpsol("mapped", "ipopt", nlp.nlp, {**quiet, **nlp.derivative_functions})),
+                 "sqpmethod": (ca.nlpsol("generated", "sqpmethod", nlp.nlp, sqp),
+                               ca.nlpsol("mapped", "sqpmethod", nlp.nlp, {**sqp, **nlp.sqp_derivative_functions}))}
 
 
 LAYOUTS = [("tc", 1, ((1, 3), (2, 2), (3, 3), (4, 2)), None), ("service", 3, ((3, 2), (4, 3)), None),
@@ -86,17 +89,22 @@ def test_mapped_derivatives_are_the_generated_ones(layout, seed):
     (where neighbouring slots share the state between them, their blocks sum), equal CasADi's from the
     whole NLP: every nonzero, with the same sparsity, at any point, multipliers and parameters (start,
     estimate, scenario, step lengths, terminal cost)."""
-    nlp, generated, mapped = _nlp_with_solvers(*layout)
+    nlp, solvers = _nlp_with_solvers(*layout)
     rng = np.random.default_rng(seed)
     point = {"x": rng.uniform(-1.5, 1.5, nlp.n_var), "p": rng.uniform(-1.0, 1.0, nlp.n_par)}
-    for name, extra in (("nlp_hess_l", {"lam_f": rng.uniform(0.1, 2.0), "lam_g": rng.normal(0.0, 10.0, nlp.n_con)}),
-                        ("nlp_jac_g", {})):
-        want = generated.get_function(name).call({**point, **extra})
-        got = mapped.get_function(name).call({**point, **extra})
+    lagrangian = {"lam_f": rng.uniform(0.1, 2.0), "lam_g": rng.normal(0.0, 10.0, nlp.n_con)}
+    # IPOPT: the Hessian's upper triangle and the Jacobian; sqpmethod: the whole Hessian, and the objective's
+    # gradient beside the Jacobian
+    for plugin, name, extra in (("ipopt", "nlp_hess_l", lagrangian), ("ipopt", "nlp_jac_g", {}),
+                                ("sqpmethod", "nlp_hess_l", lagrangian), ("sqpmethod", "nlp_jac_fg", {})):
+        generated, mapped = (fn.get_function(name) for fn in solvers[plugin])
+        # (the solvers read the outputs by position)
+        assert (mapped.name_in(), mapped.name_out()) == (generated.name_in(), generated.name_out())
+        want, got = (fn.call({**point, **extra}) for fn in (generated, mapped))
         for key, value in want.items():
-            assert got[key].sparsity() == value.sparsity(), (name, key)
+            assert got[key].sparsity() == value.sparsity(), (plugin, name, key)
             scale = max(1.0, float(ca.norm_inf(value)))
-            assert float(ca.norm_inf(got[key] - value)) <= 1e-12 * scale, (name, key)
+            assert float(ca.norm_inf(got[key] - value)) <= 1e-12 * scale, (plugin, name, key)
 
 
 def test_estimated_derivatives_follow_the_estimate():

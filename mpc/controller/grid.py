@@ -286,13 +286,13 @@ class SlotFunction:
     @functools.cached_property
     def derivatives(self) -> tuple[ca.Function, ca.Function]:
         """(z, q, shared, lam_f, lam_g) -> upper triangle of the Hessian of lam_f f + lam_g . rows in z;
-        (z, q, shared) -> (rows, their Jacobian in z)."""
+        (z, q, shared) -> (rows, their Jacobian in z, f, its gradient in z)."""
         z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
         rows, f, _ = self.fn(z, q, shared)
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
         hess, _ = ca.hessian(lam_f * f + ca.dot(lam_g, rows), z)
         return (ca.Function(f"{self.fn.name()}_hess", [z, q, shared, lam_f, lam_g], [ca.triu(hess)]),
-                ca.Function(f"{self.fn.name()}_jac", [z, q, shared], [rows, ca.jacobian(rows, z)]))
+                ca.Function(f"{self.fn.name()}_jac", [z, q, shared], [rows, ca.jacobian(rows, z), f, ca.gradient(f, z)]))
 
 
 @functools.lru_cache(maxsize=None)
@@ -522,10 +522,21 @@ class GridNLP:
 
     @functools.cached_property
     def derivative_functions(self) -> dict[str, ca.Function]:
-        """The NLP's Hessian of the Lagrangian (upper triangle) and constraint Jacobian as nlpsol takes them
-        (options ``hess_lag``, ``jac_g``): each slot function's derivatives (:class:`SlotFunction`, built
-        once per machine), mapped over the slots of its kind and summed into place. The same values as
-        CasADi generates from the whole NLP, which costs ~1.5 s per NLP to build (measured at stop 45)."""
+        """The NLP's Hessian of the Lagrangian (upper triangle) and constraint Jacobian as IPOPT's nlpsol
+        takes them (options ``hess_lag``, ``jac_g``): each slot function's derivatives (:class:`SlotFunction`,
+        built once per machine), mapped over the slots of its kind and summed into place. The same values
+        as CasADi generates from the whole NLP, which costs ~1.2 s more per NLP to build (measured, stop 45).
+        ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`."""
+        return {k: self._mapped_derivatives[k] for k in ("hess_lag", "jac_g")}
+
+    @functools.cached_property
+    def sqp_derivative_functions(self) -> dict[str, ca.Function]:
+        """:attr:`derivative_functions` as ``sqpmethod`` takes them: the whole symmetric Hessian, and the
+        objective's gradient with the constraints' Jacobian (``jac_fg``)."""
+        return {"hess_lag": self._mapped_derivatives["sym_hess_lag"], "jac_fg": self._mapped_derivatives["jac_fg"]}
+
+    @functools.cached_property
+    def _mapped_derivatives(self) -> dict[str, ca.Function]:
         n, n_g, n_p = self.n_var, self.n_con, self.n_par
         x, par, lam_f, lam_g = ca.MX.sym("x", n), ca.MX.sym("p", n_p), ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_g)
         shared = par[N_XR:self.h_offset]
@@ -533,7 +544,7 @@ class GridNLP:
         groups: dict[int, list[int]] = {}
         for k, sf in enumerate(self._slot_fns):
             groups.setdefault(id(sf), []).append(k)
-        h_parts, h_at, j_parts, j_at, g_parts, g_rows = [], [], [], [], [], []
+        h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
         for ks in groups.values():
             sf = self._slot_fns[ks[0]]
             hess_fn, jac_fn = sf.derivatives
@@ -557,7 +568,7 @@ class GridNLP:
             Q = ca.reshape(par[np.array(q_idx).ravel().tolist()], len(q_idx[0]), m)
             L = ca.reshape(lam_g[r_idx.ravel().tolist()], r_idx.shape[1], m)
             H = hess_fn.map(m)(Z, Q, shared, lam_f, L)
-            G, J = jac_fn.map(m)(Z, Q, shared)
+            G, J, F, D = jac_fn.map(m)(Z, Q, shared)
             # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
             hs, js = hess_fn.sparsity_out(0), jac_fn.sparsity_out(1)
             hr, hc = (np.array(a) for a in hs.get_triplet())
@@ -569,6 +580,9 @@ class GridNLP:
             j_parts.append(J.nz[:])
             g_parts.append(ca.vec(G))
             g_rows.append(r_idx.ravel())
+            f_parts.append(ca.sum2(F))
+            d_parts.append(ca.vec(D))
+            d_at.append((z_idx.ravel(), np.zeros(z_idx.size, dtype=int)))
 
         def assemble(parts: list, at: list, shape: tuple[int, int]) -> ca.MX:
             rows, cols = (np.concatenate([a[i] for a in at]) for i in (0, 1))
@@ -584,11 +598,17 @@ class GridNLP:
 
         hess = assemble(h_parts, h_at, (n, n))
         jac = assemble(j_parts, j_at, (n_g, n))
+        grad_f = ca.densify(assemble(d_parts, d_at, (n, 1)))
         order = np.argsort(np.concatenate(g_rows))
         g = ca.vertcat(*g_parts)[order.tolist()]
-        return {"hess_lag": ca.Function("grid_hess_lag", [x, par, lam_f, lam_g], [hess],
-                                        ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]),
-                "jac_g": ca.Function("grid_jac_g", [x, par], [g, jac], ["x", "p"], ["g", "jac_g_x"])}
+        f = ca.sum1(ca.vertcat(*f_parts))
+        inputs, names = [x, par, lam_f, lam_g], ["x", "p", "lam_f", "lam_g"]
+        return {"hess_lag": ca.Function("grid_hess_lag", inputs, [hess], names, ["triu_hess_gamma_x_x"]),
+                "sym_hess_lag": ca.Function("grid_sym_hess_lag", inputs, [ca.triu2symm(hess)], names,
+                                            ["hess_gamma_x_x"]),
+                "jac_g": ca.Function("grid_jac_g", [x, par], [g, jac], ["x", "p"], ["g", "jac_g_x"]),
+                "jac_fg": ca.Function("grid_jac_fg", [x, par], [f, grad_f, g, jac], ["x", "p"],
+                                      ["f", "grad_f_x", "g", "jac_g_x"])}
 
     # ------------------------------------------------------------------ per solve
     def arguments(self, counts: dict[int, int], x_start: np.ndarray, est: np.ndarray, dt: float,

@@ -336,7 +336,7 @@ def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
     opts = {"qpsol": qpsol, "qpsol_options": {**qp_opts, "error_on_fail": False}, "max_iter": 1, "print_header": False,
             "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False,
             "convexify_strategy": "regularize", "convexify_margin": 1e-6, "max_iter_ls": 0}
-    return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, opts)
+    return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, {**opts, **nlp.sqp_derivative_functions})
 
 
 class SqpRtiSolver:
