@@ -284,15 +284,17 @@ class SlotFunction:
     terminal: bool
 
     @functools.cached_property
-    def derivatives(self) -> tuple[ca.Function, ca.Function]:
+    def derivatives(self) -> tuple[ca.Function, ca.Function, ca.Function]:
         """(z, q, shared, lam_f, lam_g) -> upper triangle of the Hessian of lam_f f + lam_g . rows in z;
-        (z, q, shared) -> (rows, their Jacobian in z, f, its gradient in z)."""
+        (z, q, shared) -> (rows, their Jacobian in z); (z, q, shared) -> (f, its gradient in z)."""
         z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
         rows, f, _ = self.fn(z, q, shared)
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
         hess, _ = ca.hessian(lam_f * f + ca.dot(lam_g, rows), z)
-        return (ca.Function(f"{self.fn.name()}_hess", [z, q, shared, lam_f, lam_g], [ca.triu(hess)]),
-                ca.Function(f"{self.fn.name()}_jac", [z, q, shared], [rows, ca.jacobian(rows, z), f, ca.gradient(f, z)]))
+        name = self.fn.name()
+        return (ca.Function(f"{name}_hess", [z, q, shared, lam_f, lam_g], [ca.triu(hess)]),
+                ca.Function(f"{name}_jac", [z, q, shared], [rows, ca.jacobian(rows, z)]),
+                ca.Function(f"{name}_grad", [z, q, shared], [f, ca.gradient(f, z)]))
 
 
 @functools.lru_cache(maxsize=None)
@@ -547,7 +549,7 @@ class GridNLP:
         h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
         for ks in groups.values():
             sf = self._slot_fns[ks[0]]
-            hess_fn, jac_fn = sf.derivatives
+            hess_fn, jac_fn, grad_fn = sf.derivatives
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]
@@ -568,7 +570,8 @@ class GridNLP:
             Q = ca.reshape(par[np.array(q_idx).ravel().tolist()], len(q_idx[0]), m)
             L = ca.reshape(lam_g[r_idx.ravel().tolist()], r_idx.shape[1], m)
             H = hess_fn.map(m)(Z, Q, shared, lam_f, L)
-            G, J, F, D = jac_fn.map(m)(Z, Q, shared)
+            G, J = jac_fn.map(m)(Z, Q, shared)
+            F, D = grad_fn.map(m)(Z, Q, shared)
             # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
             hs, js = hess_fn.sparsity_out(0), jac_fn.sparsity_out(1)
             hr, hc = (np.array(a) for a in hs.get_triplet())
