@@ -73,7 +73,7 @@ def _nlp_with_solvers(braking, first_phase, slots, open_phase):
     quiet = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}
     sqp = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False}
     return nlp, {"ipopt": (ca.nlpsol("generated", "ipopt", nlp.nlp, quiet),
-                           ca.nlpsol("mapped", "ipopt", nlp.nlp, {**quiet, **nlp.derivative_functions})),
+                           ca.nlpsol("mapped", "ipopt", nlp.mapped_nlp, {**quiet, **nlp.derivative_functions})),
                  "sqpmethod": (ca.nlpsol("generated", "sqpmethod", nlp.nlp, sqp),
                                ca.nlpsol("mapped", "sqpmethod", nlp.nlp, {**sqp, **nlp.sqp_derivative_functions}))}
 
@@ -85,10 +85,11 @@ LAYOUTS = [("tc", 1, ((1, 3), (2, 2), (3, 3), (4, 2)), None), ("service", 3, ((3
 @settings(max_examples=10, deadline=None)
 @given(layout=st.sampled_from(LAYOUTS), seed=st.integers(0, 2**32 - 1))
 def test_mapped_derivatives_are_the_generated_ones(layout, seed):
-    """The NLP's Hessian of the Lagrangian and constraint Jacobian, assembled from the slot functions'
-    (where neighbouring slots share the state between them, their blocks sum), equal CasADi's from the
-    whole NLP: every nonzero, with the same sparsity, at any point, multipliers and parameters (start,
-    estimate, scenario, step lengths, terminal cost)."""
+    """The NLP's objective, rows, gradient, Hessian of the Lagrangian and constraint Jacobian, assembled from
+    the slot functions' (where neighbouring slots share the state between them, their blocks sum), and its
+    parameter sensitivities (lam_p), equal CasADi's from the whole NLP: every nonzero, with the same
+    sparsity, at any point, multipliers and parameters (start, estimate, scenario, step lengths, terminal
+    cost)."""
     nlp, solvers = _nlp_with_solvers(*layout)
     rng = np.random.default_rng(seed)
     point = {"x": rng.uniform(-1.5, 1.5, nlp.n_var), "p": rng.uniform(-1.0, 1.0, nlp.n_par)}
@@ -96,6 +97,7 @@ def test_mapped_derivatives_are_the_generated_ones(layout, seed):
     # IPOPT: the Hessian's upper triangle and the Jacobian; sqpmethod: the whole Hessian, and the objective's
     # gradient beside the Jacobian
     for plugin, name, extra in (("ipopt", "nlp_hess_l", lagrangian), ("ipopt", "nlp_jac_g", {}),
+                                ("ipopt", "nlp_f", {}), ("ipopt", "nlp_g", {}), ("ipopt", "nlp_grad_f", {}),
                                 ("sqpmethod", "nlp_hess_l", lagrangian), ("sqpmethod", "nlp_jac_fg", {})):
         generated, mapped = (fn.get_function(name) for fn in solvers[plugin])
         # (the solvers read the outputs by position)
@@ -105,6 +107,9 @@ def test_mapped_derivatives_are_the_generated_ones(layout, seed):
             assert got[key].sparsity() == value.sparsity(), (plugin, name, key)
             scale = max(1.0, float(ca.norm_inf(value)))
             assert float(ca.norm_inf(got[key] - value)) <= 1e-12 * scale, (plugin, name, key)
+    want = -np.array(solvers["ipopt"][0].get_function("nlp_grad").call({**point, **lagrangian})["grad_gamma_p"]).ravel()
+    got = nlp.lam_p(point["x"], point["p"], lagrangian["lam_g"] / lagrangian["lam_f"]) * lagrangian["lam_f"]
+    assert np.abs(got - want).max() <= 1e-12 * max(1.0, np.abs(want).max())
 
 
 def test_estimated_derivatives_follow_the_estimate():

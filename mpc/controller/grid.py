@@ -296,6 +296,18 @@ class SlotFunction:
                 ca.Function(f"{name}_jac", [z, q, shared], [rows, ca.jacobian(rows, z)]),
                 ca.Function(f"{name}_grad", [z, q, shared], [f, ca.gradient(f, z)]))
 
+    @functools.cached_property
+    def values(self) -> tuple[ca.Function, ca.Function, ca.Function]:
+        """(z, q, shared) -> f; -> rows; (z, q, shared, lam_f, lam_g) -> the gradient of lam_f f + lam_g .
+        rows in [q; shared] (the NLP's parameter sensitivities, CasADi's lam_p with the sign turned)."""
+        z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
+        rows, f, _ = self.fn(z, q, shared)
+        lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
+        name = self.fn.name()
+        return (ca.Function(f"{name}_f", [z, q, shared], [f]), ca.Function(f"{name}_g", [z, q, shared], [rows]),
+                ca.Function(f"{name}_lam_p", [z, q, shared, lam_f, lam_g],
+                            [ca.gradient(lam_f * f + ca.dot(lam_g, rows), ca.vertcat(q, shared))]))
+
 
 @functools.lru_cache(maxsize=None)
 def slot_function(model: StepModel, phase: int, kind: str, first: bool, terminal: bool) -> SlotFunction:
@@ -529,7 +541,18 @@ class GridNLP:
         built once per machine), mapped over the slots of its kind and summed into place. The same values
         as CasADi generates from the whole NLP, which costs ~1.2 s more per NLP to build (measured, stop 45).
         ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`."""
-        return {k: self._mapped_derivatives[k] for k in ("hess_lag", "jac_g")}
+        return {k: self._mapped_derivatives[k] for k in ("hess_lag", "jac_g", "grad_f")}
+
+    @property
+    def mapped_nlp(self) -> dict[str, ca.MX]:
+        """The NLP (x, p, f, g) as the slot functions mapped over the slots (the same values as :attr:`nlp`):
+        what IPOPT solves, so that nlpsol builds no derivatives of its own from the whole NLP."""
+        return self._mapped_derivatives["nlp"]
+
+    def lam_p(self, z: np.ndarray, p: np.ndarray, lam_g: np.ndarray) -> np.ndarray:
+        """CasADi's ``lam_p`` at a solution (minus the objective's sensitivity to the parameters), from the
+        slot functions (IPOPT on :attr:`mapped_nlp` leaves it out: its own evaluation is the whole NLP's)."""
+        return np.array(self._mapped_derivatives["lam_p"](z, p, 1.0, lam_g)).ravel()
 
     @functools.cached_property
     def sqp_derivative_functions(self) -> dict[str, ca.Function]:
@@ -547,9 +570,12 @@ class GridNLP:
         for k, sf in enumerate(self._slot_fns):
             groups.setdefault(id(sf), []).append(k)
         h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
+        value_f, value_g, p_parts, p_at = [], [], [], []
+        shared_idx = np.arange(N_XR, self.h_offset)
         for ks in groups.values():
             sf = self._slot_fns[ks[0]]
             hess_fn, jac_fn, grad_fn = sf.derivatives
+            f_fn, g_fn, lam_p_fn = sf.values
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]
@@ -572,6 +598,11 @@ class GridNLP:
             H = hess_fn.map(m)(Z, Q, shared, lam_f, L)
             G, J = jac_fn.map(m)(Z, Q, shared)
             F, D = grad_fn.map(m)(Z, Q, shared)
+            value_f.append(ca.sum2(f_fn.map(m)(Z, Q, shared)))
+            value_g.append(ca.vec(g_fn.map(m)(Z, Q, shared)))
+            p_parts.append(ca.vec(lam_p_fn.map(m)(Z, Q, shared, lam_f, L)))
+            qs_idx = np.hstack([np.array(q_idx), np.tile(shared_idx, (m, 1))])
+            p_at.append((qs_idx.ravel(), np.zeros(qs_idx.size, dtype=int)))
             # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
             hs, js = hess_fn.sparsity_out(0), jac_fn.sparsity_out(1)
             hr, hc = (np.array(a) for a in hs.get_triplet())
@@ -605,8 +636,13 @@ class GridNLP:
         order = np.argsort(np.concatenate(g_rows))
         g = ca.vertcat(*g_parts)[order.tolist()]
         f = ca.sum1(ca.vertcat(*f_parts))
+        grad_p = ca.densify(assemble(p_parts, p_at, (n_p, 1)))
         inputs, names = [x, par, lam_f, lam_g], ["x", "p", "lam_f", "lam_g"]
-        return {"hess_lag": ca.Function("grid_hess_lag", inputs, [hess], names, ["triu_hess_gamma_x_x"]),
+        return {"nlp": {"x": x, "p": par, "f": ca.sum1(ca.vertcat(*value_f)),
+                        "g": ca.vertcat(*value_g)[order.tolist()]},
+                "grad_f": ca.Function("grid_grad_f", [x, par], [f, grad_f], ["x", "p"], ["f", "grad_f_x"]),
+                "lam_p": ca.Function("grid_lam_p", inputs, [-grad_p], names, ["lam_p"]),
+                "hess_lag": ca.Function("grid_hess_lag", inputs, [hess], names, ["triu_hess_gamma_x_x"]),
                 "sym_hess_lag": ca.Function("grid_sym_hess_lag", inputs, [ca.triu2symm(hess)], names,
                                             ["hess_gamma_x_x"]),
                 "jac_g": ca.Function("grid_jac_g", [x, par], [g, jac], ["x", "p"], ["g", "jac_g_x"]),
