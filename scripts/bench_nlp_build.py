@@ -1,8 +1,9 @@
-"""What a slot layout of the MPC's grid NLP costs to build, to hold and to evaluate: IPOPT on the derivatives
-mapped from the slot functions (``GridNLP.derivative_functions``, the default) against IPOPT on the ones CasADi
-generates from the whole NLP. Each variant runs in a fresh process (its memory its own): it builds the NLPs
-and warm IPOPT solvers of ``--layouts`` slot layouts (the 4 NLPs from each first phase, as a cycle's planning
-does), then evaluates the largest NLP's Hessian of the Lagrangian and constraint Jacobian. Usage::
+"""What a slot layout of the MPC's grid NLP costs to build, to hold and to evaluate: IPOPT on the NLP and its
+derivatives mapped from the slot functions (``GridNLP.mapped_nlp``, ``GridNLP.derivative_functions``: the
+default) against IPOPT on the whole NLP and the derivatives CasADi generates from it (before stop 45). Each
+variant runs in a fresh process (its memory its own): it builds the NLPs and warm IPOPT solvers of
+``--layouts`` slot layouts (the 4 NLPs from each first phase, as a cycle's planning does), then evaluates the
+largest NLP's Hessian of the Lagrangian and constraint Jacobian. Usage::
 
     python scripts/bench_nlp_build.py [--braking tc] [--layouts 2] [--json PATH]
 """
@@ -39,7 +40,8 @@ def measure(variant: str, braking: str, layouts: int) -> dict:
     from mpc.controller import solver
     from mpc.controller.grid import GridNLP, StepModel
 
-    if variant == "generated":  # IPOPT as it was built before stop 45: on CasADi's derivatives of the whole NLP
+    if variant == "generated":  # IPOPT as it was built before stop 45: the whole NLP, CasADi's derivatives of it
+        GridNLP.mapped_nlp = property(lambda self: self.nlp)
         GridNLP.derivative_functions = property(lambda self: {})
     model = StepModel(braking)
     ipopt = solver.IpoptSolver()

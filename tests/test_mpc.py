@@ -380,11 +380,10 @@ def test_a_candidate_that_fails_hands_the_solve_to_its_fallback():
 
 
 def test_scenarios_of_one_machine_share_its_nlps_and_another_structure_releases_them():
-    """Planning time and memory: a grid NLP and its solver (1-3 s to build, 50 MB or more) take the
-    scenario as a parameter. A real-time controller moved to another scenario plans on the ones built, with
-    that scenario's values in their parameters; a scenario whose dump height brings the boom's end stop
-    within reach (its rows: another structure) releases them all, as a synchronous controller moved to
-    another scenario does (it plans that on a layout of its own), and release_solvers leaves nothing built."""
+    """Planning time and memory: a grid NLP and its solver take the scenario as a parameter. A controller
+    moved to another scenario of its machine plans on the ones built (real time or synchronous), with that
+    scenario's values in their parameters; a scenario whose dump height brings the boom's end stop within
+    reach (its rows: another structure) releases them all, and release_solvers leaves nothing built."""
     from mpc.controller import solver
     from mpc.controller.grid import GRID_SCENARIO
     from wl_env.scenario import Scenario
@@ -404,9 +403,11 @@ def test_scenarios_of_one_machine_share_its_nlps_and_another_structure_releases_
         StepModel("service", P).with_params(P.replace(U_mf_max=0.9 * P.U_mf_max))
     ctrl.reset(scenario=Scenario(dump_height=5.1, braking="service"))  # the end stop within a step's lift
     assert ctrl.model.end_stop and solver.grid_nlp.cache_info().currsize == 0
-    solver.grid_nlp(ctrl.model, 4, ((4, 4),))
     synchronous = MPCController("service")
-    synchronous.reset(scenario=Scenario(payload=9000.0, braking="service"))
+    mine = solver.grid_nlp(synchronous.model, 4, ((4, 4),))
+    synchronous.reset(scenario=Scenario(payload=9000.0, braking="service"))  # the same machine
+    assert solver.grid_nlp(synchronous.model, 4, ((4, 4),)) is mine
+    synchronous.reset(scenario=Scenario(dump_height=5.1, braking="service"))
     assert solver.grid_nlp.cache_info().currsize == 0
     solver.grid_nlp(ctrl.model, 4, ((4, 4),))
     solver.release_solvers()

@@ -362,12 +362,13 @@ class MPCController:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
             params = scenario.params(self.params)
             if params != self.params:
-                # A real-time controller plans the new scenario on the NLPs and solvers built (the scenario is
-                # their parameter), where it is the same machine. A synchronous one plans it as a fresh process,
-                # on a slot layout of its own, and another machine (or an end stop that needs rows) has NLPs of
-                # its own: the old ones are of no further use, their memory goes back (measured: `wl run` peaked
-                # at 1.19 GB with the suite's NLPs kept, against 0.48-0.50 GB released).
-                if not self.config.realtime or not self.model.fits(params):
+                # The new scenario is planned on the NLPs and solvers built (the scenario is their parameter),
+                # where it is the same machine and, for a synchronous controller, the same slot layout (its own
+                # layout is the scenario's, as a fresh process's). Another machine (or an end stop that needs
+                # rows) has NLPs of its own: the old ones are of no further use, their memory goes back. (Until
+                # stop 44 a synchronous controller released them on every scenario: `wl run` peaked at 1.19 GB
+                # with them kept, 0.50 GB released, when a layout held ~300 MB; it holds ~45 MB since.)
+                if not self.model.fits(params):
                     release_solvers()
                 self.params = params
                 self.model = step_model(self.braking, params, self.dt, self.substeps, float(self.config.omega_margin))
@@ -1145,7 +1146,7 @@ class MPCController:
         key = (self.braking, self.params.fingerprint(), self.config.mode, self.config.target_time,
                self.config.w_fuel, self.dt, warm is not None)
         if key not in _REFERENCES:
-            from mpc.benchmark.ocp import OCPError, release_nlps
+            from mpc.benchmark.ocp import OCPError
 
             try:
                 _REFERENCES[key] = self._solve_reference(warm)
@@ -1153,12 +1154,8 @@ class MPCController:
                 if warm is None:
                     raise
                 raise ValueError(f"no reference from the warm start: {exc}") from None
-            finally:
-                # its NLP (30-40 MB) is of no use in the cycle, and the heap it held takes the MPC's own next; in
-                # real time it serves the next scenario's warm reference (measured: 1.4-2.0 s first plans from
-                # another scenario's where it had been released, 0.5-1.0 s where not)
-                if not self.config.realtime:
-                    release_nlps()
+        # (its NLP, 30-40 MB, stays built: the next scenario's reference is solved on it, ~0.6 s sooner; in real
+        # time it also serves as the warm start of the next one's, 0.5-1.0 s against 1.4-2.0 s where released)
         return _REFERENCES[key]
 
     def _solve_reference(self, warm: Any = None):
