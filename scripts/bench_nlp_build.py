@@ -87,7 +87,11 @@ def main() -> None:
     rows = []
     for variant in VARIANTS:
         out = subprocess.run([sys.executable, __file__, "--variant", variant, "--braking", args.braking,
-                              "--layouts", str(args.layouts)], capture_output=True, text=True, check=True)
+                              "--layouts", str(args.layouts)], capture_output=True, text=True)
+        if out.returncode == 130:
+            raise KeyboardInterrupt
+        if out.returncode != 0:  # (its own error, not this process's traceback)
+            sys.exit(f"bench_nlp_build: the {variant} variant failed (exit {out.returncode}):\n{out.stderr[-2000:]}")
         r = json.loads(out.stdout.strip().splitlines()[-1])
         rows.append(r)
         print(f"{variant}: build per NLP with its IPOPT median {r['build_median_s']:.2f} s (max "

@@ -115,8 +115,9 @@ def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, ome
 
 
 # The NLPs one controller plans with (one per first phase; the MX twin of the first where a cycle's first
-# solve fails on the warm solver) and their solvers: a suite run moves on to another scenario's model,
-# and each NLP with its solver holds 50-200 MB.
+# solve fails on the warm solver) and their solvers: a suite run moves on to other slot layouts. Each NLP
+# with its IPOPT holds a few MB beside its machine's slot functions (measured at stop 45: a layout's four
+# +41 MB in a fresh process, the next layout's +7 MB; 50-200 MB each before).
 NLP_CACHE = 8
 
 
