@@ -268,14 +268,15 @@ N_SLOT_PAR = 3 + N_R  # a slot's own parameters: h, active, rate on, and the rat
 @dataclass(frozen=True, eq=False)
 class SlotFunction:
     """One slot of a :class:`GridNLP` (a control step and its costs), built once per machine and kind:
-    (z, q, shared) -> (rows, objective g, fuel kg). z: the state before the slot (N_XR, scaled), then
+    (z, q, shared) -> (rows, objective in g, fuel in kg). z: the state before the slot (N_XR, scaled), then
     the slot's own variables (control, excess, margin used, the targets' misses, end state); q: the
     slot's parameters (N_SLOT_PAR; slot 0 the start, an open NLP's last slot the terminal cost's, after
     them); shared: the estimate and the scenario. Rows: the shooting gap, slot 0's start equality, then
     the step's rows and the targets'; ``lb``/``ub`` bound the latter.
 
-    Its Hessian and Jacobian functions (:meth:`derivatives`) serve every NLP of the machine: an NLP's are
-    these, mapped over its slots (:meth:`GridNLP.derivative_functions`), not generated anew per NLP."""
+    Its values and derivatives (:attr:`functions`) serve every NLP of the machine: an NLP's are these,
+    mapped over its slots (:attr:`GridNLP.mapped_nlp`, :attr:`GridNLP.derivative_functions`), not
+    generated anew from each whole NLP."""
 
     fn: ca.Function
     targets: tuple[str, ...]
@@ -284,29 +285,23 @@ class SlotFunction:
     terminal: bool
 
     @functools.cached_property
-    def derivatives(self) -> tuple[ca.Function, ca.Function, ca.Function]:
-        """(z, q, shared, lam_f, lam_g) -> upper triangle of the Hessian of lam_f f + lam_g . rows in z;
-        (z, q, shared) -> (rows, their Jacobian in z); (z, q, shared) -> (f, its gradient in z)."""
+    def functions(self) -> dict[str, ca.Function]:
+        """"f", "g": (z, q, shared) -> the objective; -> the rows. "hess": (z, q, shared, lam_f, lam_g) ->
+        the upper triangle of the Hessian of lam_f f + lam_g . rows in z; "jac": (z, q, shared) -> (rows,
+        their Jacobian in z); "grad": -> (f, its gradient in z); "lam_p": (z, q, shared, lam_f, lam_g) -> the
+        gradient of lam_f f + lam_g . rows in [q; shared] (CasADi's lam_p with the sign turned)."""
         z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
         rows, f, _ = self.fn(z, q, shared)
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
-        hess, _ = ca.hessian(lam_f * f + ca.dot(lam_g, rows), z)
-        name = self.fn.name()
-        return (ca.Function(f"{name}_hess", [z, q, shared, lam_f, lam_g], [ca.triu(hess)]),
-                ca.Function(f"{name}_jac", [z, q, shared], [rows, ca.jacobian(rows, z)]),
-                ca.Function(f"{name}_grad", [z, q, shared], [f, ca.gradient(f, z)]))
-
-    @functools.cached_property
-    def values(self) -> tuple[ca.Function, ca.Function, ca.Function]:
-        """(z, q, shared) -> f; -> rows; (z, q, shared, lam_f, lam_g) -> the gradient of lam_f f + lam_g .
-        rows in [q; shared] (the NLP's parameter sensitivities, CasADi's lam_p with the sign turned)."""
-        z, q, shared = (ca.SX.sym(n, self.fn.sparsity_in(i)) for i, n in enumerate(("z", "q", "shared")))
-        rows, f, _ = self.fn(z, q, shared)
-        lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", rows.numel())
-        name = self.fn.name()
-        return (ca.Function(f"{name}_f", [z, q, shared], [f]), ca.Function(f"{name}_g", [z, q, shared], [rows]),
-                ca.Function(f"{name}_lam_p", [z, q, shared, lam_f, lam_g],
-                            [ca.gradient(lam_f * f + ca.dot(lam_g, rows), ca.vertcat(q, shared))]))
+        lagrangian = lam_f * f + ca.dot(lam_g, rows)
+        hess, _ = ca.hessian(lagrangian, z)
+        name, inputs = self.fn.name(), [z, q, shared]
+        return {"f": ca.Function(f"{name}_f", inputs, [f]), "g": ca.Function(f"{name}_g", inputs, [rows]),
+                "hess": ca.Function(f"{name}_hess", [*inputs, lam_f, lam_g], [ca.triu(hess)]),
+                "jac": ca.Function(f"{name}_jac", inputs, [rows, ca.jacobian(rows, z)]),
+                "grad": ca.Function(f"{name}_grad", inputs, [f, ca.gradient(f, z)]),
+                "lam_p": ca.Function(f"{name}_lam_p", [*inputs, lam_f, lam_g],
+                                     [ca.gradient(lagrangian, ca.vertcat(q, shared))])}
 
 
 @functools.lru_cache(maxsize=None)
@@ -395,9 +390,9 @@ class GridNLP:
     """Multiple-shooting NLP over the phases from ``first_phase`` on, ``slots[phase]`` full steps each,
     and the stop steps of phases 2 and 4 (built once; a schedule is chosen per solve, :meth:`arguments`).
 
-    ``symbolic``: "SX" inlines the slot functions (:func:`slot_function`; an NLP that evaluates fast,
-    ~0.5 s to build with IPOPT on its :attr:`derivative_functions`, ~1.8 s on CasADi's own), "MX" calls
-    them (builds faster, evaluates slower): the same variables and rows.
+    ``symbolic``: "SX" inlines the slot functions (:func:`slot_function`), "MX" calls them: the same
+    variables and rows. (IPOPT and sqpmethod solve either on :attr:`mapped_nlp` and the slot functions'
+    derivatives: an NLP and its IPOPT build in ~0.1 s, against ~1.8 s on CasADi's derivatives of it.)
 
     Parameters: the start state (scaled) and the control applied before it, the plant estimate, the
     scenario (GRID_SCENARIO: one NLP serves every scenario of its machine), one step
@@ -452,7 +447,6 @@ class GridNLP:
         n_terminal = 2 * N_XR + 1 if self.open_phase is not None else 0
         par = sym.sym("par", self.terminal_offset + n_terminal)
         shared = par[N_XR:self.h_offset]  # the estimate and the scenario
-        rate_w = par[self._rate_offset + n_slots:self.terminal_offset]
         p = _symbolic_params(m.params, par[self.scenario_offset:self.h_offset])  # (the machine's fields: numbers)
         w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
         size = {"w": 0, "g": 0}
@@ -482,6 +476,7 @@ class GridNLP:
         cost, fuel = [], []
         slots: list[Slot] = []
         self._slot_fns: list[SlotFunction] = []
+        self._slot_q: list[list[int]] = []
         self.stage_controls, self.stage_rows = [], []  # per slot (stage): its controls and non-gap rows
         for k, (ph, kind) in enumerate(kinds):
             spec = m.specs[ph]
@@ -506,12 +501,14 @@ class GridNLP:
                 misses.append(e)
             self.stage_controls.append(size["w"] - w_before)
             Xk, x_off = var(N_XR, np.concatenate([x_lb / X_SCALE, r_lb]), np.concatenate([x_ub / X_SCALE, r_ub]))
-            own = [par[:N_XR]] if k == 0 else []
-            if sf.terminal:
-                own.append(par[self.terminal_offset:])
-            per_slot = ca.vertcat(par[self.h_offset + k], par[self._active_offset + k], par[self._rate_offset + k],
-                                  rate_w, *own)
-            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), per_slot, shared)
+            # the slot's parameters (q) in the NLP's: h, active, rate on, the rate weights, (slot 0) the start,
+            # (an open NLP's last slot) the terminal cost's
+            q = [self.h_offset + k, self._active_offset + k, self._rate_offset + k,
+                 *range(self._rate_offset + n_slots, self.terminal_offset)]
+            q += list(range(N_XR)) if k == 0 else []
+            q += list(range(self.terminal_offset, int(par.numel()))) if sf.terminal else []
+            self._slot_q.append(q)
+            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), ca.vertcat(*[par[i] for i in q]), shared)
             # rows in stage order (as fatrop's structure needs): the shooting gap, (slot 0) the start, the rest
             gap = con(rows[:N_XR], 0.0, 0.0)
             g_before = size["g"]
@@ -536,11 +533,11 @@ class GridNLP:
 
     @functools.cached_property
     def derivative_functions(self) -> dict[str, ca.Function]:
-        """The NLP's Hessian of the Lagrangian (upper triangle) and constraint Jacobian as IPOPT's nlpsol
-        takes them (options ``hess_lag``, ``jac_g``): each slot function's derivatives (:class:`SlotFunction`,
-        built once per machine), mapped over the slots of its kind and summed into place. The same values
-        as CasADi generates from the whole NLP, which costs ~1.2 s more per NLP to build (measured, stop 45).
-        ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`."""
+        """The NLP's Hessian of the Lagrangian (upper triangle), constraint Jacobian and objective gradient as
+        IPOPT's nlpsol takes them (options ``hess_lag``, ``jac_g``, ``grad_f``): each slot function's
+        (:class:`SlotFunction`, built once per machine), mapped over the slots of its kind and summed into
+        place. The same values as CasADi generates from the whole NLP, which took ~1.7 s more per NLP to build
+        (measured, stop 45). ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`."""
         return {k: self._mapped_derivatives[k] for k in ("hess_lag", "jac_g", "grad_f")}
 
     @property
@@ -561,7 +558,8 @@ class GridNLP:
         return {"hess_lag": self._mapped_derivatives["sym_hess_lag"], "jac_fg": self._mapped_derivatives["jac_fg"]}
 
     @functools.cached_property
-    def _mapped_derivatives(self) -> dict[str, ca.Function]:
+    def _mapped_derivatives(self) -> dict[str, Any]:
+        """The slot functions mapped over the slots: the NLP ("nlp") and the functions of the properties above."""
         n, n_g, n_p = self.n_var, self.n_con, self.n_par
         x, par, lam_f, lam_g = ca.MX.sym("x", n), ca.MX.sym("p", n_p), ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_g)
         shared = par[N_XR:self.h_offset]
@@ -574,20 +572,12 @@ class GridNLP:
         shared_idx = np.arange(N_XR, self.h_offset)
         for ks in groups.values():
             sf = self._slot_fns[ks[0]]
-            hess_fn, jac_fn, grad_fn = sf.derivatives
-            f_fn, g_fn, lam_p_fn = sf.values
+            fns = sf.functions
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]
-                z0 = s.u - N_XR  # the state before the slot, then the slot's own variables
-                z_idx.append(np.arange(z0, s.x + N_XR))
-                q = [self.h_offset + k, self._active_offset + k, self._rate_offset + k]
-                q += list(range(self._rate_offset + n_slots, self.terminal_offset))
-                if k == 0:
-                    q += list(range(N_XR))
-                if sf.terminal:
-                    q += list(range(self.terminal_offset, n_p))
-                q_idx.append(q)
+                z_idx.append(np.arange(s.u - N_XR, s.x + N_XR))  # the state before the slot, then the slot's own
+                q_idx.append(self._slot_q[k])
                 end = self.slots[k + 1].gap if k + 1 < n_slots else n_g
                 r_idx.append(np.arange(s.gap, end))
             z_idx, r_idx = np.array(z_idx), np.array(r_idx)
@@ -595,16 +585,16 @@ class GridNLP:
             Z = ca.reshape(x[z_idx.ravel().tolist()], z_idx.shape[1], m)
             Q = ca.reshape(par[np.array(q_idx).ravel().tolist()], len(q_idx[0]), m)
             L = ca.reshape(lam_g[r_idx.ravel().tolist()], r_idx.shape[1], m)
-            H = hess_fn.map(m)(Z, Q, shared, lam_f, L)
-            G, J = jac_fn.map(m)(Z, Q, shared)
-            F, D = grad_fn.map(m)(Z, Q, shared)
-            value_f.append(ca.sum2(f_fn.map(m)(Z, Q, shared)))
-            value_g.append(ca.vec(g_fn.map(m)(Z, Q, shared)))
-            p_parts.append(ca.vec(lam_p_fn.map(m)(Z, Q, shared, lam_f, L)))
+            H = fns["hess"].map(m)(Z, Q, shared, lam_f, L)
+            G, J = fns["jac"].map(m)(Z, Q, shared)
+            F, D = fns["grad"].map(m)(Z, Q, shared)
+            value_f.append(ca.sum2(fns["f"].map(m)(Z, Q, shared)))
+            value_g.append(ca.vec(fns["g"].map(m)(Z, Q, shared)))
+            p_parts.append(ca.vec(fns["lam_p"].map(m)(Z, Q, shared, lam_f, L)))
             qs_idx = np.hstack([np.array(q_idx), np.tile(shared_idx, (m, 1))])
             p_at.append((qs_idx.ravel(), np.zeros(qs_idx.size, dtype=int)))
             # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
-            hs, js = hess_fn.sparsity_out(0), jac_fn.sparsity_out(1)
+            hs, js = fns["hess"].sparsity_out(0), fns["jac"].sparsity_out(1)
             hr, hc = (np.array(a) for a in hs.get_triplet())
             jr, jc = (np.array(a) for a in js.get_triplet())
             for i in range(m):

@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from mpc import interrupt
-from mpc.controller.grid import N_XR, GridNLP, StepModel, model_structure
+from mpc.controller.grid import N_XR, GridNLP, StepModel, model_structure, slot_function
 from wl_env.episode import DISTANCE_TOL, HEIGHT_TOL
 from wl_env.params import LoaderParams
 
@@ -435,7 +435,7 @@ def release_solvers() -> None:
     from mpc.benchmark import ocp  # (the MPC's reference and the scoring build OCP NLPs too)
 
     _MODELS.clear()
-    for cache in (grid_nlp, horizon_nlp, _ipopt, _ipopt_horizon, _fatrop, _sqp_rti):
+    for cache in (grid_nlp, horizon_nlp, _ipopt, _ipopt_horizon, _fatrop, _sqp_rti, slot_function):
         cache.cache_clear()
     ocp.release_nlps()
     gc.collect()
