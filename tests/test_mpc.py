@@ -63,7 +63,7 @@ def test_grid_step_is_the_environment_step(braking, plant):
                 assert float(s_stop) == pytest.approx(s_rev, abs=1e-9)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _nlp_with_solvers(braking, first_phase, slots, open_phase):
     """A grid NLP and IPOPT on it twice: the derivatives CasADi generates from the whole NLP, and the
     project's (its slot functions', mapped over the slots)."""

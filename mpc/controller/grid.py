@@ -304,7 +304,7 @@ class SlotFunction:
                                      [ca.gradient(lagrangian, ca.vertcat(q, shared))])}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def slot_function(model: StepModel, phase: int, kind: str, first: bool, terminal: bool) -> SlotFunction:
     """The slot function of ``phase``'s full or stop step for ``model``'s machine (see :class:`SlotFunction`);
     ``first``: slot 0 (the start equality), ``terminal``: an open NLP's last slot (the terminal cost)."""
@@ -508,14 +508,14 @@ class GridNLP:
             q += list(range(N_XR)) if k == 0 else []
             q += list(range(self.terminal_offset, int(par.numel()))) if sf.terminal else []
             self._slot_q.append(q)
-            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), ca.vertcat(*[par[i] for i in q]), shared)
+            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), ca.vertcat(*[par[i] for i in q]),
+                                      shared)
             # rows in stage order (as fatrop's structure needs): the shooting gap, (slot 0) the start, the rest
             gap = con(rows[:N_XR], 0.0, 0.0)
             g_before = size["g"]
             if k == 0:
                 con(rows[N_XR:2 * N_XR], 0.0, 0.0)  # the measured start and the control applied before it
-            n_own = 2 * N_XR if k == 0 else N_XR
-            g_off = con(rows[n_own:], sf.lb, sf.ub)
+            g_off = con(rows[(2 if k == 0 else 1) * N_XR:], sf.lb, sf.ub)
             self.stage_rows.append(size["g"] - g_before)
             slots.append(Slot(ph, kind, u_off, x_off, g_off, gap))
             self._slot_fns.append(sf)
