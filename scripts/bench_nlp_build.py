@@ -36,13 +36,12 @@ def rss_mb() -> float:
 def measure(variant: str, braking: str, layouts: int) -> dict:
     """One variant in this process (see the module doc)."""
     import numpy as np
+    from bench_mpc_derivatives_ab import use  # (this folder is the script's first sys.path entry)
 
     from mpc.controller import solver
-    from mpc.controller.grid import GridNLP, StepModel
+    from mpc.controller.grid import StepModel
 
-    if variant == "generated":  # IPOPT as it was built before stop 45: the whole NLP, CasADi's derivatives of it
-        GridNLP.mapped_nlp = property(lambda self: self.nlp)
-        GridNLP.derivative_functions = property(lambda self: {})
+    use(variant)  # "generated": IPOPT as it was built before stop 45, the whole NLP and CasADi's derivatives of it
     model = StepModel(braking)
     ipopt = solver.IpoptSolver()
     before = rss_mb()
