@@ -608,6 +608,8 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
             broken = [p for p in root.glob("step_*") if p.is_dir() and not (p / "progress.json").exists()]
             for old in complete[: -max(1, cfg.keep_checkpoints)] + broken + list(root.glob(".step_*.tmp")):
                 shutil.rmtree(old, ignore_errors=True)  # older ones, and what a killed save left
+            for part in root.glob(".latest.json.*.tmp"):  # ... and a killed write of the pointer
+                part.unlink(missing_ok=True)
             return True
 
     class WallTimeLimit(BaseCallback):

@@ -66,16 +66,20 @@ def test_grid_step_is_the_environment_step(braking, plant):
 @functools.cache
 def _nlp_with_solvers(braking, first_phase, slots, open_phase):
     """A grid NLP and IPOPT on it twice: the derivatives CasADi generates from the whole NLP, and the
-    project's (its slot functions', mapped over the slots)."""
+    project's (its slot functions', mapped over the slots; compiled where a C compiler is found, as the
+    controller's: mpc.controller.codegen)."""
     from mpc.controller.grid import GridNLP
+    from mpc.controller.solver import NO_NLP_GRAD
 
     nlp = GridNLP(StepModel(braking, P), first_phase, dict(slots), open_phase=open_phase)
     quiet = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}
     sqp = {"print_header": False, "print_iteration": False, "print_status": False, "print_time": False}
     return nlp, {"ipopt": (ca.nlpsol("generated", "ipopt", nlp.nlp, quiet),
-                           ca.nlpsol("mapped", "ipopt", nlp.mapped_nlp, {**quiet, **nlp.derivative_functions})),
+                           ca.nlpsol("mapped", "ipopt", nlp.mapped_nlp,
+                                     {**quiet, **nlp.derivative_functions, **NO_NLP_GRAD})),
                  "sqpmethod": (ca.nlpsol("generated", "sqpmethod", nlp.nlp, sqp),
-                               ca.nlpsol("mapped", "sqpmethod", nlp.nlp, {**sqp, **nlp.sqp_derivative_functions}))}
+                               ca.nlpsol("mapped", "sqpmethod", nlp.nlp,
+                                         {**sqp, **nlp.sqp_derivative_functions, **NO_NLP_GRAD}))}
 
 
 LAYOUTS = [("tc", 1, ((1, 3), (2, 2), (3, 3), (4, 2)), None), ("service", 3, ((3, 2), (4, 3)), None),
@@ -110,6 +114,30 @@ def test_mapped_derivatives_are_the_generated_ones(layout, seed):
     want = -np.array(solvers["ipopt"][0].get_function("nlp_grad").call({**point, **lagrangian})["grad_gamma_p"]).ravel()
     got = nlp.lam_p(point["x"], point["p"], lagrangian["lam_g"] / lagrangian["lam_f"]) * lagrangian["lam_f"]
     assert np.abs(got - want).max() <= 1e-12 * max(1.0, np.abs(want).max())
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_compiled_slot_functions_are_the_interpreted_ones(seed):
+    """Compiled (mpc.controller.codegen, from the cache after the first build), each slot function's values
+    and derivatives are the interpreted ones' to the last bit, at any point; -ffp-contract=off is what
+    keeps the compiler from fusing a multiply-add the interpreter rounds twice."""
+    from mpc.controller import codegen
+    from mpc.controller.grid import _evaluation_functions
+
+    if codegen.compiler() is None:
+        pytest.skip("no C compiler")
+    nlp, _ = _nlp_with_solvers(*LAYOUTS[4])
+    kinds = list({id(sf): sf for sf in nlp._slot_fns}.values())
+    rng = np.random.default_rng(seed)
+    for sf, fns in zip(kinds, _evaluation_functions(kinds)):
+        assert fns is not sf.functions and set(fns) == set(sf.functions)
+        for name, f in sf.functions.items():
+            assert fns[name].class_name() == "External"
+            args = [rng.uniform(-1.5, 1.5, f.sparsity_in(i).shape) for i in range(f.n_in())]
+            for want, got in zip(f.call(args), fns[name].call(args)):
+                assert want.sparsity() == got.sparsity()
+                np.testing.assert_array_equal(np.array(got.nonzeros()), np.array(want.nonzeros()), err_msg=name)
 
 
 def test_estimated_derivatives_follow_the_estimate():

@@ -641,3 +641,147 @@ def test_a_corrupt_run_summary_is_refused_by_name(tmp_path, text, match):
         read_summary(path)
     path.write_text('{"num_timesteps": 100, "wall_time": 1.0, "last_eval": {"time_gap": NaN}}')
     assert read_summary(path)["num_timesteps"] == 100  # (NaN: a metric not measured)
+
+
+# ------------------------------------------------------------------------- compiled NLP functions (codegen)
+def _tiny_group():
+    import casadi as ca
+
+    x, p = ca.SX.sym("x", 3), ca.SX.sym("p", 2)
+    f = ca.Function("tiny_f", [x, p], [ca.sin(x[0]) * p[0] + x[1] * x[2] / p[1]])
+    return {"f": f, "grad": ca.Function("tiny_grad", [x, p], [ca.gradient(f(x, p), x)])}, f
+
+
+def _values(fns):
+    return [float(v) for f in fns.values() for v in np.array(f([0.3, -0.7, 1.1], [2.0, 0.5])[0] if f.n_out() == 1
+                                                             else f([0.3, -0.7, 1.1], [2.0, 0.5])).ravel()]
+
+
+def _replace(path: Path, data: bytes) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+@pytest.fixture
+def codegen_mode(monkeypatch):
+    from mpc.controller import codegen
+
+    yield lambda mode: codegen.set_mode(mode)
+    codegen.set_mode(None)
+
+
+def test_codegen_mode_is_checked(monkeypatch, codegen_mode):
+    from mpc.controller import codegen
+
+    monkeypatch.setenv("WL_CODEGEN", "fast")
+    with pytest.raises(ValueError, match=r"\$WL_CODEGEN must be one of auto, on, off; got 'fast'"):
+        codegen.mode()
+    with pytest.raises(ValueError, match="codegen mode must be one of auto, on, off"):
+        codegen.set_mode("yes")
+    monkeypatch.setenv("WL_CODEGEN", " OFF ")
+    assert codegen.mode() == "off"
+    codegen_mode("on")
+    assert codegen.mode() == "on"
+
+
+def test_codegen_without_a_compiler(monkeypatch, tmp_path, codegen_mode):
+    """No compiler: "auto" keeps the interpreted functions (None), "on" says what is missing."""
+    from mpc.controller import codegen
+
+    group, origin = _tiny_group()
+    monkeypatch.setattr(codegen, "compiler", lambda: None)
+    codegen_mode("auto")
+    assert codegen.compiled([group], [origin], cache=tmp_path) == [None]
+    codegen_mode("on")
+    with pytest.raises(codegen.CodegenError, match="no C compiler found"):
+        codegen.compiled([group], [origin], cache=tmp_path)
+    codegen_mode("off")
+    assert codegen.compiled([group], [origin], cache=tmp_path) == [None]
+    assert not (tmp_path / "codegen").exists()
+
+
+def test_codegen_failed_build_is_reported(monkeypatch, tmp_path, caplog, codegen_mode):
+    """A compiler that fails: "auto" logs it and keeps the interpreted functions; "on" raises with its
+    exit status; no library is left behind."""
+    from mpc.controller import codegen
+
+    fake = tmp_path / "fakecc"
+    fake.write_text("#!/bin/sh\n[ \"$1\" = --version ] && { echo fakecc 1.0; exit 0; }\necho 'boom: no' >&2\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    group, origin = _tiny_group()
+    codegen_mode("auto")
+    with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
+        assert codegen.compiled([group], [origin], cache=tmp_path) == [None]
+    assert "exit 3" in caplog.text and "boom: no" in caplog.text
+    codegen_mode("on")
+    with pytest.raises(codegen.CodegenError, match="exit 3"):
+        codegen.compiled([group], [origin], cache=tmp_path)
+    assert [f.name for f in (tmp_path / "codegen").iterdir()] == [".build.lock"]
+
+
+def test_codegen_cache_is_checked_when_read(tmp_path, caplog, codegen_mode):
+    """A cached library is used only if it is the one its record names and gives its functions' values:
+    a corrupted or foreign library is built again, with a warning."""
+    from mpc.controller import codegen
+
+    if codegen.compiler() is None:
+        pytest.skip("no C compiler")
+    codegen_mode("on")
+    group, origin = _tiny_group()
+    first = codegen.compiled([group], [origin], cache=tmp_path)[0]
+    assert _values(first) == _values(group)
+    (lib,) = (tmp_path / "codegen").glob("*.so")
+    record = lib.with_suffix(".json")
+    stamp = lib.stat().st_mtime_ns
+    assert codegen.compiled([group], [origin], cache=tmp_path)[0] is not None
+    assert lib.stat().st_mtime_ns == stamp  # read from the cache, not built again
+    # (each damage on a new file: the loaded library's pages are mapped, and writing them would crash the process)
+    _replace(lib, lib.read_bytes()[:1000])  # truncated
+    with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
+        again = codegen.compiled([group], [origin], cache=tmp_path)[0]
+    assert "not the one its record describes" in caplog.text and _values(again) == _values(group)
+    record.write_text("{not json")
+    assert _values(codegen.compiled([group], [origin], cache=tmp_path)[0]) == _values(group)
+    # a library of the same functions' names under another's key (at a path this process has not loaded),
+    # its record matching it: its values give it away
+    import casadi as ca
+
+    x, p = ca.SX.sym("x", 3), ca.SX.sym("p", 2)
+    impostor = {"f": ca.Function("tiny_f", [x, p], [ca.cos(x[0]) * p[0]]), "grad": group["grad"]}
+    codegen.compiled([impostor], [impostor["f"]], cache=tmp_path / "other")
+    (lib_other,) = (tmp_path / "other" / "codegen").glob("*.so")
+    fresh = tmp_path / "fresh" / "codegen"
+    fresh.mkdir(parents=True)
+    (fresh / lib.name).write_bytes(lib_other.read_bytes())
+    (fresh / record.name).write_text(json.dumps({**json.loads(record.read_text()),
+                                                 "sha256": codegen._sha256(lib_other)}))
+    codegen_mode("auto")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
+        again = codegen.compiled([group], [origin], cache=tmp_path / "fresh")[0]
+    assert "does not give its functions' values" in caplog.text
+    assert _values(again or group) == _values(group)
+
+
+def test_codegen_interrupt_kills_the_compilers(monkeypatch, tmp_path, codegen_mode):
+    """Ctrl-C during a build: the compilers are killed at once, and nothing is left in the cache."""
+    from mpc.controller import codegen
+
+    fake = tmp_path / "slowcc"
+    fake.write_text("#!/bin/sh\n[ \"$1\" = --version ] && { echo slowcc 1.0; exit 0; }\nexec sleep 60\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    codegen_mode("on")
+    group, origin = _tiny_group()
+    main = threading.main_thread().ident  # (a real SIGINT: it wakes a thread waiting on a lock)
+    timer = threading.Timer(1.0, signal.pthread_kill, (main, signal.SIGINT))
+    timer.start()
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        codegen.compiled([group], [origin], cache=tmp_path)
+    assert time.monotonic() - t0 < 10.0
+    assert [f.name for f in (tmp_path / "codegen").iterdir()] == [".build.lock"]
+    out = subprocess.run(["pgrep", "-f", "sleep 60"], capture_output=True, text=True)
+    assert out.stdout.strip() == ""

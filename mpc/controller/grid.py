@@ -33,12 +33,14 @@ import copy
 import dataclasses
 import functools
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from mpc.controller import codegen
 from wl_env import cycle, limits, step
 from wl_env.model import estimated_derivatives
 from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
@@ -302,6 +304,21 @@ class SlotFunction:
                 "grad": ca.Function(f"{name}_grad", inputs, [f, ca.gradient(f, z)]),
                 "lam_p": ca.Function(f"{name}_lam_p", [*inputs, lam_f, lam_g],
                                      [ca.gradient(lagrangian, ca.vertcat(q, shared))])}
+
+
+# Each slot kind's compiled functions (None: interpreted), while the slot function lives
+_COMPILED: weakref.WeakKeyDictionary[SlotFunction, dict[str, ca.Function] | None] = weakref.WeakKeyDictionary()
+
+
+def _evaluation_functions(kinds: list[SlotFunction]) -> list[dict[str, ca.Function]]:
+    """Each slot kind's functions as its NLPs evaluate them: compiled where :func:`codegen.mode` allows
+    (:mod:`mpc.controller.codegen`, the kinds not compiled yet built together), else interpreted."""
+    if codegen.mode() == "off":
+        return [sf.functions for sf in kinds]
+    todo = [sf for sf in kinds if sf not in _COMPILED]
+    for sf, fns in zip(todo, codegen.compiled([sf.functions for sf in todo], [sf.fn for sf in todo])):
+        _COMPILED[sf] = fns
+    return [_COMPILED[sf] or sf.functions for sf in kinds]
 
 
 @functools.cache
@@ -570,9 +587,8 @@ class GridNLP:
         h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
         value_f, value_g, p_parts, p_at = [], [], [], []
         shared_idx = np.arange(N_XR, self.h_offset)
-        for ks in groups.values():
-            sf = self._slot_fns[ks[0]]
-            fns = sf.functions
+        kinds = [self._slot_fns[ks[0]] for ks in groups.values()]
+        for ks, sf, fns in zip(groups.values(), kinds, _evaluation_functions(kinds)):
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]

@@ -220,6 +220,11 @@ class _DeadlineCallback(ca.Callback):
 _DEADLINE_CALLBACK: _DeadlineCallback | None = None  # one for every solver (built on first use)
 
 
+# No derivatives of the NLP's own: its values may be compiled functions, which have none
+# (mpc.controller.codegen); lam_p comes from GridNLP.lam_p, f, g and lam_x from the solver itself.
+NO_NLP_GRAD = {"no_nlp_grad": True, "calc_lam_p": False, "calc_lam_x": False, "calc_f": False, "calc_g": False}
+
+
 def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
@@ -234,7 +239,7 @@ def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float |
         _DEADLINE_CALLBACK = _DEADLINE_CALLBACK or _DeadlineCallback()
         opts.update({"iteration_callback": _DEADLINE_CALLBACK, "iteration_callback_ignore_errors": False})
     # the NLP and its derivatives from its slots' (built once per machine): ~0.1 s to build against ~1.8 s
-    opts.update(nlp.derivative_functions, calc_lam_p=False)  # (lam_p: GridNLP.lam_p)
+    opts.update(nlp.derivative_functions, **NO_NLP_GRAD)
     return ca.nlpsol("mpc", "ipopt", nlp.mapped_nlp, opts)
 
 
@@ -338,7 +343,7 @@ def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
     opts = {"qpsol": qpsol, "qpsol_options": {**qp_opts, "error_on_fail": False}, "max_iter": 1, "print_header": False,
             "print_iteration": False, "print_status": False, "print_time": False, "error_on_fail": False,
             "convexify_strategy": "regularize", "convexify_margin": 1e-6, "max_iter_ls": 0}
-    return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, {**opts, **nlp.sqp_derivative_functions})
+    return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, {**opts, **nlp.sqp_derivative_functions, **NO_NLP_GRAD})
 
 
 class SqpRtiSolver:
@@ -379,7 +384,7 @@ class SqpRtiSolver:
             if ok or not np.isfinite(infeas) or steps > self.extra_steps:
                 break
         return SolverResult(ok=ok, status=f"sqp-rti ({self.qpsol}): row residual {infeas:.1e} after {steps} steps",
-                            iterations=steps, z=z, lam_x=lam_x, lam_g=lam_g, lam_p=np.array(sol["lam_p"]).ravel(),
+                            iterations=steps, z=z, lam_x=lam_x, lam_g=lam_g, lam_p=nlp.lam_p(z, args["p"], lam_g),
                             f=float(sol["f"]))
 
 
