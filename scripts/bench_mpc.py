@@ -25,6 +25,9 @@ interval ahead) and the oldest plan a step applied are reported beside it.
 ``--safety-filter both`` runs each also without the one-step safety filter on the applied controls
 (``MPCConfig.safety_filter``, :mod:`mpc.controller.safety`), as ``... no filter``.
 
+``--codegen both`` runs each with the NLP's functions compiled (:mod:`mpc.controller.codegen`, the default
+where a C compiler is found) and interpreted by CasADi, as ``... interpreted``.
+
 The violation column is the environment's own (the driver's limits at every RK4 stage and step end).
 
 Usage::
@@ -32,6 +35,7 @@ Usage::
     python scripts/bench_mpc.py [--json PATH] [--targets 9 10 11 13 16] [--quick] [--no-mismatch]
         [--solvers ipopt fatrop] [--suite-sample 3] [--corners | --min-time-only] [--deadline-ms 100] [--realtime both]
         [--horizons 10 20] [--horizons-only] [--replan-lag 10] [--terminal-weight 1000] [--safety-filter both]
+        [--codegen both]
 """
 
 from __future__ import annotations
@@ -53,8 +57,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
+from mpc.controller import codegen  # noqa: E402
 from mpc.controller.mpc import MPCConfig, run_closed_loop  # noqa: E402
-from mpc.controller.solver import SOLVERS  # noqa: E402
+from mpc.controller.solver import SOLVERS, release_solvers  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
 
@@ -160,6 +165,9 @@ def main() -> None:
                     help="MPCConfig.terminal_weight of the short-horizon runs")
     ap.add_argument("--safety-filter", choices=["on", "off", "both"], default="on",
                     help="MPCConfig.safety_filter (the one-step filter on the applied controls): on, off, or both side by side")
+    ap.add_argument("--codegen", choices=["auto", "on", "off", "both"], default="auto",
+                    help="the NLP's functions (mpc.controller.codegen, $WL_CODEGEN): compiled where a C compiler is "
+                    "found (auto), compiled (on), interpreted (off, as '... interpreted'), or both side by side")
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
@@ -184,15 +192,19 @@ def main() -> None:
         ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
     filters = {"on": [True], "off": [False], "both": [True, False]}[args.safety_filter]
-    variants = [(solver, rt, None, None, f) for solver in args.solvers for rt in realtime for f in filters
-                if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
-    variants += [(solver, False, h, lag, f) for solver in args.solvers for h in args.horizons
-                 for lag in [None] + ([args.replan_lag] if args.replan_lag else []) for f in filters]
+    codegens = ["on", "off"] if args.codegen == "both" else [args.codegen]
+    variants = [(solver, rt, None, None, f, cg) for solver in args.solvers for rt in realtime for f in filters
+                for cg in codegens if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
+    variants += [(solver, False, h, lag, f, cg) for solver in args.solvers for h in args.horizons
+                 for lag in [None] + ([args.replan_lag] if args.replan_lag else []) for f in filters for cg in codegens]
     if not variants:
         ap.error("no run: a short-horizon candidate (ipopt+sqp-rti) runs only with --horizons")
-    for solver, rt, horizon, lag, safety in variants:
+    for solver, rt, horizon, lag, safety, cg in variants:
+        if cg != codegen.mode():  # (solvers built on the other build of the functions: released)
+            release_solvers()
+            codegen.set_mode(cg)
         name = ((f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}")
-                + (f" lag{lag}" if lag else "") + ("" if safety else " no filter"))
+                + (f" lag{lag}" if lag else "") + ("" if safety else " no filter") + (" interpreted" if cg == "off" else ""))
         for b in args.braking:
             for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms,
                                           args.min_time_only):
@@ -200,7 +212,8 @@ def main() -> None:
                 config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
                                              replan_lag_steps=lag, safety_filter=safety)
                 row = closed_loop(b, config, solver, label, **kw)
-                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon, "replan_lag_steps": lag})
+                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon, "replan_lag_steps": lag,
+                             "codegen": cg})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "
           "| TV U_mf / U_ab vs optimum | solve median / p99 / max (ms) | fallbacks | planning (s) "
@@ -243,7 +256,7 @@ def main() -> None:
           f"here 0.65 s, a loaded one 1.2-1.4 s): read the step times against it")
     if args.json:
         write_json_atomic(args.json, {"rows": rows, "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                                      "python_loop_s": loop_s})
+                                      "python_loop_s": loop_s, "compiler": codegen.compiler()})
 
 
 def python_loop_seconds() -> float:

@@ -701,6 +701,24 @@ def test_codegen_without_a_compiler(monkeypatch, tmp_path, codegen_mode):
     assert not (tmp_path / "codegen").exists()
 
 
+def test_codegen_in_a_folder_it_cannot_write(tmp_path, caplog, codegen_mode):
+    """A cache folder that cannot be made: "auto" warns and keeps the interpreted functions, "on" says where."""
+    from mpc.controller import codegen
+
+    if codegen.compiler() is None:
+        pytest.skip("no C compiler")
+    blocked = tmp_path / "a_file"
+    blocked.write_text("not a folder")
+    group, origin = _tiny_group()
+    codegen_mode("auto")
+    with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
+        assert codegen.compiled([group], [origin], cache=blocked) == [None]
+    assert f"cannot build in {blocked / 'codegen'}" in caplog.text
+    codegen_mode("on")
+    with pytest.raises(codegen.CodegenError, match="cannot build in"):
+        codegen.compiled([group], [origin], cache=blocked)
+
+
 def test_codegen_failed_build_is_reported(monkeypatch, tmp_path, caplog, codegen_mode):
     """A compiler that fails: "auto" logs it and keeps the interpreted functions; "on" raises with its
     exit status; no library is left behind."""

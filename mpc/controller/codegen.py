@@ -7,9 +7,10 @@ the same functions evaluate 4-13x faster (the nominal TC layout, stop 46: the He
 ``-ffp-contract=off`` keeps the compiler from fusing a multiply and an add the interpreter rounds apart.
 
 A library is built once per machine and slot kind and kept in ``$WL_CODEGEN_DIR``, else the cache
-(``<cache>/codegen``, see :func:`mpc.benchmark.pareto.cache_dir`), under the hash of its C code, the compiler and the flags, with a
-JSON record of its own SHA-256. A library is loaded only if it matches its record and then only if its
-functions give the interpreted ones' values at a test point; otherwise it is built again.
+(``<cache>/codegen``, see :func:`mpc.benchmark.pareto.cache_dir`), under a hash of the slot function, the
+compiler, the flags and CasADi's version, with a JSON record of its own SHA-256. A library is loaded only if
+it matches its record, and kept only if its functions give the interpreted ones' values at a test point;
+otherwise it is built again. POSIX only (``fcntl``, ``dlopen``); elsewhere the functions stay interpreted.
 
 ``$WL_CODEGEN`` (or :func:`set_mode`) chooses:
 
@@ -22,7 +23,6 @@ functions give the interpreted ones' values at a test point; otherwise it is bui
 from __future__ import annotations
 
 import concurrent.futures
-import fcntl
 import functools
 import hashlib
 import json
@@ -38,6 +38,11 @@ import casadi as ca
 import numpy as np
 
 from wl_env.atomic_io import atomic_path, write_json_atomic
+
+try:
+    import fcntl
+except ImportError:  # (not POSIX)
+    fcntl = None
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +91,11 @@ def compiler() -> str | None:
 
 @functools.cache
 def _compiler_id(cc: str) -> str:
-    """The compiler's own version line: a new compiler builds new libraries."""
-    out = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30)
+    """The compiler's own version line (a new compiler builds new libraries); its path if it gives none."""
+    try:
+        out = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return cc
     return (out.stdout.splitlines() or [cc])[0]
 
 
@@ -104,36 +112,41 @@ def compiled(groups: Sequence[dict[str, ca.Function]], origins: Sequence[ca.Func
     current = mode()
     if current == "off" or not groups:
         return [None] * len(groups)
-    cc = compiler()
+    cc = compiler() if fcntl is not None else None
     if cc is None:
         if current == "on":
             raise CodegenError(f"{MODE_ENV}=on but no C compiler found ($CC, cc, gcc or clang on the PATH)")
         log.info("no C compiler found: the NLP functions stay interpreted (CasADi's SX virtual machine)")
         return [None] * len(groups)
     folder = library_dir(cache)
-    keys = [_key(origin, g, cc) for origin, g in zip(origins, groups)]
-    out: list[dict[str, ca.Function] | None] = [_load(folder, k, g) for k, g in zip(keys, groups)]
+    keys = [_key(origin, g, cc) for origin, g in zip(origins, groups, strict=True)]
+    out: list[dict[str, ca.Function] | None] = [_load(folder, k, g) for k, g in zip(keys, groups, strict=True)]
     if all(o is not None for o in out):
         return out
-    folder.mkdir(parents=True, exist_ok=True)
-    # One build at a time per folder: processes starting together (wl run's controllers, test workers) wait
-    # for the first one's libraries instead of compiling them too
-    with open(folder / ".build.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        todo = [i for i, o in enumerate(out) if o is None]
-        for i in todo:
-            out[i] = _load(folder, keys[i], groups[i], quiet=True)
-        todo = [i for i in todo if out[i] is None]
-        if todo:
-            log.info("compiling %d slot function libraries with %s (once per machine; kept in %s)", len(todo), cc,
-                     folder)
-            jobs = [(keys[i], [_source(f) for f in groups[i].values()]) for i in todo]
-            built = _build_all(cc, folder, jobs, strict=current == "on")
-            for i, ok in zip(todo, built):
-                if ok:
-                    out[i] = _load(folder, keys[i], groups[i])
-                    if out[i] is None and current == "on":
-                        raise CodegenError(f"the compiled library {keys[i]}.so does not reproduce its functions")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        # One build at a time per folder: processes starting together (wl run's controllers, test workers)
+        # wait for the first one's libraries instead of compiling them too
+        with open(folder / ".build.lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            todo = [i for i, o in enumerate(out) if o is None]
+            for i in todo:
+                out[i] = _load(folder, keys[i], groups[i], quiet=True)
+            todo = [i for i in todo if out[i] is None]
+            if todo:
+                log.info("compiling %d slot function libraries with %s (once per machine; kept in %s)", len(todo),
+                         cc, folder)
+                jobs = [(keys[i], [_source(f) for f in groups[i].values()]) for i in todo]
+                built = _build_all(cc, folder, jobs, strict=current == "on")
+                for i, ok in zip(todo, built, strict=True):
+                    if ok:
+                        out[i] = _load(folder, keys[i], groups[i])
+                        if out[i] is None and current == "on":
+                            raise CodegenError(f"the compiled library {keys[i]}.so does not reproduce its functions")
+    except OSError as exc:  # (the folder not writable, say)
+        if current == "on":
+            raise CodegenError(f"cannot build in {folder}: {exc}") from exc
+        log.warning("cannot build in %s (%s): those functions stay interpreted", folder, exc)
     return out
 
 
@@ -197,7 +210,7 @@ def _same_values(interpreted: ca.Function, compiled_fn: ca.Function) -> bool:
     rng = np.random.default_rng(0)
     args = [rng.uniform(0.2, 1.0, interpreted.sparsity_in(i).shape) for i in range(interpreted.n_in())]
     a, b = interpreted.call(args), compiled_fn.call(args)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         if x.sparsity() != y.sparsity():
             return False
         x, y = np.array(x.nonzeros()), np.array(y.nonzeros())

@@ -316,7 +316,7 @@ def _evaluation_functions(kinds: list[SlotFunction]) -> list[dict[str, ca.Functi
     if codegen.mode() == "off":
         return [sf.functions for sf in kinds]
     todo = [sf for sf in kinds if sf not in _COMPILED]
-    for sf, fns in zip(todo, codegen.compiled([sf.functions for sf in todo], [sf.fn for sf in todo])):
+    for sf, fns in zip(todo, codegen.compiled([sf.functions for sf in todo], [sf.fn for sf in todo]), strict=True):
         _COMPILED[sf] = fns
     return [_COMPILED[sf] or sf.functions for sf in kinds]
 
@@ -554,7 +554,9 @@ class GridNLP:
         IPOPT's nlpsol takes them (options ``hess_lag``, ``jac_g``, ``grad_f``): each slot function's
         (:class:`SlotFunction`, built once per machine), mapped over the slots of its kind and summed into
         place. The same values as CasADi generates from the whole NLP, which took ~1.7 s more per NLP to build
-        (measured, stop 45). ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`."""
+        (measured, stop 45). ``sqpmethod`` takes them as :attr:`sqp_derivative_functions`. The slot functions
+        are compiled where a C compiler is found (:mod:`mpc.controller.codegen`; the same values to the bit):
+        the solvers on them then need ``solver.NO_NLP_GRAD``."""
         return {k: self._mapped_derivatives[k] for k in ("hess_lag", "jac_g", "grad_f")}
 
     @property
@@ -588,7 +590,7 @@ class GridNLP:
         value_f, value_g, p_parts, p_at = [], [], [], []
         shared_idx = np.arange(N_XR, self.h_offset)
         kinds = [self._slot_fns[ks[0]] for ks in groups.values()]
-        for ks, sf, fns in zip(groups.values(), kinds, _evaluation_functions(kinds)):
+        for ks, fns in zip(groups.values(), _evaluation_functions(kinds), strict=True):
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]
