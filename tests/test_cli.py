@@ -850,3 +850,11 @@ def test_ctrl_c_while_wl_starts_exits_130_without_a_traceback(monkeypatch, capsy
     monkeypatch.setattr(wl.cli, "build_parser", interrupted)
     assert wl.cli.main(["ocp", "--out", "x.json"]) == 130
     assert capsys.readouterr().err.strip() == "wl: interrupted"
+
+
+def test_a_bad_codegen_mode_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, no_work):
+    """$WL_CODEGEN is read where the first NLP is built: `wl` checks it first, naming it and its values."""
+    monkeypatch.setenv("WL_CODEGEN", "fast")
+    code, err = _attempt(capsys, ["mpc", "--braking", "tc", "--no-score", "--out", str(tmp_path / "o.json")])
+    assert code == 2 and not no_work
+    assert err.strip() == "wl: error: $WL_CODEGEN must be one of auto, on, off; got 'fast'"

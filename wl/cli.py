@@ -603,6 +603,14 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if os.environ.get("WL_CODEGEN") is not None:  # (read at the first NLP build: checked before any work)
+        from mpc.controller import codegen
+
+        try:
+            codegen.mode()
+        except ValueError as exc:
+            print(f"wl: error: {exc}", file=sys.stderr)
+            return 2
     code = _run_command(args)
     if code in (130, 143) and as_program and args.command != "train":
         sys.stdout.flush()
