@@ -58,7 +58,7 @@ from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
 from mpc.controller import codegen  # noqa: E402
-from mpc.controller.mpc import MPCConfig, run_closed_loop  # noqa: E402
+from mpc.controller.mpc import MPCConfig, forget_plans, run_closed_loop  # noqa: E402
 from mpc.controller.solver import SOLVERS, release_solvers  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
@@ -200,8 +200,9 @@ def main() -> None:
     if not variants:
         ap.error("no run: a short-horizon candidate (ipopt+sqp-rti) runs only with --horizons")
     for solver, rt, horizon, lag, safety, cg in variants:
-        if cg != codegen.mode():  # (solvers built on the other build of the functions: released)
+        if cg != codegen.mode():  # (solvers built on the other build released, its plans forgotten: a fresh start)
             release_solvers()
+            forget_plans()
             codegen.set_mode(cg)
         name = ((f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}")
                 + (f" lag{lag}" if lag else "") + ("" if safety else " no filter") + (" interpreted" if cg == "off" else ""))

@@ -1319,6 +1319,13 @@ class ClosedLoopResult:
                 "first_plan_from": self.first_plan_from}
 
 
+def forget_plans() -> None:
+    """Forget the continuous references and first plans this process stored: the next cycles plan as a fresh
+    process's would (benchmarks that compare variants in one process)."""
+    _REFERENCES.clear()
+    _FIRST_PLANS.clear()
+
+
 def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
                     params: LoaderParams | dict | None = None, plant_params: LoaderParams | dict | None = None,
                     score: bool = True, seed: int = 0, controller: MPCController | None = None,
