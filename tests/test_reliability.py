@@ -795,10 +795,16 @@ def test_codegen_interrupt_kills_the_compilers(monkeypatch, tmp_path, codegen_mo
     group, origin = _tiny_group()
     main = threading.main_thread().ident  # (a real SIGINT: it wakes a thread waiting on a lock)
     timer = threading.Timer(1.0, signal.pthread_kill, (main, signal.SIGINT))
-    timer.start()
-    t0 = time.monotonic()
-    with pytest.raises(KeyboardInterrupt):
-        codegen.compiled([group], [origin], cache=tmp_path)
+    # (Python's own handler, as in a program: pytest-xdist's workers ignore SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        timer.start()
+        t0 = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            codegen.compiled([group], [origin], cache=tmp_path)
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
     assert time.monotonic() - t0 < 10.0
     assert [f.name for f in (tmp_path / "codegen").iterdir()] == [".build.lock"]
     out = subprocess.run(["pgrep", "-f", "sleep 60"], capture_output=True, text=True)
