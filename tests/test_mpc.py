@@ -130,12 +130,17 @@ def test_compiled_slot_functions_are_the_interpreted_ones(seed):
     nlp, _ = _nlp_with_solvers(*LAYOUTS[4])
     kinds = list({id(sf): sf for sf in nlp._slot_fns}.values())
     rng = np.random.default_rng(seed)
-    for sf, fns in zip(kinds, _evaluation_functions(kinds)):
+    codegen.set_mode("on")  # (whatever $WL_CODEGEN says)
+    try:
+        evaluated = _evaluation_functions(kinds)
+    finally:
+        codegen.set_mode(None)
+    for sf, fns in zip(kinds, evaluated, strict=True):
         assert fns is not sf.functions and set(fns) == set(sf.functions)
         for name, f in sf.functions.items():
             assert fns[name].class_name() == "External"
             args = [rng.uniform(-1.5, 1.5, f.sparsity_in(i).shape) for i in range(f.n_in())]
-            for want, got in zip(f.call(args), fns[name].call(args)):
+            for want, got in zip(f.call(args), fns[name].call(args), strict=True):
                 assert want.sparsity() == got.sparsity()
                 np.testing.assert_array_equal(np.array(got.nonzeros()), np.array(want.nonzeros()), err_msg=name)
 
