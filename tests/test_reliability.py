@@ -653,8 +653,8 @@ def _tiny_group():
 
 
 def _values(fns):
-    return [float(v) for f in fns.values() for v in np.array(f([0.3, -0.7, 1.1], [2.0, 0.5])[0] if f.n_out() == 1
-                                                             else f([0.3, -0.7, 1.1], [2.0, 0.5])).ravel()]
+    """Every output value of each function (one output each) at one point."""
+    return [float(v) for f in fns.values() for v in np.array(f([0.3, -0.7, 1.1], [2.0, 0.5])).ravel()]
 
 
 def _replace(path: Path, data: bytes) -> None:
@@ -664,7 +664,7 @@ def _replace(path: Path, data: bytes) -> None:
 
 
 @pytest.fixture
-def codegen_mode(monkeypatch):
+def codegen_mode():
     from mpc.controller import codegen
 
     yield lambda mode: codegen.set_mode(mode)
