@@ -788,7 +788,10 @@ def test_codegen_interrupt_kills_the_compilers(monkeypatch, tmp_path, codegen_mo
     from mpc.controller import codegen
 
     fake = tmp_path / "slowcc"
-    fake.write_text("#!/bin/sh\n[ \"$1\" = --version ] && { echo slowcc 1.0; exit 0; }\nexec sleep 60\n")
+    pids = tmp_path / "pids"  # (each compiler's pid: a pgrep of "sleep 60" also found other programs' sleeps)
+    pids.mkdir()
+    fake.write_text("#!/bin/sh\n[ \"$1\" = --version ] && { echo slowcc 1.0; exit 0; }\n"
+                    f"echo $$ > {pids}/$$\nexec sleep 60\n")
     fake.chmod(0o755)
     monkeypatch.setenv("CC", str(fake))
     codegen_mode("on")
@@ -807,5 +810,8 @@ def test_codegen_interrupt_kills_the_compilers(monkeypatch, tmp_path, codegen_mo
         signal.signal(signal.SIGINT, previous)
     assert time.monotonic() - t0 < 10.0
     assert [f.name for f in (tmp_path / "codegen").iterdir()] == [".build.lock"]
-    out = subprocess.run(["pgrep", "-f", "sleep 60"], capture_output=True, text=True)
-    assert out.stdout.strip() == ""
+    started = [int(f.name) for f in pids.iterdir()]
+    assert started, "the fake compiler never ran"
+    for pid in started:  # (killed and reaped: no such process)
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
