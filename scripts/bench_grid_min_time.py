@@ -54,10 +54,10 @@ def main() -> None:
         ctrl.act(obs)  # plans the cycle
         return ctrl
 
-    ctrl = planned(M.MPCConfig(mode="time"))
+    ctrl = planned(M.MPCConfig(mode="time", horizon_steps=None))
     if same_length:
         T = steps_of(ctrl._sol.counts) * ctrl.dt
-        ctrl = planned(M.MPCConfig(mode="target_time", target_time=T, rate_weight=(0.0, 0.0)))
+        ctrl = planned(M.MPCConfig(mode="target_time", target_time=T, rate_weight=(0.0, 0.0), horizon_steps=None))
     x, _, phase = ctrl.state_from_obs(obs)
     sol, x = ctrl._sol, ctrl.project_state(x, phase)  # (the start state the plan was made from)
     n0 = steps_of(sol.counts)

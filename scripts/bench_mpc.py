@@ -58,7 +58,7 @@ from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
 from mpc.controller import codegen  # noqa: E402
-from mpc.controller.mpc import MPCConfig, forget_plans, run_closed_loop  # noqa: E402
+from mpc.controller.mpc import AUTO, MPCConfig, forget_plans, run_closed_loop  # noqa: E402
 from mpc.controller.solver import SOLVERS, release_solvers  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
@@ -74,7 +74,7 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
         T_min = reference_at(10.0, braking, scenario.params())["T_min"]
         config = dataclasses.replace(config, mode="target_time", target_time=target_ratio * T_min)
     t0 = time.perf_counter()
-    candidate = None if solver == "ipopt" else SOLVERS[solver]()
+    candidate = None if solver in ("default", "ipopt") else SOLVERS[solver]()
     r = run_closed_loop(braking, config, plant_params=plant, score=plant is None and not mismatch, scenario=scenario,
                         mismatch=mismatch, solver=candidate)
     # (ipopt: the controller's own, with its wall-time limit at the deadline)
@@ -119,7 +119,7 @@ def rate_sweep(weights: list[float]) -> None:
     print("| rate weight | T (s) | fuel (g) | fuel gap | TV U_mf vs optimum | TV U_ab vs optimum | max violation |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for w in weights:
-        r = closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(w, w)), "ipopt", f"w {w:g}")
+        r = closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(w, w)), "default", f"w {w:g}")
         s = r["smoothness"]
         print(f"| {w:g} | {r['T']:.2f} | {r['fuel_g']:.3f} | {pct(r['fuel_gap'])} | {s['ratio_fuel_injection']:.2f}x "
               f"| {s['ratio_bucket_acceleration']:.2f}x | {100 * r['max_violation']:.2f} % |")
@@ -148,7 +148,8 @@ def main() -> None:
                     help="cycle times (s) of the target-time runs")
     ap.add_argument("--quick", action="store_true", help="one target time, no mismatch runs")
     ap.add_argument("--no-mismatch", action="store_true", help="no mismatch runs")
-    ap.add_argument("--solvers", nargs="+", default=["ipopt"], choices=sorted(SOLVERS), help="the candidates to compare")
+    ap.add_argument("--solvers", nargs="+", default=["default"], choices=["default", *sorted(SOLVERS)],
+                    help="the candidates to compare (default: MPCConfig's own, the 10-step RTI; ipopt: the full horizon)")
     ap.add_argument("--suite-sample", type=int, default=0, metavar="N", help="test-suite scenarios per braking")
     ap.add_argument("--corners", action="store_true", help="the corners suite in mismatch mode")
     ap.add_argument("--min-time-only", action="store_true",
@@ -193,9 +194,11 @@ def main() -> None:
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
     filters = {"on": [True], "off": [False], "both": [True, False]}[args.safety_filter]
     codegens = ["on", "off"] if args.codegen == "both" else [args.codegen]
-    variants = [(solver, rt, None, None, f, cg) for solver in args.solvers for rt in realtime for f in filters
-                for cg in codegens if not (args.horizons_only or getattr(SOLVERS[solver](), "short_only", False))]
-    variants += [(solver, False, h, lag, f, cg) for solver in args.solvers for h in args.horizons
+    # ("default" keeps MPCConfig's horizon, AUTO: the 10-step RTI, the full horizon in real time or with a deadline)
+    variants = [(solver, rt, AUTO if solver == "default" else None, None, f, cg) for solver in args.solvers for rt in realtime
+                for f in filters for cg in codegens
+                if not (args.horizons_only or solver != "default" and getattr(SOLVERS[solver](), "short_only", False))]
+    variants += [(solver, False, h, lag, f, cg) for solver in args.solvers if solver != "default" for h in args.horizons
                  for lag in [None] + ([args.replan_lag] if args.replan_lag else []) for f in filters for cg in codegens]
     if not variants:
         ap.error("no run: a short-horizon candidate (ipopt+sqp-rti) runs only with --horizons")
@@ -204,16 +207,17 @@ def main() -> None:
             release_solvers()
             forget_plans()
             codegen.set_mode(cg)
-        name = ((f"{solver} realtime" if rt else solver if horizon is None else f"{solver} h{horizon}")
+        name = ((f"{solver} realtime" if rt else solver if horizon in (None, AUTO) else f"{solver} h{horizon}")
                 + (f" lag{lag}" if lag else "") + ("" if safety else " no filter") + (" interpreted" if cg == "off" else ""))
         for b in args.braking:
             for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms,
                                           args.min_time_only):
                 print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
                 config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
-                                             replan_lag_steps=lag, safety_filter=safety)
+                                             horizon_solver="sqp-rti" if solver == "ipopt+sqp-rti" else AUTO if horizon == AUTO
+                                             else "ipopt", replan_lag_steps=lag, safety_filter=safety)
                 row = closed_loop(b, config, solver, label, **kw)
-                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": horizon, "replan_lag_steps": lag,
+                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": config.horizon, "replan_lag_steps": lag,
                              "codegen": cg})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "

@@ -48,7 +48,7 @@ def use(variant: str) -> None:
 
 
 def label(cfg: MPCConfig) -> str:
-    return "full" if cfg.horizon_steps is None else f"h{cfg.horizon_steps} {cfg.horizon_solver}"
+    return "full" if cfg.horizon is None else f"h{cfg.horizon} {cfg.short_horizon_solver}"
 
 
 def main() -> None:
@@ -62,7 +62,7 @@ def main() -> None:
     if not 1 <= args.rounds <= 20:
         raise ValueError(f"--rounds must be an integer in [1, 20], got {args.rounds}")
     check_output_option(ap, args.json, "--json")
-    configs = [MPCConfig(mode="target_time", target_time=11.0), MPCConfig(mode="time")]
+    configs = [MPCConfig(mode="target_time", target_time=11.0, horizon_steps=None), MPCConfig(mode="time", horizon_steps=None)]
     if args.rti:
         configs += [dataclasses.replace(c, horizon_steps=10, horizon_solver="sqp-rti") for c in configs]
     variants = list(dict.fromkeys(args.variants))

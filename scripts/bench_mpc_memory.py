@@ -33,7 +33,7 @@ def one_cycle(braking: str, target_time: float | None, horizon_steps: int | None
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
 
     mode = {"mode": "target_time", "target_time": target_time} if target_time else {"mode": "time"}
-    horizon = {"horizon_steps": horizon_steps, "horizon_solver": horizon_solver} if horizon_steps else {}
+    horizon = {"horizon_steps": horizon_steps or None, "horizon_solver": horizon_solver if horizon_steps else "ipopt"}
     config = MPCConfig(**mode, **horizon)
     ctrl = MPCController(braking, config=config)
     t0 = time.perf_counter()

@@ -36,7 +36,7 @@ def capture(braking: str, target: float, n: int) -> list[tuple[Any, dict[str, An
                 kept.append((nlp, args, np.clip(x0, args["lbx"], args["ubx"]), np.asarray(lam_g0)))
             return super().solve(nlp, args, x0, lam_x0, lam_g0)
 
-    run_closed_loop(braking, MPCConfig(mode="target_time", target_time=target), solver=Recording(), score=False)
+    run_closed_loop(braking, MPCConfig(mode="target_time", target_time=target, horizon_steps=None), solver=Recording(), score=False)
     return kept
 
 

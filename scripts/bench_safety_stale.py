@@ -49,7 +49,7 @@ def run(braking: str, every: int, payload: float, rolling: float, safety_filter:
     plant = DEFAULT_PARAMS.variant(payload_scale=payload, rolling_scale=rolling)
     env = gym.make("WheelLoader-v2", braking=braking, params=plant)
     solver = EveryNthSolver(every)
-    ctrl = MPCController(braking, config=MPCConfig(safety_filter=safety_filter), solver=solver)
+    ctrl = MPCController(braking, config=MPCConfig(safety_filter=safety_filter, horizon_steps=None), solver=solver)
     obs, _ = env.reset(seed=0)
     t0 = time.perf_counter()
     for k in range(400):

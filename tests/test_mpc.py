@@ -170,15 +170,18 @@ def closed_loop(braking, mode, **kw):
     return run_closed_loop(braking, config, score=False, controller=ctrl), ctrl
 
 
-@pytest.mark.parametrize("braking, mode", [  # (the default run keeps the TC runs, which other tests reuse: 35-40 s each)
-    pytest.param("service", "time", marks=pytest.mark.slow), ("tc", "time"),
-    pytest.param("service", "target_time", marks=pytest.mark.slow), ("tc", "target_time")])
-def test_closed_loop_cycle_near_the_optimum(braking, mode):
-    r, ctrl = closed_loop(braking, mode)
+@pytest.mark.parametrize("braking, mode, horizon", [  # (the default run keeps the TC runs, which other tests reuse)
+    pytest.param("service", "time", "auto", marks=pytest.mark.slow), ("tc", "time", "auto"),
+    pytest.param("service", "target_time", "auto", marks=pytest.mark.slow), ("tc", "target_time", "auto"),
+    ("tc", "target_time", None)])  # (the full horizon every step: real time's and the deadline's controller)
+def test_closed_loop_cycle_near_the_optimum(braking, mode, horizon):
+    r, ctrl = closed_loop(braking, mode) if horizon == "auto" else closed_loop(braking, mode, horizon_steps=horizon)
     assert r.episode.completed and r.episode.success
     assert abs(r.episode.reversing_error_m) <= 0.05 and abs(r.episode.final_position_error_m) <= 0.05
     assert abs(r.episode.final_height_error_m) <= 0.02
-    assert r.episode.max_violation == 0.0  # deceleration and speed limits held at every step
+    # deceleration and speed limits held at every step; the RTI's known 2.7e-8 in the TC 11 s cycle's last stop
+    # (test_mpc_horizon.py::test_the_real_time_iteration_drives_the_short_horizon_on_time_near_the_optimum)
+    assert r.episode.max_violation <= (0.0 if horizon is None else 1e-6)
     assert (np.asarray(r.episode.trajectory.states)[:, 0] > P.omega_min).all()
     # Warm-started: 2 IPOPT iterations a step in the median (measured, both modes). Iterations, not wall
     # time, are the bound: a 2-core machine shared with another pytest worker ran the same solves at

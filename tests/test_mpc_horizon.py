@@ -47,6 +47,23 @@ def test_a_bad_horizon_is_refused_by_name(bad):
         MPCConfig(mode="time", horizon_steps=bad)
 
 
+def test_the_default_is_the_rti_on_ten_steps_and_the_full_horizon_in_real_time_or_with_a_deadline():
+    """#13's best candidate is the default; real time and deadlines act on the full horizon's solves. The
+    "auto" defaults stay "auto" (resolved by the properties), so ``dataclasses.replace`` moves between them."""
+    import dataclasses
+
+    default = MPCConfig()
+    assert (default.horizon, default.short_horizon_solver) == (10, "sqp-rti")
+    ctrl = MPCController("service", config=default)
+    assert isinstance(ctrl.solver, FallbackSolver) and isinstance(ctrl.solver.primary, SqpRtiSolver)
+    for full in (MPCConfig(realtime=True), MPCConfig(deadline_ms=50.0), MPCConfig(horizon_steps=None),
+                 dataclasses.replace(default, realtime=True), dataclasses.replace(default, deadline_ms=50.0)):
+        assert (full.horizon, full.short_horizon_solver) == (None, None)
+    assert MPCConfig(horizon_steps=20).short_horizon_solver == "sqp-rti"
+    assert MPCConfig(horizon_steps=20, horizon_solver="ipopt").short_horizon_solver == "ipopt"
+    assert not isinstance(MPCController("service", config=MPCConfig(horizon_steps=None)).solver, FallbackSolver)
+
+
 def test_a_bad_terminal_weight_or_a_real_time_horizon_is_refused_by_name():
     with pytest.raises(ValueError, match="terminal_weight"):
         MPCConfig(mode="time", horizon_steps=10, terminal_weight=float("nan"))
@@ -57,7 +74,7 @@ def test_a_bad_terminal_weight_or_a_real_time_horizon_is_refused_by_name():
 @functools.cache
 def planned(braking: str, horizon: int):
     """A controller that planned the TC 11 s cycle (its first step), with its first plan."""
-    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=horizon)
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=horizon, horizon_solver="ipopt")
     ctrl = MPCController(braking, config=config)
     obs, _ = gym.make("WheelLoader-v2", braking=braking).reset(seed=0)
     ctrl.act(obs)
@@ -126,7 +143,7 @@ def test_the_horizons_a_plant_behind_the_schedule_meets_are_built_with_the_plan(
 
 
 def test_the_short_horizon_drives_the_cycle_on_time_near_the_optimum():
-    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10)
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10, horizon_solver="ipopt")
     ctrl = MPCController("tc", config=config)
     r = run_closed_loop("tc", config, score=False, controller=ctrl)
     ep = r.episode
@@ -246,13 +263,16 @@ def test_a_bad_number_of_extra_sqp_steps_is_refused_by_name(bad):
 def test_a_bad_replan_lag_or_one_without_a_short_horizon_is_refused_by_name(bad):
     with pytest.raises(ValueError, match=r"replan_lag_steps must be an integer in \[1, 100\]"):
         MPCConfig(horizon_steps=10, replan_lag_steps=bad)
-    with pytest.raises(ValueError, match="replan_lag_steps.*needs horizon_steps"):
-        MPCConfig(replan_lag_steps=10)
+    for full in ({"horizon_steps": None}, {"realtime": True}):
+        with pytest.raises(ValueError, match="replan_lag_steps.*needs horizon_steps"):
+            MPCConfig(replan_lag_steps=10, **full)
 
 
 def test_the_rti_horizon_solver_is_refused_without_a_horizon_or_by_another_name():
     with pytest.raises(ValueError, match="horizon_solver 'sqp-rti'.*horizon_steps"):
-        MPCConfig(horizon_solver="sqp-rti")
+        MPCConfig(horizon_solver="sqp-rti", horizon_steps=None)
+    with pytest.raises(ValueError, match="horizon_solver 'sqp-rti'.*horizon_steps"):
+        MPCConfig(horizon_solver="sqp-rti", deadline_ms=50.0)
     with pytest.raises(ValueError, match="horizon_solver must be one of"):
         MPCConfig(horizon_steps=10, horizon_solver="fatrop")
 
@@ -262,7 +282,7 @@ def test_a_mismatched_plant_makes_the_short_horizon_plan_the_cycle_again_and_kee
     worst corner). Without re-plans the short horizon followed the nominal plan's value and schedule: in
     minimum-time mode 11 % over the deceleration limit, the truck missed by 14-41 cm (measured). With them,
     at an 11 s target: measured 7 re-plans in 111 steps, zero violation, on the marks, a step late (11.1 s)."""
-    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10)  # (the cycle planned above)
+    config = MPCConfig(mode="target_time", target_time=11.0, horizon_steps=10, horizon_solver="ipopt")  # (planned above)
     ctrl = MPCController("tc", config=config)
     plant = P.variant(payload_scale=0.8, rolling_scale=1.3)
     r = run_closed_loop("tc", config, plant_params=plant, score=False, controller=ctrl)

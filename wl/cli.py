@@ -137,11 +137,14 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
         raise ValueError("--horizon-steps runs the synchronous controller: not with --realtime or --deadline-ms")
-    for flag, value in (("--horizon-solver", args.horizon_solver != "ipopt"), ("--replan-lag-steps", args.replan_lag_steps)):
-        if value and args.horizon_steps is None:
-            raise ValueError(f"{flag} acts on the short horizons: give --horizon-steps")
-    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "horizon_steps": args.horizon_steps,
-          "horizon_solver": args.horizon_solver, "replan_lag_steps": args.replan_lag_steps,
+    full = args.full_horizon or args.realtime or args.deadline_ms is not None  # (the default horizon is short otherwise)
+    for flag, value in (("--horizon-solver", args.horizon_solver not in (None, "ipopt")), ("--replan-lag-steps", args.replan_lag_steps)):
+        if value and full:
+            raise ValueError(f"{flag} acts on the short horizons: not with --full-horizon, --realtime or --deadline-ms")
+    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "replan_lag_steps": args.replan_lag_steps,
+          **({"horizon_steps": None} if args.full_horizon else {} if args.horizon_steps is None
+             else {"horizon_steps": args.horizon_steps}),
+          **({} if args.horizon_solver is None else {"horizon_solver": args.horizon_solver}),
           "safety_filter": not args.no_safety_filter,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
@@ -179,7 +182,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
             + (f"{st['fallbacks']} steps on an overdue plan (the worker's solves: median "
                f"{1e3 * st['background_median_s']:.1f} ms, max {1e3 * st['background_max_s']:.0f} ms)" if config.realtime
                else f"{st['fallbacks']} fallbacks ({st['deadline_misses']} past the deadline)")
-            + (f", {st['replans']} steps planned the whole cycle again" if config.horizon_steps else "")
+            + (f", {st['replans']} steps planned the whole cycle again" if config.horizon else "")
             + (f", {st['safety_eased']} controls eased by the safety filter" if config.safety_filter else ""))
     if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
@@ -460,15 +463,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
     p.add_argument("--realtime", action="store_true", help="real-time MPC: each step applies the plan solved while "
                    "the steps before ran and hands its own solve to a worker thread (a control in about 0.1 ms)")
-    p.add_argument("--horizon-steps", type=_int_in(2, 1000), metavar="N",
+    h = p.add_mutually_exclusive_group()
+    h.add_argument("--horizon-steps", type=_int_in(2, 1000), metavar="N",
                    help="a short receding horizon of N steps in [2, 1000], the rest of the cycle priced by the full "
-                   "plan's value (default: the whole rest of the cycle every step)")
-    p.add_argument("--horizon-solver", choices=["ipopt", "sqp-rti"], default="ipopt",
-                   help="the short horizons' solver: IPOPT, or one real-time SQP iteration per step (hpipm; IPOPT "
-                   "where it fails and for the full plans); needs --horizon-steps")
+                   "plan's value (default: 10; the full horizon with --realtime or --deadline-ms)")
+    h.add_argument("--full-horizon", action="store_true", help="solve the whole rest of the cycle every step "
+                   "(IPOPT; the default with --realtime and --deadline-ms)")
+    p.add_argument("--horizon-solver", choices=["ipopt", "sqp-rti"],
+                   help="the short horizons' solver: one real-time SQP iteration per step (sqp-rti, the default: hpipm, "
+                   "IPOPT where it fails and for the full plans), or IPOPT")
     p.add_argument("--replan-lag-steps", type=_int_in(1, 100), metavar="N",
                    help="a short horizon's re-plans (the plant estimate moved) run beside it on a worker thread and "
-                   "take over N steps later, N in [1, 100] (default: the step that needs one solves it); needs --horizon-steps")
+                   "take over N steps later, N in [1, 100] (default: the step that needs one solves it)")
     p.add_argument("--no-safety-filter", action="store_true", help="apply the plans' controls as they are (default: "
                    "a control whose next step the model predicts over the deceleration or speed limit is eased)")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),

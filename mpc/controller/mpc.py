@@ -182,6 +182,13 @@ class LateSolve:
 
 
 HORIZON_SOLVERS = ("ipopt", "sqp-rti")  # MPCConfig.horizon_solver
+# The default controller: of #13's candidates, measured side by side (docs/benchmarks.md, section 3), the real-time
+# iteration on a 10-step horizon on compiled slot functions is the fastest per step at the same accuracy (nominal
+# and `test` runs: 4.3 / 13.8 / 95 ms median / p99 / max against the full horizon's 33.9 / 466 / 1229 ms; fuel
+# +0.05..+0.43 % at the targets); IPOPT makes the full plans and takes the steps it fails. Real time and
+# deadlines act on the full horizon's solves, so there the default is the full horizon.
+AUTO = "auto"
+DEFAULT_HORIZON_STEPS = 10
 
 
 @dataclass(frozen=True)
@@ -222,8 +229,9 @@ class MPCConfig:
     # next ``horizon_steps`` steps of its schedule, the rest of the cycle priced by the last full plan's value
     # (its costate, and ``terminal_weight`` g per unit of scaled end-state difference squared / 2). A full
     # plan is made again (with its schedule moves) where the plant estimate moves or the horizon misses a
-    # target. None: the whole rest of the cycle every step. Synchronous only.
-    horizon_steps: int | None = None
+    # target. None: the whole rest of the cycle every step. Synchronous only. "auto" (the default):
+    # DEFAULT_HORIZON_STEPS, or None with realtime or deadline_ms.
+    horizon_steps: int | None | str = AUTO
     # (1000: at 100 the plant drifted from the plan between re-plans, measured by the bench's 16 nominal and
     # test runs under the RTI: service at 11, 13 and 16 s ended 0.06-2.1 % over the deceleration limit in their
     # last stop after a whole-cycle re-plan; at 1000 none, fuel gaps -1.17..+0.01 points; at 10000 TC at 13 and 16 s
@@ -231,8 +239,9 @@ class MPCConfig:
     terminal_weight: float = 1000.0
     # The short horizons' solver: "ipopt", or "sqp-rti" (one SQP step per control step from the last
     # horizon's plan, its QP solved by hpipm on the stage structure; up to two more where it leaves the rows
-    # unmet; IPOPT where that fails too, and for every full plan). Needs horizon_steps.
-    horizon_solver: str = "ipopt"
+    # unmet; IPOPT where that fails too, and for every full plan). Needs horizon_steps. "auto" (the default):
+    # "sqp-rti" on a short horizon, "ipopt" on the full one.
+    horizon_solver: str = AUTO
     # A short horizon's re-plan where the plant estimate moved: None, the step that finds it stale solves the
     # whole cycle (0.4-3 s); N, the re-plan runs on the worker beside the short horizons (from that step's
     # state, the same schedule) and becomes their reference N steps later (the step waits for it if it is
@@ -285,22 +294,39 @@ class MPCConfig:
             raise ValueError(f"tighten must lie in [0, 0.5), got {shown(self.tighten)}")
         if not (real(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
             raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {shown(self.omega_margin)}")
-        if self.horizon_steps is not None:
+        if self.horizon_steps is not None and self.horizon_steps != AUTO:
             if not count(self.horizon_steps, 2, 1000):
-                raise ValueError(f"horizon_steps must be an integer in [2, 1000] or None, got {shown(self.horizon_steps)}")
+                raise ValueError(f"horizon_steps must be an integer in [2, 1000], None (the full horizon) or {AUTO!r}, "
+                                 f"got {shown(self.horizon_steps)}")
             if self.realtime or self.deadline_ms is not None:
                 raise ValueError("horizon_steps is synchronous only: not with realtime or deadline_ms")
-        if self.horizon_solver not in HORIZON_SOLVERS:
-            raise ValueError(f"horizon_solver must be one of {HORIZON_SOLVERS}, got {shown(self.horizon_solver)}")
-        if self.horizon_solver != "ipopt" and self.horizon_steps is None:
-            raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps")
+        if self.horizon_solver not in (*HORIZON_SOLVERS, AUTO):
+            raise ValueError(f"horizon_solver must be one of {(*HORIZON_SOLVERS, AUTO)}, got {shown(self.horizon_solver)}")
+        if self.horizon_solver not in ("ipopt", AUTO) and self.horizon is None:
+            raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps "
+                             "(the full horizon here)")
         if self.replan_lag_steps is not None:
             if not count(self.replan_lag_steps, 1, 100):
                 raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {shown(self.replan_lag_steps)}")
-            if self.horizon_steps is None:
-                raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps")
+            if self.horizon is None:
+                raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps "
+                                 "(the full horizon here)")
         if not (real(self.terminal_weight) and self.terminal_weight >= 0.0):
             raise ValueError(f"terminal_weight must be a finite number >= 0, got {shown(self.terminal_weight)}")
+
+    @property
+    def horizon(self) -> int | None:
+        """The short horizon's steps in effect (``horizon_steps``, "auto" resolved); None: the full horizon."""
+        if self.horizon_steps == AUTO:
+            return None if self.realtime or self.deadline_ms is not None else DEFAULT_HORIZON_STEPS
+        return self.horizon_steps
+
+    @property
+    def short_horizon_solver(self) -> str | None:
+        """The short horizons' solver in effect (``horizon_solver``, "auto" resolved); None on the full horizon."""
+        if self.horizon is None:
+            return None
+        return "sqp-rti" if self.horizon_solver == AUTO else self.horizon_solver
 
 
 class MPCController:
@@ -336,7 +362,7 @@ class MPCController:
                              f"({1e3 * self.dt:g} ms): a control must be ready before the next step begins")
         budgets = [b for b in (self.config.time_budget, self._deadline_s) if b is not None]
         self.solver = solver or IpoptSolver(self.config.max_iter, min(budgets, default=None))
-        if solver is None and self.config.horizon_solver == "sqp-rti":
+        if solver is None and self.config.short_horizon_solver == "sqp-rti":
             self.solver = rti_on_short_horizons(self.solver)
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._pending: LateSolve | None = None  # deadline mode: a solve that runs on past its step
@@ -549,7 +575,7 @@ class MPCController:
         if ok and not short:
             self._plan = self._make_plan(self._sol, x_plan, k)
             self._iterate = self._sol
-            if self.config.horizon_steps is not None:  # the plan the short horizons follow from now on
+            if self.config.horizon is not None:  # the plan the short horizons follow from now on
                 t1 = time.perf_counter()
                 self._take_reference(self._sol)  # (its horizons built now: in the step's, or the planning's, time)
                 solve_time += time.perf_counter() - t1
@@ -1034,9 +1060,9 @@ class MPCController:
     def _horizon_nlp(self, phase: int, counts: dict[int, int]) -> tuple[GridNLP, dict[int, int]]:
         """The NLP of the horizon from ``phase`` with the schedule ``counts`` left, and the horizon's
         schedule: per phase at most ``horizon_steps`` slots, ending open where it ends before the cycle."""
-        counts, open_phase = horizon_counts(counts, phase, self.config.horizon_steps)
+        counts, open_phase = horizon_counts(counts, phase, self.config.horizon)
         last = 4 if open_phase is None else open_phase
-        slots = tuple((q, min(self._slots[q], self.config.horizon_steps)) for q in range(phase, last + 1))
+        slots = tuple((q, min(self._slots[q], self.config.horizon)) for q in range(phase, last + 1))
         return horizon_nlp(self.model, phase, slots, open_phase), counts
 
     def _take_reference(self, sol: Solve) -> None:
