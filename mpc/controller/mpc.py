@@ -663,7 +663,7 @@ class MPCController:
         z, lam_x, lam_g = self._nlp(sol.first_phase).tail(sol.z, sol.lam_x, sol.lam_g, phase)
         return Solve(counts={q: n for q, n in sol.counts.items() if q >= phase}, first_phase=phase, ok=sol.ok,
                      status=sol.status, J=sol.J, misses_m=sol.misses_m, excess=sol.excess, z=z, lam_x=lam_x,
-                     lam_g=lam_g, lam_p=None)
+                     lam_g=lam_g)
 
     # ------------------------------------------------------------------ real time (MPCConfig.realtime)
     def _control_ahead(self, x: np.ndarray, phase: int, k: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
@@ -892,7 +892,7 @@ class MPCController:
         (:meth:`~mpc.controller.schedule.ScheduleSearch.waiting`).
         """
         sched = self.schedule
-        if sol.lam_p is None or (sol.feasible and sched.waiting(k)):
+        if (sol.feasible and sched.waiting(k)) or sol.lam_p is None:  # (lam_p evaluated only where read)
             return None
         removals = self.config.mode != "target_time" or sched.late(sol, k)
         return sched.candidate(sol, self._nlp(sol.first_phase), phase, k, failed=set(), removals=removals,
@@ -985,6 +985,7 @@ class MPCController:
         self.first_plan_from = source
         if key is not None:
             _FIRST_PLANS.pop(key, None)
+            sol.keep_lam_p()  # (its source holds the NLP: a stored plan must not keep released solvers alive)
             _FIRST_PLANS[key] = FirstPlan(sol, dict(self._slots), self.params, reference)
             while len(_FIRST_PLANS) > FIRST_PLANS_KEPT:
                 del _FIRST_PLANS[next(iter(_FIRST_PLANS))]
