@@ -699,6 +699,20 @@ def test_output_paths_are_checked_before_the_work(tmp_path, capsys, no_work, com
     assert len(lines) == 1 and lines[0].startswith("wl: error:") and option in lines[0] and str(path) in lines[0], err
 
 
+@pytest.mark.parametrize("flags, horizon, solver", [
+    ([], 10, "sqp-rti"),  # the default: #13's best candidate
+    (["--full-horizon"], None, None),
+    (["--realtime"], None, None), (["--deadline-ms", "80"], None, None),  # (they act on the full horizon's solves)
+    (["--horizon-steps", "20", "--horizon-solver", "ipopt"], 20, "ipopt"),
+    (["--horizon-solver", "ipopt"], 10, "ipopt"),
+])
+def test_mpc_horizon_flags_make_the_config_they_say(tmp_path, capsys, no_work, flags, horizon, solver):
+    code, err = _attempt(capsys, ["mpc", "--braking", "tc", *flags, "--out", str(tmp_path / "o.json")])
+    assert code is None, err
+    config = no_work[-1][1][1]  # run_closed_loop(braking, config, ...)
+    assert (config.horizon, config.short_horizon_solver) == (horizon, solver)
+
+
 def test_mpc_and_train_take_the_pareto_cache(tmp_path, capsys, no_work):
     cache = tmp_path / "my_cache"
     code, err = _attempt(capsys, ["mpc", "--cache", str(cache), "--out", str(tmp_path / "m.json")])
