@@ -184,8 +184,8 @@ class LateSolve:
 HORIZON_SOLVERS = ("ipopt", "sqp-rti")  # MPCConfig.horizon_solver
 # The default controller: of #13's candidates, measured side by side (docs/benchmarks.md, section 3), the real-time
 # iteration on a 10-step horizon on compiled slot functions is the fastest per step at the same accuracy (nominal
-# and `test` runs: 4.3 / 13.8 / 95 ms median / p99 / max against the full horizon's 33.9 / 466 / 1229 ms; fuel
-# +0.05..+0.43 % at the targets); IPOPT makes the full plans and takes the steps it fails. Real time and
+# and `test` runs, stop 47: 3.8 / 14.4 / 53 ms median / p99 / max against the full horizon's 36.6 / 344 / 1927 ms in
+# the same run; fuel +0.05..+0.43 % at the targets); IPOPT makes the full plans and takes the steps it fails. Real time and
 # deadlines act on the full horizon's solves, so there the default is the full horizon.
 AUTO = "auto"
 DEFAULT_HORIZON_STEPS = 10
