@@ -64,6 +64,26 @@ def test_the_default_is_the_rti_on_ten_steps_and_the_full_horizon_in_real_time_o
     assert not isinstance(MPCController("service", config=MPCConfig(horizon_steps=None)).solver, FallbackSolver)
 
 
+@settings(max_examples=60, deadline=None)
+@given(realtime=st.booleans(), deadline_ms=st.sampled_from([None, 50.0]),
+       horizon_steps=st.sampled_from(["auto", None, 2, 10, 30]), horizon_solver=st.sampled_from(["auto", "ipopt", "sqp-rti"]))
+def test_any_horizon_combination_is_consistent_or_refused_by_name(realtime, deadline_ms, horizon_steps, horizon_solver):
+    """Every combination either builds a config whose horizon in effect is short exactly where it may be (the
+    synchronous controller without a deadline) with a solver only there, or is refused naming a field."""
+    kw = {"realtime": realtime, "deadline_ms": deadline_ms, "horizon_steps": horizon_steps, "horizon_solver": horizon_solver}
+    try:
+        cfg = MPCConfig(**kw)
+    except ValueError as exc:
+        assert any(name in str(exc) for name in kw), exc
+        return
+    synchronous = not realtime and deadline_ms is None
+    assert (cfg.horizon is not None) == (synchronous and horizon_steps is not None)
+    assert (cfg.short_horizon_solver is None) == (cfg.horizon is None)
+    if cfg.horizon is not None:
+        assert cfg.horizon == (10 if horizon_steps == "auto" else horizon_steps)
+        assert cfg.short_horizon_solver == ("sqp-rti" if horizon_solver == "auto" else horizon_solver)
+
+
 def test_a_bad_terminal_weight_or_a_real_time_horizon_is_refused_by_name():
     with pytest.raises(ValueError, match="terminal_weight"):
         MPCConfig(mode="time", horizon_steps=10, terminal_weight=float("nan"))
