@@ -69,6 +69,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 TARGET_PHASE = {"reversing point": 2, "end position": 4, "end height": 4}  # the phase whose stop step has the target
+LEG = {1: "reversing", 2: "reversing", 3: "forward", 4: "forward"}  # the leg each phase drives
 
 # g: the least predicted improvement worth a solve, when the first step plans the cycle and during it
 # (a schedule move takes 10-30 iterations, 0.2-0.5 s: during the cycle only for a clear gain)
@@ -937,12 +938,17 @@ class MPCController:
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         failed: set = set()
         for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
-            # a step fewer that did not hold the targets will not from another phase either
+            # a step fewer that did not hold the targets will not from another phase either, as a rule (the
+            # shifts come first) ...
             removals = sum(1 for m in failed if m[1] is None) < 1
-            move = (self.schedule.candidate(sol, self._nlp(sol.first_phase), phase, k, failed, removals, MIN_GAIN)
-                    if sol.ok else None)
+            nlp = self._nlp(sol.first_phase)
+            move = self.schedule.candidate(sol, nlp, phase, k, failed, removals, MIN_GAIN) if sol.ok else None
             if move is None or len(failed) >= SEARCH_FAILURES:
-                break
+                # ... but before it ends, a step fewer from the other leg is worth a try (measured on the `test`
+                # suite's 50 TC cycles: 5 a step faster, none slower; minimum-time planning +5..18 %)
+                move = self._other_leg_removal(sol, nlp, phase, k, failed)
+                if move is None:
+                    break
             alt = self._try_move(sol, move, phase, x)
             if self.schedule.cost(alt, k) < self.schedule.cost(sol, k):
                 sol, failed = alt, set()
@@ -951,6 +957,20 @@ class MPCController:
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._take_first_plan(sol, "reference", key, ref)
+
+    def _other_leg_removal(self, sol: Solve, nlp: GridNLP, phase: int, k: int, failed: set) -> tuple | None:
+        """The first plan's search, before it ends: a step fewer from the leg (LEG) that none of the removals
+        failed since the last move that paid came from, if one did (the best predicted; None if none is left).
+        A removal that misses a target says little about the other leg: the plan's misses are elastic, and TC
+        ``test[4]``'s phase 2 step fewer missed the reversing point where phase 4's held every mark."""
+        legs_tried = {LEG[q] for q, j in failed if j is None}
+        if not legs_tried or not sol.feasible:
+            return None
+        other = {(q, None) for q in LEG if LEG[q] not in legs_tried}
+        for gain, move in self.schedule.moves(sol, nlp, phase, k):
+            if move in other and move not in failed:
+                return move if gain < -MIN_GAIN else None
+        return None
 
     def _reference_schedule(self, ref: Any, phase: int, k: int) -> dict[int, int]:
         """Whole steps per phase from ``phase`` on, in the continuous reference's shares of the time: the
