@@ -83,7 +83,7 @@ def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant:
            **ep.to_dict(trajectory=False), "solve_time": r.solve_time, "solve_times_s": r.solve_times_s,
            "worker_solve_times_s": r.worker_solve_times_s,
            "wall_s": time.perf_counter() - t0, "fallbacks": r.solve_time["fallbacks"], "first_plan_from": r.first_plan_from,
-           "handed_over": getattr(candidate, "handed_over", 0)}  # (solves the candidate left to IPOPT)
+           "handed_over": r.solve_time["handed_over"]}  # (solves the candidate, or the default's RTI, left to IPOPT)
     if r.score is not None:
         row.update(time_gap=r.score.time_gap, fuel_gap=r.score.fuel_gap, T_min=r.score.T_min, fuel_opt_g=r.score.fuel_opt_g)
         plant_params = scenario.params() if scenario is not None else None

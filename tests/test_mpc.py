@@ -381,12 +381,19 @@ def test_controls_move_no_more_than_the_optimums():
     assert ep.fuel_g == pytest.approx(solve_ocp("tc", "fuel_at_time", T=ep.T, verify=False).fuel_g, rel=0.005)
 
 
-@pytest.mark.slow  # 12 s: the bound above is not met without the penalty (it would catch one that does nothing)
+@pytest.mark.slow  # 12 s: a penalty that does nothing would pass the bound above; it does not pass this one
 def test_without_the_rate_penalty_the_bucket_acceleration_chatters():
+    """On the full horizon (where #13 saw the zig-zag) the bucket acceleration moves several times as much
+    without the penalty. Measured at stop 47: 1.43x the optimum's total variation against 0.12x with it (1.73x
+    when the penalty came, stop 18); the default 10-step RTI moves 0.74x even without it."""
     from mpc.benchmark.scoring import smoothness
 
-    loose = run_closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(0.0, 0.0)), score=False)
-    assert smoothness(loose.episode.trajectory.controls, loose.episode.T, "tc").ratio_bucket_acceleration > 1.5
+    tv = {}
+    for w in (0.0, 0.1):
+        r = run_closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(w, w), horizon_steps=None),
+                            score=False)
+        tv[w] = smoothness(r.episode.trajectory.controls, r.episode.T, "tc").ratio_bucket_acceleration
+    assert tv[0.0] > 1.0 and tv[0.0] > 4.0 * tv[0.1], tv
 
 
 def test_the_minimum_time_search_tries_a_step_fewer_from_the_other_leg():
@@ -426,7 +433,14 @@ def test_a_candidate_that_fails_hands_the_solve_to_its_fallback():
                          solver=FallbackSolver(SqpRtiSolver("hpipm"), IpoptSolver()))
     x = np.array([P.omega_0, 0.0, P.H_0, 0.0, 0.0])
     ctrl._plan_cycle(x, 1, 0)  # cold: the RTI refuses, IPOPT plans (and takes the moves the RTI fails)
-    assert ctrl._sol.ok and ctrl._sol.status.startswith("sqp-rti (hpipm): ") and ", then " in ctrl._sol.status
+    # (the last plan may be a move the RTI met itself: on compiled functions it meets more of them, stop 47)
+    assert ctrl._sol.ok and ctrl.solver.handed_over >= 1
+    cold = ctrl._solve(1, ctrl._sol.counts, x, warm=None, guess=ctrl._sol.z)  # no multipliers: the RTI refuses
+    assert cold.ok and cold.status.startswith("sqp-rti (hpipm): no previous plan, then "), cold.status
+    # (the bench reads the hand-overs from the controller's stats: this cycle's, where the solver counts over its life)
+    assert ctrl.stats()["handed_over"] == ctrl.solver.handed_over
+    ctrl.reset()
+    assert ctrl.stats()["handed_over"] == 0
 
 
 def test_scenarios_of_one_machine_share_its_nlps_and_another_structure_releases_them():

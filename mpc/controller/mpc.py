@@ -421,6 +421,7 @@ class MPCController:
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
         self.fallbacks = 0
+        self._handed_before = getattr(self.solver, "handed_over", 0)  # (a FallbackSolver counts over its life)
         self.deadline_misses = 0
         self.safety_eased = 0  # steps whose control the safety filter eased
         self._estimate_before: np.ndarray | None = None  # the plant estimate at the last step's staleness check
@@ -1332,6 +1333,8 @@ class MPCController:
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
                 "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time),
                 "replans": int(self.replans), "safety_eased": int(self.safety_eased),
+                # solves this cycle's first solver (the RTI on the short horizons) failed and IPOPT took
+                "handed_over": int(getattr(self.solver, "handed_over", 0) - self._handed_before),
                 # realtime: the worker's solves per step (plan and schedule move), and how old the plans applied were
                 "background_median_s": float(np.median(bg)), "background_p99_s": float(np.percentile(bg, 99)),
                 "background_max_s": float(bg.max()), "plan_age_max": int(max(self.plan_ages, default=0))}

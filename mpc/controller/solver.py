@@ -382,7 +382,9 @@ class SqpRtiSolver:
 
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
-        if lam_x0 is None or lam_g0 is None:  # a cold start is not a real-time iteration's
+        # a cold start is not a real-time iteration's: no multipliers, or the zeros of a first solve's guess (from
+        # those the iteration met the rows of a poor schedule, TC 50/6/15/37 steps, and the plan was kept)
+        if lam_x0 is None or lam_g0 is None or not (np.any(lam_x0) or np.any(lam_g0)):
             return SolverResult(ok=False, status=f"sqp-rti ({self.qpsol}): no previous plan", iterations=0)
         fn = _sqp_rti(nlp, self.qpsol)  # (the bounds as they are: hpipm keeps the start's equalities)
         z, lam_x, lam_g = np.clip(x0, args["lbx"], args["ubx"]), lam_x0, lam_g0
