@@ -383,7 +383,7 @@ class SqpRtiSolver:
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
         # a cold start is not a real-time iteration's: no multipliers, or the zeros of a first solve's guess (from
-        # those the iteration met the rows of a poor schedule, TC 50/6/15/37 steps, and the plan was kept)
+        # those an SQP iterate met the rows and became the cycle's first plan, unconverged)
         if lam_x0 is None or lam_g0 is None or not (np.any(lam_x0) or np.any(lam_g0)):
             return SolverResult(ok=False, status=f"sqp-rti ({self.qpsol}): no previous plan", iterations=0)
         fn = _sqp_rti(nlp, self.qpsol)  # (the bounds as they are: hpipm keeps the start's equalities)
