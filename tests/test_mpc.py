@@ -2,6 +2,7 @@
 constraints, it adapts to a mismatched plant, and it survives solver failures."""
 
 import functools
+import json
 import math
 
 import casadi as ca
@@ -177,6 +178,8 @@ def closed_loop(braking, mode, **kw):
 def test_closed_loop_cycle_near_the_optimum(braking, mode, horizon):
     r, ctrl = closed_loop(braking, mode) if horizon == "auto" else closed_loop(braking, mode, horizon_steps=horizon)
     assert r.episode.completed and r.episode.success
+    written = json.loads(json.dumps(r.to_dict()))  # (the result file says how the controller ran)
+    assert (written["horizon_steps"], written["horizon_solver"]) == ((10, "sqp-rti") if horizon == "auto" else (None, None))
     assert abs(r.episode.reversing_error_m) <= 0.05 and abs(r.episode.final_position_error_m) <= 0.05
     assert abs(r.episode.final_height_error_m) <= 0.02
     # deceleration and speed limits held at every step; the RTI's known 2.7e-8 in the TC 11 s cycle's last stop

@@ -1361,8 +1361,10 @@ class ClosedLoopResult:
         controls and phase), beside the controller's."""
         ep = self.episode.to_dict(trajectory=False)
         traj = asdict(self.episode.trajectory) if self.episode.trajectory is not None else {}
-        return {"controller": "mpc", "braking": self.braking, "mode": self.config.mode, "scenario": self.scenario,
-                "target_time": self.config.target_time, **ep, **traj,
+        cfg = self.config  # (how it ran: the horizon in effect, None the full one, and its solver)
+        return {"controller": "mpc", "braking": self.braking, "mode": cfg.mode, "scenario": self.scenario,
+                "target_time": cfg.target_time, "horizon_steps": cfg.horizon, "horizon_solver": cfg.short_horizon_solver,
+                "realtime": cfg.realtime, "deadline_ms": cfg.deadline_ms, **ep, **traj,
                 "score": self.score.to_dict() if self.score is not None else None,
                 "solve_time": self.solve_time, "solve_times_s": self.solve_times_s,
                 "worker_solve_times_s": self.worker_solve_times_s, "plant_params": self.plant_params,
