@@ -65,6 +65,8 @@ from wl_env.suites import load_suite  # noqa: E402
 
 log = logging.getLogger("bench_mpc")
 MISMATCH = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload scale, rolling-resistance scale)
+# MPCConfig.horizon_solver per candidate on the short horizons ("ipopt" for the others: their own on the full)
+HORIZON_SOLVER_OF = {"default": AUTO, "ipopt+sqp-rti": "sqp-rti"}
 
 
 def closed_loop(braking: str, config: MPCConfig, solver: str, label: str, plant: Any = None, scenario: Any = None,
@@ -214,8 +216,8 @@ def main() -> None:
                                           args.min_time_only):
                 print(f"[{name}] [{b}] {label}", file=sys.stderr, flush=True)
                 config = dataclasses.replace(config, realtime=rt, horizon_steps=horizon, terminal_weight=args.terminal_weight,
-                                             horizon_solver="sqp-rti" if solver == "ipopt+sqp-rti" else AUTO if horizon == AUTO
-                                             else "ipopt", replan_lag_steps=lag, safety_filter=safety)
+                                             horizon_solver=HORIZON_SOLVER_OF.get(solver, "ipopt"), replan_lag_steps=lag,
+                                             safety_filter=safety)
                 row = closed_loop(b, config, solver, label, **kw)
                 rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": config.horizon, "replan_lag_steps": lag,
                              "codegen": cg})

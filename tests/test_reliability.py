@@ -27,6 +27,7 @@ import wl.cli
 from mpc import interrupt
 from mpc.benchmark import store
 from mpc.benchmark.ocp import OCPSettings, get_ocp, template_guess
+from wl_env.atomic_io import write_atomic
 from wl_env.params import resolve
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -657,12 +658,6 @@ def _values(fns):
     return [float(v) for f in fns.values() for v in np.array(f([0.3, -0.7, 1.1], [2.0, 0.5])).ravel()]
 
 
-def _replace(path: Path, data: bytes) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 @pytest.fixture
 def codegen_mode():
     from mpc.controller import codegen
@@ -756,7 +751,7 @@ def test_codegen_cache_is_checked_when_read(tmp_path, caplog, codegen_mode):
     assert codegen.compiled([group], [origin], cache=tmp_path)[0] is not None
     assert lib.stat().st_mtime_ns == stamp  # read from the cache, not built again
     # (each damage on a new file: the loaded library's pages are mapped, and writing them would crash the process)
-    _replace(lib, lib.read_bytes()[:1000])  # truncated
+    write_atomic(lib, lib.read_bytes()[:1000])  # truncated
     with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
         again = codegen.compiled([group], [origin], cache=tmp_path)[0]
     assert "not the one its record describes" in caplog.text and _values(again) == _values(group)

@@ -127,7 +127,7 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
 
 
 def _mpc_cmd(args: argparse.Namespace) -> int:
-    from mpc.controller.mpc import MPCConfig, run_closed_loop
+    from mpc.controller.mpc import AUTO, MPCConfig, run_closed_loop
     from wl_env.atomic_io import write_json_atomic
 
     if args.cache is not None:  # (before --out, whose folder its check may create)
@@ -141,10 +141,9 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     for flag, value in (("--horizon-solver", args.horizon_solver not in (None, "ipopt")), ("--replan-lag-steps", args.replan_lag_steps)):
         if value and full:
             raise ValueError(f"{flag} acts on the short horizons: not with --full-horizon, --realtime or --deadline-ms")
+    horizon = None if args.full_horizon else AUTO if args.horizon_steps is None else args.horizon_steps
     rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "replan_lag_steps": args.replan_lag_steps,
-          **({"horizon_steps": None} if args.full_horizon else {} if args.horizon_steps is None
-             else {"horizon_steps": args.horizon_steps}),
-          **({} if args.horizon_solver is None else {"horizon_solver": args.horizon_solver}),
+          "horizon_steps": horizon, "horizon_solver": args.horizon_solver or AUTO,
           "safety_filter": not args.no_safety_filter,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
