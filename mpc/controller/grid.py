@@ -70,6 +70,10 @@ MIN_STOP_SPEED = 1e-3  # m/s: a stop step starts moving (the crossing's time is 
 STOP_OVERSHOOT = 2e-3
 IDLE_WEIGHT = 1.0  # objective per unit of an idle slot's scaled control squared (it acts on nothing)
 MIN_MARGIN = 1e-6  # the least upper bound of the margin used (an interior-point method needs lb < ub)
+# The part of the deceleration limit no plan may use, whatever the margin (relative): a real-time iteration's
+# plan meets its rows only to a residual (3.7e-8 at the nominal service 13 s cycle's last stop, which then braked
+# 2.7e-8 over the limit)
+DECEL_FLOOR = 1e-6
 
 
 def _state(x: Any) -> State:
@@ -665,8 +669,8 @@ class GridNLP:
         stop steps, in the scenario of ``params`` (the NLP's machine, :meth:`StepModel.with_params`). Idle slots carry the state through (the measured start before the first active step,
         the state of the phase before in later phases), their rows relaxed. ``tighten``: the margin
         (fraction of the deceleration limit) the plan keeps in its first step and in the later ones;
-        the plan may use it at DECEL_MARGIN_WEIGHT. ``u_prev``: the control [U_mf, U_ab] applied before
-        (None: the first step has no rate term); ``rate_weight``: the rate penalty's weights, per unit of
+        the plan may use it at DECEL_MARGIN_WEIGHT, all but DECEL_FLOOR (kept whatever the margin).
+        ``u_prev``: the control [U_mf, U_ab] applied before (None: the first step has no rate term); ``rate_weight``: the rate penalty's weights, per unit of
         scaled control change squared (g)."""
         if abs(dt - self.model.dt) > 1e-12:
             raise ValueError(f"dt {dt!r} s is not the model's control interval {self.model.dt!r} s")
@@ -699,8 +703,9 @@ class GridNLP:
         lbw[:N_X], ubw[:N_X] = -math.inf, math.inf  # the measured start is what it is (the equality fixes it)
         for i, k in enumerate(active):
             s, margin = self.slots[k], tighten[0] if i == 0 else tighten[1]
+            margin = max(margin, DECEL_FLOOR + MIN_MARGIN)
             ubg[s.g + np.array(self._step_of(s).decel)] = -margin
-            ubw[s.em] = max(margin, MIN_MARGIN)
+            ubw[s.em] = margin - DECEL_FLOOR
         return {"p": par, "lbx": lbw, "ubx": ubw, "lbg": lbg, "ubg": ubg}
 
     def fix_leading_idle(self, args: dict[str, Any]) -> dict[str, Any]:
