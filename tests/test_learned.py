@@ -450,3 +450,28 @@ def test_train_bc_checks_its_output_paths_before_the_demonstrations(tmp_path):
                             str(tmp_path / "runs")], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and f"{flag} {tmp_path / 'file' / 'x'}" in r.stderr and "Traceback" not in r.stderr
         assert not list((tmp_path / "runs").glob("demos_*"))
+
+
+def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkeypatch):
+    """scripts/select_policy.py (the shipping rule of section 7): of the shipped target PPO and the imitation
+    baseline, both within the limits on two `train` draws, it chooses the one with less fuel over the three
+    targets, and writes what it measured."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("select_policy", Path(__file__).resolve().parents[1] / "scripts" / "select_policy.py")
+    select = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "select_policy", select)  # (its dataclass looks its module up there)
+    spec.loader.exec_module(select)
+    from agents.evaluate import default_policy_path
+
+    paths = [str(default_policy_path("service", kind)) for kind in ("ppo-target", "bc")]
+    out = select.run(select.Options(braking="service", policies=paths, draws=2, json=str(tmp_path / "sel.json")))
+    recs = out["records"]
+    assert [r["policy"] for r in recs] == paths and all(r["episodes"] == 6 and r["over_a_limit"] == 0 for r in recs)
+    assert out["chosen"] == min(recs, key=lambda r: r["fuel_per_draw_g"])["policy"]
+    assert json.loads((tmp_path / "sel.json").read_text())["chosen"] == out["chosen"]
+    with pytest.raises(ValueError, match="--draws must be an integer in"):
+        select.run(select.Options(braking="service", policies=paths, draws=0))
+    with pytest.raises(ValueError, match="--policies needs at least one"):
+        select.run(select.Options(braking="service"))

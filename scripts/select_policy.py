@@ -1,0 +1,84 @@
+"""Which of several target-conditioned policies to ship, chosen on the training distribution (never on `test`).
+
+    python scripts/select_policy.py --braking service --policies runs/a/final/policy.safetensors runs/b/...
+
+The rule of stops 42-44 (docs/benchmarks.md section 7): each policy drives the same ``--draws`` fresh draws of
+the ``train`` suite (``--seed``) at the three targets of the leaderboard (1, 1.15 and 1.5 times each draw's
+estimated T_min); the least fuel summed over the three targets, per draw, wins among the policies that keep
+every limit. Printed per policy: that fuel, the successes and the episodes over a limit. ``--json`` writes the
+records (atomically).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import tyro
+
+from wl_env.atomic_io import check_output_file, write_json_atomic
+from wl_env.cycle import check_braking
+from wl_env.logs import run_script
+
+log = logging.getLogger("select_policy")
+RATIOS = (1.0, 1.15, 1.5)  # (wl.report.TARGETS', named here: importing the report imports the MPC)
+
+
+@dataclass
+class Options:
+    braking: str = "service"
+    policies: list[str] = field(default_factory=list)  # pickle-free policy files (PATH.safetensors)
+    draws: int = 100  # fresh draws of the train suite
+    seed: int = 7  # of the draws (stops 42-44: 7)
+    json: str | None = None  # the records, written at the end
+
+
+def check(o: Options) -> None:
+    check_braking(o.braking)
+    if not o.policies:
+        raise ValueError("--policies needs at least one policy file")
+    if not 1 <= o.draws <= 10_000:
+        raise ValueError(f"--draws must be an integer in [1, 10000], got {o.draws}")
+    if not 0 <= o.seed <= 2**32 - 1:
+        raise ValueError(f"--seed must be an integer in [0, 2**32 - 1], got {o.seed}")
+    if o.json is not None:
+        check_output_file(o.json, "--json")
+
+
+def run(o: Options) -> dict[str, Any]:
+    check(o)
+    from agents.evaluate import evaluate_controller, load_controller
+    from wl_env.suites import load_suite
+
+    suite, rng = load_suite("train"), np.random.default_rng(o.seed)
+    draws = [suite.sample(rng, o.braking) for _ in range(o.draws)]
+    records = []
+    for path in o.policies:
+        controller = load_controller("ppo", o.braking, model=path)  # (checked before any episode runs)
+        fuel, successes, over = 0.0, 0, 0
+        for ratio in RATIOS:
+            res = evaluate_controller(controller, o.braking, scenarios=draws, score=False, target_ratio=ratio,
+                                      min_time="estimate")
+            episodes = res["per_episode"]
+            fuel += sum(e["fuel_g"] for e in episodes)
+            successes += sum(bool(e["success"]) for e in episodes)
+            over += sum(e["max_violation"] > 0.0 for e in episodes)
+        rec = {"policy": path, "fuel_per_draw_g": fuel / o.draws, "successes": successes,
+               "episodes": len(RATIOS) * o.draws, "over_a_limit": over}
+        records.append(rec)
+        log.info("%s: %.2f g per draw over the three targets, %d / %d on their marks, %d over a limit", path,
+                 rec["fuel_per_draw_g"], successes, rec["episodes"], over)
+    keeping = [r for r in records if r["over_a_limit"] == 0]
+    chosen = min(keeping, key=lambda r: r["fuel_per_draw_g"])["policy"] if keeping else None
+    log.info("chosen: %s", chosen or "none (every policy went over a limit)")
+    out = {"braking": o.braking, "draws": o.draws, "seed": o.seed, "ratios": list(RATIOS), "records": records,
+           "chosen": chosen}
+    if o.json is not None:
+        write_json_atomic(o.json, out)
+    return out
+
+
+if __name__ == "__main__":
+    run_script("select_policy", lambda: run(tyro.cli(Options)))
