@@ -149,10 +149,12 @@ NEIGHBOUR_CHANGE = 0.1
 @dataclass
 class ReplanJob:
     """A short horizon's re-plan on the worker (MPCConfig.replan_lag_steps): the whole cycle from the state
-    measured at step ``k``, due as the horizons' reference at step ``k + lag``."""
+    measured at step ``k``, due as the horizons' reference at step ``k + lag``, made with the plant
+    ``estimate`` of step ``k``."""
 
     k: int
     future: concurrent.futures.Future
+    estimate: np.ndarray
 
 
 @dataclass
@@ -1087,11 +1089,13 @@ class MPCController:
         slots = tuple((q, min(self._slots[q], self.config.horizon)) for q in range(phase, last + 1))
         return horizon_nlp(self.model, phase, slots, open_phase), counts
 
-    def _take_reference(self, sol: Solve) -> None:
+    def _take_reference(self, sol: Solve, estimate: np.ndarray | None = None) -> None:
         """A full plan: the one the short horizons follow (warm start, terminal cost), with the plant
-        estimate it was made with; the horizons along its schedule are built now, not during the cycle."""
+        ``estimate`` it was made with (default: the estimate now); the horizons along its schedule are built
+        now, not during the cycle."""
+        estimate = self.estimator.estimate if estimate is None else estimate
         self._reference = HorizonReference(self._nlp(sol.first_phase), dict(sol.counts), sol.z, sol.lam_x, sol.lam_g,
-                                           np.array(self.estimator.estimate))
+                                           np.array(estimate))
         self._horizon_last = None
         self._prepare_horizons()
 
@@ -1125,7 +1129,8 @@ class MPCController:
             args = self._solve_inputs()
             log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
             self._replan = ReplanJob(k, self._deadline_pool().submit(
-                self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()))
+                self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()),
+                args["est"])
         return True
 
     def _take_replan(self, k: int, phase: int) -> None:
@@ -1150,7 +1155,10 @@ class MPCController:
                 sol = alt
         last = self._horizon_last
         self._sol = self._iterate = self._tail(sol, phase)
-        self._take_reference(self._sol)
+        # (with the estimate it was made with: one that moved since makes it stale at once, measured: TC x0.8 /
+        # x0.7 at lag 10 followed a plan for the nominal payload 17 steps into the reversing leg and ended 0.26 m
+        # off the reversing point, the payload estimate having settled while the re-plan ran)
+        self._take_reference(self._sol, job.estimate)
         self._horizon_last = last  # (the next horizon goes on from the last one's plan, as between re-plans)
 
     def _drop_replan(self) -> None:
