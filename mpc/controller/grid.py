@@ -670,8 +670,8 @@ class GridNLP:
         the state of the phase before in later phases), their rows relaxed. ``tighten``: the margin
         (fraction of the deceleration limit) the plan keeps in its first step and in the later ones;
         the plan may use it at DECEL_MARGIN_WEIGHT, all but DECEL_FLOOR (kept whatever the margin).
-        ``u_prev``: the control [U_mf, U_ab] applied before (None: the first step has no rate term); ``rate_weight``: the rate penalty's weights, per unit of
-        scaled control change squared (g)."""
+        ``u_prev``: the control [U_mf, U_ab] applied before (None: the first step has no rate term);
+        ``rate_weight``: the rate penalty's weights, per unit of scaled control change squared (g)."""
         if abs(dt - self.model.dt) > 1e-12:
             raise ValueError(f"dt {dt!r} s is not the model's control interval {self.model.dt!r} s")
         if not self.model.fits(params):

@@ -1155,9 +1155,9 @@ class MPCController:
                 sol = alt
         last = self._horizon_last
         self._sol = self._iterate = self._tail(sol, phase)
-        # (with the estimate it was made with: one that moved since makes it stale at once, measured: TC x0.8 /
-        # x0.7 at lag 10 followed a plan for the nominal payload 17 steps into the reversing leg and ended 0.26 m
-        # off the reversing point, the payload estimate having settled while the re-plan ran)
+        # (with the estimate it was made with, so that one that moved since makes it stale at once: TC x1.2 / x1.3
+        # at 11 s and lag 10 followed a plan for the nominal payload through the reversing leg, the payload estimate
+        # having settled while the re-plan ran, and ended 0.7 s late; now 0.1 s)
         self._take_reference(self._sol, job.estimate)
         self._horizon_last = last  # (the next horizon goes on from the last one's plan, as between re-plans)
 
