@@ -325,12 +325,14 @@ def test_a_re_plan_taken_up_is_stale_if_the_estimate_moved_while_it_ran():
     ctrl.act(obs)  # (the first step plans the cycle)
     made_with = np.array(ctrl.estimator.estimate)
     done = concurrent.futures.Future()
-    done.set_result(((ctrl._sol, None, None), ""))
-    ctrl._replan = ReplanJob(0, done, made_with)
+    done.set_result((((ctrl._sol, None, None), ""), 1.0, 1.25))
+    ctrl._replan = ReplanJob(0, done, made_with, due=2.0)
     ctrl.estimator.theta[0] = 0.8  # the payload's gain settles while the re-plan runs
     ctrl._estimate_before = np.array(ctrl.estimator.estimate)
-    ctrl._take_replan(config.replan_lag_steps, 1)
+    # (the step's wait begins at the job's due time, or its end if sooner: the time a real-time step waits)
+    assert ctrl._take_replan(config.replan_lag_steps, 1) == 1.25
     assert ctrl._replan is None and np.array_equal(ctrl._reference.estimate, made_with)
+    assert ctrl.worker_solve_times == [0.25]  # (the worker's time, recorded)
     assert ctrl._reference_stale()
 
 
@@ -359,6 +361,7 @@ def test_re_plans_beside_the_horizon_keep_a_mismatched_plant_within_the_limits_d
         assert ep.completed and ep.success and ep.max_violation == 0.0
         assert ep.T <= 11.0 + 2 * ctrl.dt + 1e-9
         assert ctrl.replans >= 1 and ctrl._replan is None  # (re-plans made; none left running after the cycle)
+        assert len(ctrl.worker_solve_times) >= 1  # (the worker's re-plans, timed)
         if slow is not None:
             runs.append((ep.T, ep.fuel_g, np.array(ep.trajectory.controls)))
     assert runs[0][:2] == runs[1][:2] and np.array_equal(runs[0][2], runs[1][2])

@@ -32,6 +32,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -155,6 +156,7 @@ class ReplanJob:
     k: int
     future: concurrent.futures.Future
     estimate: np.ndarray
+    due: float  # when step ``k + lag`` begins in real time (time.perf_counter() s): step k's start + lag intervals
 
 
 @dataclass
@@ -248,7 +250,9 @@ class MPCConfig:
     # A short horizon's re-plan where the plant estimate moved: None, the step that finds it stale solves the
     # whole cycle (0.4-3 s); N, the re-plan runs on the worker beside the short horizons (from that step's
     # state, the same schedule) and becomes their reference N steps later (the step waits for it if it is
-    # not done yet: so the run does not depend on the machine's speed). Needs horizon_steps.
+    # not done yet: so the run does not depend on the machine's speed; that step's time counts from when real time
+    # would begin it, N intervals after the re-plan's, so a wait only a faster-than-real-time simulation sees is
+    # not counted). Needs horizon_steps.
     replan_lag_steps: int | None = None
     # The one-step safety filter on every applied control (mpc.controller.safety): a step the model, under the
     # plant estimate, predicts over the deceleration or speed limit has its brake, then its injection, eased.
@@ -418,7 +422,7 @@ class MPCController:
         self.safety.reset()
         self.schedule.reset()
         self.solve_times: list[float] = []  # per step: the time to its control (realtime: the foreground's)
-        self.worker_solve_times: list[float] = []  # realtime: each worker job's solves, plan and move (s)
+        self.worker_solve_times: list[float] = []  # realtime, replan_lag_steps: each worker job's solves (s)
         self.plan_ages: list[int] = []  # realtime: per step, the steps since the plan it applies was solved
         self.step_solves: list[int] = []  # solves per step (1, or 2 with a schedule move)
         self.step_iterations: list[int] = []  # the solver's iterations per step, all its solves (speed-free)
@@ -555,8 +559,10 @@ class MPCController:
         else:
             if self._reference is not None:
                 self._enter_phase(phase)
-                self._take_replan(k, phase)
-            short = self._reference is not None and (not self._reference_stale() or self._replan_beside(x_plan, phase, k))
+                # (a re-plan taken up: its wait counts from when it begins in real time; a simulation faster
+                # than real time also waits here for what real time would have spent in the steps between)
+                t0 = max(t0, self._take_replan(k, phase))
+            short = self._reference is not None and (not self._reference_stale() or self._replan_beside(x_plan, phase, k, t0))
             tried, short_time = [], 0.0  # this step's short-horizon solve, if any, and its time
             if short:  # the short horizon; where its plan misses a target, the full solve below too
                 sol, nlp = self._horizon_solve(x_plan, phase)
@@ -567,7 +573,7 @@ class MPCController:
                 # replan_lag_steps it is applied while the whole cycle is re-planned beside it, if the
                 # re-plan is due before the target's step; measured, else the cycle ended off the truck)
                 short = ok and (sol.within(HORIZON_MISS_FACTOR) or (
-                    sol.excess <= EXCESS_TOL and self._before_targets(sol.missed()) and self._replan_beside(x_plan, phase, k)))
+                    sol.excess <= EXCESS_TOL and self._before_targets(sol.missed()) and self._replan_beside(x_plan, phase, k, t0)))
                 short_time = solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
@@ -1115,10 +1121,10 @@ class MPCController:
         due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name]) for name in missed]
         return lag is not None and all(d > lag for d in due)
 
-    def _replan_beside(self, x: np.ndarray, phase: int, k: int) -> bool:
+    def _replan_beside(self, x: np.ndarray, phase: int, k: int, t0: float) -> bool:
         """With ``replan_lag_steps``: the whole cycle re-planned on the worker (the schedule kept, and the
-        move worth a try, as a full step's), unless a re-plan runs already; the step goes on with its short
-        horizon (True). Else False: this step re-plans."""
+        move worth a try, as a full step's), unless a re-plan runs already; the step (begun at ``t0``,
+        time.perf_counter() s) goes on with its short horizon (True). Else False: this step re-plans."""
         lag = self.config.replan_lag_steps
         warm = self._iterate if self._iterate is not None and self._iterate.first_phase == phase else None
         if lag is None or (self._replan is None and warm is None):  # (a cold solve builds an NLP: not on the worker)
@@ -1129,23 +1135,25 @@ class MPCController:
             args = self._solve_inputs()
             log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
             self._replan = ReplanJob(k, self._deadline_pool().submit(
-                self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()),
-                args["est"])
+                self._timed, self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()),
+                args["est"], t0 + lag * self.dt)
         return True
 
-    def _take_replan(self, k: int, phase: int) -> None:
+    def _take_replan(self, k: int, phase: int) -> float:
         """A re-plan due at this step (``replan_lag_steps`` after it began): wait for it, keep its schedule
         move if that paid (the steps taken since stay taken), and make the plan the short horizons'
         reference and the full solves' warm start. A failed one is dropped (the step re-plans again if the
-        estimate is still off)."""
+        estimate is still off). Returns when the step's wait for it begins in real time (time.perf_counter() s:
+        its due time, or the re-plan's end if that came sooner; -inf if no re-plan is due)."""
         job = self._replan
         if job is None or k < job.k + self.config.replan_lag_steps:
-            return
+            return -math.inf
         self._replan = None
-        (sol, move, alt), _ = job.future.result()
+        ((sol, move, alt), _), started, ended = job.future.result()
+        self.worker_solve_times.append(ended - started)
         if not sol.ok:
             log.info("step %d: the re-plan begun at step %d failed (%s)", k, job.k, sol.status)
-            return
+            return min(job.due, ended)
         if move is not None:
             paid = alt is not None and alt.ok and self.schedule.cost(alt, job.k) < self.schedule.cost(sol, job.k)
             self.schedule.record(move, job.k, paid)
@@ -1160,10 +1168,18 @@ class MPCController:
         # having settled while the re-plan ran, and ended 0.7 s late; now 0.1 s)
         self._take_reference(self._sol, job.estimate)
         self._horizon_last = last  # (the next horizon goes on from the last one's plan, as between re-plans)
+        return min(job.due, ended)
+
+    @staticmethod
+    def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float, float]:
+        """``fn(*args)``, and when it started and ended (time.perf_counter() s): a worker's job, timed where it runs."""
+        started = time.perf_counter()
+        return fn(*args), started, time.perf_counter()
 
     def _drop_replan(self) -> None:
         if self._replan is not None:
-            self._replan.future.result()  # (CasADi calls never overlap but a short solve's and the re-plan's)
+            _, started, ended = self._replan.future.result()  # (CasADi calls never overlap but a short solve's
+            self.worker_solve_times.append(ended - started)    # and the re-plan's)
             self._replan = None
 
     def _prepare_horizons(self) -> None:

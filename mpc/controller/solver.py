@@ -241,7 +241,10 @@ NO_NLP_GRAD = {"no_nlp_grad": True, "calc_lam_p": False, "calc_lam_x": False, "c
 def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
-            "ipopt.max_iter": max_iter}
+            "ipopt.max_iter": max_iter,
+            # MUMPS without its permuting scaling (a maximum transversal, for unsymmetric matrices): the same
+            # iterates, 30-35 % less time per solve on the full plans' KKT systems (measured, stop 49)
+            "ipopt.mumps_permuting_scaling": 0}
     if warm:
         opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
                      "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
