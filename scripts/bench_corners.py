@@ -8,7 +8,8 @@ Every corner of the seven scenario ranges (2^7 = 128 per braking alternative; ``
 drawn with ``--seed``): the minimum-time OCP, then the minimum fuel at ``--ratio`` T_min, each with
 ``solve_ocp``'s re-simulation check, and the environment's T_min estimate (``wl_env.suites.min_time``) against
 the OCP's. ``--mpc N``: the default synchronous MPC on N of those corners (drawn with ``--seed``), in
-minimum-time mode and at the ``--ratio`` T_min target. ``--operator``: the rule-based operator on every corner
+minimum-time mode and at the ``--ratio`` T_min target, each scored (its fuel against the corner's minimum fuel
+at the MPC's own cycle time, ``score_run``: two more solves per run, cached). ``--operator``: the rule-based operator on every corner
 taken; ``--learned``: the shipped target-conditioned policies (ppo, bc) there at 1, 1.15 and 1.5 T_min
 (``--no-ocp``: these alone, in seconds). Nothing is cached: each OCP is solved (8-15 s per corner,
 both solves).
@@ -122,16 +123,22 @@ def _mpc(o: Options, solved: list[dict[str, Any]], every: list[Scenario], rng: n
     for rec in (solved[k] for k in sorted(rng.choice(len(solved), min(o.mpc, len(solved)), replace=False))):
         sc, T_min = every[rec["corner"]], rec["T_min"]
         for cfg in (MPCConfig(), MPCConfig(mode="target_time", target_time=round(o.ratio * T_min, 1))):
-            res = run_closed_loop(o.braking, cfg, scenario=sc, score=False)
+            res = run_closed_loop(o.braking, cfg, scenario=sc)  # (scored: fuel against the optimum at its own T)
             ep = res.episode
             runs.append({"corner": rec["corner"], "target_time": cfg.target_time, "T": ep.T, "T_min": T_min,
-                         "success": ep.success, "max_violation": ep.max_violation,
+                         "success": ep.success, "max_violation": ep.max_violation, "fuel_g": ep.fuel_g,
+                         "fuel_opt_g": res.score.fuel_opt_g if res.score else None,
+                         "fuel_gap": res.score.fuel_gap if res.score else None,
                          "planning_s": res.solve_time.get("planning_s")})
             log.info("MPC corner %d, %s: T %.1f s (T_min %.3f s), success %s, violation %.3g", rec["corner"],
                      f"target {cfg.target_time} s" if cfg.target_time else "minimum time", ep.T, T_min, ep.success,
                      ep.max_violation)
     fastest = [r["T"] / r["T_min"] - 1.0 for r in runs if r["target_time"] is None]
+    gaps = {mode: [r["fuel_gap"] for r in runs if r["fuel_gap"] is not None and (r["target_time"] is None) == (mode == "min_time")]
+            for mode in ("min_time", "target")}
     return {"cycles": len(runs), "on_marks": sum(r["success"] for r in runs),
+            **{f"fuel_gap_{mode}_median_p90_max": [round(float(np.median(g)), 4), round(float(np.percentile(g, 90)), 4),
+                                                   round(max(g), 4)] for mode, g in gaps.items() if g},
             "with_violation": sum(r["max_violation"] > 0 for r in runs),
             "targets_met": sum(r["T"] <= r["target_time"] + 1e-9 for r in runs if r["target_time"] is not None),
             "min_time_gap_range": [round(min(fastest), 4), round(max(fastest), 4)] if fastest else None, "runs": runs}
