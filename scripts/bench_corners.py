@@ -9,10 +9,10 @@ drawn with ``--seed``): the minimum-time OCP, then the minimum fuel at ``--ratio
 ``solve_ocp``'s re-simulation check, and the environment's T_min estimate (``wl_env.suites.min_time``) against
 the OCP's. ``--mpc N``: the default synchronous MPC on N of those corners (drawn with ``--seed``), in
 minimum-time mode and at the ``--ratio`` T_min target, each scored (its fuel against the corner's minimum fuel
-at the MPC's own cycle time, ``score_run``: two more solves per run, cached). ``--operator``: the rule-based operator on every corner
-taken; ``--learned``: the shipped target-conditioned policies (ppo, bc) there at 1, 1.15 and 1.5 T_min
-(``--no-ocp``: these alone, in seconds). Nothing is cached: each OCP is solved (8-15 s per corner,
-both solves).
+at the MPC's own cycle time, ``score_run``: two more solves per run, cached). ``--operator``: the rule-based
+operator on every corner taken; ``--learned``: the shipped target-conditioned policies (ppo, bc) there at 1,
+1.15 and 1.5 T_min (``--no-ocp``: these alone, in seconds). The corners' own OCPs are not cached: each is
+solved (8-15 s per corner, both solves).
 """
 
 from __future__ import annotations

@@ -1177,9 +1177,9 @@ class MPCController:
         return fn(*args), started, time.perf_counter()
 
     def _drop_replan(self) -> None:
-        if self._replan is not None:
-            _, started, ended = self._replan.future.result()  # (CasADi calls never overlap but a short solve's
-            self.worker_solve_times.append(ended - started)    # and the re-plan's)
+        if self._replan is not None:  # (CasADi calls never overlap but a short solve's and the re-plan's)
+            _, started, ended = self._replan.future.result()
+            self.worker_solve_times.append(ended - started)
             self._replan = None
 
     def _prepare_horizons(self) -> None:

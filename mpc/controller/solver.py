@@ -243,7 +243,7 @@ def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float |
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
             "ipopt.max_iter": max_iter,
             # MUMPS without its permuting scaling (a maximum transversal, for unsymmetric matrices): the same
-            # iterates, 30-35 % less time per solve on the full plans' KKT systems (measured, stop 49)
+            # iterates, 30-38 % less time per solve on the full plans' KKT systems (measured, stop 49)
             "ipopt.mumps_permuting_scaling": 0}
     if warm:
         opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
