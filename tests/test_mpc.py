@@ -507,6 +507,10 @@ def test_the_first_solve_runs_on_the_warm_solver_and_falls_back_to_the_cold_one(
     ctrl.act(obs)
     assert ctrl.first_plan_from == "reference" and ctrl._sol.ok and ctrl._sol.feasible
     assert solver.starts[0] == ("zero", False)
+    # (where the planning went: its four parts, in order, within the first step's time)
+    parts = ctrl.planning_parts
+    assert list(parts) == ["reference", "layout", "first_solve", "search"] and min(parts.values()) >= 0.0
+    assert 0.5 * ctrl.planning_time < sum(parts.values()) <= ctrl.planning_time
     cold = [s for s in solver.starts if s[0] == "cold"]
     assert cold == ([("cold", True)] if fail_from_zero else [])
 

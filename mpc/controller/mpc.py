@@ -110,6 +110,12 @@ DEADLINE_RESERVE_S = 0.005
 MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
+# The reversing leg's shares of the cycle time a target-time reference starts from (it has local optima in the
+# split). A third start, 0.7, did not pay: on 213 `test` and `train` references the pair matched the best of three
+# within 0.02 % on all but one (stop 48); on 40 `test` cycles at 1.15 T_min the episodes were the same within
+# 0.021 % fuel, 36 to the digit and 3 of the other 4 leaner, and the first step planned 0.21-0.34 s sooner in
+# median (stop 49, scripts/bench_planning.py).
+REFERENCE_SPLITS = (0.3, 0.5)
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
 
 
@@ -433,6 +439,9 @@ class MPCController:
         self._estimate_before: np.ndarray | None = None  # the plant estimate at the last step's staleness check
         self.replans = 0  # horizon_steps: steps after the first that solved the whole rest of the cycle
         self.planning_time = 0.0
+        # where a first plan from the continuous reference spent its time (s): "reference", "layout" (its slot
+        # layout's NLPs and solvers built), "first_solve", "search" (the schedule moves); empty on other first plans
+        self.planning_parts: dict[str, float] = {}
         # what the first plan started from: "stored" (this cycle's, planned before in the process),
         # "neighbour" (real time: another target's or start's) or "reference" (the continuous optimum)
         self.first_plan_from = ""
@@ -940,11 +949,15 @@ class MPCController:
             if planned is not None:
                 self._take_first_plan(planned[0], "neighbour", key, planned[1])
                 return
+        t = [time.perf_counter()]
         ref = self.reference()
+        t.append(time.perf_counter())
         counts = self._reference_schedule(ref, phase, k)
         self._slots = self._layout(key, {q: c + cfg.spare_steps for q, c in counts.items()})
         self._prepare_nlps(phase)
+        t.append(time.perf_counter())
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
+        t.append(time.perf_counter())
         failed: set = set()
         for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
             # a step fewer that did not hold the targets will not from another phase either, as a rule (the
@@ -963,6 +976,8 @@ class MPCController:
                 sol, failed = alt, set()
             else:
                 failed.add(move)
+        t.append(time.perf_counter())
+        self.planning_parts = dict(zip(("reference", "layout", "first_solve", "search"), np.diff(t).tolist(), strict=True))
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._take_first_plan(sol, "reference", key, ref)
@@ -1243,13 +1258,8 @@ class MPCController:
             return solve_ocp(b, objective, T=T, w_fuel=cfg.w_fuel if objective == "weighted" else None,
                              warm_start=warm, starts=(), **opts)
         if T is not None:
-            # The split of the time between the phases has local optima: start from two. (A third, 0.7, did not
-            # pay: on 213 `test` and `train` references the pair matched the best of three within 0.02 % on all
-            # but one, stop 48; on 40 `test` cycles at 1.15 T_min the episodes were the same within 0.021 % fuel,
-            # 36 to the digit and 3 of the other 4 leaner, and the first step planned 0.21-0.34 s sooner in
-            # median, stop 49.)
-            try:
-                return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in (0.3, 0.5)), **opts)
+            try:  # (the split of the time between the legs has local optima: REFERENCE_SPLITS)
+                return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in REFERENCE_SPLITS), **opts)
             except OCPError:
                 fastest = solve_ocp(b, "time", params=p)  # as the benchmark solves it: T_min itself
                 if cfg.target_time < fastest.T:

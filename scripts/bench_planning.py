@@ -1,0 +1,101 @@
+"""The MPC's first-step planning on new scenarios: where its time goes, and the cycles it leads to.
+
+    python scripts/bench_planning.py --braking tc --scenarios 20 --out planning_tc.json
+    python scripts/bench_planning.py --braking tc --scenarios 20 --reference-splits 0.3 0.5 0.7   # stop 48's reference
+
+Issue #13 asks a first step to plan in <= 1 s once the process has built its solvers. Each of the first
+``--scenarios`` cycles of ``--suite`` runs under the default synchronous MPC, at ``--target-ratio`` times the
+scenario's estimated T_min (``0``: minimum time), each a new scenario to the process (one cycle before them builds
+what every scenario shares). Per cycle: the first step's planning time and its parts
+(``MPCController.planning_parts``: the continuous reference, the slot layout's build, the first solve, the schedule
+search), and the cycle's T, fuel and success. ``--reference-splits`` sets the target-time reference's starts
+(``mpc.controller.mpc.REFERENCE_SPLITS``), to compare them on the same cycles.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import tyro
+
+from wl_env.atomic_io import check_output_file, write_json_atomic
+from wl_env.cycle import check_braking
+from wl_env.logs import run_script
+
+log = logging.getLogger("bench_planning")
+
+
+@dataclass
+class Options:
+    braking: str = "tc"
+    suite: str = "test"
+    scenarios: int = 20  # the suite's first N of this braking
+    target_ratio: float = 1.15  # the target, times the scenario's estimated T_min; 0: minimum time
+    reference_splits: tuple[float, ...] = ()  # the reference's starts (the reversing leg's shares); (): the default
+    out: str | None = None  # JSON of the per-cycle records and the summary
+
+
+def check(o: Options) -> None:
+    check_braking(o.braking)
+    if not 1 <= o.scenarios <= 1000:
+        raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
+    if o.target_ratio != 0 and not 1.0 <= o.target_ratio <= 3.0:
+        raise ValueError(f"--target-ratio must be 0 (minimum time) or lie in [1, 3], got {o.target_ratio}")
+    if not all(0.0 < a < 1.0 for a in o.reference_splits):
+        raise ValueError(f"--reference-splits must each lie in (0, 1), got {list(o.reference_splits)}")
+    if o.out is not None:
+        check_output_file(o.out, "--out")
+
+
+def run(o: Options) -> dict[str, Any]:
+    check(o)
+    from mpc.controller import mpc
+    from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
+    from wl_env.suites import load_suite
+    from wl_env.suites.min_time import estimate_min_time
+
+    if o.reference_splits:
+        mpc.REFERENCE_SPLITS = tuple(o.reference_splits)
+    scenarios = load_suite(o.suite).of(o.braking)
+    if len(scenarios) < o.scenarios + 1:
+        raise ValueError(f"--scenarios: the {o.suite} suite has {len(scenarios)} {o.braking} cycles; at most "
+                         f"{len(scenarios) - 1} can be new to the process")
+
+    def config(sc: Any) -> MPCConfig:
+        if o.target_ratio == 0:
+            return MPCConfig()
+        return MPCConfig(mode="target_time", target_time=round(o.target_ratio * estimate_min_time(sc), 1))
+
+    run_closed_loop(o.braking, config(scenarios[-1]), scenario=scenarios[-1], score=False)  # (builds what all share)
+    records = []
+    for i, sc in enumerate(scenarios[:o.scenarios]):
+        cfg = config(sc)
+        ctrl = MPCController(o.braking, sc.params(), cfg)
+        res = run_closed_loop(o.braking, cfg, scenario=sc, score=False, controller=ctrl)
+        ep = res.episode
+        rec = {"scenario": i, "target_time": cfg.target_time, "planning_s": ctrl.planning_time,
+               "parts_s": dict(ctrl.planning_parts), "first_plan_from": ctrl.first_plan_from,
+               "T": ep.T, "fuel_g": ep.fuel_g, "success": ep.success, "max_violation": ep.max_violation}
+        records.append(rec)
+        log.info("%s[%d]: planning %.2f s (%s), T %.1f s, fuel %.3f g, success %s", o.suite, i, rec["planning_s"],
+                 ", ".join(f"{k} {v:.2f}" for k, v in rec["parts_s"].items()), ep.T, ep.fuel_g, ep.success)
+    planning = [r["planning_s"] for r in records]
+    built = [r["planning_s"] - r["parts_s"].get("layout", 0.0) for r in records]
+    summary = {"cycles": len(records), "success": sum(r["success"] for r in records),
+               "planning_median_s": statistics.median(planning), "planning_max_s": max(planning),
+               "planning_less_layout_median_s": statistics.median(built),
+               "within_1s_less_layout": sum(b <= 1.0 for b in built),
+               **{f"{part}_median_s": statistics.median(r["parts_s"].get(part, 0.0) for r in records)
+                  for part in ("reference", "layout", "first_solve", "search")}}
+    print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: " +
+          ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+    if o.out:
+        write_json_atomic(o.out, {"options": asdict(o), "summary": summary, "records": records})
+    return summary
+
+
+if __name__ == "__main__":
+    run_script("bench_planning", lambda: run(tyro.cli(Options)))
