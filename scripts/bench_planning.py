@@ -1,15 +1,15 @@
 """The MPC's first-step planning on new scenarios: where its time goes, and the cycles it leads to.
 
     python scripts/bench_planning.py --braking tc --scenarios 20 --out planning_tc.json
-    python scripts/bench_planning.py --braking tc --scenarios 20 --reference-splits 0.3 0.5 0.7   # stop 48's reference
+    python scripts/bench_planning.py --braking tc --scenarios 20 --reference-starts 0.3 0.5 0.7   # stop 48's reference
 
 Issue #13 asks a first step to plan in <= 1 s once the process has built its solvers. Each of the first
 ``--scenarios`` cycles of ``--suite`` runs under the default synchronous MPC, at ``--target-ratio`` times the
 scenario's estimated T_min (``0``: minimum time), each a new scenario to the process (one cycle before them builds
 what every scenario shares). Per cycle: the first step's planning time and its parts
 (``MPCController.planning_parts``: the continuous reference, the slot layout's build, the first solve, the schedule
-search), and the cycle's T, fuel and success. ``--reference-splits`` sets the target-time reference's starts
-(``mpc.controller.mpc.REFERENCE_SPLITS``), to compare them on the same cycles.
+search), and the cycle's T, fuel and success. ``--reference-starts`` sets the target-time reference's template
+starts (``mpc.controller.mpc.REFERENCE_STARTS``: the acceleration fractions), to compare them on the same cycles.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class Options:
     suite: str = "test"
     scenarios: int = 20  # the suite's first N of this braking
     target_ratio: float = 1.15  # the target, times the scenario's estimated T_min; 0: minimum time
-    reference_splits: tuple[float, ...] = ()  # the reference's starts (the reversing leg's shares); (): the default
+    reference_starts: tuple[float, ...] = ()  # the reference's template starts (acceleration fractions); (): default
     out: str | None = None  # JSON of the per-cycle records and the summary
 
 
@@ -44,8 +44,8 @@ def check(o: Options) -> None:
         raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
     if o.target_ratio != 0 and not 1.0 <= o.target_ratio <= 3.0:
         raise ValueError(f"--target-ratio must be 0 (minimum time) or lie in [1, 3], got {o.target_ratio}")
-    if not all(0.0 < a < 1.0 for a in o.reference_splits):
-        raise ValueError(f"--reference-splits must each lie in (0, 1), got {list(o.reference_splits)}")
+    if not all(0.0 < a <= 1.0 for a in o.reference_starts):
+        raise ValueError(f"--reference-starts must each lie in (0, 1], got {list(o.reference_starts)}")
     if o.out is not None:
         check_output_file(o.out, "--out")
 
@@ -57,8 +57,8 @@ def run(o: Options) -> dict[str, Any]:
     from wl_env.suites import load_suite
     from wl_env.suites.min_time import estimate_min_time
 
-    if o.reference_splits:
-        mpc.REFERENCE_SPLITS = tuple(o.reference_splits)
+    if o.reference_starts:
+        mpc.REFERENCE_STARTS = tuple(o.reference_starts)
     scenarios = load_suite(o.suite).of(o.braking)
     if len(scenarios) < o.scenarios + 1:
         raise ValueError(f"--scenarios: the {o.suite} suite has {len(scenarios)} {o.braking} cycles; at most "

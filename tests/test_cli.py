@@ -310,7 +310,7 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_safety_stale.py", "--every", "0"], "--every must be integers in [1, 100]"),
     (["bench_mpc.py", "--min-time-only", "--corners"], "--min-time-only runs no corner"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
-    (["bench_planning.py", "--reference-splits", "0.3", "1.0"], "--reference-splits must each lie in (0, 1)")])
+    (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
