@@ -52,6 +52,8 @@ _RULES: dict[str, tuple[str, Any]] = {
     "scenario": (f"'' (the paper's cycle) or a suite name ({', '.join(SUITE_NAMES)})", lambda v: v in ("", *SUITE_NAMES)),
     "target": ("a range (lo, hi) of target ratios to T_min within [1, 3]",
                lambda v: len(v) == 2 and all(_is_num(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
+    "target_power": ("a number in [0.25, 4] (the target ratio's draw: lo + (hi - lo) u**power; 1 uniform)",
+                     lambda v: _is_num(v) and 0.25 <= v <= 4.0),
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
     "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v < 2**31),  # (env seeds add the step)
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
@@ -128,6 +130,9 @@ class PPOConfig:
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={
         "help": "WheelLoaderTarget-v0/v1: range of the target cycle time, as ratios to the scenario's T_min"})
+    target_power: float = field(default=1.0, metadata={
+        "help": "the target ratio's draw in that range: lo + (hi - lo) u**power, u uniform; 1 uniform, "
+                "above 1 more fast targets"})
     seed: int = field(default=0, metadata={"help": "seed of PPO, torch and the environments"})
     total_timesteps: int = field(default=12_000_000, metadata={"help": "environment steps to train for"})
     num_envs: int = field(default=64, metadata={"help": "loaders stepped together (native vector env)"})
@@ -269,6 +274,8 @@ class PPOConfig:
             kwargs["scenario"] = self.scenario
         if self.targeted:
             kwargs["target"] = tuple(self.target)
+            if self.target_power != 1.0:  # (the key only where it is used: older runs' kwargs stay the same)
+                kwargs["target_power"] = float(self.target_power)
         return kwargs
 
     def to_dict(self) -> dict[str, Any]:

@@ -36,6 +36,8 @@ def test_the_config_names_the_env_the_suite_and_the_target_range():
     kw = cfg.env_kwargs()
     assert kw["scenario"] == "train" and kw["target"] == (1.0, 2.0)
     assert kw["w_time"] == 0.0  # the lateness term replaces the time term
+    assert "target_power" not in kw  # (the uniform draw: older runs' kwargs unchanged)
+    assert PPOConfig(env_id=TARGET_ENV_ID, scenario="train", target_power=2).env_kwargs()["target_power"] == 2.0
     from agents.ppo import reward_config
 
     assert reward_config(cfg, 0).w_time == 0.0 and reward_config(cfg).w_time == 0.0
@@ -43,7 +45,8 @@ def test_the_config_names_the_env_the_suite_and_the_target_range():
                        (dict(scenario="train"), "scenario"),  # v1 does not observe the scenario
                        (dict(env_id=TARGET_ENV_ID, target=(0.5, 2.0)), "target"),
                        (dict(env_id=TARGET_ENV_ID, target=(2.0, 1.5)), "target"),
-                       (dict(env_id=TARGET_ENV_ID, target=(1.0,)), "target")):
+                       (dict(env_id=TARGET_ENV_ID, target=(1.0,)), "target"),
+                       (dict(env_id=TARGET_ENV_ID, target_power=0.1), "target_power")):
         with pytest.raises(ValueError, match=field):
             PPOConfig(**bad)
 

@@ -46,6 +46,22 @@ def test_the_reset_options_set_the_target_and_v2_refuses_them():
     assert gym.make("WheelLoaderTarget-v0", target=[np.float64(1.2), 2]).unwrapped.target_ratios == (1.2, 2.0)
 
 
+def test_the_target_power_favours_fast_targets_in_the_same_range_and_one_is_the_uniform_draw():
+    def ratios(**kw):
+        env = gym.make("WheelLoaderTarget-v6", braking="service", scenario="train", target=(1.0, 2.5), **kw).unwrapped
+        return np.array([info["target_time"] / env.min_time_estimate for info in
+                         (env.reset(seed=k)[1] for k in range(120))])
+
+    uniform, one, skewed = ratios(), ratios(target_power=1.0), ratios(target_power=3.0)
+    np.testing.assert_array_equal(one, uniform)  # the default's numbers, unchanged
+    assert skewed.min() >= 1.0 - 1e-12 and skewed.max() <= 2.5 + 1e-12
+    # u**3 < (0.1)**(1/3)... : P(ratio < 1.15) = 0.1**(1/3) = 0.46 against 0.1 uniform
+    assert np.mean(skewed < 1.15) > 0.3 > 0.2 > np.mean(uniform < 1.15)
+    for bad in (0.0, 5.0, float("nan"), True, "2"):
+        with pytest.raises(ValueError, match="target_power must be a number in \\[0.25, 4\\]"):
+            gym.make("WheelLoaderTarget-v6", target_power=bad)
+
+
 def _run(env, ctrl, seed, options):
     from wl_env.rollout import reset_controller
 
@@ -82,9 +98,11 @@ def test_finishing_late_costs_the_lateness_times_its_weight():
                                                           ("WheelLoaderTarget-v6", "tc", 0.0, 17)])
 def test_the_vector_target_env_draws_targets_and_steps_as_single_envs_do(env_id, braking, init_noise, seed):
     n = 3
+    power = 2.0 if env_id.endswith("v6") else 1.0  # (the skewed draw too)
     venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", braking=braking,
-                        scenario="train", init_noise=init_noise)
-    envs = [gym.make(env_id, braking=braking, scenario="train", init_noise=init_noise) for _ in range(n)]
+                        scenario="train", init_noise=init_noise, target_power=power)
+    envs = [gym.make(env_id, braking=braking, scenario="train", init_noise=init_noise, target_power=power)
+            for _ in range(n)]
     obs_v, _ = venv.reset(seed=seed)
     singles = [e.reset(seed=seed + i)[0] for i, e in enumerate(envs)]
     np.testing.assert_array_equal(obs_v, np.stack(singles))

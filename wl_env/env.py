@@ -130,10 +130,21 @@ def check_target_time(target_time: Any, name: str = "target_time") -> float:
     return float(target_time)
 
 
+def check_target_power(power: Any) -> float:
+    """The exponent of the target ratio's draw: lo + (hi - lo) u**power, u uniform in [0, 1); 1 draws
+    uniformly, above 1 favours the fast end (a training choice: the range stays the same)."""
+    power = plain(power)
+    if isinstance(power, bool) or not (isinstance(power, (int, float)) and is_finite(power) and 0.25 <= power <= 4.0):
+        raise ValueError(f"target_power must be a number in [0.25, 4], got {shown(power)}")
+    return float(power)
+
+
 def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: np.random.Generator,
-                   target_time: float | None = None, target_ratio: float | None = None) -> tuple[float, float]:
+                   target_time: float | None = None, target_ratio: float | None = None,
+                   power: float = 1.0) -> tuple[float, float]:
     """(the scenario's estimated T_min, the episode's target time) in s: ``target_time``, or
-    ``target_ratio`` (default: drawn from ``ratios``) times the estimate (:mod:`wl_env.suites.min_time`)."""
+    ``target_ratio`` (default: drawn from ``ratios``, by :func:`check_target_power`'s ``power``) times the
+    estimate (:mod:`wl_env.suites.min_time`)."""
     from wl_env.suites.min_time import estimate_min_time
 
     if scenario is None:
@@ -147,7 +158,11 @@ def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: 
         lo, hi = check_target_ratios(target_ratio, "target_ratio")
     else:
         lo, hi = ratios
-    return T_min, float(T_min * (lo if lo == hi else rng.uniform(lo, hi)))
+    if lo == hi:
+        return T_min, float(T_min * lo)
+    # (power 1 keeps the uniform draw's exact numbers)
+    ratio = rng.uniform(lo, hi) if power == 1.0 else lo + (hi - lo) * float(rng.uniform()) ** power
+    return T_min, float(T_min * ratio)
 
 
 def target_features(target_time: Any, min_time: Any) -> tuple[Any, Any]:
@@ -295,7 +310,8 @@ class WheelLoaderEnv(gym.Env):
     :class:`wl_env.episode.RewardConfig`; ``w_fuel``/``w_time`` trace the fuel-time trade-off.
     WheelLoaderTarget-v0 (``observe_target``) has ``w_time`` 0 and charges ``late`` per unit of (t - T) / T past the
     episode's target T as it accrues: a target between T_min and ~2.5 T_min traces the front. The target
-    is ``target`` (a ratio to T_min, or a range drawn from uniformly at each reset; default 1-2.5) times
+    is ``target`` (a ratio to T_min, or a range drawn from at each reset, uniformly unless ``target_power``
+    is not 1: lo + (hi - lo) u**target_power; default 1-2.5) times
     the scenario's estimated T_min, or ``reset(options={"target_time": T})`` / ``{"target_ratio": r}``;
     ``info["target_time"]``, and ``info["lateness"]`` ((t - T) / T when positive, else 0).
 
@@ -358,6 +374,7 @@ class WheelLoaderEnv(gym.Env):
         observe_scenario: bool = True,
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
+        target_power: float = 1.0,  # the draw's exponent in the range (check_target_power): 1 uniform
         fuel_action: str = "injection",  # or "engine_speed": action 0 is the governor's request
         assist: bool = False,  # WheelLoaderTarget-v2: the driver's 3 actions through the stopping assist
         coast: bool = False,  # WheelLoaderTarget-v3: the assist's coasting variant (a 4th action: the coasting fraction)
@@ -372,6 +389,7 @@ class WheelLoaderEnv(gym.Env):
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
+        self.target_power = check_target_power(target_power)
         self._source, self.braking = scenario_source(scenario, braking, self.machine)
         check_no_overridden(params, self._source)
         init_noise = plain(init_noise)
@@ -440,7 +458,8 @@ class WheelLoaderEnv(gym.Env):
         self.episode_scenario = start_scenario(p, self.braking, omega, H) if self.init_noise > 0.0 else self.scenario
         if self.observe_target:
             self.min_time_estimate, self.target_time = episode_target(
-                self.episode_scenario or self.scenario, self.target_ratios, self.np_random, target_time, target_ratio)
+                self.episode_scenario or self.scenario, self.target_ratios, self.np_random, target_time, target_ratio,
+                self.target_power)
         self._done = False
         if self.render_mode == "human":
             self.render()

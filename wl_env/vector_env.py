@@ -26,6 +26,7 @@ from wl_env.env import (
     check_assist,
     check_flag,
     check_no_overridden,
+    check_target_power,
     check_target_ratios,
     episode_target,
     lateness_charge,
@@ -63,6 +64,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         observe_scenario: bool = True,
         observe_target: bool = False,
         target: float | tuple[float, float] = TARGET_RATIOS,
+        target_power: float = 1.0,
         fuel_action: str = "injection",
         assist: bool = False,
         coast: bool = False,
@@ -86,6 +88,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         if self.observe_target and not observe_scenario:
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
         self.target_ratios = check_target_ratios(target)
+        self.target_power = check_target_power(target_power)
         self.target_time, self.min_time_estimate = np.full(num_envs, np.nan), np.full(num_envs, np.nan)
         self.machine = resolve(params)
         self._source, self.braking = scenario_source(scenario, braking, self.machine)
@@ -164,7 +167,7 @@ class WheelLoaderVectorEnv(VectorEnv):
                 else:
                     start = s
                 self.min_time_estimate[i], self.target_time[i] = episode_target(
-                    start or s, self.target_ratios, self._rngs[i])
+                    start or s, self.target_ratios, self._rngs[i], power=self.target_power)
         y = tuple(a.copy() for a in self._y)
         for a in y:
             a[idx] = 0.0
