@@ -48,6 +48,7 @@ from mpc.controller.solver import (
     GridSolver,
     IpoptSolver,
     Solve,
+    far_starts,
     grid_nlp,
     horizon_nlp,
     release_solvers,
@@ -571,7 +572,8 @@ class MPCController:
                 # (a re-plan taken up: its wait counts from when it begins in real time; a simulation faster
                 # than real time also waits here for what real time would have spent in the steps between)
                 t0 = max(t0, self._take_replan(k, phase))
-            short = self._reference is not None and (not self._reference_stale() or self._replan_beside(x_plan, phase, k, t0))
+            stale = self._reference is not None and self._reference_stale()  # (a re-plan then starts far)
+            short = self._reference is not None and (not stale or self._replan_beside(x_plan, phase, k, t0, stale))
             tried, short_time = [], 0.0  # this step's short-horizon solve, if any, and its time
             if short:  # the short horizon; where its plan misses a target, the full solve below too
                 sol, nlp = self._horizon_solve(x_plan, phase)
@@ -582,14 +584,14 @@ class MPCController:
                 # replan_lag_steps it is applied while the whole cycle is re-planned beside it, if the
                 # re-plan is due before the target's step; measured, else the cycle ended off the truck)
                 short = ok and (sol.within(HORIZON_MISS_FACTOR) or (
-                    sol.excess <= EXCESS_TOL and self._before_targets(sol.missed()) and self._replan_beside(x_plan, phase, k, t0)))
+                    sol.excess <= EXCESS_TOL and self._before_targets(sol.missed()) and self._replan_beside(x_plan, phase, k, t0, stale)))
                 short_time = solve_time
                 if ok:  # (the plan of the horizon alone: the full solves' warm starts stay the last full plan's)
                     self._plan = {**nlp.plan(sol.z, sol.counts, x_plan, self.dt), "k_made": k}
             if not short:
                 self.replans += self._reference is not None
                 self._drop_replan()  # (this step plans the whole cycle itself: no CasADi call beside its own)
-                solves, ok, over_budget, solve_time, status = self._full_step(x_plan, phase, k, t0)
+                solves, ok, over_budget, solve_time, status = self._full_step(x_plan, phase, k, t0, stale)
                 solves, solve_time = tried + solves, short_time + solve_time  # (a re-plan's step: both solves)
         if ok and not short:
             self._plan = self._make_plan(self._sol, x_plan, k)
@@ -615,10 +617,12 @@ class MPCController:
                 "schedule": dict(self._counts), "planned_T_remaining": float(steps_of(self._counts) * self.dt)}
         return u, shift, info
 
-    def _full_step(self, x: np.ndarray, phase: int, k: int, t0: float) -> tuple[list[Solve], bool, bool, float, str]:
-        """A step that solves the whole rest of the cycle (and the schedule move worth a try): its solves, ok,
-        over budget, time and status; the plan in use, its warm start and the schedule updated."""
-        outcome, status, t0 = self._step_outcome(x, phase, k, t0)
+    def _full_step(self, x: np.ndarray, phase: int, k: int, t0: float,
+                   far: bool = False) -> tuple[list[Solve], bool, bool, float, str]:
+        """A step that solves the whole rest of the cycle (and the schedule move worth a try; ``far``: from a
+        plan for another plant estimate): its solves, ok, over budget, time and status; the plan in use, its
+        warm start and the schedule updated."""
+        outcome, status, t0 = self._step_outcome(x, phase, k, t0, far)
         if outcome is None:  # past the deadline, or the solver still busy with an earlier one
             self.deadline_misses += 1
             return [], False, True, time.perf_counter() - t0, status
@@ -824,24 +828,26 @@ class MPCController:
         return self._solve(phase, counts, x, warm=warm, **args)
 
     def _step_solves(self, x: np.ndarray, phase: int, k: int, counts: dict[int, int], warm: Solve | None,
-                     args: dict[str, Any], t0: float) -> tuple[tuple, str]:
+                     args: dict[str, Any], t0: float, far: bool = False) -> tuple[tuple, str]:
         """One step's solves, within the deadline if there is one: the schedule kept, then the schedule
         move worth a try, if any (:meth:`_schedule_move`), with its solve; ((sol, move, alt), a note).
+        ``far``: both start from a plan for another plant estimate (:func:`~mpc.controller.solver.far_starts`).
         They have no side effect on the controller (they may run on the deadline's worker): a move not
         solved by the deadline runs on and is dropped, and the step keeps the plan so far, the first
         solve's. (A first solve not done by then raises TimeoutError, its future in ``_pending``.)"""
-        sol = self._on_time(("plan", self._solve), t0, (x, k), phase, counts, x, warm, None, **args)
-        if not sol.ok or self._over_budget(t0, 0.5) or (self._deadline_s is not None
-                                                        and time.perf_counter() - t0 > 0.5 * self._deadline_s):
-            return (sol, None, None), ""
-        move = self._schedule_move(sol, phase, k)
-        if move is None:
-            return (sol, None, None), ""
-        try:
-            alt = self._on_time(("move", self._try_move), t0, (x, k), sol, move, phase, x, **args)
-        except concurrent.futures.TimeoutError:  # (alt None: the move did not pay, as far as this step knows)
-            return (sol, move, None), "; a schedule move past the deadline (dropped)"
-        return (sol, move, alt), ""
+        with far_starts(far):  # (this thread's: far only on a short horizon, where no deadline puts it on the worker)
+            sol = self._on_time(("plan", self._solve), t0, (x, k), phase, counts, x, warm, None, **args)
+            if not sol.ok or self._over_budget(t0, 0.5) or (self._deadline_s is not None
+                                                            and time.perf_counter() - t0 > 0.5 * self._deadline_s):
+                return (sol, None, None), ""
+            move = self._schedule_move(sol, phase, k)
+            if move is None:
+                return (sol, None, None), ""
+            try:
+                alt = self._on_time(("move", self._try_move), t0, (x, k), sol, move, phase, x, **args)
+            except concurrent.futures.TimeoutError:  # (alt None: the move did not pay, as far as this step knows)
+                return (sol, move, None), "; a schedule move past the deadline (dropped)"
+            return (sol, move, alt), ""
 
     def _on_time(self, job: tuple[str, Any], t0: float, made: tuple[np.ndarray, int], *args: Any, **kwargs: Any) -> Any:
         """``job`` = (kind, function) called with the arguments; with a deadline, on its worker, and
@@ -857,8 +863,9 @@ class MPCController:
             self._pending = LateSolve(kind, future, np.array(made[0]), made[1])
             raise
 
-    def _step_outcome(self, x: np.ndarray, phase: int, k: int, t_call: float) -> tuple[tuple | None, str, float]:
-        """The step's solves (:meth:`_step_solves`), within the deadline if there is one, and the time the
+    def _step_outcome(self, x: np.ndarray, phase: int, k: int, t_call: float,
+                      far: bool = False) -> tuple[tuple | None, str, float]:
+        """The step's solves (:meth:`_step_solves`, ``far`` passed on), within the deadline if there is one, and the time the
         step began: None (and why) when the deadline passed before a plan, or when the solver is still
         busy with a late solve. A late plan, once done, is the plan in use (shifted by the steps it took:
         newer than the one before it) and warm-starts the next solve; a late move is dropped.
@@ -886,7 +893,7 @@ class MPCController:
         self._enter_phase(phase)
         args = self._solve_inputs()  # (a late solve runs on beside the next step)
         try:
-            outcome, note = self._step_solves(x, phase, k, dict(self._counts), self._iterate, args, start)
+            outcome, note = self._step_solves(x, phase, k, dict(self._counts), self._iterate, args, start, far)
         except concurrent.futures.TimeoutError:
             return None, f"deadline: no plan within {1e3 * self._deadline_s:g} ms; the previous plan, shifted", start
         return outcome, note, start
@@ -1136,10 +1143,11 @@ class MPCController:
         due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name]) for name in missed]
         return lag is not None and all(d > lag for d in due)
 
-    def _replan_beside(self, x: np.ndarray, phase: int, k: int, t0: float) -> bool:
+    def _replan_beside(self, x: np.ndarray, phase: int, k: int, t0: float, far: bool = False) -> bool:
         """With ``replan_lag_steps``: the whole cycle re-planned on the worker (the schedule kept, and the
-        move worth a try, as a full step's), unless a re-plan runs already; the step (begun at ``t0``,
-        time.perf_counter() s) goes on with its short horizon (True). Else False: this step re-plans."""
+        move worth a try, as a full step's; ``far``: for a plant estimate that moved), unless a re-plan runs
+        already; the step (begun at ``t0``, time.perf_counter() s) goes on with its short horizon (True). Else
+        False: this step re-plans."""
         lag = self.config.replan_lag_steps
         warm = self._iterate if self._iterate is not None and self._iterate.first_phase == phase else None
         if lag is None or (self._replan is None and warm is None):  # (a cold solve builds an NLP: not on the worker)
@@ -1150,7 +1158,8 @@ class MPCController:
             args = self._solve_inputs()
             log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
             self._replan = ReplanJob(k, self._deadline_pool().submit(
-                self._timed, self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter()),
+                self._timed, self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter(),
+                far),
                 args["est"], t0 + lag * self.dt)
         return True
 

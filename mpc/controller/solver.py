@@ -199,6 +199,18 @@ def solve_until(deadline: float | None) -> Iterator[None]:
         _CALL.deadline = before
 
 
+@contextlib.contextmanager
+def far_starts(far: bool = True) -> Iterator[None]:
+    """Warm IPOPT solves in this thread, within the block, start far from their solution (``far``): pushed
+    off their bounds by WARM_START_PUSH_FAR, not WARM_START_PUSH_NEAR."""
+    before = getattr(_CALL, "far", False)
+    _CALL.far = far
+    try:
+        yield
+    finally:
+        _CALL.far = before
+
+
 class _DeadlineCallback(ca.Callback):
     """IPOPT's intermediate callback: stop once the calling thread's deadline (:func:`solve_until`) passed.
     It takes the objective only (empty inputs otherwise: no copy of the iterate per iteration)."""
@@ -238,7 +250,18 @@ _DEADLINE_CALLBACK: _DeadlineCallback | None = None  # one for every solver (bui
 NO_NLP_GRAD = {"no_nlp_grad": True, "calc_lam_p": False, "calc_lam_x": False, "calc_f": False, "calc_g": False}
 
 
-def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None) -> ca.Function:
+# How far a warm start's variables, slacks and bound multipliers are pushed off their bounds (solver
+# options, so one IPOPT function per value). Near: a solve from a plan for the same plant estimate (a full
+# horizon's step, the first plan's schedule search, a re-plan where a horizon missed a target). Far
+# (:func:`far_starts`): a short horizon's re-plan for a plant estimate that moved, and its schedule move. At
+# 1e-6 the fraction-to-the-boundary rule cut such a re-plan's first 20-30 steps to 2-20 % of their length;
+# 1e-3 took 14-23 iterations where 1e-6 took 20-48 (a mismatch corner's 10 re-plans, replayed). Near starts
+# are slower at 1e-3: the first plan's search took longer on 4 of 7 `test` cycles (stop 50).
+WARM_START_PUSH_NEAR, WARM_START_PUSH_FAR = 1e-6, 1e-3
+
+
+def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None,
+                 push: float = WARM_START_PUSH_NEAR) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
             "ipopt.max_iter": max_iter,
@@ -247,8 +270,8 @@ def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float |
             "ipopt.mumps_permuting_scaling": 0}
     if warm:
         opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
-                     "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6,
-                     "ipopt.warm_start_slack_bound_push": 1e-6})
+                     "ipopt.warm_start_bound_push": push, "ipopt.warm_start_mult_bound_push": push,
+                     "ipopt.warm_start_slack_bound_push": push})
         if max_wall_time is not None:
             opts["ipopt.max_wall_time"] = max_wall_time
         global _DEADLINE_CALLBACK
@@ -266,25 +289,27 @@ _ipopt_horizon = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
 
 class IpoptSolver:
     """IPOPT on a grid NLP: warm-started solves at ``max_iter`` iterations and ``time_budget`` seconds of
-    wall time at most; a cold solve (no multipliers given) at up to 500 iterations."""
+    wall time at most (pushed off their bounds as :func:`far_starts` says); a cold solve (no multipliers
+    given) at up to 500 iterations."""
 
     COLD_MAX_ITER = 500
 
     def __init__(self, max_iter: int = 100, time_budget: float | None = None) -> None:
         self.max_iter, self.time_budget = max_iter, time_budget
 
-    def _function(self, nlp: GridNLP, warm: bool) -> ca.Function:
+    def _function(self, nlp: GridNLP, warm: bool, far: bool = False) -> ca.Function:
         build = _ipopt_horizon if nlp.short else _ipopt
-        return build(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None)
+        return build(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None,
+                     WARM_START_PUSH_FAR if far else WARM_START_PUSH_NEAR)
 
     def prepare(self, nlp: GridNLP) -> None:
-        """Build the warm solver of an NLP now (not in the middle of a cycle)."""
+        """Build the warm solver of an NLP now (not in the middle of a cycle; a far start's at its first use)."""
         self._function(nlp, warm=True)
 
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
         warm = lam_x0 is not None and lam_g0 is not None
-        fn = self._function(nlp, warm)
+        fn = self._function(nlp, warm, getattr(_CALL, "far", False))
         args = nlp.fix_leading_idle(args)
         extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
         log.debug("IPOPT: a %s grid NLP solve from phase %d", "warm" if warm else "cold", nlp.first_phase)
