@@ -19,19 +19,23 @@ from __future__ import annotations
 
 import logging
 import statistics
+import sys
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import tyro
 
-import wl_env  # noqa: F401  (registers the envs)
-import wl_env.assist as assist
-from mpc.benchmark.reference import min_time_of
-from wl_env.atomic_io import check_output_file, write_json_atomic
-from wl_env.logs import run_script
-from wl_env.suites import load_suite
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+import wl_env  # noqa: E402, F401  (registers the envs)
+import wl_env.assist as assist  # noqa: E402
+from mpc.benchmark.reference import min_time_of  # noqa: E402
+from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
+from wl_env.suites import load_suite  # noqa: E402
 
 log = logging.getLogger("bench_assist_floor")
 ENV_ID = "WheelLoaderTarget-v3"

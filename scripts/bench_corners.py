@@ -19,18 +19,22 @@ from __future__ import annotations
 
 import logging
 import statistics
+import sys
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tyro
 
-from wl_env.atomic_io import check_output_file, write_json_atomic
-from wl_env.cycle import check_braking
-from wl_env.logs import run_script
-from wl_env.scenario import FIELDS, Scenario
-from wl_env.suites import corner_scenarios
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.cycle import check_braking  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
+from wl_env.scenario import FIELDS, Scenario  # noqa: E402
+from wl_env.suites import corner_scenarios  # noqa: E402
 
 log = logging.getLogger("bench_corners")
 

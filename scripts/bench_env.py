@@ -29,12 +29,15 @@ import platform
 import statistics
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-import wl_env  # noqa: F401  (registers WheelLoader-v1)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+import wl_env  # noqa: E402, F401  (registers WheelLoader-v1)
 
 TARGET_SINGLE_RATIO = 0.5  # single WheelLoader-v1 >= 0.5 x Pendulum-v1's step rate
 TARGET_VECTOR_RATE = 500_000.0  # env-steps/s of the vector env at N = 1024

@@ -16,14 +16,18 @@ from __future__ import annotations
 
 import logging
 import statistics
+import sys
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import tyro
 
-from wl_env.atomic_io import check_output_file, write_json_atomic
-from wl_env.cycle import check_braking
-from wl_env.logs import run_script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.cycle import check_braking  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
 
 log = logging.getLogger("bench_planning")
 

@@ -14,15 +14,19 @@ from __future__ import annotations
 
 import logging
 import statistics
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import tyro
 
-from mpc.benchmark.suite import solve_suite
-from wl_env.atomic_io import check_output_file, write_json_atomic
-from wl_env.logs import cli_logging, run_script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from mpc.benchmark.suite import solve_suite  # noqa: E402
+from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.logs import cli_logging, run_script  # noqa: E402
 
 log = logging.getLogger("bench_suite")
 

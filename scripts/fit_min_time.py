@@ -15,12 +15,15 @@ import logging
 import platform
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import tyro
 
-from wl_env.atomic_io import write_json_atomic
-from wl_env.logs import cli_logging
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from wl_env.atomic_io import write_json_atomic  # noqa: E402
+from wl_env.logs import cli_logging  # noqa: E402
 
 log = logging.getLogger("fit_min_time")
 

@@ -7,9 +7,12 @@
 import argparse
 import json
 import sys
+from pathlib import Path
 
-from wl_env.atomic_io import write_atomic
-from wl_env.suites import FOLDER, suite_files
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from wl_env.atomic_io import write_atomic  # noqa: E402
+from wl_env.suites import FOLDER, suite_files  # noqa: E402
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

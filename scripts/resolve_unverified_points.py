@@ -16,18 +16,22 @@ atomically and checked as it is read (:mod:`mpc.benchmark.store`).
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tyro
 
-from mpc.benchmark import store
-from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp
-from mpc.benchmark.reference import REFERENCE_DIR, SUITE_KIND, check_suite_file
-from wl_env.logs import run_script
-from wl_env.scenario import Scenario
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from mpc.benchmark import store  # noqa: E402
+from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp  # noqa: E402
+from mpc.benchmark.reference import REFERENCE_DIR, SUITE_KIND, check_suite_file  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
+from wl_env.scenario import Scenario  # noqa: E402
 
 log = logging.getLogger("resolve_unverified_points")
 

@@ -12,16 +12,20 @@ records (atomically).
 from __future__ import annotations
 
 import logging
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tyro
 
-from wl.report import TARGETS
-from wl_env.atomic_io import check_output_file, write_json_atomic
-from wl_env.cycle import check_braking
-from wl_env.logs import run_script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
+
+from wl.report import TARGETS  # noqa: E402
+from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.cycle import check_braking  # noqa: E402
+from wl_env.logs import run_script  # noqa: E402
 
 log = logging.getLogger("select_policy")
 RATIOS = tuple(ratio for _, ratio in TARGETS)  # the leaderboard's targets, times T_min
