@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from wl_env import cycle
+from wl_env.env import TARGET_POWER_RANGE
 from wl_env.params import MAX_NUM_ENVS, is_finite
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
@@ -52,8 +53,8 @@ _RULES: dict[str, tuple[str, Any]] = {
     "scenario": (f"'' (the paper's cycle) or a suite name ({', '.join(SUITE_NAMES)})", lambda v: v in ("", *SUITE_NAMES)),
     "target": ("a range (lo, hi) of target ratios to T_min within [1, 3]",
                lambda v: len(v) == 2 and all(_is_num(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
-    "target_power": ("a number in [0.25, 4] (the target ratio's draw: lo + (hi - lo) u**power; 1 uniform)",
-                     lambda v: _is_num(v) and 0.25 <= v <= 4.0),
+    "target_power": ("a number in [{:g}, {:g}] (the target ratio's draw: lo + (hi - lo) u**power; 1 uniform)".format(
+        *TARGET_POWER_RANGE), lambda v: _is_num(v) and TARGET_POWER_RANGE[0] <= v <= TARGET_POWER_RANGE[1]),
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
     "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v < 2**31),  # (env seeds add the step)
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),

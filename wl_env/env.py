@@ -130,12 +130,15 @@ def check_target_time(target_time: Any, name: str = "target_time") -> float:
     return float(target_time)
 
 
+TARGET_POWER_RANGE = (0.25, 4.0)
+
+
 def check_target_power(power: Any) -> float:
     """The exponent of the target ratio's draw: lo + (hi - lo) u**power, u uniform in [0, 1); 1 draws
     uniformly, above 1 favours the fast end (a training choice: the range stays the same)."""
-    power = plain(power)
-    if isinstance(power, bool) or not (isinstance(power, (int, float)) and is_finite(power) and 0.25 <= power <= 4.0):
-        raise ValueError(f"target_power must be a number in [0.25, 4], got {shown(power)}")
+    power, (lo, hi) = plain(power), TARGET_POWER_RANGE
+    if isinstance(power, bool) or not (isinstance(power, (int, float)) and is_finite(power) and lo <= power <= hi):
+        raise ValueError(f"target_power must be a number in [{lo:g}, {hi:g}], got {shown(power)}")
     return float(power)
 
 

@@ -187,28 +187,27 @@ _CALL = threading.local()
 
 
 @contextlib.contextmanager
-def solve_until(deadline: float | None) -> Iterator[None]:
+def _per_call(name: str, value: Any, default: Any) -> Iterator[None]:
+    """``_CALL.<name>`` = ``value`` in this thread within the block, restored after it."""
+    before = getattr(_CALL, name, default)
+    setattr(_CALL, name, value)
+    try:
+        yield
+    finally:
+        setattr(_CALL, name, before)
+
+
+def solve_until(deadline: float | None) -> contextlib.AbstractContextManager[None]:
     """Warm IPOPT solves in this thread, within the block, stop at ``deadline`` (time.perf_counter()
     seconds; None: no limit) with the iterate so far (status ``Deadline_Exceeded``; ok if the iterate is
     feasible, DEADLINE_FEASIBLE_TOL)."""
-    before = getattr(_CALL, "deadline", None)
-    _CALL.deadline = deadline
-    try:
-        yield
-    finally:
-        _CALL.deadline = before
+    return _per_call("deadline", deadline, None)
 
 
-@contextlib.contextmanager
-def far_starts(far: bool = True) -> Iterator[None]:
+def far_starts(far: bool = True) -> contextlib.AbstractContextManager[None]:
     """Warm IPOPT solves in this thread, within the block, start far from their solution (``far``): pushed
     off their bounds by WARM_START_PUSH_FAR, not WARM_START_PUSH_NEAR."""
-    before = getattr(_CALL, "far", False)
-    _CALL.far = far
-    try:
-        yield
-    finally:
-        _CALL.far = before
+    return _per_call("far", far, False)
 
 
 class _DeadlineCallback(ca.Callback):
