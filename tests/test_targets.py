@@ -62,6 +62,16 @@ def test_the_target_power_favours_fast_targets_in_the_same_range_and_one_is_the_
             gym.make("WheelLoaderTarget-v6", target_power=bad)
 
 
+@settings(max_examples=200, deadline=None)
+@given(power=st.floats(0.25, 4.0), lo=st.floats(1.0, 3.0), width=st.floats(0.0, 2.0), seed=st.integers(0, 2**32 - 1))
+def test_every_target_draw_lies_in_its_range(power, lo, width, seed):
+    from wl_env.env import episode_target
+
+    hi = min(lo + width, 3.0)
+    T_min, target = episode_target(Scenario.nominal("tc"), (lo, hi), np.random.default_rng(seed), power=power)
+    assert lo * T_min * (1 - 1e-12) <= target <= hi * T_min * (1 + 1e-12)
+
+
 def _run(env, ctrl, seed, options):
     from wl_env.rollout import reset_controller
 
