@@ -55,7 +55,7 @@ def test_the_target_power_favours_fast_targets_in_the_same_range_and_one_is_the_
     uniform, one, skewed = ratios(), ratios(target_power=1.0), ratios(target_power=3.0)
     np.testing.assert_array_equal(one, uniform)  # the default's numbers, unchanged
     assert skewed.min() >= 1.0 - 1e-12 and skewed.max() <= 2.5 + 1e-12
-    # u**3 < (0.1)**(1/3)... : P(ratio < 1.15) = 0.1**(1/3) = 0.46 against 0.1 uniform
+    # ratio < 1.15 where u**3 < 0.1: P = 0.1**(1/3) = 0.46, against 0.1 for the uniform draw
     assert np.mean(skewed < 1.15) > 0.3 > 0.2 > np.mean(uniform < 1.15)
     for bad in (0.0, 5.0, float("nan"), True, "2"):
         with pytest.raises(ValueError, match="target_power must be a number in \\[0.25, 4\\]"):
