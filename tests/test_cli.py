@@ -295,7 +295,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     bad = str(tmp_path / "file" / "x.json")
     for argv in (["bench_agents.py", "--json", bad], ["bench_env.py", "--quick", "--json", bad],
                  ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad], ["bench_estimator.py", "--json", bad],
-                 ["bench_planning.py", "--out", bad], ["bench_far_starts.py", "--out", bad]):
+                 ["bench_planning.py", "--out", bad], ["bench_far_starts.py", "--out", bad],
+                 ["bench_mumps_ordering.py", "--out", bad]):
         r = subprocess.run([sys.executable, str(scripts / argv[0]), *argv[1:]], capture_output=True, text=True,
                            timeout=60)
         err = " ".join(r.stderr.replace("│", " ").split())  # (tyro boxes and wraps its message)
@@ -311,7 +312,10 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_mpc.py", "--min-time-only", "--corners"], "--min-time-only runs no corner"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
-    (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of")])
+    (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of"),
+    (["bench_mumps_ordering.py", "--orders", "2", "3"], "--orders must be two or more distinct values of [0, 2, 4, 5, 6, 7]"),
+    (["bench_mumps_ordering.py", "--orders", "2"], "--orders must be two or more distinct values"),
+    (["bench_mumps_ordering.py", "--scenarios", "0"], "nothing to run: --scenarios 0 without --corners")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys

@@ -258,15 +258,21 @@ NO_NLP_GRAD = {"no_nlp_grad": True, "calc_lam_p": False, "calc_lam_x": False, "c
 # are slower at 1e-3: the first plan's search took longer on 4 of 7 `test` cycles (stop 50).
 WARM_START_PUSH_NEAR, WARM_START_PUSH_FAR = 1e-6, 1e-3
 
+# MUMPS's fill-reducing ordering of the KKT matrix: 2 (approximate minimum fill). Its automatic choice (7)
+# took a slower one for the longer cycles' layouts: on 20 `test` cycles at 1.15 T_min the first plans' 76
+# solves took 1.36x as long in all (35 of them over 1.2x; the same iterates), the mismatch corners the same
+# (scripts/bench_mumps_ordering.py, stop 51).
+MUMPS_PIVOT_ORDER = 2
+
 
 def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float | None,
-                 push: float = WARM_START_PUSH_NEAR) -> ca.Function:
+                 push: float = WARM_START_PUSH_NEAR, pivot_order: int = MUMPS_PIVOT_ORDER) -> ca.Function:
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4, "ipopt.acceptable_iter": 2, "ipopt.mu_strategy": "adaptive",
             "ipopt.max_iter": max_iter,
             # MUMPS without its permuting scaling (a maximum transversal, for unsymmetric matrices): the same
             # iterates, 30-38 % less time per solve on the full plans' KKT systems (measured, stop 49)
-            "ipopt.mumps_permuting_scaling": 0}
+            "ipopt.mumps_permuting_scaling": 0, "ipopt.mumps_pivot_order": pivot_order}
     if warm:
         opts.update({"ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-5,
                      "ipopt.warm_start_bound_push": push, "ipopt.warm_start_mult_bound_push": push,
