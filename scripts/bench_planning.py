@@ -9,7 +9,8 @@ scenario's estimated T_min (``0``: minimum time), each a new scenario to the pro
 what every scenario shares). Per cycle: the first step's planning time and its parts
 (``MPCController.planning_parts``: the continuous reference, the slot layout's build, the first solve, the schedule
 search), and the cycle's T, fuel and success. ``--reference-starts`` sets the target-time reference's template
-starts (``mpc.controller.mpc.REFERENCE_STARTS``: the acceleration fractions), to compare them on the same cycles.
+starts (``mpc.controller.mpc.REFERENCE_STARTS``: the braking's acceleration fractions), to compare them on the same
+cycles.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ class Options:
     suite: str = "test"
     scenarios: int = 20  # the suite's first N of this braking
     target_ratio: float = 1.15  # the target, times the scenario's estimated T_min; 0: minimum time
-    reference_starts: tuple[float, ...] = ()  # the reference's template starts (acceleration fractions); (): default
+    reference_starts: tuple[float, ...] = ()  # the braking's reference template starts (acceleration fractions); (): default
     out: str | None = None  # JSON of the per-cycle records and the summary
 
 
@@ -56,13 +57,15 @@ def check(o: Options) -> None:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
+    from bench_mpc import python_loop_seconds
+
     from mpc.controller import mpc
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
     from wl_env.suites import load_suite
     from wl_env.suites.min_time import estimate_min_time
 
     if o.reference_starts:
-        mpc.REFERENCE_STARTS = tuple(o.reference_starts)
+        mpc.REFERENCE_STARTS = {**mpc.REFERENCE_STARTS, o.braking: tuple(o.reference_starts)}
     scenarios = load_suite(o.suite).of(o.braking)
     if len(scenarios) < o.scenarios + 1:
         raise ValueError(f"--scenarios: the {o.suite} suite has {len(scenarios)} {o.braking} cycles; at most "
@@ -96,8 +99,10 @@ def run(o: Options) -> dict[str, Any]:
                   for part in ("reference", "layout", "first_solve", "search")}}
     print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: " +
           ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+    loop_s = python_loop_seconds()
+    print(f"the machine's speed: a 10^7-addition Python loop took {loop_s:.2f} s")
     if o.out:
-        write_json_atomic(o.out, {"options": asdict(o), "summary": summary, "records": records})
+        write_json_atomic(o.out, {"options": asdict(o), "python_loop_s": loop_s, "summary": summary, "records": records})
     return summary
 
 

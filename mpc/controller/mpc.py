@@ -111,12 +111,15 @@ DEADLINE_RESERVE_S = 0.005
 MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
-# A target-time reference's template starts (solve_ocp's starts: each leg T / 2, the acceleration at these fractions):
-# its split of the time between the phases has local optima. A third start, 0.7, did not pay: on 213 `test` and
-# `train` references the pair matched the best of three within 0.02 % on all but one (stop 48); on 40 `test` cycles
-# at 1.15 T_min the episodes were the same within 0.021 % fuel, 36 to the digit and 3 of the other 4 leaner, and the
-# first step planned 0.21-0.34 s sooner in median (stop 49, scripts/bench_planning.py).
-REFERENCE_STARTS = (0.3, 0.5)
+# A target-time reference's template starts per braking (solve_ocp's starts: each leg T / 2, the acceleration at these
+# fractions): its split of the time between the phases has local optima. A third start, 0.7, did not pay: on 213
+# `test` and `train` references the pair matched the best of three within 0.02 % on all but one (stop 48); on 40
+# `test` cycles at 1.15 T_min the episodes were the same within 0.021 % fuel, 36 to the digit and 3 of the other 4
+# leaner, and the first step planned 0.21-0.34 s sooner in median (stop 49, scripts/bench_planning.py). With TC
+# braking 0.5 alone found the pair's optimum on all 149 references probed (25 `test` at 1.15 T_min, the 64
+# corners, 60 `train` draws at 1.03 and 2 T_min; within 6e-8 %) in half the time; with service brakes either
+# alone missed it on 6-13 of 149, by up to 6.5 % (stop 51).
+REFERENCE_STARTS = {"service": (0.3, 0.5), "tc": (0.5,)}
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
 
 
@@ -1268,7 +1271,7 @@ class MPCController:
                              warm_start=warm, starts=(), **opts)
         if T is not None:
             try:  # (the split of the time between the phases has local optima: REFERENCE_STARTS)
-                return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in REFERENCE_STARTS), **opts)
+                return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in REFERENCE_STARTS[b]), **opts)
             except OCPError:
                 fastest = solve_ocp(b, "time", params=p)  # as the benchmark solves it: T_min itself
                 if cfg.target_time < fastest.T:
