@@ -251,11 +251,12 @@ NO_NLP_GRAD = {"no_nlp_grad": True, "calc_lam_p": False, "calc_lam_x": False, "c
 
 # How far a warm start's variables, slacks and bound multipliers are pushed off their bounds (solver
 # options, so one IPOPT function per value). Near: a solve from a plan for the same plant estimate (a full
-# horizon's step, the first plan's schedule search, a re-plan where a horizon missed a target). Far
-# (:func:`far_starts`): a short horizon's re-plan for a plant estimate that moved, and its schedule move. At
-# 1e-6 the fraction-to-the-boundary rule cut such a re-plan's first 20-30 steps to 2-20 % of their length;
-# 1e-3 took 14-23 iterations where 1e-6 took 20-48 (a mismatch corner's 10 re-plans, replayed). Near starts
-# are slower at 1e-3: the first plan's search took longer on 4 of 7 `test` cycles (stop 50).
+# horizon's step, a target-time first plan's schedule search, a re-plan where a horizon missed a target). Far
+# (:func:`far_starts`): a short horizon's re-plan for a plant estimate that moved, and its schedule move (stop
+# 50); a minimum-time first plan's schedule moves (stop 51). At 1e-6 the fraction-to-the-boundary rule cut such
+# a re-plan's first 20-30 steps to 2-20 % of their length; 1e-3 took 14-23 iterations where 1e-6 took 20-48 (a
+# mismatch corner's 10 re-plans, replayed). Near starts are slower at 1e-3: a target-time first plan's search
+# took longer on 4 of 7 `test` cycles (stop 50), 2.4x as long on 10 (stop 51).
 WARM_START_PUSH_NEAR, WARM_START_PUSH_FAR = 1e-6, 1e-3
 
 # MUMPS's fill-reducing ordering of the KKT matrix: 2 (approximate minimum fill). Its automatic choice (7)
