@@ -116,10 +116,14 @@ REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first 
 # `test` and `train` references the pair matched the best of three within 0.02 % on all but one (stop 48); on 40
 # `test` cycles at 1.15 T_min the episodes were the same within 0.021 % fuel, 36 to the digit and 3 of the other 4
 # leaner, and the first step planned 0.21-0.34 s sooner in median (stop 49, scripts/bench_planning.py). With TC
-# braking 0.5 alone found the pair's optimum on all 149 references probed (25 `test` at 1.15 T_min, the 64
+# braking 0.5 alone found the pair's optimum on all 99 references probed (25 `test` at 1.15 T_min, the 14
 # corners, 60 `train` draws at 1.03 and 2 T_min; within 6e-8 %) in half the time; with service brakes either
-# alone missed it on 6-13 of 149, by up to 6.5 % (stop 51).
+# alone missed it on 6-13 of 99, by up to 6.5 % (stop 51).
 REFERENCE_STARTS = {"service": (0.3, 0.5), "tc": (0.5,)}
+# The minimum-time reference's start (leg time s, acceleration fraction). Until stop 51 also (4.2, 0.6): on 24 `test`
+# cycles from this one alone every T was the same but one, a step faster; fuel within -0.4..+0.6 % on 10 of the
+# others, +8.6 % on the faster one; the reference 0.18-0.19 s against 0.36-0.38 s.
+MIN_TIME_REFERENCE_STARTS = ((4.2, 0.8),)
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
 
 
@@ -1285,7 +1289,7 @@ class MPCController:
                         f"{fastest.T:.3f} s (MPCConfig.target_time must be at least that)") from None
                 return fastest  # feasible, but not on the control grid: the cycle ends a step late
         if fastest_mode:
-            return solve_ocp(b, "time", starts=((4.2, 0.6), (4.2, 0.8)), **opts)
+            return solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
         return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)
 
     def _guess(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray) -> np.ndarray:
