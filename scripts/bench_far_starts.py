@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
-from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 
@@ -40,7 +40,7 @@ def run(o: Options) -> dict[str, Any]:
         check_braking(b)
     if o.out is not None:
         check_output_file(o.out, "--out")
-    from bench_mpc import MISMATCH, python_loop_seconds
+    from bench_mpc import MISMATCH, write_with_speed
 
     from mpc.controller import mpc, solver
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -78,10 +78,7 @@ def run(o: Options) -> dict[str, Any]:
                 "max_ms": float(ms.max()), "over_100ms": int((ms > 100).sum()), "iterations": int(its.sum()),
                 "iterations_max": int(its.max()), "success": sum(r["success"] for r in rows), "runs": len(rows)}
             print(f"{name:4s} {group:8s}: " + ", ".join(f"{k} {v:.4g}" for k, v in summary[f'{name}_{group}'].items()))
-    loop_s = python_loop_seconds()
-    print(f"the machine's speed: a 10^7-addition Python loop took {loop_s:.2f} s")
-    if o.out:
-        write_json_atomic(o.out, {"options": asdict(o), "python_loop_s": loop_s, "summary": summary, "records": records})
+    write_with_speed(o.out, o, summary, records)
     return summary
 
 

@@ -17,7 +17,7 @@ import logging
 import statistics
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
-from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 
@@ -66,7 +66,7 @@ def check(o: Options) -> None:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
-    from bench_mpc import MISMATCH, python_loop_seconds
+    from bench_mpc import MISMATCH, write_with_speed
 
     from mpc.controller import mpc, solver
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -151,10 +151,7 @@ def run(o: Options) -> dict[str, Any]:
         }
         print(f"{group}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                                        for k, v in summary[group].items()))
-    loop_s = python_loop_seconds()
-    print(f"the machine's speed: a 10^7-addition Python loop took {loop_s:.2f} s")
-    if o.out:
-        write_json_atomic(o.out, {"options": asdict(o), "python_loop_s": loop_s, "summary": summary, "records": records})
+    write_with_speed(o.out, o, summary, records)
     return summary
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import statistics
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
-from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 
@@ -57,7 +57,7 @@ def check(o: Options) -> None:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
-    from bench_mpc import python_loop_seconds
+    from bench_mpc import write_with_speed
 
     from mpc.controller import mpc
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -99,10 +99,7 @@ def run(o: Options) -> dict[str, Any]:
                   for part in ("reference", "layout", "first_solve", "search")}}
     print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: " +
           ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
-    loop_s = python_loop_seconds()
-    print(f"the machine's speed: a 10^7-addition Python loop took {loop_s:.2f} s")
-    if o.out:
-        write_json_atomic(o.out, {"options": asdict(o), "python_loop_s": loop_s, "summary": summary, "records": records})
+    write_with_speed(o.out, o, summary, records)
     return summary
 
 
