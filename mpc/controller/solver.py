@@ -261,7 +261,7 @@ WARM_START_PUSH_NEAR, WARM_START_PUSH_FAR = 1e-6, 1e-3
 
 # MUMPS's fill-reducing ordering of the KKT matrix: 2 (approximate minimum fill). Its automatic choice (7)
 # took a slower one for the longer cycles' layouts: on 20 `test` cycles at 1.15 T_min the first plans' 76
-# solves took 1.36x as long in all (35 of them over 1.2x; the same iterates), the mismatch corners the same
+# solves took 1.36x as long in all (32 of them over 1.2x; the same iterates), the mismatch corners the same
 # (scripts/bench_mumps_ordering.py, stop 51).
 MUMPS_PIVOT_ORDER = 2
 
