@@ -390,6 +390,28 @@ def test_impossible_target_time_is_a_clear_error():
         ctrl.act(obs)
 
 
+def test_a_target_near_t_min_is_planned_from_the_coarse_minimum_time(monkeypatch):
+    """A TC draw whose target rounds down to 8.7 s, 0.008 s above the coarse reference mesh's T_min: the
+    reference's start finds no cycle of that time there. The reference comes from the coarse minimum-time one
+    (a warm start), not from the benchmark's T_min solve that followed until stop 52 (5-16 s of the first step)."""
+    import mpc.benchmark.ocp as ocp
+    from mpc.controller.mpc import REFERENCE_MESH
+
+    near = Scenario(payload=12260.0, reverse_distance=7.44, forward_distance=6.34, rolling_resistance=0.0274,
+                    dump_height=4.54, start_engine_speed=1216.0, start_bucket_height=0.86, braking="tc")
+    meshes = []
+    solve = ocp.solve_ocp
+
+    def spy(*args, **kwargs):
+        meshes.append(tuple(kwargs["settings"].intervals) if kwargs.get("settings") else None)
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(ocp, "solve_ocp", spy)
+    ref = MPCController("tc", near.params(), MPCConfig(mode="target_time", target_time=8.79)).reference()
+    assert ref.objective == "fuel_at_time" and ref.T == pytest.approx(8.7, abs=1e-6)
+    assert meshes and all(m == REFERENCE_MESH for m in meshes)
+
+
 def test_controls_move_no_more_than_the_optimums():
     """The control-rate penalty: on the TC cycle at 11 s (whose bucket speed zig-zagged between 0 and
     0.6 m/s without it) U_mf and U_ab move at most 1.5x the optimum's total variation at the same cycle
