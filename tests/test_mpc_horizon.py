@@ -207,6 +207,23 @@ def test_the_rti_horizon_holds_the_plan_to_the_last_stop_without_a_re_plan():
     assert ctrl.replans == 0
 
 
+def test_a_plant_at_rest_as_the_reversing_stop_step_begins_takes_that_step_not_one_of_phase_3s():
+    """A plan's phase-2 stop step starts at MIN_STOP_SPEED; on this draw the plant is 1 mm/s from rest there, so
+    the controller plans phase 3 in that step. Counted as one of phase 3's steps, it left the schedule a step
+    short: the end came into the horizon 18.6 cm (a step's travel) out of reach, two whole-cycle re-plans
+    followed in the last second, and the cycle ended a step past its 8.31 s target (stop 52)."""
+    from wl_env.scenario import Scenario
+
+    draw = Scenario(payload=6140.0, reverse_distance=7.02, forward_distance=4.54, rolling_resistance=0.0162,
+                    dump_height=3.65, start_engine_speed=1429.0, start_bucket_height=0.94, braking="service")
+    config = MPCConfig(mode="target_time", target_time=8.31)
+    ctrl = MPCController("service", draw.params(), config)
+    ep = run_closed_loop("service", config, scenario=draw, score=False, controller=ctrl).episode
+    assert ep.success and ep.max_violation == 0.0
+    assert ep.T <= 8.31
+    assert ctrl.replans == 0
+
+
 def test_a_re_plan_waits_for_the_estimate_to_settle():
     """The full plan is stale once the plant estimate has moved past REPLAN_ESTIMATE_CHANGE since it was made,
     and re-planned only once the estimate stopped moving (REPLAN_SETTLE of that per step): while the

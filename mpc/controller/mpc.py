@@ -558,6 +558,12 @@ class MPCController:
         self._plan_index = None  # (set where the control comes from the plan)
         if phase == 2 and -x[1] < MIN_STOP_SPEED:
             phase = 3  # at the reversing point (the env switches within this step): plan the way forward
+            if self._counts is not None and 2 in self._counts and self._counts.get(3, 0) < self._slots[3]:
+                # This step is phase 2's stop step, not one of phase 3's: a plan's stop step starts at
+                # MIN_STOP_SPEED, and a plant a hair slower is at rest as it begins. Counted as phase 3's,
+                # the schedule ended a step early and missed the end by a step's travel (a service draw at
+                # 1.15 T_min re-planned twice in its last second and ended a step late).
+                self._counts[3] += 1
         if phase == 4 and x[1] < MIN_STOP_SPEED:
             # standing at the truck and not done (a plant the plan misjudged): bring the bucket to rest
             info = {"solve_time": 0.0, "status": "terminal", "fallback": False, "over_budget": False,
