@@ -29,6 +29,10 @@ MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input poli
 # steps per rollout (n_steps * num_envs): SB3's buffer holds ~90 bytes a step (1.5 GB at this cap, the shipped
 # recipe's 8192 far below); more failed with a traceback allocating it (numpy's MemoryError)
 MAX_ROLLOUT = 2**24
+# perturbed starts per evaluation (eval_episodes, `wl train --export-episodes`): one evaluation runs them and the
+# nominal start, at most agents.evaluate.MAX_EPISODES episodes; a target env's drew 10**9 scenarios (a hang) after
+# the training, a v1 evaluation failed there by the evaluation's name
+MAX_EVAL_EPISODES = 99_999
 
 
 class ConfigError(ValueError):
@@ -100,7 +104,8 @@ _RULES: dict[str, tuple[str, Any]] = {
     "norm_obs": ("true or false", lambda v: isinstance(v, bool)),
     "norm_reward": ("true or false", lambda v: isinstance(v, bool)),
     "eval_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
-    "eval_episodes": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "eval_episodes": (f"an integer >= 0, at most {MAX_EVAL_EPISODES}",
+                      lambda v: _is_int(v) and 0 <= v <= MAX_EVAL_EPISODES),
     "eval_init_noise": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
     "score": ("true or false", lambda v: isinstance(v, bool)),
     "checkpoint_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),

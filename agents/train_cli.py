@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from agents.ppo_config import ConfigError, PPOConfig
+from agents.ppo_config import MAX_EVAL_EPISODES, ConfigError, PPOConfig
 from wl_env.atomic_io import check_output_folder
 
 log = logging.getLogger(__name__)
@@ -102,14 +102,20 @@ def config_from_args(cls: type, ns: argparse.Namespace) -> tuple[Any, dict[str, 
         raise ValueError(f"--{exc.field.replace('_', '-')} must be {exc.requirement}, got {exc.value!r}") from None
 
 
-def _count(text: str) -> int:
+def _count(text: str, most: int | None = None) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    if value < 0 or (most is not None and value > most):
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0{'' if most is None else f', at most {most}'}, "
+                                         f"got {value}")
     return value
+
+
+def _episodes(text: str) -> int:
+    """``--export-episodes``: a count in [0, MAX_EVAL_EPISODES], checked before the training, not after it."""
+    return _count(text, MAX_EVAL_EPISODES)
 
 
 def add_train_args(parser: argparse.ArgumentParser) -> None:
@@ -119,7 +125,8 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export", metavar="PATH", default=None,
                         help="after training, ship the policy pickle-free as PATH.safetensors, PATH_vecnormalize.npz, "
                         "PATH.json")
-    parser.add_argument("--export-episodes", type=_count, default=100, help="evaluation episodes of --export (>= 0)")
+    parser.add_argument("--export-episodes", type=_episodes, default=100,
+                        help=f"evaluation episodes of --export, 0..{MAX_EVAL_EPISODES}")
     parser.add_argument("--seeds", type=_count, nargs="+", default=None, metavar="SEED",
                         help="several runs, one per seed, each in <log-dir>/<run-name or ppo_<braking>>_s<seed>; a "
                         "finished run is skipped, an interrupted one resumed (agents.seeds)")

@@ -553,6 +553,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--curriculum-fraction", "nan"], "--curriculum-fraction", "[0, 1]"),
     (["train", "--learning-rate", "inf"], "--learning-rate", "> 0"),
     (["train", "--export-episodes", "-3"], "--export-episodes", ">= 0"),
+    # (accepted, then after the whole training a target env's evaluation drew 10**9 scenarios: a hang)
+    (["train", "--export-episodes", "1000000000"], "--export-episodes", "at most 99999"),
+    (["train", "--eval-episodes", "1000000000"], "--eval-episodes", "at most 99999"),
     (["mpc", "--target-time", "nan"], "--target-time", "[1, 40)"),
     (["mpc", "--target-time=-1"], "--target-time", "[1, 40)"),
     (["evaluate", "--controller", "mpc", "--target-time", "5e-324", "--out", "x.json"], "--target-time", "[1, 40) s"),
@@ -573,6 +576,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["evaluate", "--controller", "operator", "--scenario", '{"braking": "tc"}', "--braking", "service"], "--braking",
      "contradicts"),
     (["evaluate", "--controller", "operator", "--sample", "3"], "--sample", "--suite"),
+    # (a sampler suite drew 10**11 scenarios before any check: minutes and gigabytes, then SIGTERM)
+    (["evaluate", "--controller", "operator", "--suite", "train", "--sample", "100000000000"], "--sample",
+     "[1, 100000]"),
     # (each scenario of a suite runs once from its own start: these were ignored without a word)
     (["evaluate", "--controller", "operator", "--suite", "test", "--episodes", "5"], "--episodes", "--suite"),
     (["evaluate", "--controller", "operator", "--suite", "test", "--init-noise", "0.5"], "--init-noise", "--suite"),

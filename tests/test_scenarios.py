@@ -84,6 +84,8 @@ def test_bad_scenario_inputs_are_named(tmp_path):
                         ('{"a": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
                         ("x" * 5000, "no file"),
                         ('{"payload": ' + "9" * 400 + "}", r"Scenario\.payload must lie in"),
+                        # (a bare "Exceeds the limit (4300 digits) ..." from json, naming neither option nor field)
+                        ('{"payload": ' + "9" * 5000 + "}", "--scenario is not valid JSON"),
                         ('{"payload": "' + "x" * 10_000_000 + '"}', r"Scenario\.payload must be a number")]:
         with pytest.raises(ValueError, match=match) as exc:
             Scenario.parse(text)
@@ -288,3 +290,18 @@ def test_params_that_set_a_scenarios_fields_beside_the_scenario_are_refused():
             make(params={"M_load": 12000.0, "reverse_distance": 8.0}, scenario={"payload": 7000.0})
     env = gym.make("WheelLoader-v2", params={"M_load": 12000.0}).unwrapped  # no scenario: the params are the cycle
     assert env.params.M_load == 12000.0
+
+
+def test_the_distance_alias_beside_a_scenario_is_refused(tmp_path, capsys):
+    """``distance`` sets both legs (LoaderParams.replace); beside a scenario it ran as 6.6 m without a word."""
+    import wl.cli
+
+    for make in (lambda **kw: gym.make("WheelLoader-v2", **kw),
+                 lambda **kw: gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point", **kw)):
+        with pytest.raises(ValueError, match="params sets distance, which the scenario sets"):
+            make(params={"distance": 5.0}, scenario={"payload": 7000.0})
+    assert gym.make("WheelLoader-v2", params={"distance": 5.0}).unwrapped.params.reverse_distance == 5.0
+    code = wl.cli.main(["ocp", "--params", '{"distance": 5}', "--scenario", '{"payload": 7000}',
+                        "--out", str(tmp_path / "o.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "--params sets distance, which the --scenario sets" in err, err

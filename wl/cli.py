@@ -409,6 +409,8 @@ def _suite_cmd(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from wl_env.suites import MAX_SAMPLE
+
     parser = _Parser(
         prog="wl",
         description="wheel-loader-gym: the wheel loader short loading cycle as a Gymnasium environment, "
@@ -504,8 +506,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
     p.add_argument("--suite", choices=["nominal", "train", "test", "corners"],
                    help="one episode per scenario of the suite (of the braking alternative), from its own start")
-    p.add_argument("--sample", type=_positive_int, metavar="N", help="with --suite: N scenarios spread evenly over it "
-                   "(a sampler suite: N draws)")
+    p.add_argument("--sample", type=_int_in(1, MAX_SAMPLE), metavar="N", help=f"with --suite: N scenarios in [1, "
+                   f"{MAX_SAMPLE}] spread evenly over it (a sampler suite: N draws)")
     p.add_argument("--no-solve", action="store_true", help="score only against shipped or cached optima (an "
                    "episode of another cycle is an error instead of a solve)")
     g = p.add_mutually_exclusive_group()

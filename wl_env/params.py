@@ -457,8 +457,9 @@ SCENARIO_FIELDS = ("M_load", "c_r", "H_T", "H_0", "omega_0", "reverse_distance",
 
 def scenario_overrides(params: Any) -> list[str]:
     """The fields a ``params`` dict of overrides sets that a scenario also sets (beside a scenario they would be
-    dropped without a word: the env and the command line refuse them, naming these)."""
-    return sorted(set(params) & set(SCENARIO_FIELDS)) if isinstance(params, dict) else []
+    dropped without a word: the env and the command line refuse them, naming these). ``distance``, the alias
+    of both legs (:meth:`LoaderParams.replace`), counts too: it was dropped beside a scenario."""
+    return sorted(set(params) & {*SCENARIO_FIELDS, "distance"}) if isinstance(params, dict) else []
 
 # loaders in one vector env (wl_env.vector_env; PPOConfig.num_envs): each holds its own state arrays and random
 # generator (~2 kB); the training's 64 are far below, and a mistyped count (1e9) is refused by name instead of

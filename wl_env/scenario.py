@@ -118,8 +118,8 @@ class Scenario:
                 raise ValueError(f"--scenario file {text}: cannot read it as text ({exc})") from None
         try:
             data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--scenario is not valid JSON: {exc}") from None
+        except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
+            raise ValueError(f"--scenario is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
         except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
             raise ValueError("--scenario is not a scenario: its JSON is nested too deeply") from None
         return cls.from_dict(data)

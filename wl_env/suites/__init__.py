@@ -30,6 +30,7 @@ FOLDER = Path(__file__).resolve().parent
 SUITES = ("nominal", "train", "test", "corners")
 TRAIN_STREAM, TEST_STREAM = 0, 1  # SeedSequence spawn keys: the two streams never share a draw
 ROOT_ENTROPY = 20261201  # the suites' root seed
+MAX_SAMPLE = 100_000  # scenarios a spread() gives at most: agents.evaluate.MAX_EPISODES, the episodes of one evaluation
 # Drawn values are rounded to these decimals (readable files; far finer than any effect).
 ROUNDING = {"payload": -1, "reverse_distance": 2, "forward_distance": 2, "rolling_resistance": 4,
             "dump_height": 2, "start_engine_speed": 0, "start_bucket_height": 2}
@@ -76,6 +77,9 @@ class Suite:
     def spread(self, braking: str, n: int | None = None) -> tuple[Scenario, ...]:
         """``n`` of the list's scenarios of one braking alternative, evenly spread over it (all if n is None
         or larger): a fixed sample, the same every run. A sampler suite gives its first n draws of seed 0."""
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_SAMPLE):
+            # (a sampler drew 10**11 scenarios, minutes and gigabytes before any check)
+            raise ValueError(f"the sample size (--sample) must be an integer in [1, {MAX_SAMPLE}] or None, got {shown(n)}")
         if self.sampler:
             if not n:
                 raise ValueError(f"suite {self.name!r} is a sampler: say how many scenarios to draw")
