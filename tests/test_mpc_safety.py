@@ -81,6 +81,22 @@ def test_the_filter_eases_the_service_brake_before_the_injection():
     assert out.control[0] == u[0] and 0.0 < out.control[2] < u[2]
 
 
+def test_a_fresh_plans_hair_over_the_limit_is_eased_just_inside_it():
+    """A plan's deceleration limit is elastic (its NLP traded 1.9e-5 over it at a TC stop against a centimetre of
+    target miss): an excess under FILTER_TOL is eased too, to just inside the limit, the brake barely touched."""
+    f = SafetyFilter(P, "service", 0.1)
+    x = np.array([100.0, 1.5, 4.0, 0.0, 10.0])
+    lo, hi = 0.0, P.U_b_max  # (the brake torque at which the step meets the limit: bisected)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if f.excess(x, 4, np.array([30.0, 0.0, mid]), NOMINAL_ESTIMATE) <= 0.0 else (lo, mid)
+    u = np.array([30.0, 0.0, hi * (1.0 + 2e-5)])
+    out = f(x, 4, u, NOMINAL_ESTIMATE)
+    assert 0.0 < out.excess_before <= FILTER_TOL
+    assert out.eased == "U_b" and out.excess_after == 0.0
+    assert u[2] * (1.0 - 1e-3) < out.control[2] < u[2]
+
+
 def test_the_filter_fuels_an_engine_about_to_stall():
     """Reversing in gear on an idling engine with the lift drawing on it: the step would end near omega_min."""
     f = SafetyFilter(P, "tc", 0.1)

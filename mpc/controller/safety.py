@@ -9,11 +9,12 @@ ended 74 % over the deceleration limit (docs/benchmarks.md section 3).
 
 The filter predicts the coming step from the measured state, under the current plant estimate, with the
 simulator's own step (:meth:`wl_env.simulator.Simulator.substep`: the environment's check at every RK4 stage
-and the step's end, the stop cut at V = 0). Where the step would break the deceleration or speed limit by more
-than ``FILTER_TOL`` (a control from a plan older than the state: where it comes within ``STALE_MARGIN`` of them),
-it eases the control that causes it: the service brake's torque where the brakes act, then
-the injection (with a gear in, the engine's speed sets the converter's drag, and it drives the machine). Each
-is bisected to the largest value that keeps the limit ``EASE_MARGIN`` inside it (the estimate mispredicts).
+and the step's end, the stop cut at V = 0). Where the step would break the deceleration or speed limit (a control
+from a plan older than the state: where it comes within ``STALE_MARGIN`` of them), it eases the control that
+causes it: the service brake's torque where the brakes act, then the injection (with a gear in, the engine's speed
+sets the converter's drag, and it drives the machine). Each is bisected to the largest value that keeps the limit
+``EASE_MARGIN`` inside it (the estimate mispredicts); a fresh plan's excess under ``FILTER_TOL``, which its NLP
+traded against a target (the limit is elastic there), only ``SOLVED_EASE_MARGIN`` inside.
 
 An engine the step would bring within ``STALL_GUARD`` of omega_min (a plan made for a lighter machine: TC x1.2 /
 x1.3 in real time stalled in phase 1 on a 28-step-old plan) gets the least injection that keeps it
@@ -30,9 +31,9 @@ the engine speed's one-step bias the filter has measured (a mismatched engine dr
 from the prediction while the estimator settled the lift's load 2 % high, fixed at stop 44; the bias stays as a
 guard against what the estimate does not model).
 
-A control that keeps the limits passes unchanged, and an easing that would not help (less injection in a
-driven phase can let the converter brake harder) is not applied, so a fresh plan (which keeps them to the
-solver's tolerance under the same estimate) is applied as solved.
+A control that keeps the limits passes unchanged (a fresh plan keeps them under the same estimate, bar its
+elastic excess), and an easing that would not help (less injection in a driven phase can let the converter brake
+harder) is not applied.
 """
 
 from __future__ import annotations
@@ -48,7 +49,11 @@ from wl_env.assist import bucket_command
 from wl_env.params import LoaderParams
 from wl_env.simulator import Simulator
 
-FILTER_TOL = 1e-3  # relative excess passed unchanged (a plan keeps the limits to the solver's tolerance, 1e-4)
+FILTER_TOL = 1e-3  # relative excess of a fresh plan eased only just inside the limit (SOLVED_EASE_MARGIN), not EASE_MARGIN
+# A plan's excess is elastic (grid.DECEL_EXCESS_WEIGHT): a TC minimum-time plan rode 1.9e-5 over the limit in its
+# last stop rather than miss the truck by a centimetre (a fresh draw, stop 52; the environment counts any excess).
+# Below FILTER_TOL such a control is eased to this fraction inside the limit, which moves the stop by ~0.1 mm.
+SOLVED_EASE_MARGIN = 1e-5
 # An eased control aims this fraction inside the limits (MPCConfig.tighten's default, what a plan keeps free): the
 # estimate mispredicts the plant's step (TC x0.8 / x1.3 in real time: controls eased to the limit +0.1 % gave +0.27 %)
 EASE_MARGIN = 0.005
@@ -218,8 +223,8 @@ class SafetyFilter:
                 u, later, eased = guarded
                 return self._keep(u, later, eased, self._step(x, phase, u, est))
         decide = self.stale_margin if stale else 0.0
-        ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN
-        if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > FILTER_TOL):
+        ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN if before > FILTER_TOL else SOLVED_EASE_MARGIN
+        if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > 0.0):
             return self._keep(u, before, "", (y1, after, before))
         _, _, brake_allowed = self.sim.phase_constants(phase)
         eased, inside = [], self.excess(x, phase, u, est, ease)
