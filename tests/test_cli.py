@@ -296,7 +296,7 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     for argv in (["bench_agents.py", "--json", bad], ["bench_env.py", "--quick", "--json", bad],
                  ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad], ["bench_estimator.py", "--json", bad],
                  ["bench_planning.py", "--out", bad], ["bench_far_starts.py", "--out", bad],
-                 ["bench_mumps_ordering.py", "--out", bad]):
+                 ["bench_mumps_ordering.py", "--out", bad], ["bench_draws.py", "--out", bad]):
         r = subprocess.run([sys.executable, str(scripts / argv[0]), *argv[1:]], capture_output=True, text=True,
                            timeout=60)
         err = " ".join(r.stderr.replace("│", " ").split())  # (tyro boxes and wraps its message)
@@ -315,7 +315,10 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of"),
     (["bench_mumps_ordering.py", "--orders", "2", "3"], "--orders must be two or more distinct values of [0, 2, 4, 5, 6, 7]"),
     (["bench_mumps_ordering.py", "--orders", "2"], "--orders must be two or more distinct values"),
-    (["bench_mumps_ordering.py", "--scenarios", "0"], "nothing to run: --scenarios 0 without --corners")])
+    (["bench_mumps_ordering.py", "--scenarios", "0"], "nothing to run: --scenarios 0 without --corners"),
+    (["bench_draws.py", "--modes", "time", "0.9"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
+    (["bench_draws.py", "--modes", "fast"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
+    (["bench_draws.py", "--draws", "0"], "--draws must be an integer in [1, 1000]")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
