@@ -91,7 +91,7 @@ def run_one(braking: str, scenario: Any, mode: str) -> dict[str, Any]:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
-    from bench_mpc import write_with_speed
+    from bench_mpc import summary_line, write_with_speed
 
     from wl_env.suites import draw
 
@@ -116,8 +116,7 @@ def run(o: Options) -> dict[str, Any]:
             "planning_median_s": statistics.median(r["planning_s"] for r in done) if done else None,
             "planning_max_s": max((r["planning_s"] for r in done), default=None),
             "steps_over_100ms": sum(r["steps_over_100ms"] for r in done)}
-        print(f"{o.braking} {mode}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                                                 for k, v in summary[mode].items()))
+        print(f"{o.braking} {mode}: {summary_line(summary[mode])}")
     write_with_speed(o.out, o, summary, records)
     return summary
 

@@ -278,6 +278,11 @@ def python_loop_seconds() -> float:
     return float(np.median(times))
 
 
+def summary_line(summary: dict[str, Any], digits: int = 3) -> str:
+    """A bench summary's figures on one line: ``name value, ...``, floats to ``digits`` significant digits."""
+    return ", ".join(f"{k} {v:.{digits}g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items())
+
+
 def write_with_speed(out: str | None, options: Any, summary: dict[str, Any], records: list[dict[str, Any]]) -> None:
     """A one-process A/B bench's end: the machine's speed in this run printed and, with ``out``, the JSON of its
     ``options`` (a dataclass), the speed, ``summary`` and ``records``, written atomically."""

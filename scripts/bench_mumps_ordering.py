@@ -66,7 +66,7 @@ def check(o: Options) -> None:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
-    from bench_mpc import MISMATCH, write_with_speed
+    from bench_mpc import MISMATCH, summary_line, write_with_speed
 
     from mpc.controller import mpc, solver
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -150,8 +150,7 @@ def run(o: Options) -> dict[str, Any]:
                                             / max(1.0, abs(r[f"order{first}"]["objective"]))
                                             for r in rows for order in o.orders[1:]),
         }
-        print(f"{group}: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                                       for k, v in summary[group].items()))
+        print(f"{group}: {summary_line(summary[group], 4)}")
     write_with_speed(o.out, o, summary, records)
     return summary
 

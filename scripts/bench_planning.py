@@ -57,7 +57,7 @@ def check(o: Options) -> None:
 
 def run(o: Options) -> dict[str, Any]:
     check(o)
-    from bench_mpc import write_with_speed
+    from bench_mpc import summary_line, write_with_speed
 
     from mpc.controller import mpc
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -97,8 +97,7 @@ def run(o: Options) -> dict[str, Any]:
                "within_1s_less_layout": sum(b <= 1.0 for b in built),
                **{f"{part}_median_s": statistics.median(r["parts_s"].get(part, 0.0) for r in records)
                   for part in ("reference", "layout", "first_solve", "search")}}
-    print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: " +
-          ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+    print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: {summary_line(summary)}")
     write_with_speed(o.out, o, summary, records)
     return summary
 
