@@ -224,6 +224,23 @@ def test_a_plant_at_rest_as_the_reversing_stop_step_begins_takes_that_step_not_o
     assert ctrl.replans == 0
 
 
+def test_the_last_stop_on_its_marks_is_applied_without_a_whole_rest_re_plan():
+    """A fresh service draw at 9.64 s: the last step's real-time iteration plans the stop on its marks but
+    18 % over its elastic deceleration limit (the one-step NLP is infeasible by a hair). The whole-rest re-plan
+    that followed ran IPOPT to its iteration limit (253 ms) and the step applied this plan all the same. Now it
+    is applied at once, the safety filter keeping the limit (stop 52)."""
+    from wl_env.scenario import Scenario
+
+    draw = Scenario(payload=8660.0, reverse_distance=6.42, forward_distance=9.63, rolling_resistance=0.048,
+                    dump_height=3.78, start_engine_speed=1096.0, start_bucket_height=1.19, braking="service")
+    config = MPCConfig(mode="target_time", target_time=9.64)
+    ctrl = MPCController("service", draw.params(), config)
+    ep = run_closed_loop("service", config, scenario=draw, score=False, controller=ctrl).episode
+    assert ep.success and ep.max_violation == 0.0
+    assert ep.T <= 9.64
+    assert ctrl.replans == 0 and ctrl.fallbacks == 0
+
+
 def test_a_re_plan_waits_for_the_estimate_to_settle():
     """The full plan is stale once the plant estimate has moved past REPLAN_ESTIMATE_CHANGE since it was made,
     and re-planned only once the estimate stopped moving (REPLAN_SETTLE of that per step): while the
