@@ -207,37 +207,28 @@ def test_the_rti_horizon_holds_the_plan_to_the_last_stop_without_a_re_plan():
     assert ctrl.replans == 0
 
 
-def test_a_plant_at_rest_as_the_reversing_stop_step_begins_takes_that_step_not_one_of_phase_3s():
-    """A plan's phase-2 stop step starts at MIN_STOP_SPEED; on this draw the plant is 1 mm/s from rest there, so
-    the controller plans phase 3 in that step. Counted as one of phase 3's steps, it left the schedule a step
-    short: the end came into the horizon 18.6 cm (a step's travel) out of reach, two whole-cycle re-plans
-    followed in the last second, and the cycle ended a step past its 8.31 s target (stop 52)."""
+# Fresh service draws (scripts/bench_draws.py, stop 52) whose last second re-planned the whole cycle:
+# - at rest as the reversing stop step began (a plan's stop step starts at MIN_STOP_SPEED, the plant was 1 mm/s
+#   from rest), the controller counted that step as one of phase 3's: the schedule ended a step short, the end came
+#   into the horizon 18.6 cm out of reach, two re-plans followed and the cycle ended a step past its 8.31 s target;
+# - the last step's real-time iteration planned the stop on its marks but 18 % over its elastic deceleration limit
+#   (the one-step NLP infeasible by a hair): the whole-rest re-plan ran IPOPT to its iteration limit (253 ms) and
+#   the step applied that plan all the same. Now it is applied at once, the safety filter keeping the limit.
+@pytest.mark.parametrize("fields, target", [
+    pytest.param(dict(payload=6140.0, reverse_distance=7.02, forward_distance=4.54, rolling_resistance=0.0162,
+                      dump_height=3.65, start_engine_speed=1429.0, start_bucket_height=0.94), 8.31, id="reversing-stop"),
+    pytest.param(dict(payload=8660.0, reverse_distance=6.42, forward_distance=9.63, rolling_resistance=0.048,
+                      dump_height=3.78, start_engine_speed=1096.0, start_bucket_height=1.19), 9.64, id="last-stop"),
+])
+def test_fresh_draws_end_on_target_without_a_re_plan(fields, target):
     from wl_env.scenario import Scenario
 
-    draw = Scenario(payload=6140.0, reverse_distance=7.02, forward_distance=4.54, rolling_resistance=0.0162,
-                    dump_height=3.65, start_engine_speed=1429.0, start_bucket_height=0.94, braking="service")
-    config = MPCConfig(mode="target_time", target_time=8.31)
+    draw = Scenario(**fields, braking="service")
+    config = MPCConfig(mode="target_time", target_time=target)
     ctrl = MPCController("service", draw.params(), config)
     ep = run_closed_loop("service", config, scenario=draw, score=False, controller=ctrl).episode
     assert ep.success and ep.max_violation == 0.0
-    assert ep.T <= 8.31
-    assert ctrl.replans == 0
-
-
-def test_the_last_stop_on_its_marks_is_applied_without_a_whole_rest_re_plan():
-    """A fresh service draw at 9.64 s: the last step's real-time iteration plans the stop on its marks but
-    18 % over its elastic deceleration limit (the one-step NLP is infeasible by a hair). The whole-rest re-plan
-    that followed ran IPOPT to its iteration limit (253 ms) and the step applied this plan all the same. Now it
-    is applied at once, the safety filter keeping the limit (stop 52)."""
-    from wl_env.scenario import Scenario
-
-    draw = Scenario(payload=8660.0, reverse_distance=6.42, forward_distance=9.63, rolling_resistance=0.048,
-                    dump_height=3.78, start_engine_speed=1096.0, start_bucket_height=1.19, braking="service")
-    config = MPCConfig(mode="target_time", target_time=9.64)
-    ctrl = MPCController("service", draw.params(), config)
-    ep = run_closed_loop("service", config, scenario=draw, score=False, controller=ctrl).episode
-    assert ep.success and ep.max_violation == 0.0
-    assert ep.T <= 9.64
+    assert ep.T <= target
     assert ctrl.replans == 0 and ctrl.fallbacks == 0
 
 

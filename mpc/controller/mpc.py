@@ -1296,7 +1296,7 @@ class MPCController:
                 pass
             # Near T_min the starts fail (on 12 fresh TC draws at the first grid time above the coarse mesh's T_min,
             # 0.5 failed on one, 0.3 too, each after 1.5-3.5 s), where the coarse minimum-time reference (0.2 s)
-            # warm-starts one in 0.13-0.31 s (none failed; 0.0-1.3 % above the best of three starts). Before stop 52
+            # warm-starts one in 0.13-0.31 s (none failed; -0.1..+1.3 % against the best of three starts). Before stop 52
             # the benchmark's T_min solve followed, 5-16 s.
             try:
                 quick = solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
