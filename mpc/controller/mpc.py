@@ -1308,6 +1308,8 @@ class MPCController:
             except OCPError:
                 quick = None
             if quick is not None and cfg.target_time >= quick.T:
+                if T < quick.T:  # (the grid's T under the coarse T_min: no such cycle there; the solve failed in 1.7-3.6 s)
+                    return quick
                 try:
                     return solve_ocp(b, "fuel_at_time", T=T, warm_start=quick, starts=(), **opts)
                 except OCPError:
