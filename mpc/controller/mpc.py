@@ -1315,12 +1315,12 @@ class MPCController:
                 except OCPError:
                     return quick  # feasible, but not on the control grid: the cycle ends a step late
             # (the coarse mesh puts T_min 0.02-0.09 s high: the benchmark's solve decides)
-            fastest = solve_ocp(b, "time", params=p)
-            if cfg.target_time < fastest.T:
+            t_min = solve_ocp(b, "time", params=p)
+            if cfg.target_time < t_min.T:
                 raise ValueError(
                     f"target_time {cfg.target_time:g} s is impossible: the minimum cycle time with {b} braking is "
-                    f"{fastest.T:.3f} s (MPCConfig.target_time must be at least that)") from None
-            return fastest  # feasible, but not on the control grid: the cycle ends a step late
+                    f"{t_min.T:.3f} s (MPCConfig.target_time must be at least that)") from None
+            return t_min  # feasible, but not on the control grid: the cycle ends a step late
         if cfg.fastest:
             return solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
         return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)

@@ -49,7 +49,9 @@ from wl_env.assist import bucket_command
 from wl_env.params import LoaderParams
 from wl_env.simulator import Simulator
 
-FILTER_TOL = 1e-3  # relative excess of a fresh plan eased only just inside the limit (SOLVED_EASE_MARGIN), not EASE_MARGIN
+# Relative excess a plan may carry as its own (the solver's tolerance, its elastic limit): a fresh plan's is eased only
+# SOLVED_EASE_MARGIN inside the limit, not EASE_MARGIN, and the shift look-ahead leaves a shift predicted within it.
+FILTER_TOL = 1e-3
 # A plan's excess is elastic (grid.DECEL_EXCESS_WEIGHT): a TC minimum-time plan rode 1.9e-5 over the limit in its
 # last stop rather than miss the truck by a centimetre (a fresh draw, stop 52; the environment counts any excess).
 # Below FILTER_TOL such a control is eased to this fraction inside the limit, which moves the stop by ~0.1 mm.
