@@ -281,8 +281,9 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
     ``workers`` processes; all of them, read back."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    from mpc.workers import check_workers
+
+    check_workers(workers)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     d = dataclasses.asdict(settings)  # plain data for the workers

@@ -138,8 +138,9 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
     Writes ``<log_dir>/runs_summary.json`` (:func:`spread`) once all are done. KeyboardInterrupt stops
     every run; each resumes from its newest checkpoint when the same command is run again.
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    from mpc.workers import check_workers
+
+    check_workers(workers)
     names = [c.name for c in cfgs]
     if len(set(names)) != len(names):
         raise ValueError(f"two runs share a name: {names}")

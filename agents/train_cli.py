@@ -201,9 +201,9 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
     """``--seeds``/``--sweep``: every run (agents.seeds), then each exported as ``<--export>_<run name>``."""
     from agents.ppo import export_policy
     from agents.seeds import SUMMARY_FILE, expand, parse_sweep, train_runs
+    from mpc.workers import check_workers
 
-    if ns.workers < 1:
-        raise ValueError(f"--workers must be an integer >= 1, got {ns.workers}")
+    check_workers(ns.workers, "--workers")
     cfgs = expand(cfg, ns.seeds or [cfg.seed], parse_sweep(ns.sweep or []))
     try:
         results = train_runs(cfgs, command=command, workers=ns.workers, ray_address=ns.ray)

@@ -36,6 +36,21 @@ from typing import Any
 from mpc import interrupt
 
 WATCHDOG_PERIOD = 0.5  # s between the watchdog's looks at the parent
+WORKERS_PER_CPU = 4  # local worker processes at most, per CPU: each builds its own NLPs (0.3-0.5 GB), past the cores they only queue
+
+
+def max_local_workers() -> int:
+    """The most local worker processes a job may start (WORKERS_PER_CPU per CPU of this machine)."""
+    return WORKERS_PER_CPU * (os.cpu_count() or 1)
+
+
+def check_workers(workers: Any, name: str = "workers") -> int:
+    """``workers`` if it is an integer in [1, :func:`max_local_workers`], else ValueError naming ``name`` and the
+    range (`wl suite solve --workers 100000000` started 100 CasADi processes on 2 cores, one per piece of work)."""
+    most = max_local_workers()
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= most:
+        raise ValueError(f"{name} must be an integer in [1, {most}] ({WORKERS_PER_CPU} per CPU), got {workers!r}")
+    return workers
 
 
 @contextmanager

@@ -600,7 +600,9 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--ray"], "--ray", "--seeds"),
     (["train", "--seeds", "0", "0"], "seeds", "repeat"),
     (["train", "--seeds", "0", "--sweep", "gamma=high"], "--sweep gamma", "float"),
-    (["train", "--seeds", "0", "--workers", "0"], "--workers", ">= 1"),
+    (["train", "--seeds", "0", "--workers", "0"], "--workers", "an integer in [1, "),
+    (["train", "--seeds", "0", "1", "--workers", "100000000"], "--workers", "per CPU"),  # (a process per run)
+    (["suite", "solve", "--suite", "test", "--workers", "100000000"], "--workers", "an integer in [1, "),
     (["train", "--torch-threads", "100000"], "--torch-threads", "[1, 1024]"),  # (segfaulted)
     (["train", "--reward", "target_distance=1e308"], "target_distance", "[0, 1e+06]"),  # (a reward of -inf)
     (["train", "--export", ""], "--export", "empty"),

@@ -810,3 +810,23 @@ def test_codegen_interrupt_kills_the_compilers(monkeypatch, tmp_path, codegen_mo
     for pid in started:  # (killed and reaped: no such process)
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+@pytest.mark.parametrize("bad", [0, -1, True, 2.5, "3", None, "max+1"])
+def test_a_worker_count_out_of_range_is_refused_by_name_before_any_process(bad, tmp_path):
+    """Each local worker builds its own NLPs: `wl suite solve --workers 100000000` started 100 CasADi processes on
+    2 cores (one per piece of work) before the run was killed."""
+    from agents.seeds import train_runs
+    from mpc.benchmark.suite import solve_suite
+    from mpc.workers import check_workers, max_local_workers
+
+    bad = max_local_workers() + 1 if bad == "max+1" else bad
+    assert check_workers(1) == 1 and check_workers(max_local_workers()) == max_local_workers()
+    with pytest.raises(ValueError, match=r"workers must be an integer in \[1, \d+\] \(4 per CPU\)"):
+        check_workers(bad)
+    with pytest.raises(ValueError, match="workers must be an integer in"):
+        train_runs([], workers=bad)
+    if bad is not None:  # (None: the suite's default, the CPU count)
+        with pytest.raises(ValueError, match="workers must be an integer in"):
+            solve_suite("test", cache=tmp_path, workers=bad)
+        assert not any(tmp_path.iterdir())  # (refused before its cache folder was made)

@@ -409,6 +409,7 @@ def _suite_cmd(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mpc.workers import max_local_workers
     from wl_env.suites import MAX_SAMPLE
 
     parser = _Parser(
@@ -551,7 +552,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(exit 1 on a mismatch)")
     q.add_argument("--ray", nargs="?", const="local", type=ray_address, metavar="ADDRESS", help="run on a Ray cluster (ADDRESS, e.g. "
                    "ray://host:10001, or none: a Ray instance on this machine); default: local processes")
-    q.add_argument("--workers", type=_positive_int, metavar="N", help="local processes (default: the CPU count)")
+    q.add_argument("--workers", type=_int_in(1, max_local_workers()), metavar="N",
+                   help=f"local processes, at most {max_local_workers()} (default: the CPU count)")
     q.add_argument("--limit", type=_positive_int, metavar="N", help="only N scenarios per braking alternative")
     q.add_argument("--cache", metavar="DIR", help="cache folder (default $WL_CACHE_DIR or ~/.cache/wheel-loader-gym)")
     q.add_argument("--out", metavar="FILE.json", help="the suite's optima file (default <cache>/suites/<suite>.json)")

@@ -139,6 +139,10 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
+    if workers is not None:
+        from mpc.workers import check_workers
+
+        check_workers(workers)
     folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
     folder.mkdir(parents=True, exist_ok=True)
     chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
