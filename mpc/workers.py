@@ -36,7 +36,7 @@ from typing import Any
 from mpc import interrupt
 
 WATCHDOG_PERIOD = 0.5  # s between the watchdog's looks at the parent
-WORKERS_PER_CPU = 4  # local worker processes at most, per CPU: each builds its own NLPs (0.3-0.5 GB), past the cores they only queue
+WORKERS_PER_CPU = 4  # local worker processes at most, per CPU: each builds its own NLPs; past the cores they only queue
 
 
 def max_local_workers() -> int:
