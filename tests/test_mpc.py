@@ -477,6 +477,17 @@ def test_the_minimum_time_search_tries_a_step_fewer_from_the_other_leg():
     assert T_min <= r.episode.T <= T_min + 0.1  # (the grid's best: T_min rounded up to a step)
 
 
+def test_a_mismatched_draw_in_range_keeps_the_limit_at_its_last_stop():
+    """A fresh TC draw in mismatch mode, its plant within #13's ranges (payload x0.85, rolling resistance x0.83):
+    the last stop's plan was 1.9e-6 over the limit under the estimate. Eased just inside it (SOLVED_EASE_MARGIN),
+    the plant still broke it by 5.3e-5: the easing now keeps the filter's own prediction error as its margin
+    (stop 52)."""
+    draw = Scenario(payload=8460.0, reverse_distance=4.92, forward_distance=8.75, rolling_resistance=0.0249,
+                    dump_height=3.83, start_engine_speed=1806.0, start_bucket_height=0.97, braking="tc")
+    ep = run_closed_loop("tc", MPCConfig(), scenario=draw, mismatch=True, score=False).episode
+    assert ep.success and ep.max_violation == 0.0
+
+
 @pytest.mark.slow  # 15 s; the default run has the mismatch corners of test_model_mismatch_case_completes
 def test_a_corner_scenario_in_mismatch_mode_completes_within_the_limits():
     """The corners suite's heaviest, slowest-rolling TC cycle, the MPC keeping the nominal payload and

@@ -54,7 +54,9 @@ from wl_env.simulator import Simulator
 FILTER_TOL = 1e-3
 # A plan's excess is elastic (grid.DECEL_EXCESS_WEIGHT): a TC minimum-time plan rode 1.9e-5 over the limit in its
 # last stop rather than miss the truck by a centimetre (a fresh draw, stop 52; the environment counts any excess).
-# Below FILTER_TOL such a control is eased to this fraction inside the limit, which moves the stop by ~0.1 mm.
+# Below FILTER_TOL such a control is eased to this fraction inside the limit, which moves the stop by ~0.1 mm, or
+# to MARGIN_SIGMAS times the filter's moving RMS prediction error if that is more (a mismatched TC draw within #13's
+# ranges, eased to 1e-5 at its last stop, broke the limit by 5.3e-5: the estimate's error; stop 52).
 SOLVED_EASE_MARGIN = 1e-5
 # An eased control aims this fraction inside the limits (MPCConfig.tighten's default, what a plan keeps free): the
 # estimate mispredicts the plant's step (TC x0.8 / x1.3 in real time: controls eased to the limit +0.1 % gave +0.27 %)
@@ -225,7 +227,8 @@ class SafetyFilter:
                 u, later, eased = guarded
                 return self._keep(u, later, eased, self._step(x, phase, u, est))
         decide = self.stale_margin if stale else 0.0
-        ease = decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN if before > FILTER_TOL else SOLVED_EASE_MARGIN
+        ease = (decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN if before > FILTER_TOL
+                else max(SOLVED_EASE_MARGIN, MARGIN_SIGMAS * float(np.sqrt(self._accel_err2))))
         if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > 0.0):
             return self._keep(u, before, "", (y1, after, before))
         _, _, brake_allowed = self.sim.phase_constants(phase)
