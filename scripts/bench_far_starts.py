@@ -40,7 +40,7 @@ def run(o: Options) -> dict[str, Any]:
         check_braking(b)
     if o.out is not None:
         check_output_file(o.out, "--out")
-    from bench_mpc import MISMATCH, write_with_speed
+    from bench_mpc import MISMATCH, summary_line, write_with_speed
 
     from mpc.controller import mpc, solver
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
@@ -77,7 +77,7 @@ def run(o: Options) -> dict[str, Any]:
                 "steps": len(ms), "median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)),
                 "max_ms": float(ms.max()), "over_100ms": int((ms > 100).sum()), "iterations": int(its.sum()),
                 "iterations_max": int(its.max()), "success": sum(r["success"] for r in rows), "runs": len(rows)}
-            print(f"{name:4s} {group:8s}: " + ", ".join(f"{k} {v:.4g}" for k, v in summary[f'{name}_{group}'].items()))
+            print(f"{name:4s} {group:8s}: {summary_line(summary[f'{name}_{group}'], 4)}")
     write_with_speed(o.out, o, summary, records)
     return summary
 

@@ -123,13 +123,19 @@ class SafetyFilter:
         self._predicted = None
 
     @property
+    def prediction_margin(self) -> float:
+        """MARGIN_SIGMAS times the moving RMS of the filter's one-step acceleration errors (a fraction of the limit)."""
+        return MARGIN_SIGMAS * float(np.sqrt(self._accel_err2))
+
+    @property
     def stale_margin(self) -> float:
         """The fraction inside the limits a stale plan's control is eased at (module constants)."""
-        m = max(STALE_MARGIN, MARGIN_SIGMAS * float(np.sqrt(self._accel_err2)))
+        m = max(STALE_MARGIN, self.prediction_margin)
         return min(MARGIN_STEP * np.ceil(m / MARGIN_STEP - 1e-9), 0.2)
 
     def _within(self, margin: float) -> Simulator:
-        margin = round(margin, 6)  # (sums of MARGIN_STEP: one simulator each)
+        # (sums of MARGIN_STEP, or a fresh plan's prediction margin, rare: one simulator each, 0.14 ms to build)
+        margin = round(margin, 6)
         sim = self._inside.get(margin)
         if sim is None:
             p, inside = self.sim.params, 1.0 - margin
@@ -227,8 +233,12 @@ class SafetyFilter:
                 u, later, eased = guarded
                 return self._keep(u, later, eased, self._step(x, phase, u, est))
         decide = self.stale_margin if stale else 0.0
-        ease = (decide + EASE_MARGIN - STALE_MARGIN if stale else EASE_MARGIN if before > FILTER_TOL
-                else max(SOLVED_EASE_MARGIN, MARGIN_SIGMAS * float(np.sqrt(self._accel_err2))))
+        if stale:
+            ease = decide + EASE_MARGIN - STALE_MARGIN
+        elif before > FILTER_TOL:
+            ease = EASE_MARGIN
+        else:  # (a fresh plan's own elastic excess: just inside the limit, by the estimate's error if that is more)
+            ease = max(SOLVED_EASE_MARGIN, self.prediction_margin)
         if not (self.excess(x, phase, u, est, decide) > 0.0 if stale else before > 0.0):
             return self._keep(u, before, "", (y1, after, before))
         _, _, brake_allowed = self.sim.phase_constants(phase)
