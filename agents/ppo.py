@@ -62,15 +62,16 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import COAST_ENV_IDS, TARGET_ENV_IDS, PPOConfig
+from agents.ppo_config import COAST_ENV_IDS, PLAN_ENV_IDS, TARGET_ENV_IDS, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
+from wl_env.plan import N_PLAN_ACTIONS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
-N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGET_ENV_IDS, N_TARGET_OBS)}
+N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGET_ENV_IDS + PLAN_ENV_IDS, N_TARGET_OBS)}
 
 log = logging.getLogger(__name__)
 
@@ -395,13 +396,14 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 def _check_spaces(network: Any, path: Path) -> None:
     """The policy must take the observations of one of the envs (:data:`ENV_OF_OBS`) and give its actions: (4,),
-    or (3,) for WheelLoaderTarget-v2's driver (the target env's observations)."""
+    (3,) for WheelLoaderTarget-v2's driver or (14,) for WheelLoaderPlan-v0's plan (the target env's observations)."""
     obs, act = network.observation_space.shape, network.action_space.shape
-    if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act not in ((4,), (N_ASSIST_ACTIONS,)) or (
-            act == (N_ASSIST_ACTIONS,) and obs[0] != N_TARGET_OBS):
+    if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act not in ((4,), (N_ASSIST_ACTIONS,), (N_PLAN_ACTIONS,)) or (
+            act in ((N_ASSIST_ACTIONS,), (N_PLAN_ACTIONS,)) and obs[0] != N_TARGET_OBS):
         raise PolicyFileError(f"policy {path} maps observations {obs} to actions {act}; WheelLoader-v1 has "
                               f"({N_OBS},) and (4,), v2 ({N_SCENARIO_OBS},), WheelLoaderTarget-v0 ({N_TARGET_OBS},), "
-                              f"WheelLoaderTarget-v2 ({N_TARGET_OBS},) and ({N_ASSIST_ACTIONS},)")
+                              f"WheelLoaderTarget-v2 ({N_TARGET_OBS},) and ({N_ASSIST_ACTIONS},), WheelLoaderPlan-v0 "
+                              f"({N_TARGET_OBS},) and ({N_PLAN_ACTIONS},)")
     space = network.action_space  # (predict clips its actions to these bounds: other ones change every action)
     if not (np.all(space.low == -1.0) and np.all(space.high == 1.0)):
         raise PolicyFileError(f"policy {path}: its action space must be the envs' Box(-1, 1), got low "
@@ -429,7 +431,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
-    if env_id in TARGET_ENV_IDS:
+    if env_id in TARGET_ENV_IDS + PLAN_ENV_IDS:
         return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
     # own optimum would cost a solve per episode at every evaluation.
@@ -830,6 +832,8 @@ def build_model(cfg: PPOConfig, env: Any, tb_dir: Path):
     def raw(mean: float) -> float:  # the bias giving this initial mean
         return math.atanh(max(-0.99, min(0.99, mean / 1.1))) if bounded else mean
 
+    if cfg.env_id in PLAN_ENV_IDS:  # (a plan's numbers start mid-range: none is a threshold)
+        return model
     with th.no_grad():
         model.policy.action_net.bias[0] = raw(cfg.fuel_bias_init)
         model.policy.action_net.bias[1] = raw(cfg.bucket_bias_init)

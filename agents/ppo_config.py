@@ -15,7 +15,8 @@ from wl_env.params import MAX_NUM_ENVS, is_finite
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
 ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2",
-           "WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6")
+           "WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6",
+           "WheelLoaderPlan-v0")
 TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
 # v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions); v3: v2
 # whose driver may end a leg early and coast (4 actions); v4: v3 with the assist's guards (wl_env.assist); v5: v4
@@ -23,6 +24,7 @@ TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as 
 TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3",
                   "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6")
 COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 actions)
+PLAN_ENV_IDS = ("WheelLoaderPlan-v0",)  # the target task with one decision per cycle (wl_env.plan): 14 actions
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
@@ -131,7 +133,8 @@ class PPOConfig:
                 "WheelLoaderTarget-v3 (v2 with a 4th action: the coasting fraction, where a leg ends early to coast) or "
                 "WheelLoaderTarget-v4 (v3 with the assist's guards: creep floor, last lift, TC lift timing) or "
                 "WheelLoaderTarget-v5 (v4 with the lift's engine floor: the request held up while the bucket lifts) or "
-                "WheelLoaderTarget-v6 (v5 whose TC lift-off loads the engine with a full lift)"})
+                "WheelLoaderTarget-v6 (v5 whose TC lift-off loads the engine with a full lift) or "
+                "WheelLoaderPlan-v0 (one decision per cycle: a phase-parametric plan driven on v6; each step a cycle)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={
@@ -270,7 +273,7 @@ class PPOConfig:
     @property
     def targeted(self) -> bool:
         """Whether the run's env gives each episode a target cycle time (WheelLoaderTarget-v0/v1)."""
-        return self.env_id in TARGET_ENV_IDS
+        return self.env_id in TARGET_ENV_IDS + PLAN_ENV_IDS
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of the run's env (``env_id``, single or vector), without init_noise."""

@@ -53,3 +53,7 @@ for _id, _kwargs in _IDS.items():
             vector_entry_point="wl_env.vector_env:WheelLoaderVectorEnv",
             kwargs=_kwargs,
         )
+# one decision per cycle: a phase-parametric plan driven on WheelLoaderTarget-v6 (wl_env.plan)
+if "WheelLoaderPlan-v0" not in registry:
+    register(id="WheelLoaderPlan-v0", entry_point="wl_env.plan:WheelLoaderPlanEnv",
+             vector_entry_point="wl_env.plan:WheelLoaderPlanVectorEnv")

@@ -498,6 +498,10 @@ class WheelLoaderEnv(gym.Env):
         values = a.tolist()  # checked as Python floats (numpy calls would cost more); the step clips them
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action must be finite numbers in [-1, 1], got {values}")
+        return self._advance(values)
+
+    def _advance(self, values: list[float]) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One step under the checked action ``values`` (this env's layout; the plan env's driver acts here)."""
         if self.assist:
             y, phase = self._y, self._phase
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,

@@ -190,6 +190,10 @@ class WheelLoaderVectorEnv(VectorEnv):
         if not np.all(np.isfinite(a)):
             bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1)).tolist()
             raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
+        return self._advance(a)
+
+    def _advance(self, a: np.ndarray):
+        """One step under the checked actions ``a`` (N, this env's actions; the plan env's driver acts here)."""
         resetting = self._needs_reset.copy()
         t0 = self._t.copy()
         if self.assist:

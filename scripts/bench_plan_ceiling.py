@@ -1,0 +1,120 @@
+"""How close the plan driver of ``WheelLoaderPlan-v0`` can come to the optimum: its 14 numbers searched per
+scenario and target by CMA-ES (pycma), nothing learned. A policy over the scenarios can only approach this.
+
+    pip install cma
+    python scripts/bench_plan_ceiling.py --braking service --scenarios 0 1 2 3 --ratios 1.0 1.15 1.5 [--json PATH]
+
+Each search runs ``--generations`` generations of ``--population`` cycles on the plan's vector env with the
+scenario fixed (the ``test`` suite's i-th of the braking) and its target the ratio times the scenario's
+T_min (its shipped optimum). A plan's cost is the fuel (g) plus ``--late-cost`` g per 1 % of lateness; a
+failed or violating cycle costs 10^4. The best plan's cycle is scored against the scenario's own optimum at
+its cycle time (the one scoring of the project).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+log = logging.getLogger("bench_plan_ceiling")
+
+
+@dataclass
+class Options:
+    braking: str = "service"
+    scenarios: tuple[int, ...] = (0, 1, 2, 3)  # indices among the test suite's scenarios of the braking
+    ratios: tuple[float, ...] = (1.0, 1.15, 1.5)  # target / T_min
+    generations: int = 150
+    population: int = 32
+    late_cost: float = 30.0  # g per 1 % of lateness
+    seed: int = 1
+    json: Path | None = None
+
+
+@dataclass
+class Ceiling:
+    """The best plan found for one scenario and target."""
+
+    scenario: int
+    ratio: float
+    target_time: float  # s
+    T: float  # s
+    fuel_g: float
+    fuel_gap: float | None  # against the optimum at T (None: no plan completed the cycle)
+    lateness: float | None
+    search_s: float
+    plan: list[float] = field(default_factory=list)
+
+
+def search(o: Options, index: int, ratio: float) -> Ceiling:
+    import cma
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+    from mpc.benchmark.reference import min_time_of
+    from mpc.benchmark.scoring import score_run
+    from wl_env.plan import N_PLAN_ACTIONS
+    from wl_env.suites import load_suite
+
+    scenario = [s for s in load_suite("test").scenarios if s.braking == o.braking][index]
+    env = gym.make_vec("WheelLoaderPlan-v0", num_envs=o.population, vectorization_mode="vector_entry_point",
+                       braking=o.braking, scenario=scenario)
+    native = env.unwrapped
+    params = scenario.params(native.machine)
+    target = ratio * min_time_of(o.braking, params, solve=False)
+    es = cma.CMAEvolutionStrategy(np.zeros(N_PLAN_ACTIONS), 0.5, {"bounds": [-1, 1], "popsize": o.population,
+                                                                 "verbose": -9, "seed": o.seed})
+    best: tuple[float, np.ndarray, float, float] | None = None
+    t0 = time.perf_counter()
+    for _ in range(o.generations):
+        plans = np.array(es.ask())
+        env.reset(seed=0)
+        native.target_time[:] = target  # (the env draws its target from the estimate: the optimum's is set)
+        _, _, _, _, info = env.step(plans)
+        late = np.maximum(info["t"] - target, 0.0) / target
+        ok = info["is_success"] & (info["violation"] <= 0.0)
+        cost = np.where(ok, info["fuel_g"] + o.late_cost * 100.0 * late, 1e4)
+        es.tell(list(plans), list(cost))
+        j = int(np.argmin(cost))
+        if ok[j] and (best is None or cost[j] < best[0]):
+            best = (float(cost[j]), plans[j].copy(), float(info["t"][j]), float(info["fuel_g"][j]))
+    took = time.perf_counter() - t0
+    if best is None:
+        return Ceiling(index, ratio, target, float("nan"), float("nan"), None, None, took)
+    _, plan, T, fuel = best
+    score = score_run(T, fuel, o.braking, params=params, solve=False)
+    return Ceiling(index, ratio, target, T, fuel, score.fuel_gap, max(T - target, 0.0) / target, took,
+                   [round(float(v), 4) for v in plan])
+
+
+def main(o: Options) -> list[Ceiling]:
+    try:
+        import cma  # noqa: F401
+    except ImportError:
+        raise SystemExit("bench_plan_ceiling needs pycma: pip install cma") from None
+    rows = []
+    for index in o.scenarios:
+        for ratio in o.ratios:
+            c = search(o, index, ratio)
+            rows.append(c)
+            gap = "-" if c.fuel_gap is None else f"{100 * c.fuel_gap:+.1f} %"
+            late = "-" if c.lateness is None else f"{100 * c.lateness:.1f} %"
+            print(f"{o.braking} test[{index}] at {ratio:g} T_min ({c.target_time:.2f} s): T {c.T:.2f} s, fuel "
+                  f"{c.fuel_g:.1f} g, fuel gap {gap}, lateness {late} ({c.search_s:.0f} s)", flush=True)
+    if o.json is not None:
+        from wl_env.atomic_io import write_atomic
+
+        write_atomic(o.json, json.dumps({"options": {**asdict(o), "json": str(o.json)},
+                                         "rows": [asdict(r) for r in rows]}, indent=1))
+    return rows
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    main(tyro.cli(Options))

@@ -1,0 +1,211 @@
+"""``WheelLoaderPlan-v0``: the target task with one decision per cycle, a phase-parametric plan.
+
+The per-step learners (WheelLoaderTarget-v0..v6) cruise in gear and lift all the way, where the optimum
+pulses and glides: a short hard acceleration with the bucket held, the shift to neutral early, a long roll
+with the engine at idle while the bucket rises, and a late hard stop (docs/benchmarks.md section 7). No
+per-step learner found that shape in 12-24 M steps. Here it is the driver's structure, and what is learned
+is its numbers: at the cycle's start the agent sees WheelLoaderTarget-v6's observation (the start state,
+the scenario and the target) and picks 14 numbers; the plan driver (:func:`plan_action`) then drives the
+whole cycle on v6's dynamics and assist, one v6 action per 0.1 s, reading only v6's observations.
+
+## Action Space
+
+``Box(-1, 1, (14,), float32)``: seven numbers per leg, the reversing leg (phases 1-2) then the forward leg
+(phases 3-4); each is passed to v6 as it is, or mapped affinely:
+
+| Num (reverse, forward) | In the leg's driving phase (1, 3) or its stop (2, 4) | -1 | +1 |
+|---|---|---|---|
+| 0, 7  | engine-speed request while driving (v6's action 0) | omega_min + 5 rad/s | omega_max |
+| 1, 8  | coasting fraction (v6's action 3: where the leg ends to coast) | 15 % | 95 % of the limit |
+| 2, 9  | braking fraction (v6's action 2) | 50 % | 95 % of the limit |
+| 3, 10 | the bucket is held still (U_ab = -V_b / dt) until this time into the driving phase | 0 s | 4 s |
+| 4, 11 | bucket acceleration asked after that (v6's action 1) | -2.5 m/s^2 | +2.5 m/s^2 |
+| 5, 12 | engine-speed request while stopping (phase 2, 4) | omega_min + 5 rad/s | omega_max |
+| 6, 13 | bucket acceleration asked while stopping | -2.5 m/s^2 | +2.5 m/s^2 |
+
+v6's assist ends the legs, stops the machine on the marks, stops the bucket at the dump height and keeps
+its guards, as under any v6 driver.
+
+## Observation Space
+
+WheelLoaderTarget-v6's at the cycle's start, ``Box((21,), float32)`` (see ``WheelLoaderEnv``): the start
+state, the scenario's features and the target.
+
+## Rewards
+
+The v6 episode's return: the sum of its step rewards (fuel, the target and violation terms, the
+lateness charge).
+
+## Episode End
+
+One step: the cycle driven to v6's end (completed, failed, or truncated at ``max_time``). ``info`` is v6's
+at its last step, ``info["steps"]`` the number of v6 steps.
+
+## Version History
+
+* v0: the 14 numbers above on WheelLoaderTarget-v6.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from wl_env.codec import N_SCENARIO_OBS, Codec
+from wl_env.env import WheelLoaderEnv, action_array
+from wl_env.params import LoaderParams
+from wl_env.vector_env import WheelLoaderVectorEnv
+
+# WheelLoaderTarget-v6's settings, which the plan driver acts through
+V6_SETTINGS = {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
+               "assist": True, "coast": True, "guards": True, "lift_floor": True, "lift_off_load": True}
+PLAN_NUMBERS = ("drive_request", "coast_fraction", "braking_fraction", "hold_time", "drive_bucket",
+                "stop_request", "stop_bucket")  # per leg, in this order (the module's table)
+N_PLAN_ACTIONS = 2 * len(PLAN_NUMBERS)
+MAX_HOLD_TIME = 4.0  # s: the longest bucket hold the plan can ask (the optimum holds 1.5-1.6 s at T_min)
+
+
+def plan_action(plan: np.ndarray, obs: np.ndarray, time_in_phase: np.ndarray, codec: Codec, dt: float) -> np.ndarray:
+    """WheelLoaderTarget-v6's actions (N, 4) of the plan driver: ``plan`` (N, 14) in [-1, 1] (the module's
+    table), ``obs`` (N, 21) v6's observations, ``time_in_phase`` (N,) s since the phase began; ``codec``
+    the machine's (its bucket-acceleration range)."""
+    o = codec.decode_observation(np.asarray(obs, dtype=np.float64)[:, :N_SCENARIO_OBS])
+    phase = np.asarray(o.phase)
+    n = len(phase)
+    k = np.where(phase <= 2, 0, len(PLAN_NUMBERS))[:, None] + np.arange(len(PLAN_NUMBERS))
+    leg = np.clip(np.take_along_axis(np.asarray(plan, dtype=np.float64), k, axis=1), -1.0, 1.0)
+    driving = (phase == 1) | (phase == 3)
+    hold_until = (leg[:, 3] + 1.0) * (0.5 * MAX_HOLD_TIME)
+    lo, hi = codec.params.U_ab_bounds
+    hold = np.clip((-np.asarray(o.bucket_speed) / dt - 0.5 * (hi + lo)) / (0.5 * (hi - lo)), -1.0, 1.0)
+    bucket = np.where(driving, np.where(time_in_phase < hold_until - 1e-9, hold, leg[:, 4]), leg[:, 6])
+    actions = np.empty((n, 4))
+    actions[:, 0] = np.where(driving, leg[:, 0], leg[:, 5])
+    actions[:, 1] = bucket
+    actions[:, 2] = leg[:, 2]
+    actions[:, 3] = leg[:, 1]
+    return actions
+
+
+def v6_arguments(kwargs: dict[str, Any], signature_of: Any) -> dict[str, Any]:
+    """The arguments of the v6 env under a plan env: ``kwargs`` (``signature_of``'s, v6's settings left as
+    they are; ValueError naming any other) with v6's settings."""
+    import inspect
+
+    known = set(inspect.signature(signature_of).parameters) - {"self", "num_envs"}
+    unknown = sorted(set(kwargs) - known)
+    if unknown:
+        raise ValueError(f"WheelLoaderPlan-v0 takes no argument(s) {unknown}; known: {sorted(known - set(V6_SETTINGS))}")
+    fixed = sorted(k for k in V6_SETTINGS if k in kwargs and kwargs[k] != V6_SETTINGS[k])
+    if fixed:
+        raise ValueError(f"WheelLoaderPlan-v0 drives WheelLoaderTarget-v6: {', '.join(fixed)} cannot be changed")
+    return {**kwargs, **V6_SETTINGS}
+
+
+def _check_plan(action: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    a = action_array(action, name)
+    if a.shape != shape:
+        raise ValueError(f"{name} must have shape {shape} (the plan's {N_PLAN_ACTIONS} numbers, wl_env.plan), "
+                         f"got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite numbers in [-1, 1], got non-finite entries")
+    return np.clip(a, -1.0, 1.0)
+
+
+class PlanDriver:
+    """The plan driver as a controller of WheelLoaderTarget-v6 (one loader): ``act(obs)`` gives v6's action
+    under ``plan`` (14 numbers), counting the time in each phase from the observations it is shown."""
+
+    def __init__(self, plan: Any, params: LoaderParams | None = None, dt: float = 0.1) -> None:
+        self.plan = _check_plan(plan, (N_PLAN_ACTIONS,), "plan")[None]
+        self.codec = Codec(params, observe_scenario=True)
+        self.dt = dt
+        self.reset()
+
+    def reset(self) -> None:
+        self._phase, self._time_in_phase = 0, 0.0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        phase = int(np.argmax(np.asarray(obs)[8:12])) + 1
+        if phase != self._phase:
+            self._phase, self._time_in_phase = phase, 0.0
+        action = plan_action(self.plan, np.asarray(obs)[None], np.array([self._time_in_phase]), self.codec, self.dt)[0]
+        self._time_in_phase += self.dt
+        return action.astype(np.float32)
+
+
+class WheelLoaderPlanEnv(WheelLoaderEnv):
+    def __init__(self, **kwargs: Any) -> None:  # (WheelLoaderEnv's arguments)
+        super().__init__(**v6_arguments(kwargs, WheelLoaderEnv.__init__))
+        self.action_space = spaces.Box(-1.0, 1.0, (N_PLAN_ACTIONS,), np.float32)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        if not self._y or self._done:
+            return super().step(action)  # (its RuntimeError: reset first)
+        driver = PlanDriver(_check_plan(action, (N_PLAN_ACTIONS,), "action"), self.machine, self.core.dt)
+        total, steps, obs = 0.0, 0, self._obs()
+        while True:
+            obs, reward, terminated, truncated, info = self._advance([float(v) for v in driver.act(obs)])
+            total, steps = total + reward, steps + 1
+            if terminated or truncated:
+                return obs, total, terminated, truncated, {**info, "steps": steps}
+
+
+class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
+    """N loaders of ``WheelLoaderPlan-v0`` (the same arguments as the single env), each step one whole cycle
+    per loader, stepped together (the next step resets them all, as gymnasium's next-step autoreset)."""
+
+    def __init__(self, num_envs: int = 1, **kwargs: Any) -> None:
+        super().__init__(num_envs, **v6_arguments(kwargs, WheelLoaderVectorEnv.__init__))
+        self.single_action_space = spaces.Box(-1.0, 1.0, (N_PLAN_ACTIONS,), np.float32)
+        from gymnasium.vector.utils import batch_space
+
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self.driver_codec = Codec(self.machine, observe_scenario=True)
+
+    def step(self, actions: Any):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        n = self.num_envs
+        plan = _check_plan(actions, (n, N_PLAN_ACTIONS), "actions")
+        if self._needs_reset.any():  # (the one-step episodes all ended: they start anew, their plans unused)
+            self._reset_where(self._needs_reset)
+            zeros = np.zeros(n, dtype=bool)
+            return self._obs(), np.zeros(n), zeros, zeros.copy(), {}
+        dt = self.core.dt
+        total, steps = np.zeros(n), np.zeros(n, dtype=np.int64)
+        done = np.zeros(n, dtype=bool)
+        terminated, truncated = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        last: dict[str, np.ndarray] = {}
+        max_violation = np.zeros(n)
+        time_in_phase, phase = np.zeros(n), self._phase.copy()
+        obs = self._obs()
+        while not done.all():
+            kept = (self._y, self._phase, self._t, self._rev_err, self._violation)
+            _, reward, term, trunc, info = self._advance(plan_action(plan, obs, time_in_phase, self.driver_codec, dt))
+            if done.any():  # (the loaders that have ended stay as they ended: their steps are not kept)
+                self._y = tuple(np.where(done, a, b) for a, b in zip(kept[0], self._y, strict=True))
+                self._phase, self._t, self._rev_err, self._violation = (
+                    np.where(done, a, b) for a, b in zip(kept[1:], (self._phase, self._t, self._rev_err, self._violation),
+                                                         strict=True))
+            running = ~done
+            total += np.where(running, reward, 0.0)
+            steps += running
+            max_violation = np.where(running, np.maximum(max_violation, info["violation"]), max_violation)
+            ended = running & (term | trunc)
+            for key, value in info.items():
+                last[key] = np.where(ended, value, last[key]) if key in last else value.copy()
+            terminated |= ended & term
+            truncated |= ended & trunc & ~term
+            done |= ended
+            self._needs_reset[:] = False  # (no autoreset inside the cycle)
+            time_in_phase = np.where(self._phase != phase, 0.0, time_in_phase + dt)
+            phase = self._phase.copy()
+            obs = self._obs()
+        self._needs_reset[:] = True
+        return obs, total, terminated, truncated, {**last, "violation": max_violation, "steps": steps}
+
+
+WheelLoaderPlanEnv.__doc__ = __doc__  # (Gymnasium's convention: the env's docstring holds its tables)
