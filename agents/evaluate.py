@@ -36,11 +36,12 @@ from wl_env.scenario import Scenario, resolve_scenario
 
 log = logging.getLogger(__name__)
 
-BUILTIN_CONTROLLERS = ("ppo", "bc", "operator", "mpc")
+BUILTIN_CONTROLLERS = ("ppo", "plan", "bc", "operator", "mpc")
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
 # the shipped policies: PPO on the paper's cycle (WheelLoader-v1), and the target-conditioned PPO and
 # behaviour-cloned (imitation) policies of the target task (the env each was trained on is in its metadata)
-SHIPPED_POLICIES = {"ppo": "ppo_{braking}", "ppo-target": "ppo_target_{braking}", "bc": "bc_target_{braking}"}
+SHIPPED_POLICIES = {"ppo": "ppo_{braking}", "ppo-target": "ppo_target_{braking}", "plan": "plan_target_{braking}",
+                    "bc": "bc_target_{braking}"}
 
 
 def default_policy_path(braking: str, kind: str = "ppo") -> Path:
@@ -59,7 +60,8 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     ``"ppo"`` loads ``model`` (default: the shipped ``agents/policies/ppo_<braking>``, trained on the paper's
     cycle, or with ``targeted`` (an evaluation at target cycle times) the target-conditioned
     ``ppo_target_<braking>``; a pickle-free policy, or with ``trust_pickle`` a stable-baselines3 zip you
-    trust, see :func:`agents.ppo.load_policy`); ``"bc"`` the imitation baseline ``bc_target_<braking>``
+    trust, see :func:`agents.ppo.load_policy`); ``"plan"`` the target-conditioned PPO of one plan per cycle
+    (``plan_target_<braking>``, WheelLoaderPlan-v0) or ``model``; ``"bc"`` the imitation baseline ``bc_target_<braking>``
     (behaviour cloning of the MPC, :mod:`agents.imitation`, then PPO fine-tuning) or ``model``; ``"operator"``
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes
@@ -72,11 +74,11 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     spec = spec.strip()
     if model is not None and not str(model).strip():  # (Path("") is the working folder: it searched there)
         raise ValueError("--model must name a policy (PATH.safetensors, ...), got an empty string")
-    if spec in ("ppo", "bc"):
-        kind = "bc" if spec == "bc" else "ppo-target" if targeted else "ppo"
+    if spec in ("ppo", "plan", "bc"):
+        kind = spec if spec in ("plan", "bc") else "ppo-target" if targeted else "ppo"
         return _load_ppo(braking, model, trust_pickle, kind)
     if trust_pickle:
-        raise ValueError(f"--trust-pickle is for --controller ppo or bc (the policy file it loads), not {spec!r}")
+        raise ValueError(f"--trust-pickle is for --controller ppo, plan or bc (the policy file it loads), not {spec!r}")
     if spec in ("operator", "mpc") and model is not None:
         raise ValueError(f"--model is for learned controllers (ppo, module:Class), not {spec!r}")
     if spec == "operator":
@@ -98,6 +100,7 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind:
     if model is None and not path.exists():
         how = {"ppo": f"wl train --braking {braking} --export PATH",
                "ppo-target": f"wl train --braking {braking} --env-id WheelLoaderTarget-v6 --scenario train --export PATH",
+               "plan": f"wl train --braking {braking} --env-id WheelLoaderPlan-v0 --scenario train --export PATH",
                "bc": f"python scripts/train_bc.py --braking {braking} --export PATH"}[kind]
         raise FileNotFoundError(f"no shipped policy at {path} (make one with `{how}`, then pass --model PATH)")
     from agents.ppo import load_policy

@@ -77,7 +77,7 @@ def suite_mode(args: argparse.Namespace) -> None:
         ("mpc (min time)", lambda: load_controller("mpc", b))], at_targets=lambda b: [("mpc", lambda: MPCController(b))],
         targets=TARGETS[1:])
     for r in learned["rows"]:
-        kind = {"ppo (target-conditioned)": "ppo-target", "bc (imitation)": "bc"}.get(r["controller"])
+        kind = {"ppo (target-conditioned)": "ppo-target", "ppo (plan)": "plan", "bc (imitation)": "bc"}.get(r["controller"])
         if kind:
             meta = json.loads(default_policy_path(r["braking"], kind).with_suffix(".json").read_text())
             r.update(training_wall_time_s=meta.get("training_wall_time_s"), num_timesteps=meta.get("num_timesteps"))

@@ -477,10 +477,11 @@ def test_a_scenario_file_named_with_spaces_around_it(tmp_path, capsys):
     assert json.loads((tmp_path / "e.json").read_text())["per_episode"][0]["scenario"]["payload"] == 6000
 
 
-def test_missing_shipped_policy_names_the_path(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("controller,stem", [("ppo", "ppo_tc"), ("plan", "plan_target_tc")])
+def test_missing_shipped_policy_names_the_path(tmp_path, capsys, monkeypatch, controller, stem):
     monkeypatch.setattr("agents.evaluate.POLICY_DIR", tmp_path)
-    code, _, err = _run(capsys, "evaluate", "--controller", "ppo", "--braking", "tc", "--out", tmp_path / "e.json")
-    assert code == 2 and err.count("\n") == 1 and str(tmp_path / "ppo_tc.safetensors") in err
+    code, _, err = _run(capsys, "evaluate", "--controller", controller, "--braking", "tc", "--out", tmp_path / "e.json")
+    assert code == 2 and err.count("\n") == 1 and str(tmp_path / f"{stem}.safetensors") in err
 
 
 @pytest.mark.parametrize("command", SUBCOMMANDS + [None])

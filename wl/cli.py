@@ -499,9 +499,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "aggregated: success (cycle completed, end targets met), cycle time, fuel, constraint "
                        "violation, time gap to the minimum cycle time and fuel gap to the Pareto fuel at the "
                        "same cycle time.")
-    p.add_argument("--controller", required=True, metavar="{ppo,bc,operator,mpc,module:Class}",
-                   help="a built-in controller (ppo: with a target, the target-conditioned policy; bc: the "
-                   "behaviour-cloned MPC), or your class as module:Class or path/to/file.py:Class "
+    p.add_argument("--controller", required=True, metavar="{ppo,plan,bc,operator,mpc,module:Class}",
+                   help="a built-in controller (ppo: with a target, the target-conditioned policy; plan: the "
+                   "target-conditioned policy of one plan per cycle, WheelLoaderPlan-v0; bc: the behaviour-cloned MPC), or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
     p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)

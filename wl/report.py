@@ -70,11 +70,13 @@ TARGETS = (("fastest", 1.0), ("1.15 T_min", 1.15), ("1.5 T_min", 1.5))
 
 def target_controllers(braking: str) -> list[tuple[str, Callable[[], Any]]]:
     """(name, factory) of the shipped target-conditioned controllers (the learned ones), run at each of
-    :data:`TARGETS`: the target-conditioned PPO and the behaviour-cloned MPC, where shipped."""
+    :data:`TARGETS`: the target-conditioned PPO (per step, and one plan per cycle) and the behaviour-cloned MPC,
+    where shipped."""
     from agents.evaluate import default_policy_path, load_controller
 
     out: list[tuple[str, Callable[[], Any]]] = []
-    for name, spec, kind in (("ppo (target-conditioned)", "ppo", "ppo-target"), ("bc (imitation)", "bc", "bc")):
+    for name, spec, kind in (("ppo (target-conditioned)", "ppo", "ppo-target"), ("ppo (plan)", "plan", "plan"),
+                             ("bc (imitation)", "bc", "bc")):
         if default_policy_path(braking, kind).exists():
             out.append((name, lambda spec=spec: load_controller(spec, braking, targeted=True)))
     return out

@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from gymnasium.vector.utils import batch_space
 
 from wl_env.codec import N_SCENARIO_OBS, Codec
 from wl_env.env import WheelLoaderEnv, action_array
@@ -160,8 +161,6 @@ class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
     def __init__(self, num_envs: int = 1, **kwargs: Any) -> None:
         super().__init__(num_envs, **v6_arguments(kwargs, WheelLoaderVectorEnv.__init__))
         self.single_action_space = spaces.Box(-1.0, 1.0, (N_PLAN_ACTIONS,), np.float32)
-        from gymnasium.vector.utils import batch_space
-
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.driver_codec = Codec(self.machine, observe_scenario=True)
 
