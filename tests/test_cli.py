@@ -337,14 +337,15 @@ def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsy
     wl.report.render(results, out)
     first = (out / "leaderboard.md").read_text()
     suite = results["suite"]
-    # the operator's 2 cycles per braking, and the shipped target-conditioned policies' (PPO and the imitation
-    # baseline) at the three targets
-    assert suite["suite"] == "test" and not suite["full"] and len(suite["episodes"]) == 4 + 2 * 2 * 2 * 3
+    # the operator's 2 cycles per braking, and the shipped target-conditioned policies' (PPO per step, PPO of one
+    # plan per cycle and the imitation baseline) at the three targets
+    assert suite["suite"] == "test" and not suite["full"] and len(suite["episodes"]) == 4 + 3 * 2 * 2 * 3
     targeted = [r for r in suite["rows"] if r["target"] is not None]
     assert sorted({r["target"] for r in targeted}) == ["1.15 T_min", "1.5 T_min", "fastest"]
     assert all(r["lateness_median"] is None or r["lateness_median"] >= 0 for r in targeted)
     assert "| ppo (target-conditioned) | tc | 1.15 T_min | 2 |" in first
     assert "| bc (imitation) | service | fastest | 2 |" in first
+    assert "| ppo (plan) | service | 1.5 T_min | 2 |" in first
     assert "## The `test` suite" in first and "a fixed sample of 2 of its 50 scenarios" in first
     # each episode scored against its own scenario's optimum (shipped)
     from mpc.benchmark.reference import shipped_fronts
