@@ -1,6 +1,7 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
-``import wl_env`` registers ``WheelLoaderTarget-v6`` (v5 whose TC lift-off loads the engine with a full lift),
+``import wl_env`` registers ``WheelLoaderPlan-v0`` (one plan per cycle, driven on v6: :mod:`wl_env.plan`),
+``WheelLoaderTarget-v6`` (v5 whose TC lift-off loads the engine with a full lift),
 ``WheelLoaderTarget-v5`` (v4 whose assist keeps an idling engine clear of a stall under the lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
 its mark moves on, the lift reaches the dump height, and with TC braking the shift into forward gear keeps the
 deceleration limit), ``WheelLoaderTarget-v3`` (v2 whose driver may also end a leg early: the
