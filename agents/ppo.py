@@ -62,7 +62,7 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import COAST_ENV_IDS, PLAN_ENV_IDS, TARGET_ENV_IDS, PPOConfig
+from agents.ppo_config import COAST_ENV_IDS, PLAN_ENV_IDS, TARGET_ENV_IDS, TARGETED_ENV_IDS, PPOConfig
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
@@ -71,7 +71,7 @@ from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
 from wl_env.plan import N_PLAN_ACTIONS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
-N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGET_ENV_IDS + PLAN_ENV_IDS, N_TARGET_OBS)}
+N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGETED_ENV_IDS, N_TARGET_OBS)}
 
 log = logging.getLogger(__name__)
 
@@ -431,7 +431,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
-    if env_id in TARGET_ENV_IDS + PLAN_ENV_IDS:
+    if env_id in TARGETED_ENV_IDS:
         return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
     # own optimum would cost a solve per episode at every evaluation.

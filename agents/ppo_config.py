@@ -25,6 +25,7 @@ TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTa
                   "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6")
 COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 actions)
 PLAN_ENV_IDS = ("WheelLoaderPlan-v0",)  # the target task with one decision per cycle (wl_env.plan): 14 actions
+TARGETED_ENV_IDS = TARGET_ENV_IDS + PLAN_ENV_IDS  # the envs with a target cycle time per episode
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
 MAX_LAYER_WIDTH = 4096  # units per hidden layer: far above what a 12-input policy needs, a guard against typos
@@ -272,8 +273,8 @@ class PPOConfig:
 
     @property
     def targeted(self) -> bool:
-        """Whether the run's env gives each episode a target cycle time (WheelLoaderTarget-v0/v1)."""
-        return self.env_id in TARGET_ENV_IDS + PLAN_ENV_IDS
+        """Whether the run's env gives each episode a target cycle time (:data:`TARGETED_ENV_IDS`)."""
+        return self.env_id in TARGETED_ENV_IDS
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of the run's env (``env_id``, single or vector), without init_noise."""

@@ -13,8 +13,6 @@ its cycle time (the one scoring of the project).
 
 from __future__ import annotations
 
-import json
-import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-log = logging.getLogger("bench_plan_ceiling")
+from wl_env.atomic_io import check_output_file, write_json_atomic
+from wl_env.logs import run_script
 
 
 @dataclass
@@ -62,7 +61,7 @@ def search(o: Options, index: int, ratio: float) -> Ceiling:
     from wl_env.plan import N_PLAN_ACTIONS
     from wl_env.suites import load_suite
 
-    scenario = [s for s in load_suite("test").scenarios if s.braking == o.braking][index]
+    scenario = load_suite("test").of(o.braking)[index]
     env = gym.make_vec("WheelLoaderPlan-v0", num_envs=o.population, vectorization_mode="vector_entry_point",
                        braking=o.braking, scenario=scenario)
     native = env.unwrapped
@@ -93,7 +92,28 @@ def search(o: Options, index: int, ratio: float) -> Ceiling:
                    [round(float(v), 4) for v in plan])
 
 
+def check(o: Options) -> None:
+    """ValueError naming the option and its range (before any search)."""
+    from wl_env.cycle import check_braking
+    from wl_env.suites import load_suite
+
+    check_braking(o.braking)
+    n = len(load_suite("test").of(o.braking))
+    if not o.scenarios or not all(0 <= i < n for i in o.scenarios):
+        raise ValueError(f"--scenarios must be indices in [0, {n - 1}] (the test suite's {o.braking} cycles), got {o.scenarios}")
+    if not o.ratios or not all(1.0 <= r <= 3.0 for r in o.ratios):
+        raise ValueError(f"--ratios must be target ratios to T_min in [1, 3], got {o.ratios}")
+    for name, lo, hi in (("generations", 1, 10_000), ("population", 2, 4096)):
+        if not lo <= getattr(o, name) <= hi:
+            raise ValueError(f"--{name} must be an integer in [{lo}, {hi}], got {getattr(o, name)}")
+    if not 0.0 <= o.late_cost < float("inf"):
+        raise ValueError(f"--late-cost must be a finite number >= 0 (g per 1 % of lateness), got {o.late_cost}")
+
+
 def main(o: Options) -> list[Ceiling]:
+    check(o)
+    if o.json is not None:
+        check_output_file(o.json, "--json")
     try:
         import cma  # noqa: F401
     except ImportError:
@@ -108,13 +128,9 @@ def main(o: Options) -> list[Ceiling]:
             print(f"{o.braking} test[{index}] at {ratio:g} T_min ({c.target_time:.2f} s): T {c.T:.2f} s, fuel "
                   f"{c.fuel_g:.1f} g, fuel gap {gap}, lateness {late} ({c.search_s:.0f} s)", flush=True)
     if o.json is not None:
-        from wl_env.atomic_io import write_atomic
-
-        write_atomic(o.json, json.dumps({"options": {**asdict(o), "json": str(o.json)},
-                                         "rows": [asdict(r) for r in rows]}, indent=1))
+        write_json_atomic(o.json, {"options": asdict(o), "rows": [asdict(r) for r in rows]})
     return rows
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO)
-    main(tyro.cli(Options))
+    run_script("bench_plan_ceiling", lambda: main(tyro.cli(Options)))

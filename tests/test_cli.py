@@ -318,7 +318,9 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_mumps_ordering.py", "--scenarios", "0"], "nothing to run: --scenarios 0 without --corners"),
     (["bench_draws.py", "--modes", "time", "0.9"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
     (["bench_draws.py", "--modes", "fast"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
-    (["bench_draws.py", "--draws", "0"], "--draws must be an integer in [1, 1000]")])
+    (["bench_draws.py", "--draws", "0"], "--draws must be an integer in [1, 1000]"),
+    (["bench_plan_ceiling.py", "--scenarios", "50"], "--scenarios must be indices in [0, 49]"),  # (an IndexError)
+    (["bench_plan_ceiling.py", "--ratios", "0.5"], "--ratios must be target ratios to T_min in [1, 3]")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
