@@ -1,7 +1,6 @@
 """How close the plan driver of ``WheelLoaderPlan-v0`` can come to the optimum: its 14 numbers searched per
 scenario and target by CMA-ES (pycma), nothing learned. A policy over the scenarios can only approach this.
 
-    pip install cma
     python scripts/bench_plan_ceiling.py --braking service --scenarios 0 1 2 3 --ratios 1.0 1.15 1.5 [--json PATH]
 
 Each search runs ``--generations`` generations of ``--population`` cycles on the plan's vector env with the
@@ -114,10 +113,6 @@ def main(o: Options) -> list[Ceiling]:
     check(o)
     if o.json is not None:
         check_output_file(o.json, "--json")
-    try:
-        import cma  # noqa: F401
-    except ImportError:
-        raise SystemExit("bench_plan_ceiling needs pycma: pip install cma") from None
     rows = []
     for index in o.scenarios:
         for ratio in o.ratios:
