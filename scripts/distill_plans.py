@@ -73,6 +73,8 @@ def check(o: Options) -> None:
     if not 0.0 < o.learning_rate <= 1.0:
         raise ValueError(f"--learning-rate must lie in (0, 1], got {o.learning_rate!r}")
     check_output_file(Path(f"{o.out}.json"), "--out")
+    if o.demos is not None:
+        check_output_file(o.demos, "--demos")
 
 
 def plan_env(config: Any, num_envs: int):
@@ -207,7 +209,7 @@ def fit(policy: Any, s: Searches, o: Options) -> dict[str, float]:
     return {"validation_mse_before": val0, "validation_mse_after": best_val, "best_epoch": best_epoch}
 
 
-def check_policy(env: Any, policy: Any, o: Options) -> dict[str, float]:
+def fresh_draw_scores(env: Any, policy: Any, o: Options) -> dict[str, float]:
     """The policy's plans on ``o.eval_cycles`` fresh draws (cycles after the searched ones): mean return,
     success rate (no violation) and the median lateness."""
     n = env.unwrapped.num_envs
@@ -251,10 +253,10 @@ def main(o: Options) -> dict[str, Any]:
                  o.cycles, searches.policy_return.mean(), searches.best_return.mean(), 100 * np.mean(gain > 0))
     search_s = time.perf_counter() - t0
     check_env = plan_env(config, min(256, o.eval_cycles))
-    before = check_policy(check_env, policy, o)
+    before = fresh_draw_scores(check_env, policy, o)
     t1 = time.perf_counter()
     fitted = fit(policy, searches, o)
-    after = check_policy(check_env, policy, o)
+    after = fresh_draw_scores(check_env, policy, o)
     record = {"options": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items()},
               "searched": {"cycles": len(searches.obs), "mean_policy_return": float(searches.policy_return.mean()),
                            "mean_best_return": float(searches.best_return.mean()),

@@ -60,6 +60,31 @@ def test_a_rerun_resumes_from_the_searches_and_other_options_are_refused(distill
         dp.main(tiny(out, sigma=0.3))
 
 
+def test_an_interrupted_search_resumes_where_it_stopped_with_the_same_searches(distilled, tmp_path, monkeypatch):
+    """Ctrl-C after the first batch keeps that batch; the rerun searches only the rest, and the searches are those
+    of the uninterrupted run (same seed, same cycles, same CMA-ES draws)."""
+    out, _ = distilled
+    search, calls = dp.search_batch, []
+
+    def once_then_stop(env, policy, first, o):
+        calls.append(first)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return search(env, policy, first, o)
+
+    monkeypatch.setattr(dp, "search_batch", once_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        dp.main(tiny(tmp_path / "d"))
+    assert not Path(f"{tmp_path / 'd'}.json").exists()  # no policy from a stopped run
+    calls.clear()
+    monkeypatch.setattr(dp, "search_batch", lambda *a: (calls.append(a[2]), search(*a))[1])
+    dp.main(tiny(tmp_path / "d"))
+    assert calls == [2]  # only the second batch (cycles 2, 3) was searched again
+    resumed, whole = np.load(f"{tmp_path / 'd'}_searches.npz"), np.load(f"{out}_searches.npz")
+    for f in dp.Searches.FIELDS:
+        assert np.array_equal(resumed[f], whole[f]), f
+
+
 @pytest.mark.parametrize("kw, match", [
     ({"cycles": 5}, "multiple of --batch"),
     ({"population": 2}, "--population must be an integer in"),

@@ -204,15 +204,15 @@ def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, bra
     assist with its guards and the lift's engine floor; PPO v6: and with TC braking the lift-off's full load; the
     plan policy: WheelLoaderPlan-v0, one plan per cycle driven on v6)
     through a held-out cycle at a 1.5 T_min target with its marks met and no violation; its metadata records how it
-    was made, stage by stage, the last stage's command the policy's own (PPO: one run from scratch on v6; the
-    imitation baseline: the MPC episodes, the clone, the v3, v4 and v5 fine-tunings)."""
+    was made, stage by stage, the last stage's command the policy's own (PPO: one run from scratch on v6; the plan policy: PPO
+    from scratch, then on from it; the imitation baseline: the MPC episodes, the clone, the v3, v4 and v5 fine-tunings)."""
     from agents.evaluate import default_policy_path, evaluate_controller
     from wl_env.suites import load_suite
 
     policy = load_policy(default_policy_path(braking, kind))
     assert policy.env_id == SHIPPED_ENV[kind] and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
-    earlier = 4 if kind == "bc" else 0  # (stages before its own run, with commands)
+    earlier = {"bc": 4, "plan": 1}.get(kind, 0)  # (stages before its own run, with commands)
     assert [bool(stage.get("commands")) for stage in policy.meta["stages"]] == [True] * earlier + [False]
     scenario = load_suite("test").of(braking)[0]
     e = evaluate_controller(policy, braking, scenarios=[scenario], target_ratio=1.5, solve=False)["per_episode"][0]
