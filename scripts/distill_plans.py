@@ -252,11 +252,11 @@ def main(o: Options) -> dict[str, Any]:
         log.info("%d / %d cycles searched: return %+.3f -> %+.3f (mean), improved on %.0f %%", len(searches.obs),
                  o.cycles, searches.policy_return.mean(), searches.best_return.mean(), 100 * np.mean(gain > 0))
     search_s = time.perf_counter() - t0
-    check_env = plan_env(config, min(256, o.eval_cycles))
-    before = fresh_draw_scores(check_env, policy, o)
+    fresh_env = plan_env(config, min(256, o.eval_cycles))
+    before = fresh_draw_scores(fresh_env, policy, o)
     t1 = time.perf_counter()
     fitted = fit(policy, searches, o)
-    after = fresh_draw_scores(check_env, policy, o)
+    after = fresh_draw_scores(fresh_env, policy, o)
     record = {"options": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(o).items()},
               "searched": {"cycles": len(searches.obs), "mean_policy_return": float(searches.policy_return.mean()),
                            "mean_best_return": float(searches.best_return.mean()),
