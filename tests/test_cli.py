@@ -320,7 +320,11 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_draws.py", "--modes", "fast"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
     (["bench_draws.py", "--draws", "0"], "--draws must be an integer in [1, 1000]"),
     (["bench_plan_ceiling.py", "--scenarios", "50"], "--scenarios must be indices in [0, 49]"),  # (an IndexError)
-    (["bench_plan_ceiling.py", "--ratios", "0.5"], "--ratios must be target ratios to T_min in [1, 3]")])
+    (["bench_plan_ceiling.py", "--ratios", "0.5"], "--ratios must be target ratios to T_min in [1, 3]"),
+    (["bench_plan_env.py", "--num-envs", "0"], "--num-envs must be integers in [1, 16384]"),
+    (["bench_plan_env.py", "--rounds", "0"], "--rounds must be an integer in [1, 100]"),
+    (["train_plan_policy.py", "--cycles", "16"], "--cycles, --log-std-init and --log-std-final must give one value per stage"),
+    (["train_plan_policy.py", "--braking", "moon"], "braking must be one of")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys

@@ -1,0 +1,178 @@
+"""Train a plan policy (``agents/policies/plan_target_<braking>``) as shipped: PPO on ``WheelLoaderPlan-v0`` over
+the ``train`` suite's draws, in stages, each from the stage before's policy with less exploration noise.
+
+    python scripts/train_plan_policy.py --braking tc --seed 0                       # runs/plan_tc_s0_stage{1,2,3}
+    python scripts/train_plan_policy.py --braking tc --seed 0 --export agents/policies/plan_target_tc \\
+        --curve docs/learning_curve_plan_target_tc                                  # and ship it
+
+Stage k is the run ``<log-dir>/plan_<braking>_s<seed>_stage<k>`` of ``scripts/train_ppo.py`` (its config, checkpoints,
+``eval.csv``), with the recipe below and the stage's cycles and log-std schedule. Run again, the script keeps the
+finished stages and resumes an interrupted one from its newest checkpoint, so a killed job loses at most
+``--checkpoint-freq`` cycles. ``--export`` ships the last stage's policy with every stage's run, cycles, wall time
+and command in its metadata (``stages``); ``--curve`` writes the learning curve over all stages (CSV and PNG).
+
+The recipe (docs/benchmarks.md section 7): 2048 loaders, one cycle each per rollout (a plan env step drives every
+loader's whole cycle together, and its cost barely grows with the loaders: ``scripts/bench_plan_env.py``), minibatch
+512, a (256, 256) network, the fuel weight 8, the lateness charge 50 per unit of relative lateness.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shlex
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from wl_env.atomic_io import check_output_folder, write_json_atomic
+from wl_env.logs import run_script
+
+log = logging.getLogger("train_plan_policy")
+
+# PPOConfig fields every stage shares (scripts/train_ppo.py's flags of the same names)
+RECIPE = {"env_id": "WheelLoaderPlan-v0", "scenario": "train", "init_noise": 0.0, "n_steps": 1, "batch_size": 512,
+          "w_fuel": 8.0, "curriculum_fraction": 0.0, "net_arch": (256, 256), "torch_threads": 1, "progress_bar": False,
+          "reward": {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0, "violation": 100.0, "late": 50.0}}
+
+
+@dataclass
+class Options:
+    braking: str = "service"
+    seed: int = 0
+    log_dir: str = "runs"
+    cycles: tuple[int, ...] = (500_000, 500_000, 1_000_000)  # per stage
+    log_std_init: tuple[float, ...] = (-1.0, -3.0, -4.0)  # per stage: the Gaussian's log std at the stage's start
+    log_std_final: tuple[float, ...] = (-3.5, -4.0, -5.0)  # per stage: its cap at the stage's end (annealed)
+    num_envs: int = 2048  # loaders per rollout (one cycle each)
+    eval_freq: int = 100_000  # cycles between evaluations (the learning curve's points)
+    eval_episodes: int = 8
+    checkpoint_freq: int = 100_000  # cycles
+    time_limit: float = 3000.0  # s of wall time per stage (0: none)
+    score: bool = True  # score the evaluations against the optimum (--no-score: no Pareto front solved or read)
+    export: str | None = None  # ship the last stage's policy as EXPORT.safetensors, ... (agents.ppo.export_policy)
+    export_episodes: int = 100  # the shipped metadata's evaluation
+    curve: str | None = None  # write the learning curve over the stages to CURVE.csv and CURVE.png
+
+
+def stage_configs(o: Options) -> list:
+    """Each stage's PPOConfig (ConfigError naming a field out of its range)."""
+    from agents.ppo_config import PPOConfig
+
+    n = len(o.cycles)
+    if n == 0 or len(o.log_std_init) != n or len(o.log_std_final) != n:
+        raise ValueError(f"--cycles, --log-std-init and --log-std-final must give one value per stage (1 or more), "
+                         f"got {len(o.cycles)}, {len(o.log_std_init)} and {len(o.log_std_final)}")
+    configs = []
+    for k in range(n):
+        name = f"plan_{o.braking}_s{o.seed}_stage{k + 1}"
+        configs.append(PPOConfig(
+            **RECIPE, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
+            num_envs=o.num_envs, log_std_init=o.log_std_init[k], log_std_final=o.log_std_final[k],
+            eval_freq=o.eval_freq, eval_episodes=o.eval_episodes, checkpoint_freq=o.checkpoint_freq,
+            time_limit=o.time_limit, score=o.score, init_policy=str(configs[-1].run_dir) if configs else ""))
+    return configs
+
+
+def train_stages(o: Options) -> list[dict]:
+    """Train the stages not finished yet (resuming an interrupted one); the stages' summaries."""
+    from agents.ppo import latest_checkpoint, read_run_config, train
+
+    command = "python scripts/train_plan_policy.py " + " ".join(map(shlex.quote, sys.argv[1:]))
+    summaries = []
+    for k, cfg in enumerate(stage_configs(o)):
+        final = cfg.run_dir / "final" / "summary.json"
+        if (cfg.run_dir / "config.json").exists():  # (a stage kept or resumed must be this recipe's, not another's)
+            saved, _ = read_run_config(cfg.run_dir / "config.json")
+            other = sorted(f for f, v in cfg.to_dict().items()
+                           if f not in ("progress_bar", "log_dir", "init_policy") and saved.to_dict()[f] != v)
+            if other:
+                raise ValueError(f"{cfg.run_dir} holds stage {k + 1} of other settings ({', '.join(other)}): "
+                                 f"another --log-dir, or remove it")
+        if final.exists():
+            log.info("stage %d: %s finished, kept", k + 1, cfg.run_dir)
+        else:
+            resume = latest_checkpoint(cfg.run_dir) is not None
+            log.info("stage %d: %s %s", k + 1, "resuming" if resume else "training", cfg.run_dir)
+            train(cfg, resume=resume, command=f"{command}  # stage {k + 1}")
+        summaries.append(json.loads(final.read_text()))
+    return summaries
+
+
+def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
+    """The learning curve over the stages: each stage's ``eval.csv`` rows, its steps and wall time counted on from
+    the stages before (a stage's first row, its start policy, is the stage before's last)."""
+    from agents.ppo import read_eval_csv
+
+    rows: list[dict] = []
+    steps = wall = 0.0
+    for k, (cfg, summary) in enumerate(zip(stage_configs(o), summaries, strict=True)):
+        for i, row in enumerate(read_eval_csv(cfg.run_dir / "eval.csv")):
+            if k > 0 and i == 0:
+                continue
+            rows.append({**row, "step": row["step"] + steps, "wall_time": row["wall_time"] + wall})
+        steps += summary["num_timesteps"]
+        wall += summary["wall_time"]
+    if not rows:
+        raise ValueError(f"no evaluation rows in the stages' eval.csv under {o.log_dir} (--eval-freq {o.eval_freq})")
+    csv_path, png_path = path.with_name(path.name + ".csv"), path.with_name(path.name + ".png")
+    tmp = csv_path.with_name(csv_path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(csv_path)
+    title = f"plan policy ({o.braking}): PPO on WheelLoaderPlan-v0, {len(summaries)} stages, seed {o.seed}"
+    subprocess.run([sys.executable, str(Path(__file__).with_name("plot_learning_curve.py")), str(csv_path), "--braking",
+                    o.braking, "--out", str(png_path), "--title", title, *([] if o.score else ["--no-front"])],
+                   check=True, capture_output=True)
+
+
+def export(o: Options, summaries: list[dict]) -> dict:
+    """Ship the last stage's policy with every stage in its metadata."""
+    from agents.ppo import export_policy
+
+    configs = stage_configs(o)
+    stages = [{"run": str(cfg.run_dir), "num_timesteps": int(s["num_timesteps"]), "wall_time_s": round(float(s["wall_time"]), 1),
+               "log_std": [cfg.log_std_init, cfg.log_std_final], "commands": list(s.get("commands", []))}
+              for cfg, s in zip(configs, summaries, strict=True)]
+    path = Path(o.export)
+    method = (f"PPO on WheelLoaderPlan-v0 (one plan of 14 numbers per cycle, driven on WheelLoaderTarget-v6) over the "
+              f"train suite's draws, targets T_min..2.5 T_min, in {len(stages)} stages "
+              f"({' + '.join(f'{c:,}' for c in o.cycles)} cycles), each from the stage before's policy with less "
+              f"exploration noise; seed {o.seed} (scripts/train_plan_policy.py)")
+    return export_policy(configs[-1].run_dir, path.parent, path.name, n_episodes=o.export_episodes, score=False, extra={
+        "num_timesteps": sum(s["num_timesteps"] for s in stages),
+        "training_wall_time_s": round(sum(s["wall_time_s"] for s in stages), 1),
+        "stages": stages, "method": method})
+
+
+def main(o: Options) -> dict:
+    stage_configs(o)  # (every option checked before any work)
+    if not 1 <= o.export_episodes <= 10_000:
+        raise ValueError(f"--export-episodes must be an integer in [1, 10000], got {o.export_episodes}")
+    for name in ("export", "curve"):
+        if getattr(o, name) is not None and not getattr(o, name).strip():
+            raise ValueError(f"--{name} must name a path, got an empty string")
+    check_output_folder(o.log_dir, f"--log-dir {o.log_dir}")
+    for name in ("export", "curve"):
+        if getattr(o, name) is not None:
+            check_output_folder(Path(getattr(o, name)).parent, f"--{name} {getattr(o, name)}")
+    summaries = train_stages(o)
+    out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],
+           "wall_time_s": sum(s["wall_time"] for s in summaries)}
+    if o.curve:
+        write_curve(o, summaries, Path(o.curve))
+    if o.export:
+        out["export"] = export(o, summaries)["files"]
+    write_json_atomic(Path(o.log_dir) / f"plan_{o.braking}_s{o.seed}_stages.json", out)
+    print(json.dumps(out, indent=2, default=str))
+    return out
+
+
+if __name__ == "__main__":
+    run_script("train_plan_policy", lambda: main(tyro.cli(Options)))
