@@ -1,7 +1,7 @@
 """Train a plan policy (``agents/policies/plan_target_<braking>``) as shipped: PPO on ``WheelLoaderPlan-v0`` over
 the ``train`` suite's draws, in stages, each from the stage before's policy with less exploration noise.
 
-    python scripts/train_plan_policy.py --braking tc --seed 0                       # runs/plan_tc_s0_stage{1,2,3}
+    python scripts/train_plan_policy.py --braking tc --seed 0                       # runs/plan_tc_s0_stage{1,2}
     python scripts/train_plan_policy.py --braking tc --seed 0 --export agents/policies/plan_target_tc \\
         --curve docs/learning_curve_plan_target_tc                                  # and ship it
 
@@ -30,7 +30,7 @@ from pathlib import Path
 import tyro
 
 from wl_env.atomic_io import check_output_folder, write_json_atomic
-from wl_env.logs import run_script
+from wl_env.logs import cli_logging, run_script
 
 log = logging.getLogger("train_plan_policy")
 
@@ -45,9 +45,9 @@ class Options:
     braking: str = "service"
     seed: int = 0
     log_dir: str = "runs"
-    cycles: tuple[int, ...] = (500_000, 500_000, 1_000_000)  # per stage
-    log_std_init: tuple[float, ...] = (-1.0, -3.0, -4.0)  # per stage: the Gaussian's log std at the stage's start
-    log_std_final: tuple[float, ...] = (-3.5, -4.0, -5.0)  # per stage: its cap at the stage's end (annealed)
+    cycles: tuple[int, ...] = (500_000, 500_000)  # per stage
+    log_std_init: tuple[float, ...] = (-1.0, -3.0)  # per stage: the Gaussian's log std at the stage's start
+    log_std_final: tuple[float, ...] = (-3.5, -4.0)  # per stage: its cap at the stage's end (annealed)
     num_envs: int = 2048  # loaders per rollout (one cycle each)
     eval_freq: int = 100_000  # cycles between evaluations (the learning curve's points)
     eval_episodes: int = 8
@@ -89,7 +89,7 @@ def train_stages(o: Options) -> list[dict]:
         if (cfg.run_dir / "config.json").exists():  # (a stage kept or resumed must be this recipe's, not another's)
             saved, _ = read_run_config(cfg.run_dir / "config.json")
             other = sorted(f for f, v in cfg.to_dict().items()
-                           if f not in ("progress_bar", "log_dir", "init_policy") and saved.to_dict()[f] != v)
+                           if f not in ("progress_bar", "log_dir", "run_name", "init_policy") and saved.to_dict()[f] != v)
             if other:
                 raise ValueError(f"{cfg.run_dir} holds stage {k + 1} of other settings ({', '.join(other)}): "
                                  f"another --log-dir, or remove it")
@@ -175,4 +175,5 @@ def main(o: Options) -> dict:
 
 
 if __name__ == "__main__":
-    run_script("train_plan_policy", lambda: main(tyro.cli(Options)))
+    with cli_logging(names=("agents",)):  # (the stages' evaluation lines, as scripts/train_ppo.py shows them)
+        run_script("train_plan_policy", lambda: main(tyro.cli(Options)))

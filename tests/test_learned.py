@@ -212,8 +212,13 @@ def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, bra
     policy = load_policy(default_policy_path(braking, kind))
     assert policy.env_id == SHIPPED_ENV[kind] and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
-    earlier = {"bc": 4, "plan": 1}.get(kind, 0)  # (stages before its own run, with commands)
-    assert [bool(stage.get("commands")) for stage in policy.meta["stages"]] == [True] * earlier + [False]
+    stages = policy.meta["stages"]
+    if kind == "plan":  # (scripts/train_plan_policy.py: every stage with its commands, the last the policy's own)
+        assert len(stages) == 2 and all(stage["commands"] for stage in stages)
+        assert stages[-1]["commands"] == policy.meta["commands"]
+    else:  # (the stages before its own run, with commands)
+        earlier = {"bc": 4}.get(kind, 0)
+        assert [bool(stage.get("commands")) for stage in stages] == [True] * earlier + [False]
     scenario = load_suite("test").of(braking)[0]
     e = evaluate_controller(policy, braking, scenarios=[scenario], target_ratio=1.5, solve=False)["per_episode"][0]
     assert e["success"] and e["max_violation"] == 0.0, e
