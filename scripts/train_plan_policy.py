@@ -29,7 +29,7 @@ from pathlib import Path
 
 import tyro
 
-from wl_env.atomic_io import check_output_folder, write_json_atomic
+from wl_env.atomic_io import atomic_path, check_output_folder, write_json_atomic
 from wl_env.logs import cli_logging, run_script
 
 log = logging.getLogger("train_plan_policy")
@@ -120,12 +120,10 @@ def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
     if not rows:
         raise ValueError(f"no evaluation rows in the stages' eval.csv under {o.log_dir} (--eval-freq {o.eval_freq})")
     csv_path, png_path = path.with_name(path.name + ".csv"), path.with_name(path.name + ".png")
-    tmp = csv_path.with_name(csv_path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    tmp.replace(csv_path)
     title = f"plan policy ({o.braking}): PPO on WheelLoaderPlan-v0, {len(summaries)} stages, seed {o.seed}"
     subprocess.run([sys.executable, str(Path(__file__).with_name("plot_learning_curve.py")), str(csv_path), "--braking",
                     o.braking, "--out", str(png_path), "--title", title, *([] if o.score else ["--no-front"])],
