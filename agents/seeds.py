@@ -108,6 +108,13 @@ def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str,
     return train(cfg, resume=state == "started", command=command)
 
 
+def train_chain(cfg_dicts: Sequence[dict[str, Any]], commands: Sequence[str | None]) -> list[dict[str, Any]]:
+    """Runs one after another, each (as a rule) starting from the one before's policy: a staged recipe
+    (scripts/train_plan_policy.py); :func:`train_one` each, so finished ones are read back and a started one resumes.
+    Plain data in and out: a Ray task's entry point."""
+    return [train_one(c, command) for c, command in zip(cfg_dicts, commands, strict=True)]
+
+
 def read_summary(path: Path) -> dict[str, Any]:
     """A finished run's summary.json, checked for what :func:`spread` reads (ValueError naming the file): a
     corrupt or tampered one was returned as it was, and failed later without a name or counted a wrong number."""
@@ -147,7 +154,7 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
     for c in cfgs:
         log.info("%s: %s", c.name, run_state(c))
     if ray_address is not None:
-        results = _on_ray(cfgs, command, ray_address)
+        results = on_ray({c.name: (train_one, (c.to_dict(), command)) for c in cfgs}, ray_address)
     elif workers > 1:
         from mpc.workers import run_in_workers
 
@@ -166,14 +173,14 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
     return results
 
 
-def _on_ray(cfgs: Sequence[PPOConfig], command: str | None, address: str) -> dict[str, dict[str, Any]]:
-    """The runs as Ray tasks (one CPU each) writing to their run directories; their summaries."""
+def on_ray(jobs: dict[str, tuple[Any, tuple]], address: str) -> dict[str, Any]:
+    """``{name: (function, arguments)}`` as Ray tasks (one CPU each; the functions write to their run
+    directories); ``{name: result}``. Ctrl-C cancels the tasks still running."""
     from mpc.workers import ray_session
 
     with ray_session(address) as ray:
-        task = ray.remote(num_cpus=1, max_retries=0)(train_one)
-        refs = {task.remote(c.to_dict(), command): c.name for c in cfgs}
-        results: dict[str, dict[str, Any]] = {}
+        refs = {ray.remote(num_cpus=1, max_retries=0)(fn).remote(*args): name for name, (fn, args) in jobs.items()}
+        results: dict[str, Any] = {}
         pending = list(refs)
         try:
             while pending:

@@ -4,12 +4,15 @@ the ``train`` suite's draws, in stages, each from the stage before's policy with
     python scripts/train_plan_policy.py --braking tc --seed 0                       # runs/plan_tc_s0_stage{1,2}
     python scripts/train_plan_policy.py --braking tc --seed 0 --export agents/policies/plan_target_tc \\
         --curve docs/learning_curve_plan_target_tc                                  # and ship it
+    python scripts/train_plan_policy.py --braking tc --seeds 0 1 2 --ray [ADDRESS]  # 3 seeds as Ray tasks
 
 Stage k is the run ``<log-dir>/plan_<braking>_s<seed>_stage<k>`` of ``scripts/train_ppo.py`` (its config, checkpoints,
 ``eval.csv``), with the recipe below and the stage's cycles and log-std schedule. Run again, the script keeps the
 finished stages and resumes an interrupted one from its newest checkpoint, so a killed job loses at most
 ``--checkpoint-freq`` cycles. ``--export`` ships the last stage's policy with every stage's run, cycles, wall time
 and command in its metadata (``stages``); ``--curve`` writes the learning curve over all stages (CSV and PNG).
+``--seeds`` trains several seeds' stages, one seed after another here, or each seed as a Ray task (one CPU) with
+``--ray`` (``local``, or a cluster's address; the same folders, on a shared filesystem).
 
 The recipe (docs/benchmarks.md section 7): 2048 loaders, one cycle each per rollout (a plan env step drives every
 loader's whole cycle together, and its cost barely grows with the loaders: ``scripts/bench_plan_env.py``), minibatch
@@ -24,7 +27,7 @@ import logging
 import shlex
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import tyro
@@ -44,6 +47,8 @@ RECIPE = {"env_id": "WheelLoaderPlan-v0", "scenario": "train", "init_noise": 0.0
 class Options:
     braking: str = "service"
     seed: int = 0
+    seeds: tuple[int, ...] = ()  # these seeds' stages instead of --seed's (not with --export or --curve)
+    ray: str | None = None  # --seeds as Ray tasks on this cluster ("local": a Ray instance on this machine)
     log_dir: str = "runs"
     cycles: tuple[int, ...] = (500_000, 500_000)  # per stage
     log_std_init: tuple[float, ...] = (-1.0, -3.0)  # per stage: the Gaussian's log std at the stage's start
@@ -78,29 +83,24 @@ def stage_configs(o: Options) -> list:
     return configs
 
 
-def train_stages(o: Options) -> list[dict]:
-    """Train the stages not finished yet (resuming an interrupted one); the stages' summaries."""
-    from agents.ppo import latest_checkpoint, read_run_config, train
+def train_stages(o: Options) -> dict[int, list[dict]]:
+    """Train the stages not finished yet of each seed (``--seeds``, else ``--seed``), resuming an interrupted one,
+    reading a finished one back, each refused if made with other settings (:func:`agents.seeds.train_one`); the
+    stages' summaries per seed."""
+    from agents.seeds import on_ray, run_state, train_chain
 
     command = "python scripts/train_plan_policy.py " + " ".join(map(shlex.quote, sys.argv[1:]))
-    summaries = []
-    for k, cfg in enumerate(stage_configs(o)):
-        final = cfg.run_dir / "final" / "summary.json"
-        if (cfg.run_dir / "config.json").exists():  # (a stage kept or resumed must be this recipe's, not another's)
-            saved, _ = read_run_config(cfg.run_dir / "config.json")
-            other = sorted(f for f, v in cfg.to_dict().items()
-                           if f not in ("progress_bar", "log_dir", "run_name", "init_policy") and saved.to_dict()[f] != v)
-            if other:
-                raise ValueError(f"{cfg.run_dir} holds stage {k + 1} of other settings ({', '.join(other)}): "
-                                 f"another --log-dir, or remove it")
-        if final.exists():
-            log.info("stage %d: %s finished, kept", k + 1, cfg.run_dir)
-        else:
-            resume = latest_checkpoint(cfg.run_dir) is not None
-            log.info("stage %d: %s %s", k + 1, "resuming" if resume else "training", cfg.run_dir)
-            train(cfg, resume=resume, command=f"{command}  # stage {k + 1}")
-        summaries.append(json.loads(final.read_text()))
-    return summaries
+    chains = {}
+    for seed in o.seeds or (o.seed,):
+        configs = stage_configs(replace(o, seed=seed))
+        for k, cfg in enumerate(configs):
+            log.info("seed %d, stage %d: %s (%s)", seed, k + 1, cfg.run_dir,
+                     {"done": "finished, kept", "started": "resuming", "new": "training"}[run_state(cfg)])
+        chains[seed] = ([c.to_dict() for c in configs], [f"{command}  # stage {k + 1}" for k in range(len(configs))])
+    if o.ray is not None:
+        done = on_ray({f"seed {seed}": (train_chain, chain) for seed, chain in chains.items()}, o.ray)
+        return {seed: done[f"seed {seed}"] for seed in chains}
+    return {seed: train_chain(*chain) for seed, chain in chains.items()}
 
 
 def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
@@ -149,8 +149,18 @@ def export(o: Options, summaries: list[dict]) -> dict:
         "stages": stages, "method": method})
 
 
-def main(o: Options) -> dict:
+def main(o: Options) -> dict[int, dict]:
+    """Each seed's stages trained (and the one seed's policy shipped, its curve written, if asked); per seed the
+    stages' steps and wall time, also written to ``<log-dir>/plan_<braking>_s<seed>_stages.json``."""
     stage_configs(o)  # (every option checked before any work)
+    if o.seeds and (o.export is not None or o.curve is not None):
+        raise ValueError("--export and --curve ship one seed's policy: give it by --seed, not --seeds")
+    if len(set(o.seeds)) != len(o.seeds) or not all(0 <= seed < 2**31 for seed in o.seeds):
+        raise ValueError(f"--seeds must be distinct integers in [0, 2**31 - 1], got {o.seeds}")
+    if o.ray is not None:
+        from mpc.workers import check_ray_address
+
+        check_ray_address(o.ray)
     if not 1 <= o.export_episodes <= 10_000:
         raise ValueError(f"--export-episodes must be an integer in [1, 10000], got {o.export_episodes}")
     for name in ("export", "curve"):
@@ -160,16 +170,18 @@ def main(o: Options) -> dict:
     for name in ("export", "curve"):
         if getattr(o, name) is not None:
             check_output_folder(Path(getattr(o, name)).parent, f"--{name} {getattr(o, name)}")
-    summaries = train_stages(o)
-    out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],
-           "wall_time_s": sum(s["wall_time"] for s in summaries)}
-    if o.curve:
-        write_curve(o, summaries, Path(o.curve))
-    if o.export:
-        out["export"] = export(o, summaries)["files"]
-    write_json_atomic(Path(o.log_dir) / f"plan_{o.braking}_s{o.seed}_stages.json", out)
-    print(json.dumps(out, indent=2, default=str))
-    return out
+    results = {}
+    for seed, summaries in train_stages(o).items():
+        out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],
+               "wall_time_s": sum(s["wall_time"] for s in summaries)}
+        if o.curve:
+            write_curve(o, summaries, Path(o.curve))
+        if o.export:
+            out["export"] = export(o, summaries)["files"]
+        write_json_atomic(Path(o.log_dir) / f"plan_{o.braking}_s{seed}_stages.json", out)
+        results[seed] = out
+    print(json.dumps(results, indent=2, default=str))
+    return results
 
 
 if __name__ == "__main__":

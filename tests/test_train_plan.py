@@ -32,7 +32,7 @@ def test_a_second_stage_starts_from_the_first_which_is_kept(trained):
     root, first = trained
     stage1 = root / "plan_tc_s3_stage1" / "final" / "summary.json"
     before = stage1.read_text()
-    out = tp.main(tiny(root, curve=str(root / "curve"), export=str(root / "policy"), export_episodes=2))
+    out = tp.main(tiny(root, curve=str(root / "curve"), export=str(root / "policy"), export_episodes=2))[3]
     assert stage1.read_text() == before  # (not trained again)
     assert [s["num_timesteps"] for s in out["stages"]] == [16, 16]
     cfg2 = json.loads((root / "plan_tc_s3_stage2" / "config.json").read_text())["config"]
@@ -46,19 +46,17 @@ def test_a_second_stage_starts_from_the_first_which_is_kept(trained):
     assert load_policy(root / "policy").act is not None
 
 
-def test_an_interrupted_stage_resumes_from_its_checkpoint(trained, tmp_path, caplog):
+def test_an_interrupted_stage_resumes_from_its_checkpoint(trained, caplog):
     root, _ = trained
-    copy = tmp_path / "runs"
-    shutil.copytree(root / "plan_tc_s3_stage1", copy / "plan_tc_s3_stage1")
-    shutil.rmtree(copy / "plan_tc_s3_stage1" / "final")  # (killed after its last checkpoint, before its end)
+    shutil.rmtree(root / "plan_tc_s3_stage1" / "final")  # (killed after its last checkpoint, before its end)
     with caplog.at_level("INFO", logger="train_plan_policy"):
-        out = tp.main(tiny(copy, cycles=(16,), log_std_init=(-1.0,), log_std_final=(-3.5,)))
-    assert "stage 1: resuming" in caplog.text and out["stages"][0]["num_timesteps"] == 16
+        out = tp.main(tiny(root, cycles=(16,), log_std_init=(-1.0,), log_std_final=(-3.5,)))[3]
+    assert "(resuming)" in caplog.text and out["stages"][0]["num_timesteps"] == 16
 
 
 def test_a_kept_stage_of_other_settings_is_refused(trained):
     root, _ = trained
-    with pytest.raises(ValueError, match=r"plan_tc_s3_stage1 holds stage 1 of other settings \(total_timesteps\)"):
+    with pytest.raises(ValueError, match=r"plan_tc_s3_stage1 holds a run made with other settings \(total_timesteps\)"):
         tp.main(tiny(root, cycles=(24,), log_std_init=(-1.0,), log_std_final=(-3.5,)))
 
 
@@ -67,8 +65,23 @@ def test_a_kept_stage_of_other_settings_is_refused(trained):
     ({"cycles": ()}, "one value per stage"),
     ({"num_envs": 0}, "num_envs must be an integer in"),
     ({"cycles": (16, 0)}, "total_timesteps must be an integer >= 1"),
-    ({"export": " "}, "--export must name a path")])
+    ({"export": " "}, "--export must name a path"),
+    ({"seeds": (1, 2), "export": "p"}, "--export and --curve ship one seed's policy"),
+    ({"seeds": (1, 1)}, "--seeds must be distinct integers"),
+    ({"ray": "nowhere"}, "--ray")])
 def test_bad_options_are_refused_by_name_before_any_work(tmp_path, kw, match):
     with pytest.raises(ValueError, match=match):
         tp.main(tiny(tmp_path / "runs", **kw))
     assert not (tmp_path / "runs").exists()
+
+
+def test_seeds_train_on_a_local_ray_instance_as_they_would_here(tmp_path):
+    """--seeds --ray local: each seed's stages as one Ray task, in the same folders as without Ray (the first
+    seed trained here beforehand is read back, not trained again)."""
+    pytest.importorskip("ray")
+    one = dict(cycles=(16,), log_std_init=(-1.0,), log_std_final=(-3.5,))
+    here = tp.main(tiny(tmp_path, seed=5, **one))[5]
+    out = tp.main(tiny(tmp_path, seeds=(5, 6), ray="local", **one))
+    assert out[5] == here and out[6]["stages"][0]["num_timesteps"] == 16
+    cfg6 = json.loads((tmp_path / "plan_tc_s6_stage1" / "final" / "summary.json").read_text())
+    assert cfg6["seed"] == 6 and (tmp_path / "plan_tc_s6_stages.json").exists()
