@@ -196,9 +196,10 @@ def main() -> None:
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)
     filters = {"on": [True], "off": [False], "both": [True, False]}[args.safety_filter]
     codegens = ["on", "off"] if args.codegen == "both" else [args.codegen]
-    # ("default" keeps MPCConfig's horizon, AUTO: the 10-step RTI, the full horizon in real time or with a deadline)
-    variants = [(solver, rt, AUTO if solver == "default" else None, None, f, cg) for solver in args.solvers for rt in realtime
-                for f in filters for cg in codegens
+    # ("default" keeps MPCConfig's horizon and re-plan lag, AUTO: the 10-step RTI, its re-plans on the worker 5 steps
+    # ahead; the full horizon in real time or with a deadline; an explicit horizon re-plans in the step, or --replan-lag)
+    variants = [(solver, rt, auto, auto, f, cg) for solver in args.solvers for auto in [AUTO if solver == "default" else None]
+                for rt in realtime for f in filters for cg in codegens
                 if not (args.horizons_only or solver != "default" and getattr(SOLVERS[solver](), "short_only", False))]
     variants += [(solver, False, h, lag, f, cg) for solver in args.solvers if solver != "default" for h in args.horizons
                  for lag in [None] + ([args.replan_lag] if args.replan_lag else []) for f in filters for cg in codegens]
@@ -210,7 +211,7 @@ def main() -> None:
             forget_plans()
             codegen.set_mode(cg)
         name = ((f"{solver} realtime" if rt else solver if horizon in (None, AUTO) else f"{solver} h{horizon}")
-                + (f" lag{lag}" if lag else "") + ("" if safety else " no filter") + (" interpreted" if cg == "off" else ""))
+                + (f" lag{lag}" if lag not in (None, AUTO) else "") + ("" if safety else " no filter") + (" interpreted" if cg == "off" else ""))
         for b in args.braking:
             for label, config, kw in runs(b, targets, not (args.quick or args.no_mismatch), args.suite_sample, args.corners, args.deadline_ms,
                                           args.min_time_only):
@@ -219,7 +220,7 @@ def main() -> None:
                                              horizon_solver=HORIZON_SOLVER_OF.get(solver, "ipopt"), replan_lag_steps=lag,
                                              safety_filter=safety)
                 row = closed_loop(b, config, solver, label, **kw)
-                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": config.horizon, "replan_lag_steps": lag,
+                rows.append({**row, "solver": name, "realtime": rt, "horizon_steps": config.horizon, "replan_lag_steps": config.replan_lag,
                              "codegen": cg})
 
     print("\n| solver | braking | run | T (s) | fuel (g) | time gap | fuel gap | success | max violation "

@@ -599,6 +599,8 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["mpc", "--horizon-steps", "10", "--realtime"], "--horizon-steps", "--realtime"),
     (["mpc", "--full-horizon", "--horizon-solver", "sqp-rti"], "--horizon-solver", "--full-horizon"),
     (["mpc", "--realtime", "--replan-lag-steps", "10"], "--replan-lag-steps", "--realtime"),
+    (["mpc", "--full-horizon", "--replan-in-step"], "--replan-in-step", "--full-horizon"),
+    (["mpc", "--replan-in-step", "--replan-lag-steps", "5"], "--replan-lag-steps", "--replan-in-step"),
     (["mpc", "--full-horizon", "--horizon-steps", "10"], "--horizon-steps", "--full-horizon"),
     (["mpc", "--horizon-steps", "10", "--replan-lag-steps", "0"], "--replan-lag-steps", "[1, 100]"),
     (["mpc", "--horizon-steps", "10", "--horizon-solver", "fatrop"], "--horizon-solver", "sqp-rti"),

@@ -180,7 +180,8 @@ def test_closed_loop_cycle_near_the_optimum(braking, mode, horizon):
     r, ctrl = closed_loop(braking, mode) if horizon == "auto" else closed_loop(braking, mode, horizon_steps=horizon)
     assert r.episode.completed and r.episode.success
     written = json.loads(json.dumps(r.to_dict()))  # (the result file says how the controller ran)
-    assert (written["horizon_steps"], written["horizon_solver"]) == ((10, "sqp-rti") if horizon == "auto" else (None, None))
+    assert (written["horizon_steps"], written["horizon_solver"], written["replan_lag_steps"]) == (
+        (10, "sqp-rti", 5) if horizon == "auto" else (None, None, None))
     assert abs(r.episode.reversing_error_m) <= 0.05 and abs(r.episode.final_position_error_m) <= 0.05
     assert abs(r.episode.final_height_error_m) <= 0.02
     # deceleration and speed limits held at every step (the RTI's plans too: grid.DECEL_FLOOR)
@@ -257,7 +258,10 @@ def test_tc_braking_holds_the_deceleration_limit_within_the_steps():
     ("tc", 1.2, 1.3)])
 def test_model_mismatch_case_completes(braking, payload, rolling, monkeypatch):
     plant = P.variant(payload_scale=payload, rolling_scale=rolling)
-    ctrl = MPCController(braking)  # the nominal model
+    # the nominal model; its re-plans in their steps, where the steps' iterations show their starts (the default's
+    # run on the worker: tests/test_mpc_horizon.py::test_the_default_re_plans_a_mismatched_plant_beside_the_horizon_not_in_a_step)
+    config = MPCConfig(mode="time", replan_lag_steps=None)
+    ctrl = MPCController(braking, config=config)
     starts = []  # (the first step?, full NLP?, far start?) of each warm IPOPT solve
     solve = IpoptSolver.solve
 
@@ -267,7 +271,7 @@ def test_model_mismatch_case_completes(braking, payload, rolling, monkeypatch):
         return solve(self, nlp, args, x0, lam_x0, lam_g0)
 
     monkeypatch.setattr(IpoptSolver, "solve", recorded)
-    r = run_closed_loop(braking, MPCConfig(mode="time"), plant_params=plant, score=False, controller=ctrl)
+    r = run_closed_loop(braking, config, plant_params=plant, score=False, controller=ctrl)
     assert r.episode.completed and r.episode.success
     assert abs(r.episode.reversing_error_m) <= 0.05
     assert r.episode.max_violation == 0.0

@@ -138,13 +138,15 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
         raise ValueError("--horizon-steps runs the synchronous controller: not with --realtime or --deadline-ms")
     full = args.full_horizon or args.realtime or args.deadline_ms is not None  # (the default horizon is short otherwise)
-    for flag, value in (("--horizon-solver", args.horizon_solver not in (None, "ipopt")), ("--replan-lag-steps", args.replan_lag_steps)):
+    short_only = (("--horizon-solver", args.horizon_solver not in (None, "ipopt")),
+                  ("--replan-lag-steps", args.replan_lag_steps), ("--replan-in-step", args.replan_in_step))
+    for flag, value in short_only:
         if value and full:
             raise ValueError(f"{flag} acts on the short horizons: not with --full-horizon, --realtime or --deadline-ms")
     horizon = None if args.full_horizon else AUTO if args.horizon_steps is None else args.horizon_steps
-    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "replan_lag_steps": args.replan_lag_steps,
-          "horizon_steps": horizon, "horizon_solver": args.horizon_solver or AUTO,
-          "safety_filter": not args.no_safety_filter,
+    lag = None if args.replan_in_step else args.replan_lag_steps or AUTO
+    rt = {"deadline_ms": args.deadline_ms, "realtime": args.realtime, "replan_lag_steps": lag, "horizon_steps": horizon,
+          "horizon_solver": args.horizon_solver or AUTO, "safety_filter": not args.no_safety_filter,
           **({"rate_weight": tuple(args.rate_weight)} if args.rate_weight else {})}
     if args.target_time is not None:
         config = MPCConfig(mode="target_time", target_time=args.target_time, **rt)
@@ -474,9 +476,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon-solver", choices=["ipopt", "sqp-rti"],
                    help="the short horizons' solver: one real-time SQP iteration per step (sqp-rti, the default: hpipm, "
                    "IPOPT where it fails and for the full plans), or IPOPT")
-    p.add_argument("--replan-lag-steps", type=_int_in(1, 100), metavar="N",
-                   help="a short horizon's re-plans (the plant estimate moved) run beside it on a worker thread and "
-                   "take over N steps later, N in [1, 100] (default: the step that needs one solves it)")
+    lag = p.add_mutually_exclusive_group()
+    lag.add_argument("--replan-lag-steps", type=_int_in(1, 100), metavar="N",
+                     help="a short horizon's re-plans (the plant estimate moved) run beside it on a worker thread and "
+                     "take over N steps later, N in [1, 100] (default: 5)")
+    lag.add_argument("--replan-in-step", action="store_true", help="a short horizon's re-plans in the step that needs "
+                     "one (0.2-0.5 s steps), not beside it")
     p.add_argument("--no-safety-filter", action="store_true", help="apply the plans' controls as they are (default: "
                    "a control whose next step the model predicts over the deceleration or speed limit is eased)")
     p.add_argument("--rate-weight", type=_float_in(0, 1e6, unit=""), nargs=2, metavar=("W_MF", "W_AB"),

@@ -208,6 +208,11 @@ HORIZON_SOLVERS = ("ipopt", "sqp-rti")  # MPCConfig.horizon_solver
 # deadlines act on the full horizon's solves, so there the default is the full horizon.
 AUTO = "auto"
 DEFAULT_HORIZON_STEPS = 10
+# The short horizon's re-plans for a moved plant estimate run on the worker, taken up 5 steps (0.5 s) later. On the
+# 8 mismatch corners at minimum time (stop 56, two trainings beside): 0 steps over 100 ms on 6 of them, 1 on two,
+# against 16 in the step; all on their marks, no violation. At lag 4 TC x1.2 / x1.3 ended off its marks, at lag 7 TC
+# x0.8 / x0.7 (stop 49); re-plans take 0.2-0.6 s on the worker.
+DEFAULT_REPLAN_LAG_STEPS = 5
 
 
 @dataclass(frozen=True)
@@ -262,12 +267,13 @@ class MPCConfig:
     # "sqp-rti" on a short horizon, "ipopt" on the full one.
     horizon_solver: str = AUTO
     # A short horizon's re-plan where the plant estimate moved: None, the step that finds it stale solves the
-    # whole cycle (0.4-3 s); N, the re-plan runs on the worker beside the short horizons (from that step's
-    # state, the same schedule) and becomes their reference N steps later (the step waits for it if it is
-    # not done yet: so the run does not depend on the machine's speed; that step's time counts from when real time
-    # would begin it, N intervals after the re-plan's, so a wait only a faster-than-real-time simulation sees is
-    # not counted). Needs horizon_steps.
-    replan_lag_steps: int | None = None
+    # whole cycle (0.2-0.5 s: the only steps over the 100 ms interval, 16 at the 8 mismatch corners, stop 52); N,
+    # the re-plan runs on the worker beside the short horizons (from that step's state, the same schedule) and
+    # becomes their reference N steps later (the step waits for it if it is not done yet: so the run does not
+    # depend on the machine's speed; that step's time counts from when real time would begin it, N intervals after
+    # the re-plan's, so a wait only a faster-than-real-time simulation sees is not counted). Needs horizon_steps.
+    # "auto" (the default): DEFAULT_REPLAN_LAG_STEPS on a short horizon, None on the full one.
+    replan_lag_steps: int | None | str = AUTO
     # The one-step safety filter on every applied control (mpc.controller.safety): a step the model, under the
     # plant estimate, predicts over the deceleration or speed limit has its brake, then its injection, eased.
     # It acts on controls from plans older than the state (real time, deadlines, fallbacks under model error).
@@ -326,9 +332,10 @@ class MPCConfig:
         if self.horizon_solver not in ("ipopt", AUTO) and self.horizon is None:
             raise ValueError(f"horizon_solver {self.horizon_solver!r} solves the short horizons: it needs horizon_steps "
                              "(the full horizon here)")
-        if self.replan_lag_steps is not None:
+        if self.replan_lag_steps not in (None, AUTO):
             if not count(self.replan_lag_steps, 1, 100):
-                raise ValueError(f"replan_lag_steps must be an integer in [1, 100] or None, got {shown(self.replan_lag_steps)}")
+                raise ValueError(f"replan_lag_steps must be an integer in [1, 100], None (in the step) or {AUTO!r}, "
+                                 f"got {shown(self.replan_lag_steps)}")
             if self.horizon is None:
                 raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps "
                                  "(the full horizon here)")
@@ -346,6 +353,13 @@ class MPCConfig:
         if self.horizon_steps == AUTO:
             return None if self.realtime or self.deadline_ms is not None else DEFAULT_HORIZON_STEPS
         return self.horizon_steps
+
+    @property
+    def replan_lag(self) -> int | None:
+        """The re-plans' lag in effect (``replan_lag_steps``, "auto" resolved); None: in the step that needs one."""
+        if self.replan_lag_steps == AUTO:
+            return None if self.horizon is None else DEFAULT_REPLAN_LAG_STEPS
+        return self.replan_lag_steps
 
     @property
     def short_horizon_solver(self) -> str | None:
@@ -1168,7 +1182,7 @@ class MPCController:
 
     def _before_targets(self, missed: list[str]) -> bool:
         """A re-plan begun now is due (``replan_lag_steps``) before the step of every target ``missed``."""
-        lag = self.config.replan_lag_steps
+        lag = self.config.replan_lag
         due = [sum(n + (q in (2, 4)) for q, n in self._counts.items() if q <= TARGET_PHASE[name]) for name in missed]
         return lag is not None and all(d > lag for d in due)
 
@@ -1177,7 +1191,7 @@ class MPCController:
         move worth a try, as a full step's; ``far``: for a plant estimate that moved), unless a re-plan runs
         already; the step (begun at ``t0``, time.perf_counter() s) goes on with its short horizon (True). Else
         False: this step re-plans."""
-        lag = self.config.replan_lag_steps
+        lag = self.config.replan_lag
         warm = self._iterate if self._iterate is not None and self._iterate.first_phase == phase else None
         if lag is None or (self._replan is None and warm is None):  # (a cold solve builds an NLP: not on the worker)
             return False
@@ -1199,7 +1213,7 @@ class MPCController:
         estimate is still off). Returns when the step's wait for it begins in real time (time.perf_counter() s:
         its due time, or the re-plan's end if that came sooner; -inf if no re-plan is due)."""
         job = self._replan
-        if job is None or k < job.k + self.config.replan_lag_steps:
+        if job is None or k < job.k + self.config.replan_lag:
             return -math.inf
         self._replan = None
         ((sol, move, alt), _), started, ended = job.future.result()
@@ -1454,10 +1468,10 @@ class ClosedLoopResult:
         controls and phase), beside the controller's."""
         ep = self.episode.to_dict(trajectory=False)
         traj = asdict(self.episode.trajectory) if self.episode.trajectory is not None else {}
-        cfg = self.config  # (how it ran: the horizon in effect, None the full one, and its solver)
+        cfg = self.config  # (how it ran: the horizon in effect, None the full one, its solver and its re-plans' lag)
         return {"controller": "mpc", "braking": self.braking, "mode": cfg.mode, "scenario": self.scenario,
                 "target_time": cfg.target_time, "horizon_steps": cfg.horizon, "horizon_solver": cfg.short_horizon_solver,
-                "realtime": cfg.realtime, "deadline_ms": cfg.deadline_ms, **ep, **traj,
+                "replan_lag_steps": cfg.replan_lag, "realtime": cfg.realtime, "deadline_ms": cfg.deadline_ms, **ep, **traj,
                 "score": self.score.to_dict() if self.score is not None else None,
                 "solve_time": self.solve_time, "solve_times_s": self.solve_times_s,
                 "worker_solve_times_s": self.worker_solve_times_s, "plant_params": self.plant_params,
