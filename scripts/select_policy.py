@@ -7,6 +7,11 @@ the ``train`` suite (``--seed``) at the three targets of the leaderboard (1, 1.1
 estimated T_min); the least fuel summed over the three targets, per draw, wins among the policies that keep
 every limit. Printed per policy: that fuel, the successes and the episodes over a limit. ``--json`` writes the
 records (atomically).
+
+``--by gap`` ranks by #14's own figures instead: each episode scored against its draw's optimum at the cycle time
+it reached (solved per episode, the draws' minimum times kept in ``--cache``), the least sum over the three
+targets of the median fuel gap and the median lateness wins. Fuel in grams is blind to time: at the fastest
+target a later cycle burns less, so the grams rule preferred the policy 1.2 points later there (stop 56).
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ class Options:
     draws: int = 100  # fresh draws of the train suite
     seed: int = 7  # of the draws (stops 42-44: 7)
     json: str | None = None  # the records, written at the end
+    by: str = "fuel"  # fuel: grams summed over the targets; gap: median fuel gap + median lateness per target
+    cache: str | None = None  # with --by gap: a folder for the draws' optima (the same for every policy)
 
 
 def check(o: Options) -> None:
@@ -48,6 +55,10 @@ def check(o: Options) -> None:
         raise ValueError(f"--draws must be an integer in [1, 10000], got {o.draws}")
     if not 0 <= o.seed <= 2**32 - 1:
         raise ValueError(f"--seed must be an integer in [0, 2**32 - 1], got {o.seed}")
+    if o.by not in ("fuel", "gap"):
+        raise ValueError(f"--by must be 'fuel' or 'gap', got {o.by!r}")
+    if o.cache is not None and o.by != "gap":
+        raise ValueError("--cache keeps the optima of --by gap: not with --by fuel")
     if o.json is not None:
         check_output_file(o.json, "--json")
 
@@ -62,23 +73,31 @@ def run(o: Options) -> dict[str, Any]:
     records = []
     for path in o.policies:
         controller = load_controller("ppo", o.braking, model=path)  # (checked before any episode runs)
-        fuel, successes, over = 0.0, 0, 0
+        fuel, successes, over, per_target = 0.0, 0, 0, {}
         for ratio in RATIOS:
-            res = evaluate_controller(controller, o.braking, scenarios=draws, score=False, target_ratio=ratio,
-                                      min_time="estimate")
+            res = evaluate_controller(controller, o.braking, scenarios=draws, score=o.by == "gap", cache=o.cache,
+                                      target_ratio=ratio, min_time="estimate")
             episodes = res["per_episode"]
             fuel += sum(e["fuel_g"] for e in episodes)
             successes += sum(bool(e["success"]) for e in episodes)
             over += sum(e["max_violation"] > 0.0 for e in episodes)
+            if o.by == "gap":
+                agg = res["summary"]
+                per_target[str(ratio)] = {"fuel_gap_median": agg["fuel_gap_median"], "lateness_median": agg["lateness_median"]}
         rec = {"policy": path, "fuel_per_draw_g": fuel / o.draws, "successes": successes,
                "episodes": len(RATIOS) * o.draws, "over_a_limit": over}
+        if o.by == "gap":
+            rec["per_target"] = per_target
+            rec["gap_score_pct"] = 100.0 * sum(t["fuel_gap_median"] + t["lateness_median"] for t in per_target.values())
         records.append(rec)
-        log.info("%s: %.2f g per draw over the three targets, %d / %d on their marks, %d over a limit", path,
-                 rec["fuel_per_draw_g"], successes, rec["episodes"], over)
+        log.info("%s: %.2f g per draw over the three targets, %d / %d on their marks, %d over a limit%s", path,
+                 rec["fuel_per_draw_g"], successes, rec["episodes"], over,
+                 "" if o.by == "fuel" else f"; fuel gap + lateness medians summed over the targets {rec['gap_score_pct']:.2f} %")
     keeping = [r for r in records if r["over_a_limit"] == 0]
-    chosen = min(keeping, key=lambda r: r["fuel_per_draw_g"])["policy"] if keeping else None
+    key = "fuel_per_draw_g" if o.by == "fuel" else "gap_score_pct"
+    chosen = min(keeping, key=lambda r: r[key])["policy"] if keeping else None
     log.info("chosen: %s", chosen or "none (every policy went over a limit)")
-    out = {"braking": o.braking, "draws": o.draws, "seed": o.seed, "ratios": list(RATIOS), "records": records,
+    out = {"braking": o.braking, "draws": o.draws, "seed": o.seed, "by": o.by, "ratios": list(RATIOS), "records": records,
            "chosen": chosen}
     if o.json is not None:
         write_json_atomic(o.json, out)

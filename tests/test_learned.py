@@ -484,3 +484,17 @@ def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkey
         select.run(select.Options(braking="service", policies=paths, draws=0))
     with pytest.raises(ValueError, match="--policies needs at least one"):
         select.run(select.Options(braking="service"))
+    with pytest.raises(ValueError, match="--by must be 'fuel' or 'gap'"):
+        select.run(select.Options(braking="service", policies=paths, by="grams"))
+    with pytest.raises(ValueError, match="--cache keeps the optima of --by gap"):
+        select.run(select.Options(braking="service", policies=paths, cache=str(tmp_path / "c")))
+    # --by gap: #14's figures on the draws, each episode against its own optimum (solved, kept in the cache)
+    out = select.run(select.Options(braking="service", policies=paths, draws=1, by="gap", cache=str(tmp_path / "c")))
+    recs = out["records"]
+    for r in recs:
+        assert sorted(r["per_target"]) == sorted(str(ratio) for ratio in select.RATIOS)
+        gaps = [t["fuel_gap_median"] for t in r["per_target"].values()]
+        assert all(0.0 < g < 1.0 for g in gaps)  # (above the optimum: a gap under it would be a scoring bug)
+        late = [t["lateness_median"] for t in r["per_target"].values()]
+        assert r["gap_score_pct"] == pytest.approx(100 * (sum(gaps) + sum(late)))
+    assert out["by"] == "gap" and out["chosen"] == min(recs, key=lambda r: r["gap_score_pct"])["policy"]
