@@ -9,10 +9,10 @@ number (a target of that ratio times the scenario's estimated T_min, ``wl_env.su
 (minimum time on the nominal payload and rolling resistance, the plant the draw's: its ranges are wider than
 #13's +-20 % / +-30 %). ``--in-step`` makes the re-plans for a moved plant estimate in the step that needs one,
 as before stop 56, not on the worker; ``--within-13`` keeps only draws whose payload and rolling resistance lie
-within #13's ranges (the others are drawn again). Per run: T, fuel, on the marks, the largest violation, the target met, the
-first step's planning and the later steps' solve times (median, max, over 100 ms). Nothing is scored against an optimum, so a
-draw costs seconds; an exception is a finding, recorded with its message. The summary counts the runs per mode that
-missed their marks, broke a limit, ended past their target or raised.
+within #13's ranges (the others are drawn again). Per run: T, fuel, on the marks, the largest violation, the
+target met, the first step's planning and the later steps' solve times (median, max, over 100 ms). Nothing is
+scored against an optimum, so a draw costs seconds; an exception is a finding, recorded with its message. The
+summary counts the runs per mode that missed their marks, broke a limit, ended past their target or raised.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def check(o: Options) -> None:
 
 
 def within_13(scenario: Any) -> bool:
-    """The draw's payload and rolling resistance lie within #13's mismatch ranges of the nominal model's (+-20 %, +-30 %)."""
+    """The draw's payload and rolling resistance lie within #13's mismatch ranges of the nominal model's."""
     from wl_env.params import DEFAULT_PARAMS
 
     return (abs(scenario.payload / DEFAULT_PARAMS.M_load - 1.0) <= MISMATCH_PAYLOAD + 1e-9
