@@ -209,9 +209,9 @@ HORIZON_SOLVERS = ("ipopt", "sqp-rti")  # MPCConfig.horizon_solver
 AUTO = "auto"
 DEFAULT_HORIZON_STEPS = 10
 # The short horizon's re-plans for a moved plant estimate run on the worker, taken up 5 steps (0.5 s) later. On the
-# 8 mismatch corners at minimum time (stop 56, two trainings beside): 0 steps over 100 ms on 6 of them, 1 on two,
-# against 16 in the step; all on their marks, no violation. At lag 4 TC x1.2 / x1.3 ended off its marks, at lag 7 TC
-# x0.8 / x0.7 (stop 49); re-plans take 0.2-0.6 s on the worker.
+# 8 mismatch corners at minimum time (stop 56, scripts/bench_mpc.py, the machine idle): 1 step over 100 ms against 16
+# in the step; all on their marks, no violation. At lag 4 TC x1.2 / x1.3 ended off its marks, at lag 7 TC x0.8 / x0.7
+# (stop 49); re-plans take 0.2-0.6 s on the worker.
 DEFAULT_REPLAN_LAG_STEPS = 5
 
 
