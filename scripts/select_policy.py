@@ -11,12 +11,13 @@ records (atomically).
 ``--by gap`` ranks by #14's own figures instead: each episode scored against its draw's optimum at the cycle time
 it reached (solved per episode, the draws' minimum times kept in ``--cache``), the least sum over the three
 targets of the median fuel gap and the median lateness wins. Fuel in grams is blind to time: at the fastest
-target a later cycle burns less, so the grams rule preferred the policy 1.2 points later there (stop 56).
+target a later cycle burns less, so the grams rule preferred the policy 1.3 points later there (stop 56).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -88,14 +89,17 @@ def run(o: Options) -> dict[str, Any]:
                "episodes": len(RATIOS) * o.draws, "over_a_limit": over}
         if o.by == "gap":
             rec["per_target"] = per_target
-            rec["gap_score_pct"] = 100.0 * sum(t["fuel_gap_median"] + t["lateness_median"] for t in per_target.values())
+            # (a target with no scored episode, every cycle off its marks, has no median: None, and it ranks last)
+            medians = [v for t in per_target.values() for v in (t["fuel_gap_median"], t["lateness_median"])]
+            rec["gap_score_pct"] = None if None in medians else 100.0 * sum(medians)
         records.append(rec)
         log.info("%s: %.2f g per draw over the three targets, %d / %d on their marks, %d over a limit%s", path,
                  rec["fuel_per_draw_g"], successes, rec["episodes"], over,
-                 "" if o.by == "fuel" else f"; fuel gap + lateness medians summed over the targets {rec['gap_score_pct']:.2f} %")
+                 "" if o.by == "fuel" else "; fuel gap + lateness medians summed over the targets " + (
+                     "none (a target without a scored cycle)" if rec["gap_score_pct"] is None else f"{rec['gap_score_pct']:.2f} %"))
     keeping = [r for r in records if r["over_a_limit"] == 0]
     key = "fuel_per_draw_g" if o.by == "fuel" else "gap_score_pct"
-    chosen = min(keeping, key=lambda r: r[key])["policy"] if keeping else None
+    chosen = min(keeping, key=lambda r: math.inf if r[key] is None else r[key])["policy"] if keeping else None
     log.info("chosen: %s", chosen or "none (every policy went over a limit)")
     out = {"braking": o.braking, "draws": o.draws, "seed": o.seed, "by": o.by, "ratios": list(RATIOS), "records": records,
            "chosen": chosen}
