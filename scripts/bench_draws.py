@@ -36,8 +36,6 @@ from wl_env.logs import run_script  # noqa: E402
 
 log = logging.getLogger("bench_draws")
 
-MISMATCH_PAYLOAD, MISMATCH_ROLLING = 0.2, 0.3  # #13's mismatch ranges: the plant's payload and rolling resistance
-
 
 @dataclass
 class Options:
@@ -78,11 +76,15 @@ def check(o: Options) -> None:
 
 
 def within_13(scenario: Any) -> bool:
-    """The draw's payload and rolling resistance lie within #13's mismatch ranges of the nominal model's."""
+    """The draw's payload and rolling resistance lie within #13's mismatch ranges of the nominal model's: the box
+    of ``bench_mpc.py``'s mismatch corners."""
+    from bench_mpc import MISMATCH
+
     from wl_env.params import DEFAULT_PARAMS
 
-    return (abs(scenario.payload / DEFAULT_PARAMS.M_load - 1.0) <= MISMATCH_PAYLOAD + 1e-9
-            and abs(scenario.rolling_resistance / DEFAULT_PARAMS.c_r - 1.0) <= MISMATCH_ROLLING + 1e-9)
+    payloads, rollings = zip(*MISMATCH, strict=True)
+    return (min(payloads) - 1e-9 <= scenario.payload / DEFAULT_PARAMS.M_load <= max(payloads) + 1e-9
+            and min(rollings) - 1e-9 <= scenario.rolling_resistance / DEFAULT_PARAMS.c_r <= max(rollings) + 1e-9)
 
 
 def run_one(braking: str, scenario: Any, mode: str, in_step: bool = False) -> dict[str, Any]:
