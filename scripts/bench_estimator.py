@@ -16,12 +16,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_mpc import MISMATCH  # noqa: E402  (its mismatch corners: (payload, rolling resistance) scales)
+
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
 from wl_env.atomic_io import check_output_option, write_json_atomic  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
-
-CORNERS = ((0.8, 0.7), (0.8, 1.3), (1.2, 0.7), (1.2, 1.3))  # (payload, rolling resistance) x, as bench_mpc's MISMATCH
 
 
 def run(braking: str, payload: float, rolling: float) -> dict:
@@ -46,7 +46,7 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")
     rows = []
     for braking in args.braking:
-        for payload, rolling in CORNERS:
+        for payload, rolling in MISMATCH:
             r = run(braking, payload, rolling)
             rows.append(r)
             print(f"{braking} payload x{payload} rolling x{rolling}: T {r['T']:.1f} s, fuel {r['fuel_g']:.2f} g, on the "

@@ -327,6 +327,30 @@ def test_the_lift_gain_settles_on_the_plants_payload_and_predicts_the_engine(pay
     assert max(errors) < 0.02  # rad/s per 0.1 s step
 
 
+@settings(max_examples=6, deadline=None)
+@given(payload=st.floats(0.8, 1.2), rolling=st.floats(0.7, 1.3))
+def test_before_the_lift_the_lift_gain_is_the_payload_the_mass_error_implies(payload, rolling):
+    """Driving with the bucket held, the lift says nothing of the payload; the acceleration gain does (model mass
+    / plant mass, the payload the whole difference). A TC plan for the nominal lift from there brought the engine
+    too high to come down by the shift: a draw at payload x0.81 ended 0.21 m past its reversing point (stop 57)."""
+    from mpc.controller.estimator import LIFT_GAIN_PRIOR, ModelErrorEstimator
+
+    plant = P.variant(payload_scale=payload, rolling_scale=rolling)
+    sim, est = Simulator(plant, "tc"), ModelErrorEstimator(tc_model(), 0.1)
+    y, phase = (P.omega_0, 0.0, P.H_0, 0.0, 0.0, 0.0), 1
+    for k in range(20):  # reversing, the fuel varied (so gain and offset part), the bucket held still
+        u = (130.0 if k % 6 < 3 else 60.0, 0.0, 0.0)
+        ue = sim.effective_controls(y, phase, *u, 0.1)[:3]
+        y1, phase1, _, _ = sim.substep(y, phase, ue, 0.1)
+        est.update(np.array(y[:5]), phase, np.array(u), np.array(y1[:5]), int(phase1))
+        y, phase = tuple(float(v) for v in y1), int(phase1)
+        if k == 0:  # (standing still: no acceleration data yet, the prior)
+            assert est.lift_gain == LIFT_GAIN_PRIOR
+    assert phase == 1 and y[3] == 0.0  # (the bucket never moved)
+    assert est.theta[0] == pytest.approx(P.M_tot / plant.M_tot, abs=0.01)
+    assert est.lift_gain == pytest.approx(payload, abs=0.05)
+
+
 @pytest.mark.slow  # 25 s (five tight solves); the closed-loop tests exercise the moves these sensitivities rank
 def test_schedule_sensitivities_predict_a_stretched_phase():
     """One solve's parametric sensitivities give the fuel of a step more in each phase (the schedule

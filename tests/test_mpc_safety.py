@@ -97,6 +97,37 @@ def test_a_fresh_plans_hair_over_the_limit_is_eased_just_inside_it():
     assert u[2] * (1.0 - 1e-3) < out.control[2] < u[2]
 
 
+def test_the_last_stop_at_the_limit_is_eased_by_what_the_predictions_missed():
+    """A fresh plan's last stop brakes at the limit by the estimate's account. On a plant 0.5 % lighter than the
+    estimate says, the filter's predictions miss; the stop the estimate puts exactly at the limit then breaks it on
+    the plant, unless eased by that miss (the last stops of three draws within #13's ranges were 1e-5..1.6e-4 over,
+    stop 57). A braking step that does not end the cycle is left to the plan."""
+    f = SafetyFilter(P, "service", 0.1)
+    plant = SafetyFilter(P, "service", 0.1)  # (the plant's step: the same machine, gain 0.5 % up)
+    lighter = NOMINAL_ESTIMATE * np.array([1.0, 1.005, 1.0])
+
+    def at_limit(x: np.ndarray) -> np.ndarray:  # the brake torque at which the step meets the limit by the estimate
+        lo, hi = 0.0, P.U_b_max
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if f.excess(x, 4, np.array([0.0, 0.0, mid]), NOMINAL_ESTIMATE) <= 0.0 else (lo, mid)
+        return np.array([0.0, 0.0, lo])
+
+    moving, stopping = np.array([100.0, 1.5, 4.0, 0.0, 10.0]), np.array([100.0, 0.15, 4.0, 0.0, 10.0])
+    last = at_limit(stopping)
+    assert f._step(stopping, 4, last, NOMINAL_ESTIMATE)[0][1] == 0.0  # (it ends standing)
+    assert f(stopping, 4, last, NOMINAL_ESTIMATE).eased == ""  # (no prediction missed yet: it passes)
+    assert plant.excess(stopping, 4, last, lighter) > 0.0  # (and breaks the limit on the plant)
+    for _ in range(5):  # braking steps of the plant the filter has predicted
+        u = 0.9 * at_limit(moving)
+        f(moving, 4, u, NOMINAL_ESTIMATE)
+        f.observe(np.array(plant._step(moving, 4, u, lighter)[0][:5]), 4)
+    out = f(stopping, 4, last, NOMINAL_ESTIMATE)
+    assert out.eased == "U_b" and out.control[2] < last[2] and out.control[0] == 0.0
+    assert plant.excess(stopping, 4, out.control, lighter) == 0.0
+    assert f(moving, 4, at_limit(moving), NOMINAL_ESTIMATE).eased == ""
+
+
 def test_the_filter_fuels_an_engine_about_to_stall():
     """Reversing in gear on an idling engine with the lift drawing on it: the step would end near omega_min."""
     f = SafetyFilter(P, "tc", 0.1)
