@@ -350,6 +350,41 @@ def test_the_default_re_plans_a_mismatched_plant_beside_the_horizon_not_in_a_ste
     assert ctrl._replan is None  # (none left running after the cycle)
 
 
+def test_a_re_plan_that_misses_a_target_is_followed_by_another_beside_the_horizons():
+    """A re-plan keeps the schedule and tries one move: one taken up that misses a target (due after the next
+    re-plan's lag) is followed by another on the worker, where the schedule search goes on, until one holds the
+    targets. The short horizons would not see the miss before the target's phase: TC x1.2 / x1.3 took up a plan
+    20 cm short of the reversing point at step 16 and ended 13 cm short; with the follow-ups the plans held it
+    from step 26 on, and the cycle ended on its marks in 8.8 s (stop 57)."""
+    import concurrent.futures
+    import dataclasses
+
+    from mpc.controller.mpc import ReplanJob
+
+    config = MPCConfig(mode="time")
+    lag = config.replan_lag
+    ctrl = MPCController("tc", config=config)
+    env = gym.make("WheelLoader-v2", braking="tc")
+    obs, _ = env.reset(seed=0)
+    ctrl.reset()
+    try:
+        obs = env.step(ctrl.act(obs))[0]  # (the first step plans the cycle)
+        done = concurrent.futures.Future()
+        missing = dataclasses.replace(ctrl._sol, misses_m={**ctrl._sol.misses_m, "reversing point": 0.2})
+        done.set_result((((missing, None, None), ""), 1.0, 1.25))
+        ctrl._replan = ReplanJob(0, done, np.array(ctrl.estimator.estimate), due=2.0)
+        for _ in range(lag):  # (step `lag` takes it up, and begins the follow-up)
+            obs = env.step(ctrl.act(obs))[0]
+        assert ctrl._replan is not None and ctrl._replan.k == lag and ctrl._follow_ups == 1
+        for _ in range(lag):  # (the follow-up, a real re-plan of this nominal plant, holds the targets: no other)
+            obs = env.step(ctrl.act(obs))[0]
+        assert ctrl._replan is None and not ctrl._follow_up and ctrl._follow_ups == 0
+        assert ctrl._sol.within(2.0) and len(ctrl.worker_solve_times) == 2
+        assert max(ctrl.step_solves[1:]) == 1  # (no step solved the whole cycle itself)
+    finally:
+        ctrl.end_episode()
+
+
 def test_a_re_plan_taken_up_is_stale_if_the_estimate_moved_while_it_ran():
     """replan_lag_steps: the plan a re-plan returns was made with the plant estimate of the step it began in. If
     the estimate moved while it ran (a payload that settled), the next step must see it stale and plan again.
