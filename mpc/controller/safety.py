@@ -59,10 +59,6 @@ FILTER_TOL = 1e-3
 # to MARGIN_SIGMAS times the filter's moving RMS prediction error if that is more (a mismatched TC draw within #13's
 # ranges, eased to 1e-5 at its last stop, broke the limit by 5.3e-5: the estimate's error; stop 52).
 SOLVED_EASE_MARGIN = 1e-5
-# The cycle's last stop is eased by the prediction margin even where the estimate puts it within the limit: an
-# acceleration gain 0.06-0.2 % off put the last stops of three mismatched draws within #13's ranges 1e-5..1.6e-4 over
-# it (stop 57). (Every fresh braking step so eased, at least 0.25 % inside, cost service draws re-plans and 0.4 s, and
-# easing the injection too put 4 of 16 TC draws off their marks: measured, not taken.)
 # An eased control aims this fraction inside the limits (MPCConfig.tighten's default, what a plan keeps free): the
 # estimate mispredicts the plant's step (TC x0.8 / x1.3 in real time: controls eased to the limit +0.1 % gave +0.27 %)
 EASE_MARGIN = 0.005
@@ -237,8 +233,10 @@ class SafetyFilter:
             if guarded is not None:
                 u, later, eased = guarded
                 return self._keep(u, later, eased, self._step(x, phase, u, est))
-        # the cycle's last stop (at the truck, the step predicted to end standing): a fresh plan's brake there is eased
-        # by the prediction margin too (no later step to make good a miss of the mark, and no re-plan after it)
+        # The cycle's last stop (at the truck, the step predicted to end standing): a fresh plan's brake there is eased
+        # by the prediction margin even within the limit (an acceleration gain 0.06-0.2 % off put three mismatched draws'
+        # last stops 1e-5..1.6e-4 over it; no later step makes good a miss of the mark). Every fresh braking step so
+        # eased cost service draws in-step re-plans and 0.4 s; the injection too, 4 of 16 TC draws their marks (stop 57).
         last_stop = not stale and after == 4 and y1[1] == 0.0 and before <= 0.0 and u[2] > 0.0
         decide = self.stale_margin if stale else self.prediction_margin if last_stop else 0.0
         if stale:
