@@ -46,12 +46,14 @@ def test_a_second_stage_starts_from_the_first_which_is_kept(trained):
     assert load_policy(root / "policy").act is not None
 
 
-def test_an_interrupted_stage_resumes_from_its_checkpoint(trained, caplog):
-    root, _ = trained
-    shutil.rmtree(root / "plan_tc_s3_stage1" / "final")  # (killed after its last checkpoint, before its end)
+def test_an_interrupted_stage_resumes_from_its_checkpoint(tmp_path, caplog):
+    one = dict(cycles=(16,), log_std_init=(-1.0,), log_std_final=(-3.5,))  # (its own run: the module's stays whole)
+    tp.main(tiny(tmp_path, **one))
+    shutil.rmtree(tmp_path / "plan_tc_s3_stage1" / "final")  # (killed after its last checkpoint, before its end)
     with caplog.at_level("INFO", logger="train_plan_policy"):
-        out = tp.main(tiny(root, cycles=(16,), log_std_init=(-1.0,), log_std_final=(-3.5,)))[3]
+        out = tp.main(tiny(tmp_path, **one))[3]
     assert "(resuming)" in caplog.text and out["stages"][0]["num_timesteps"] == 16
+    assert (tmp_path / "plan_tc_s3_stage1" / "final" / "summary.json").exists()
 
 
 def test_a_kept_stage_of_other_settings_is_refused(trained):
