@@ -14,6 +14,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import resource
 import subprocess
@@ -61,6 +62,8 @@ def main() -> None:
     from wl_env.atomic_io import check_output_option
 
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
+    if not (math.isfinite(args.period) and 0.01 <= args.period <= 60):  # (nan failed after wl run had started)
+        ap.error(f"--period must be a number of seconds in [0.01, 60], got {args.period:g}")
     if not Path("/proc/self/status").exists():
         sys.exit("bench_memory needs Linux's /proc")
     with tempfile.TemporaryDirectory(prefix="wl_bench_memory_") as tmp:
@@ -77,6 +80,10 @@ def main() -> None:
         except KeyboardInterrupt:
             proc.wait()
             sys.exit(130)
+        except BaseException:  # (the run is this script's child: it does not outlive a failure here)
+            proc.kill()
+            proc.wait()
+            raise
         wall = time.perf_counter() - t0
     largest = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # KiB on Linux
     figures = {"exit_code": proc.returncode, "wall_s": round(wall, 1), "peak_tree_mb": round(peak),

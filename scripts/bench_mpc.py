@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import os
 import platform
 import sys
@@ -143,6 +144,27 @@ def ms(values: list[float], q: float | None = None) -> float:
     return 1e3 * (float(np.max(values)) if q is None else float(np.percentile(values, q)))
 
 
+def check_options(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The numbers' ranges, as ``ap.error`` naming the option, before any run (a bad --targets failed with a traceback
+    after the minimum-time runs)."""
+    from wl_env.env import check_target_time
+    from wl_env.suites import MAX_SAMPLE
+
+    try:
+        for t in args.targets:
+            check_target_time(t, "--targets")
+    except ValueError as exc:
+        ap.error(str(exc))
+    if not 0 <= args.suite_sample <= MAX_SAMPLE:
+        ap.error(f"--suite-sample must be an integer in [0, {MAX_SAMPLE}], got {args.suite_sample}")
+    if args.deadline_ms is not None and not (math.isfinite(args.deadline_ms) and args.deadline_ms > 0):
+        ap.error(f"--deadline-ms must be a number > 0, got {args.deadline_ms:g}")
+    if not (math.isfinite(args.terminal_weight) and args.terminal_weight >= 0):
+        ap.error(f"--terminal-weight must be a number >= 0, got {args.terminal_weight:g}")
+    if args.rate_sweep and not all(math.isfinite(w) and w >= 0 for w in args.rate_sweep):
+        ap.error(f"--rate-sweep weights must each be a number >= 0, got {' '.join(f'{w:g}' for w in args.rate_sweep)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
@@ -178,6 +200,7 @@ def main() -> None:
     from wl_env.atomic_io import check_output_option
 
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
+    check_options(ap, args)
     if args.rate_sweep:
         return rate_sweep(args.rate_sweep)
     targets = args.targets[:1] if args.quick else args.targets

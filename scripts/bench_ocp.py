@@ -110,6 +110,9 @@ def main() -> None:
     from wl_env.atomic_io import check_output_option
 
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
+    for name in ("repeats", "pareto_repeats"):  # (0 timed nothing and still ran the full solves for minutes)
+        if not 1 <= getattr(args, name) <= 1000:
+            ap.error(f"--{name.replace('_', '-')} must be an integer in [1, 1000], got {getattr(args, name)}")
     single = [] if args.pareto_only else single_solves(args.repeats)
     full = [] if args.pareto_only else full_solves(max(1, args.repeats // 2))
     pareto, points = ([], {}) if args.skip_pareto else pareto_sweeps(args.pareto_repeats)

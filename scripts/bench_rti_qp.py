@@ -49,7 +49,8 @@ def main() -> None:
     ap.add_argument("--braking", default="tc", choices=("service", "tc"))
     ap.add_argument("--target", type=float, default=11.0, help="target cycle time (s)")
     ap.add_argument("--solves", type=int, default=20, help="warm starts to build QPs at")
-    ap.add_argument("--solvers", nargs="+", default=["hpipm", "hpipm-speed", "osqp", "qrqp"])
+    ap.add_argument("--solvers", nargs="+", default=["hpipm", "hpipm-speed", "osqp", "qrqp"],
+                    choices=["hpipm", "hpipm-speed", "osqp", "qrqp"])
     args = ap.parse_args()
     if not 1 <= args.solves <= 1000:  # (0 ran the whole cycle, then "no warm-started solve captured", exit 1)
         ap.error(f"--solves must be an integer in [1, 1000], got {args.solves}")

@@ -311,6 +311,16 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_rti_qp.py", "--target", "inf"], "--target must lie in [1, 40) s"),
     (["bench_safety_stale.py", "--every", "0"], "--every must be integers in [1, 100]"),
     (["bench_mpc.py", "--min-time-only", "--corners"], "--min-time-only runs no corner"),
+    (["bench_mpc.py", "--targets", "11", "100"], "--targets must lie in [1, 40) s"),  # (a traceback after the runs)
+    (["bench_mpc.py", "--targets", "nan"], "--targets must lie in [1, 40) s"),
+    (["bench_mpc.py", "--suite-sample", "-1"], "--suite-sample must be an integer in [0, 100000]"),
+    (["bench_mpc.py", "--deadline-ms", "-5"], "--deadline-ms must be a number > 0"),
+    (["bench_mpc.py", "--terminal-weight", "nan"], "--terminal-weight must be a number >= 0"),
+    (["bench_mpc.py", "--rate-sweep", "0.1", "nan"], "--rate-sweep weights must each be a number >= 0"),
+    (["bench_memory.py", "--period", "nan"], "--period must be a number of seconds in [0.01, 60]"),  # (wl run orphaned)
+    (["bench_rti_qp.py", "--solvers", "nope"], "invalid choice: 'nope'"),
+    (["bench_ocp.py", "--repeats", "0"], "--repeats must be an integer in [1, 1000]"),
+    (["bench_ocp.py", "--pareto-repeats", "-3"], "--pareto-repeats must be an integer in [1, 1000]"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
     (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of"),
@@ -335,6 +345,22 @@ def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     script = Path(__file__).resolve().parents[1] / "scripts" / argv[0]
     r = subprocess.run([sys.executable, str(script), *argv[1:]], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["run", "--cache", "{file}"], "--cache"),
+    (["evaluate", "--controller", "operator", "--scenario", '{{"x": 1}}'], "--scenario"),
+    (["evaluate", "--controller", "operator", "--cache", "{file}"], "--cache"),
+    (["mpc", "--realtime", "--deadline-ms", "50"], "--realtime and --deadline-ms"),
+    (["mpc", "--mismatch"], "--mismatch")])
+def test_a_refused_option_leaves_no_output_folder(tmp_path, capsys, argv, needle):
+    """Every option is checked before the --out check creates the output's folder: a bad --cache or --scenario
+    left an empty folder behind (wl run, wl evaluate)."""
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "new" / ("results" if argv[0] == "run" else "r.json")
+    code, _, err = _run(capsys, *[a.format(file=tmp_path / "file") for a in argv], "--out", out)
+    assert code == 2 and needle in err
+    assert not (tmp_path / "new").exists()
 
 
 # ------------------------------------------------------------------------------------------ report

@@ -128,6 +128,22 @@ def test_the_last_stop_at_the_limit_is_eased_by_what_the_predictions_missed():
     assert f(moving, 4, at_limit(moving), NOMINAL_ESTIMATE).eased == ""
 
 
+def test_a_plant_far_from_the_model_keeps_the_margins_below_the_limits():
+    """Predictions that miss by more than the limit itself (a plant far outside the model) give a margin of at most
+    MAX_MARGIN, and the filter still checks a control against limits inside the machine's: the uncapped margin
+    went over 1 and made the limits negative (`wl mpc --rolling-scale 10` ended on a V_max error)."""
+    from mpc.controller.safety import MAX_MARGIN
+
+    f = SafetyFilter(P, "service", 0.1)
+    moving = np.array([100.0, 1.5, 4.0, 0.0, 10.0])
+    for _ in range(10):
+        f(moving, 4, np.array([0.0, 0.0, 0.5 * P.U_b_max]), NOMINAL_ESTIMATE)
+        f.observe(np.array([100.0, 1.5 - 3.0 * P.decel_max * P.g * 0.1, 4.0, 0.0, 10.0]), 4)  # 3x the limit's change
+    assert f.prediction_margin == MAX_MARGIN and f.stale_margin == MAX_MARGIN
+    out = f(moving, 4, np.array([0.0, 0.0, P.U_b_max]), NOMINAL_ESTIMATE, stale=True)
+    assert np.isfinite(out.control).all() and out.excess_after <= out.excess_before
+
+
 def test_the_filter_fuels_an_engine_about_to_stall():
     """Reversing in gear on an idling engine with the lift drawing on it: the step would end near omega_min."""
     f = SafetyFilter(P, "tc", 0.1)

@@ -516,6 +516,30 @@ def test_report_files_are_written_atomically(tmp_path, monkeypatch):
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # the temporaries went with the failures
 
 
+def test_an_output_that_is_no_regular_file_is_refused_and_a_link_written_through(tmp_path):
+    """A device or a pipe at an output path is refused by name: the atomic rename would replace it (as root,
+    ``--out /dev/null`` replaced the system's /dev/null with a JSON file). A symbolic link is written through."""
+    from wl_env.atomic_io import check_output_file
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for bad in (fifo, tmp_path):
+        with pytest.raises(ValueError, match=r"--out: .* is (not a regular file|a folder)"):
+            check_output_file(bad, "--out")
+        with pytest.raises(ValueError, match="output file"):
+            write_atomic(bad, "x")
+    assert fifo.exists() and not fifo.is_file()  # (left as it was)
+    real, link = tmp_path / "real.json", tmp_path / "link.json"
+    real.write_text("old")
+    link.symlink_to(real.name)
+    check_output_file(link, "--out")
+    write_atomic(link, "new")
+    assert link.is_symlink() and real.read_text() == "new"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    result = subprocess.run([sys.executable, "-m", "wl", "ocp", "--out", str(fifo)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "--out" in result.stderr and "not a regular file" in result.stderr
+
+
 # ---------------------------------------------------------------------------------------------- determinism, resume
 def test_evaluation_is_identical_across_processes(tmp_path):
     """The same seed gives the same file in two processes (with different hash seeds)."""

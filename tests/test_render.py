@@ -199,6 +199,17 @@ def test_render_cycle_script_writes_gif(tmp_path):
     assert os.listdir(tmp_path) == ["cycle.gif"]
 
 
+@pytest.mark.parametrize("controller", ["ppo", "bc", "plan"])
+def test_render_cycle_script_drives_a_learned_policy_in_its_own_env(tmp_path, capsys, controller):
+    """Each shipped policy renders in the env it was trained on (the per-step policies' observations are 12 and 21
+    numbers, the default env's 19; a plan policy's one action per cycle is driven a step at a time)."""
+    out = tmp_path / f"{controller}.gif"
+    assert _load_script().main(["--controller", controller, "--braking", "tc", "--max-steps", "3", "--out", str(out)]) == 0
+    assert "t = 0.3 s" in capsys.readouterr().out
+    with Image.open(out) as im:
+        assert im.n_frames == 4
+
+
 def test_render_cycle_script_full_cycle_and_errors(tmp_path, capsys, monkeypatch):
     script = _load_script()
     out = tmp_path / "full.gif"

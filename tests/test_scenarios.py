@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 import wl_env  # noqa: F401
 from wl_env.codec import Codec
 from wl_env.params import DEFAULT_PARAMS
-from wl_env.scenario import FIELDS, Scenario
+from wl_env.scenario import FIELDS, Scenario, resolve_scenario
 from wl_env.suites import SUITES, TEST_STREAM, TRAIN_STREAM, draw, load_suite, stream, suite_files
 
 ACTIONS = [np.array([0.8, 0.4, -1.0, -1.0])] * 30 + [np.array([0.2, 0.2, -1.0, 1.0])] + \
@@ -93,6 +93,11 @@ def test_bad_scenario_inputs_are_named(tmp_path):
     f.write_bytes(b"\xff\xfe{")
     with pytest.raises(ValueError, match=f"--scenario file {f}: cannot read it as text"):
         Scenario.parse(str(f))
+    # through the library: named as its argument (not the CLI's option), with the file
+    f.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    for call in (lambda: resolve_scenario(str(f)), lambda: gym.make("WheelLoader-v2").reset(options={"scenario": str(f)})):
+        with pytest.raises(ValueError, match=f"^scenario file {f} is not valid JSON"):
+            call()
 
 
 # ---------------------------------------------------------------------------------------------- suites

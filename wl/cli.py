@@ -132,7 +132,6 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
     if args.cache is not None:  # (before --out, whose folder its check may create)
         _out_dir(args.cache, "--cache")
-    out = _out_file(args.out)
     if args.realtime and args.deadline_ms is not None:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
@@ -172,6 +171,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.mismatch and scenario is None:
         raise ValueError("--mismatch plans a --scenario's cycle with the nominal payload and rolling resistance: "
                          "give --scenario")
+    out = _out_file(args.out)  # (after the other options: its check may create its folder)
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
     result = run_closed_loop(braking, config, params=_params_from(args), plant_params=plant,
                              score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
@@ -197,7 +197,6 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     from wl_env.scenario import Scenario
     from wl_env.suites import load_suite
 
-    out = _out_file(args.out)  # an unwritable --out fails now, not after the episodes
     if args.cache is not None:
         _out_dir(args.cache, "--cache")
     scenario = _scenario_from(args)
@@ -212,6 +211,9 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     episodes = 10 if args.episodes is None else args.episodes
     init_noise = 1.0 if args.init_noise is None else args.init_noise
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
+    # an unwritable --out fails now, not after the episodes; and after the other options, as its check may create
+    # its folder (a bad --cache or --scenario left an empty one behind)
+    out = _out_file(args.out)
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
     targeted = args.target_time is not None or args.target_ratio is not None
@@ -243,9 +245,9 @@ def _train_cmd(args: argparse.Namespace) -> int:
 def _run_cmd(args: argparse.Namespace) -> int:
     from wl.report import run_all
 
-    _out_dir(args.out)
-    if args.cache is not None:
+    if args.cache is not None:  # (before --out, whose check creates its folder)
         _out_dir(args.cache, "--cache")
+    _out_dir(args.out)
     run_all(args.out, cache=args.cache, full_suite=args.full_suite)
     print((Path(args.out) / "leaderboard.md").read_text())
     return 0

@@ -22,8 +22,10 @@ import numpy as np
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on leaving the block it replaces ``path`` (or is removed if
-    the block raised). ``suffix`` keeps a file type for writers that go by the extension (".gif")."""
-    path = Path(path)
+    the block raised). ``suffix`` keeps a file type for writers that go by the extension (".gif"). A symbolic
+    link is written through (its target replaced, not the link); a path that exists and is not a regular file
+    (a device, a pipe) is refused with ValueError: the rename would replace it (as root, ``/dev/null`` itself)."""
+    path = _regular_file(Path(path), "output file")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
     os.close(fd)
@@ -38,6 +40,16 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _regular_file(path: Path, what: str) -> Path:
+    """``path`` with its symbolic links resolved; ValueError starting with ``what`` if it exists and is not a
+    regular file."""
+    real = Path(os.path.realpath(path))
+    if real.exists() and not real.is_file():
+        kind = "a folder" if real.is_dir() else "not a regular file (a device, a pipe or a socket)"
+        raise ValueError(f"{what}: {path} is {kind}; give a file name")
+    return real
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 150) -> Path:
@@ -74,9 +86,8 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     in. (The benchmarks wrote their ``--json`` only after minutes of work.)"""
     if not str(path).strip():
         raise ValueError(f"{option} must name a file, got an empty string")
-    if Path(path).is_dir():
-        raise ValueError(f"{option} {path} is a folder; give a file name")
-    check_output_folder(Path(path).parent, f"{option} {path}")
+    real = _regular_file(Path(path), option)
+    check_output_folder(real.parent, f"{option} {path}")
     return Path(path)
 
 

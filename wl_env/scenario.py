@@ -105,23 +105,25 @@ class Scenario:
         return cls(**data)
 
     @classmethod
-    def parse(cls, text: str) -> Scenario:
-        """A scenario from JSON text or from the path of a JSON file (the ``--scenario`` option)."""
-        text = text.strip()
+    def parse(cls, text: str, name: str = "--scenario") -> Scenario:
+        """A scenario from JSON text or from the path of a JSON file; errors name it ``name`` (the CLI's
+        ``--scenario`` by default; the library's ``scenario``) and the file."""
+        text, what = text.strip(), name
         if not text.startswith(("{", "[")):  # (a JSON list is read to say it is not an object)
             path = Path(text)
             if not is_file(path):
-                raise ValueError(f"--scenario takes JSON text or a JSON file; no file {shown(text)}")
+                raise ValueError(f"{name} takes JSON text or a JSON file; no file {shown(text)}")
+            what = f"{name} file {text}"
             try:
                 text = path.read_text()
             except (OSError, UnicodeDecodeError) as exc:
-                raise ValueError(f"--scenario file {text}: cannot read it as text ({exc})") from None
+                raise ValueError(f"{what}: cannot read it as text ({exc})") from None
         try:
             data = json.loads(text)
         except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
-            raise ValueError(f"--scenario is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
+            raise ValueError(f"{what} is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
         except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
-            raise ValueError("--scenario is not a scenario: its JSON is nested too deeply") from None
+            raise ValueError(f"{what} is not a scenario: its JSON is nested too deeply") from None
         return cls.from_dict(data)
 
     @classmethod
@@ -198,7 +200,7 @@ def resolve_scenario(scenario: Scenario | dict | str | None, braking: str | None
     if isinstance(scenario, dict):
         scenario = Scenario.from_dict({"braking": braking, **scenario} if braking and "braking" not in scenario else scenario)
     elif isinstance(scenario, str):
-        scenario = Scenario.parse(scenario)
+        scenario = Scenario.parse(scenario, "scenario")
     elif not isinstance(scenario, Scenario):
         raise ValueError(f"scenario must be a Scenario, a dict of its fields or JSON, got {type(scenario).__name__}")
     if braking is not None and braking != scenario.braking:

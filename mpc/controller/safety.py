@@ -69,6 +69,10 @@ EASE_MARGIN = 0.005
 STALE_MARGIN = 0.0025
 MARGIN_SIGMAS = 3.0
 MARGIN_STEP = 0.0025  # (the margins are rounded up to it: one simulator per margin)
+# The most a margin takes off the limits: a plant far outside the model (rolling resistance x10) mispredicted by
+# more than the limit itself, and a margin over 1 made the limits negative (`wl mpc --rolling-scale 10` stopped on
+# "V_max must lie in [0.1, 20] m/s")
+MAX_MARGIN = 0.2
 PREDICTION_ERROR_DECAY = 0.9  # per step, of the moving means of the filter's one-step prediction errors
 STALL_MARGIN = 2.0  # rad/s above omega_min an eased injection keeps the engine at the step's end (a stall ends the cycle)
 # rad/s above omega_min under which the filter raises the injection (plans keep MPCConfig.omega_margin, 1 rad/s)
@@ -126,13 +130,13 @@ class SafetyFilter:
     @property
     def prediction_margin(self) -> float:
         """MARGIN_SIGMAS times the moving RMS of the filter's one-step acceleration errors (a fraction of the limit)."""
-        return MARGIN_SIGMAS * float(np.sqrt(self._accel_err2))
+        return min(MARGIN_SIGMAS * float(np.sqrt(self._accel_err2)), MAX_MARGIN)
 
     @property
     def stale_margin(self) -> float:
         """The fraction inside the limits a stale plan's control is eased at (module constants)."""
         m = max(STALE_MARGIN, self.prediction_margin)
-        return min(MARGIN_STEP * np.ceil(m / MARGIN_STEP - 1e-9), 0.2)
+        return min(MARGIN_STEP * np.ceil(m / MARGIN_STEP - 1e-9), MAX_MARGIN)
 
     def _within(self, margin: float) -> Simulator:
         # (sums of MARGIN_STEP, or a fresh plan's prediction margin, rare: one simulator each, 0.14 ms to build)
