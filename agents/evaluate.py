@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from wl_env import cycle
+from wl_env.atomic_io import check_output_folder
 from wl_env.controller import Controller
 from wl_env.params import LoaderParams, plain, shown
 from wl_env.scenario import Scenario, resolve_scenario
@@ -71,6 +72,13 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     evaluation each episode's reaches a controller whose ``reset`` takes ``scenario=``.
     """
     cycle.check_braking(braking)
+    if not isinstance(spec, str):
+        raise ValueError(f"the controller must be named by a string ({', '.join(BUILTIN_CONTROLLERS)}, module:Class or "
+                         f"path/to/file.py:Class), got {type(spec).__name__}")
+    if model is not None and not isinstance(model, (str, os.PathLike)):
+        raise ValueError(f"model must be a policy file's path or None, got {type(model).__name__}")
+    if scenario is not None:  # (a dict or JSON, as evaluate_controller takes them; anything else named)
+        scenario = resolve_scenario(scenario, braking)
     spec = spec.strip()
     if model is not None and not str(model).strip():  # (Path("") is the working folder: it searched there)
         raise ValueError("--model must name a policy (PATH.safetensors, ...), got an empty string")
@@ -365,6 +373,17 @@ def check_env_kwargs(env_id: Any, env_kwargs: Any, braking: str) -> None:
             raise ValueError(f"env_kwargs: {env_id} takes no argument(s) {unknown}; known: {sorted(known)}")
 
 
+def _takes_one(fn: Callable[..., Any]) -> bool:
+    """``fn`` can be called with one positional argument (as far as its signature tells)."""
+    try:
+        inspect.signature(fn).bind("message")
+    except TypeError:
+        return False
+    except ValueError:  # (a builtin without a signature: taken as it is)
+        return True
+    return True
+
+
 def evaluate_controller(
     controller: Controller,
     braking: str | None = None,
@@ -452,8 +471,20 @@ def evaluate_controller(
         raise ValueError(f"min_time must be 'optimum' or 'estimate', got {min_time!r}")
     if unknown not in ("raise", "skip"):
         raise ValueError(f"unknown must be 'raise' or 'skip', got {shown(unknown)}")
-    if progress is not None and not callable(progress):
+    if progress is not None and not (callable(progress) and _takes_one(progress)):
         raise ValueError(f"progress must be a function of one message or None, got {shown(progress)}")
+    if not callable(getattr(controller, "act", None)):  # (None: an AttributeError in the first step)
+        raise ValueError(f"controller must have an act(obs) method (load_controller makes one from a name), got "
+                         f"{type(controller).__name__}")
+    if front is not None:
+        from mpc.benchmark.pareto import ParetoFront
+
+        if not isinstance(front, ParetoFront):
+            raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
+    if cache is not None:  # (checked now: a file there failed only after the episodes)
+        if not isinstance(cache, (str, os.PathLike)):
+            raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")
+        check_output_folder(cache, f"cache {cache}")
     chosen, env_id = env_id, env_id or getattr(controller, "env_id", "WheelLoader-v2")
     check_env_kwargs(env_id, env_kwargs, braking)
     say = progress or (lambda msg: None)

@@ -75,6 +75,7 @@ N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGETE
 
 log = logging.getLogger(__name__)
 
+MAX_STEPS = 10**15  # a checkpoint's step count at most (10^23 failed as a seed: "Seed must be between 0 and 2**32 - 1")
 EVAL_TARGET_RATIOS = (1.0, 1.15, 1.5)  # the targets of the leaderboard (#14): fastest, 1.15 and 1.5 T_min
 EVAL_FIELDS = (
     "step", "wall_time", "nominal_success", "nominal_completed", "nominal_return", "T", "fuel_g",
@@ -180,8 +181,8 @@ def restore_checkpoint(model: Any, vecnorm: Any, folder: Path) -> None:
         groups = [{k: tuple(v) if isinstance(v, list) and k != "params" else v for k, v in g.items()} for g in groups]
         model.policy.optimizer.load_state_dict({"state": state, "param_groups": groups})  # (betas as torch keeps them)
         n_updates = training["n_updates"]
-        if type(n_updates) is not int or n_updates < 0:
-            raise ValueError(f"training.json: n_updates must be an integer >= 0, got {n_updates!r}")
+        if type(n_updates) is not int or not 0 <= n_updates <= MAX_STEPS:
+            raise ValueError(f"training.json: n_updates must be an integer in [0, {MAX_STEPS}], got {str(n_updates)[:40]}")
         model._n_updates = n_updates
         if vecnorm is not None:
             for name in ("obs_rms", "ret_rms"):
@@ -192,7 +193,8 @@ def restore_checkpoint(model: Any, vecnorm: Any, folder: Path) -> None:
                         and count > 0):
                     raise ValueError(f"training.json: {name} must hold finite statistics (var >= 0, count > 0)")
                 rms.mean, rms.var, rms.count = mean, var, count
-    except (OSError, ValueError, KeyError, TypeError, IndexError, RuntimeError, SafetensorError, RecursionError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, IndexError, RuntimeError, SafetensorError, RecursionError,
+            OverflowError) as exc:
         raise CheckpointError(f"checkpoint {folder} cannot be resumed from: {brief(exc, 300)}") from None
 
 
@@ -697,11 +699,15 @@ def _append_eval_row(path: Path, row: dict[str, Any]) -> None:
 
 
 def read_eval_csv(path: str | os.PathLike) -> list[dict[str, float]]:
-    """The rows of a run's eval.csv as floats (NaN for empty cells)."""
+    """The rows of a run's eval.csv as floats (NaN for empty cells); ValueError naming the file if a cell is no
+    number or the file no text."""
     rows = []
-    with open(path, newline="") as f:
-        for r in csv.DictReader(f):
-            rows.append({k: (float(v) if v not in ("", None) else math.nan) for k, v in r.items()})
+    try:
+        with open(path, newline="") as f:
+            for r in csv.DictReader(f):
+                rows.append({k: (float(v) if v not in ("", None) else math.nan) for k, v in r.items()})
+    except (ValueError, TypeError, csv.Error) as exc:  # (a row longer than the header: a list under the key None)
+        raise ValueError(f"{path} is not a readable evaluation log: {brief(exc, 200)}") from None
     return rows
 
 
@@ -710,16 +716,20 @@ def _truncate_eval_csv(path: Path, step: int) -> None:
     the interruption is dropped)."""
     if not path.exists():
         return
-    lines = path.read_text().splitlines(keepends=True)
-    if not lines:
-        return
-    n_cols = len(next(csv.reader(lines[:1])))
+    try:  # (a step that is no number, or a file that is no text: ValueError naming it, not a bare one)
+        lines = path.read_text().splitlines(keepends=True)
+        if not lines:
+            return
+        n_cols = len(next(csv.reader(lines[:1])))
 
-    def keep(line: str) -> bool:
-        cells = next(csv.reader([line]), [])
-        return line.endswith("\n") and len(cells) == n_cols and float(cells[0]) <= step
+        def keep(line: str) -> bool:
+            cells = next(csv.reader([line]), [])
+            return line.endswith("\n") and len(cells) == n_cols and float(cells[0]) <= step
 
-    write_atomic(path, "".join(lines[:1] + [line for line in lines[1:] if keep(line)]))
+        kept = [line for line in lines[1:] if keep(line)]
+    except (ValueError, OSError, csv.Error) as exc:
+        raise ValueError(f"{path} cannot be continued: {brief(exc, 200)}") from None
+    write_atomic(path, "".join(lines[:1] + kept))
 
 
 def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
@@ -741,12 +751,12 @@ def read_progress(folder: Path) -> tuple[dict[str, Any], int]:
     try:
         progress = json.loads((Path(folder) / "progress.json").read_text())
         step, wall = progress["num_timesteps"], progress["wall_time"]
-        if type(step) is not int or step < 0:  # (it may pass total_timesteps by the last rollout)
-            raise ValueError(f"num_timesteps must be an integer >= 0, got {step!r}")
+        if type(step) is not int or not 0 <= step <= MAX_STEPS:  # (it may pass total_timesteps by the last rollout)
+            raise ValueError(f"num_timesteps must be an integer in [0, {MAX_STEPS}], got {str(step)[:40]}")
         if type(wall) not in (int, float) or not (math.isfinite(wall) and wall >= 0):
             raise ValueError(f"wall_time must be a finite number of seconds >= 0, got {wall!r}")
         return progress, step
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError, OverflowError) as exc:  # (10**400: OverflowError)
         raise CheckpointError(f"checkpoint {folder} cannot be resumed from: progress.json: {brief(exc, 300)}") from None
 
 
@@ -898,6 +908,9 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
         demos = demo_samples(read_demo_folder(cfg.bc_demos, cfg.env_id), cfg.env_id, cfg.braking)
     check_env_settings(cfg)  # (before config.json is written: a run is never saved with settings its env refuses)
+    if ckpt is not None:  # (and its progress and eval.csv: a resume that fails on them records no command)
+        progress, step = read_progress(ckpt)
+        _truncate_eval_csv(run_dir / "eval.csv", step)
     if command:
         commands.append(command)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -905,15 +918,13 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
     tb_dir = run_dir / "tb"
     if ckpt is not None:
-        progress, step = read_progress(ckpt)
         # Fresh episodes after the interruption; a different env seed so they are not a replay.
-        env = make_env(cfg, seed=cfg.seed + step)
+        env = make_env(cfg, seed=(cfg.seed + step) % 2**32)
         model = build_model(cfg, env, tb_dir)
         restore_checkpoint(model, _vecnorm_of(env), ckpt)
-        set_random_seed(cfg.seed + step)  # (after the build, which seeds with cfg.seed)
+        set_random_seed((cfg.seed + step) % 2**32)  # (after the build, which seeds with cfg.seed)
         model.num_timesteps = step
         state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))
-        _truncate_eval_csv(run_dir / "eval.csv", step)
         log.info("resume: %s, %d of %d steps done", ckpt.name, step, cfg.total_timesteps)
     else:
         step = 0

@@ -256,7 +256,8 @@ class PPOConfig:
 
         unknown = (set(self.reward) | set(self.curriculum_start)) - set(RewardConfig.__dataclass_fields__)
         if unknown:
-            raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)}")
+            raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)} (--reward, --curriculum-start); known: "
+                             f"{sorted(RewardConfig.__dataclass_fields__)}")
         for name in ("reward", "curriculum_start"):  # (each field's range, now: not at the first reset)
             try:
                 RewardConfig(**getattr(self, name))

@@ -74,7 +74,13 @@ def expand(cfg: PPOConfig, seeds: Sequence[int], sweep: dict[str, list[Any]] | N
         for seed in seeds:
             d = {**cfg.to_dict(), **dict(zip(names, point, strict=True)), "seed": int(seed),
                  "run_name": f"{base}{tag}_s{seed}"}
-            out.append(PPOConfig.from_dict(d))
+            try:
+                out.append(PPOConfig.from_dict(d))
+            except ValueError as exc:  # (a swept value out of its field's range: said as the --sweep point)
+                if not names:
+                    raise
+                point_text = ", ".join(f"{n}={v}" for n, v in zip(names, point, strict=True))
+                raise ValueError(f"--sweep {point_text}: {exc}") from None
     return out
 
 

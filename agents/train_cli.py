@@ -113,6 +113,11 @@ def _count(text: str, most: int | None = None) -> int:
     return value
 
 
+def _seed(text: str) -> int:
+    """``--seeds``: each in PPOConfig.seed's range, said as this flag's (not as the field's, after the parse)."""
+    return _count(text, 2**31 - 1)
+
+
 def _episodes(text: str) -> int:
     """``--export-episodes``: a count in [0, MAX_EVAL_EPISODES], checked before the training, not after it."""
     return _count(text, MAX_EVAL_EPISODES)
@@ -127,7 +132,7 @@ def add_train_args(parser: argparse.ArgumentParser) -> None:
                         "PATH.json")
     parser.add_argument("--export-episodes", type=_episodes, default=100,
                         help=f"evaluation episodes of --export, 0..{MAX_EVAL_EPISODES}")
-    parser.add_argument("--seeds", type=_count, nargs="+", default=None, metavar="SEED",
+    parser.add_argument("--seeds", type=_seed, nargs="+", default=None, metavar="SEED",
                         help="several runs, one per seed, each in <log-dir>/<run-name or ppo_<braking>>_s<seed>; a "
                         "finished run is skipped, an interrupted one resumed (agents.seeds)")
     parser.add_argument("--sweep", nargs="+", default=None, metavar="FIELD=V1,V2",

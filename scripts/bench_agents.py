@@ -136,7 +136,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from wl_env.logs import cli_logging
+    from wl_env.logs import PACKAGES, run_script
 
-    with cli_logging():  # the Pareto sweep's progress, as `wl` shows it
-        main()
+    run_script("bench_agents.py", main, PACKAGES)  # (the Pareto sweep's progress, as `wl` shows it; a missing run in one line)

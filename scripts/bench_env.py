@@ -98,10 +98,15 @@ def main(argv: list[str] | None = None) -> int:
     from wl_env.atomic_io import check_output_option
 
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
-    if args.quick:
+    for flag, value, hi in (("--repeats", args.repeats, 1000), ("--single-steps", args.single_steps, 10**7),
+                            ("--vector-env-steps", args.vector_env_steps, 10**9)):
+        # (10^11 single steps failed allocating 745 GiB of actions, in a traceback)
+        if not 1 <= value <= hi:
+            ap.error(f"{flag} must be an integer in [1, {hi}], got {value}")
+    if min(args.num_envs) < 1:
+        ap.error("--num-envs must be >= 1")
+    if args.quick:  # (after the checks: a bad --repeats was not refused with --quick)
         args.repeats, args.single_steps, args.vector_env_steps = 3, 1_000, 10_000
-    if args.repeats < 1 or args.single_steps < 1 or args.vector_env_steps < 1 or min(args.num_envs) < 1:
-        ap.error("repeats, step counts and num-envs must be >= 1")
     from wl_env.params import MAX_NUM_ENVS
 
     if max(args.num_envs) > MAX_NUM_ENVS:  # (the env refused it with a traceback)

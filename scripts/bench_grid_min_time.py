@@ -41,8 +41,8 @@ def main() -> None:
     ap.add_argument("reach", nargs="?", type=int, default=2, help="R: steps per phase around the plan's schedule")
     ap.add_argument("--same-length", action="store_true", help="schedules as long as the plan's, for the least fuel")
     a = ap.parse_args()
-    if a.reach < 1:
-        ap.error(f"R (reach) must be an integer >= 1, got {a.reach}")
+    if not 1 <= a.reach <= 8:  # ((2R + 1)^4 schedules: R = 1000 looped for hours over slots a phase does not have)
+        ap.error(f"R (reach) must be an integer in [1, 8], got {a.reach}")
     braking, reach, same_length = a.braking, a.reach, a.same_length
     env = gym.make("WheelLoader-v2", braking=braking)
     core = env.unwrapped.core

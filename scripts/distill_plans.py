@@ -72,6 +72,8 @@ def check(o: Options) -> None:
         raise ValueError(f"--sigma must lie in (0, 1] (action units), got {o.sigma!r}")
     if not 0.0 < o.learning_rate <= 1.0:
         raise ValueError(f"--learning-rate must lie in (0, 1], got {o.learning_rate!r}")
+    if not Path(o.out).name.strip() or Path(o.out).name in (".", ".."):  # ("" passed as the file ".json", and failed
+        raise ValueError(f"--out must name the policy's file stem (PATH/NAME), got {str(o.out)!r}")  # after the work)
     check_output_file(Path(f"{o.out}.json"), "--out")
     if o.demos is not None:
         check_output_file(o.demos, "--demos")

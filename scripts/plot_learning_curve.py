@@ -97,6 +97,17 @@ def plot(rows: list[dict[str, float]], braking: str, title: str, out: Path, fron
     return out
 
 
+def run_braking(path: Path) -> str:
+    """The braking of a run's config.json (any version of it: only that field is read); ValueError naming the file."""
+    try:
+        braking = json.loads(path.read_text())["config"]["braking"]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise ValueError(f"{path} is not a readable run config: {type(exc).__name__}: {exc}") from None
+    if braking not in ("service", "tc"):
+        raise ValueError(f"{path}: its braking must be 'service' or 'tc', got {str(braking)[:40]!r}")
+    return braking
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("source", help="a run directory (with eval.csv) or an eval CSV file")
@@ -117,8 +128,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.front and not Path(args.front).is_file():
         ap.error(f"--front {args.front}: no such file")
     braking = args.braking
-    if braking is None and (src / "config.json").exists():
-        braking = json.loads((src / "config.json").read_text())["config"]["braking"]
+    try:  # (a corrupt run file: one line naming it, not a traceback)
+        if braking is None and (src / "config.json").exists():
+            braking = run_braking(src / "config.json")
+        rows = read_eval_csv(csv_path)
+    except ValueError as exc:
+        ap.error(str(exc))
     braking = braking or "service"
     front = None
     if not args.no_front:
@@ -128,7 +143,6 @@ def main(argv: list[str] | None = None) -> int:
             front = ParetoFront.load(args.front) if args.front else pareto_front(braking)
         except Exception as e:  # noqa: BLE001
             print(f"warning: no Pareto front ({e})", file=sys.stderr)
-    rows = read_eval_csv(csv_path)
     if not rows:
         ap.error(f"{csv_path} holds no evaluation rows: nothing to plot")
     if front is not None:  # score the rows logged while no front was at hand

@@ -74,7 +74,8 @@ class Options:
         """The numbers checked by name before anything runs (a bad one used to surface after the demonstrations,
         ~20 s each, or not at all: --epochs 0 shipped an untrained clone)."""
         rules = {"episodes": (1, 10_000), "epochs": (1, 100_000), "batch_size": (1, 2**20), "workers": (1, 256),
-                 "export_episodes": (1, 10_000), "dagger_rounds": (0, 100), "dagger_episodes": (1, 10_000)}
+                 "export_episodes": (1, 10_000), "dagger_rounds": (0, 100), "dagger_episodes": (1, 10_000),
+                 "demo_seed": (0, 2**20)}  # (a seed out of range was refused as "seed", another flag)
         for name, (lo, hi) in rules.items():
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi):

@@ -73,6 +73,8 @@ def stage_configs(o: Options) -> list:
     if n == 0 or len(o.log_std_init) != n or len(o.log_std_final) != n:
         raise ValueError(f"--cycles, --log-std-init and --log-std-final must give one value per stage (1 or more), "
                          f"got {len(o.cycles)}, {len(o.log_std_init)} and {len(o.log_std_final)}")
+    if not all(isinstance(c, int) and 1 <= c <= 10**9 for c in o.cycles):  # (was PPOConfig.total_timesteps's error)
+        raise ValueError(f"--cycles must be integers in [1, 1000000000], one per stage, got {list(o.cycles)}")
     configs = []
     for k in range(n):
         name = f"plan_{o.braking}_s{o.seed}_stage{k + 1}"

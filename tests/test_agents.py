@@ -277,3 +277,24 @@ def test_a_controller_that_takes_no_target_is_refused_by_name():
                 {"target_time": 10.0, "target_ratio": 1.2}):
         with pytest.raises(ValueError, match="target"):
             evaluate_controller(load_controller("operator", "service"), "service", episodes=1, **bad)
+
+
+def test_evaluate_and_load_controller_refuse_bad_arguments_by_name(tmp_path):
+    """Each a ValueError naming the argument before any episode (were AttributeErrors and TypeErrors, a cache that is
+    a file failed after the episodes, a scenario dict was refused by load_controller that evaluate_controller takes)."""
+    from agents.evaluate import evaluate_controller, load_controller
+
+    op = load_controller("operator", "service")
+    (tmp_path / "file").write_text("")
+    for call, needle in [(lambda: evaluate_controller(None, "service", episodes=1), "act\\(obs\\) method"),
+                         (lambda: evaluate_controller("operator", "service", episodes=1), "act\\(obs\\) method"),
+                         (lambda: evaluate_controller(op, "service", episodes=1, front="x"), "front must be"),
+                         (lambda: evaluate_controller(op, "service", episodes=1, cache=123), "cache must be"),
+                         (lambda: evaluate_controller(op, "service", episodes=1, cache=tmp_path / "file"), "not a folder"),
+                         (lambda: evaluate_controller(op, "service", episodes=1, progress=lambda: None), "progress must be"),
+                         (lambda: load_controller(None, "service"), "must be named by a string"),
+                         (lambda: load_controller("ppo", "service", model=5), "model must be"),
+                         (lambda: load_controller("mpc", "service", scenario="junk"), "scenario takes JSON")]:
+        with pytest.raises(ValueError, match=needle):
+            call()
+    assert load_controller("operator", "service", scenario={"payload": 9000.0}).params.M_load == pytest.approx(9000.0)

@@ -321,6 +321,12 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_rti_qp.py", "--solvers", "nope"], "invalid choice: 'nope'"),
     (["bench_ocp.py", "--repeats", "0"], "--repeats must be an integer in [1, 1000]"),
     (["bench_ocp.py", "--pareto-repeats", "-3"], "--pareto-repeats must be an integer in [1, 1000]"),
+    (["bench_env.py", "--single-steps", "100000000000"], "--single-steps must be an integer in [1, 10000000]"),  # (745 GiB)
+    (["bench_env.py", "--repeats", "-1", "--quick"], "--repeats must be an integer in [1, 1000]"),
+    (["bench_grid_min_time.py", "tc", "1000"], "R (reach) must be an integer in [1, 8]"),
+    (["select_policy.py", "--policies", "/nonexistent"], "no policy in /nonexistent"),  # (a FileNotFoundError's traceback)
+    (["bench_agents.py", "--suite", "test", "--runs", "/nonexistent"], "no policy in /nonexistent"),
+    (["distill_plans.py", "--policy", "agents/policies/plan_target_tc", "--out", ""], "--out must name the policy's file stem"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
     (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of"),
@@ -337,7 +343,9 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_plan_env.py", "--num-envs", "0"], "--num-envs must be integers in [1, 16384]"),
     (["bench_plan_env.py", "--rounds", "0"], "--rounds must be an integer in [1, 100]"),
     (["train_plan_policy.py", "--cycles", "16"], "--cycles, --log-std-init and --log-std-final must give one value per stage"),
-    (["train_plan_policy.py", "--braking", "moon"], "braking must be one of")])
+    (["train_plan_policy.py", "--braking", "moon"], "braking must be one of"),
+    (["train_plan_policy.py", "--cycles", "0", "0"], "--cycles must be integers in [1, 1000000000]"),
+    (["train_bc.py", "--demo-seed", "-1"], "--demo-seed must be an integer in [0, 1048576]")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
@@ -361,6 +369,24 @@ def test_a_refused_option_leaves_no_output_folder(tmp_path, capsys, argv, needle
     code, _, err = _run(capsys, *[a.format(file=tmp_path / "file") for a in argv], "--out", out)
     assert code == 2 and needle in err
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("files, needle", [
+    ({"eval.csv": b"step,a\nabc,1\n"}, "eval.csv is not a readable evaluation log"),
+    ({"eval.csv": b"\xff\xfe,a\n"}, "eval.csv is not a readable evaluation log"),
+    ({"eval.csv": b"step,a\n1,2\n", "config.json": b'{"config": '}, "config.json is not a readable run config"),
+    ({"eval.csv": b"step,a\n1,2\n", "config.json": b"[1]"}, "config.json is not a readable run config")])
+def test_plot_learning_curve_names_a_corrupt_run_file(tmp_path, files, needle):
+    import subprocess
+    import sys
+
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    script = Path(__file__).resolve().parents[1] / "scripts" / "plot_learning_curve.py"
+    r = subprocess.run([sys.executable, str(script), str(tmp_path), "--out", str(tmp_path / "c.png"), "--no-front"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "c.png").exists()
 
 
 # ------------------------------------------------------------------------------------------ report
@@ -448,11 +474,13 @@ def _broken(results: dict, what: str) -> dict:
         results["optima"]["service"]["t"] = "abc"
     elif what == "front":
         results["fronts"]["service"]["T"] = results["fronts"]["service"]["T"][::-1]
+    elif what == "string states":  # (passed as numbers, then the figure failed with half the report written)
+        results["optima"]["service"]["states"] = [[str(v) for v in row] for row in results["optima"]["service"]["states"]]
     return results
 
 
 @pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge",
-                                  "controller", "times", "front"])
+                                  "controller", "times", "front", "string states"])
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
     if what != "missing":
@@ -464,6 +492,20 @@ def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     code, _, err = _run(capsys, "report", "--results", out)
     assert code == 2
     assert len(err.strip().splitlines()) == 1 and err.startswith("wl: error:") and "results.json" in err
+    assert not (out / "leaderboard.md").exists()
+
+
+def test_report_checks_its_files_before_writing_any(tmp_path, cache, capsys):
+    """A folder where a figure goes is refused before any file is written (it failed after the leaderboard)."""
+    out = tmp_path / "results"
+    wl.report.collect(out, cache=str(cache), brakings=("service",), suite_controllers=None,
+                      controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+    capsys.readouterr()
+    (out / "leaderboard.md").unlink(missing_ok=True)
+    (out / "pareto.png").unlink(missing_ok=True)
+    (out / "pareto.png").mkdir()
+    code, _, err = _run(capsys, "report", "--results", out)
+    assert code == 2 and "pareto.png is a folder" in err
     assert not (out / "leaderboard.md").exists()
 
 
@@ -479,6 +521,9 @@ def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     (["train", "--braking", "hydraulic", "--log-dir", "{tmp}"], "braking"),
     (["train", "--num-envs", "many"], "--num-envs"),
     (["train", "--num-envs", "1000000000", "--log-dir", "{tmp}"], "[1, 16384]"),
+    (["train", "--seeds", "99999999999", "--log-dir", "{tmp}"], "--seeds"),  # (was named PPOConfig.seed)
+    (["train", "--seeds", "0", "--sweep", "learning_rate=nan", "--log-dir", "{tmp}"], "--sweep learning_rate=nan"),
+    (["train", "--reward", "bogus=1", "--log-dir", "{tmp}"], "--reward"),
     (["ocp", "--objective", "speed", "--out", "{tmp}/x.json"], "--objective"),
     (["report"], "--results"),
     (["evaluate", "--controller", "operator", "--scenario", ""], "--scenario is empty"),

@@ -219,3 +219,18 @@ def test_the_optimum_a_step_over_the_minimum_time_is_found_from_the_cycles_own_f
     assert r.success and abs(r.T - 8.4) < 1e-9
     # leaner than the minimum-time cycle, and not below the shipped front at 8.4 s (82.17 g interpolated)
     assert 82.0 < r.fuel_g < solve_ocp("tc", "time").fuel_g
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"settings": "x"}, "settings must be an OCPSettings"),  # (a TypeError from dataclasses.replace)
+    ({"warm_start": "x"}, "warm_start must be an OCPResult"),  # (an AttributeError)
+    ({"starts": [(float("nan"), 0.5)]}, "starts must be"),  # (numpy's "arange: cannot compute length")
+    ({"starts": "ab"}, "starts must be"),
+    ({"T": -3.0}, "objective 'time' takes none"),  # (ignored without a word)
+    ({"max_interval": 0}, "max_interval must lie in"),
+    ({"max_interval": float("nan")}, "max_interval must lie in"),
+    ({"max_refinements": -1}, "max_refinements must be an integer"),
+    ({"objective": "speed"}, "objective must be one of")])
+def test_solve_ocp_refuses_bad_arguments_by_name_before_any_solve(kwargs, needle):
+    with pytest.raises(ValueError, match=needle):
+        solve_ocp("service", **{"objective": "time", **kwargs})

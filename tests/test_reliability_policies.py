@@ -639,14 +639,28 @@ def test_resuming_never_unpickles_and_refuses_bad_run_files(tmp_path, marker):
             train(named, resume=True)
     config.write_text(good[config])
     for bad in ({}, {"num_timesteps": "2048", "wall_time": 1.0}, {"num_timesteps": -5, "wall_time": 1.0},
-                {"num_timesteps": 1024, "wall_time": float("nan")}):
+                {"num_timesteps": 1024, "wall_time": float("nan")}, {"num_timesteps": 10**23, "wall_time": 1.0},
+                {"num_timesteps": 1024, "wall_time": 10**400}):  # (a seed error; an OverflowError's traceback)
         progress.write_text(json.dumps(bad))
         with pytest.raises(CheckpointError, match="progress.json"):
             train(named, resume=True)
+        assert config.read_text() == good[config]  # (a failed resume records no command)
     progress.write_text(good[progress])
-    (ckpt / "training.json").write_text(json.dumps({"optimizer": {"param_groups": [{"lr": "exec"}], "scalars": {}}}))
-    with pytest.raises(CheckpointError, match=f"checkpoint {ckpt}"):
-        train(named, resume=True)
+    eval_csv = cfg.run_dir / "eval.csv"
+    good_eval = eval_csv.read_bytes()
+    for bad in (b"step,a\nabc,1\n", b"\xff\xfe,a\n"):
+        eval_csv.write_bytes(bad)
+        with pytest.raises(ValueError, match="eval.csv cannot be continued"):
+            train(named, resume=True)
+        assert config.read_text() == good[config]
+    eval_csv.write_bytes(good_eval)
+    training = (ckpt / "training.json").read_text()
+    for bad in ({"optimizer": {"param_groups": [{"lr": "exec"}], "scalars": {}}},
+                {"optimizer": {"param_groups": [{"lr": 10**400}], "scalars": {}}},  # (an OverflowError's traceback)
+                {**json.loads(training), "n_updates": 10**400}):
+        (ckpt / "training.json").write_text(json.dumps(bad))
+        with pytest.raises(CheckpointError, match=f"checkpoint {ckpt}"):
+            train(named, resume=True)
     pointer.write_text(json.dumps({"checkpoint": "../../r"}))
     assert latest_checkpoint(cfg.run_dir) == ckpt  # (the pointer names no checkpoint folder: the newest one is taken)
     assert not marker.exists()

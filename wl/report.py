@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.atomic_io import save_figure, write_atomic
+from wl_env.atomic_io import check_output_file, save_figure, write_atomic
 from wl_env.params import is_finite
 
 log = logging.getLogger(__name__)
@@ -310,9 +310,10 @@ def _is_number(v: Any) -> bool:
 def _check_trajectory(d: dict[str, Any]) -> None:
     if not (isinstance(d["t"], list) and all(map(_is_number, d["t"]))):
         raise ValueError("a trajectory's times t are not a list of finite numbers")
-    states = np.asarray(d["states"], dtype=float)
-    if states.shape != (len(d["t"]), 4) or not np.all(np.isfinite(states)):
-        raise ValueError(f"states of shape {states.shape} for {len(d['t'])} times (4 finite states each)")
+    states = d["states"]  # (numbers, not numbers in strings: np.asarray(dtype=float) took "81.6", and the figure failed)
+    if not (isinstance(states, list) and len(states) == len(d["t"])
+            and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in states)):
+        raise ValueError(f"its states are not {len(d['t'])} rows of 4 finite numbers, one per time")
 
 
 # ---------------------------------------------------------------------------------------------- render
@@ -332,6 +333,9 @@ def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Pat
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     brakings, rows, fronts = results["brakings"], results["rows"], results["fronts"]
+    names = ["leaderboard.md", "pareto.png", *(f"trajectories_{b}.png" for b in brakings)]
+    for name in names + (["suite_gaps.png"] if results.get("suite") else []):  # (before any is written: a folder at
+        check_output_file(out / name, "the report's file")                  # pareto.png left half a report)
     written = []
     # ---- leaderboard
     lines = ["# Leaderboard", "", "Cycle time and fuel of each controller in `WheelLoader-v1`, scored against the "

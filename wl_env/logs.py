@@ -51,15 +51,17 @@ def cli_logging(level: int = logging.INFO, names: tuple[str, ...] = PACKAGES) ->
             lg.setLevel(previous)
 
 
-def run_script(name: str, main: Callable[[], Any]) -> None:
+def run_script(name: str, main: Callable[[], Any], loggers: tuple[str, ...] | None = None) -> None:
     """A script's entry point: ``main()`` with the script's own logger (``name``) on stderr; a
-    ValueError (a bad option, named in its message) as one line ``name: error: ...`` and exit 2, Ctrl-C as
-    exit 130 (the scripts write their outputs atomically at the end: nothing partial is left)."""
-    with cli_logging(names=(name,)):
+    ValueError (a bad option, named in its message) or an OSError (a missing or unreadable file, named in its
+    message), as ``wl`` takes them, as one line ``name: error: ...`` and exit 2, Ctrl-C as exit 130 (the scripts
+    write their outputs atomically at the end: nothing partial is left). ``loggers``: the loggers shown (default:
+    the script's own)."""
+    with cli_logging(names=loggers or (name,)):
         try:
             main()
-        except ValueError as exc:
-            print(f"{name}: error: {exc}", file=sys.stderr)
+        except (ValueError, OSError) as exc:
+            print(f"{name}: error: {' '.join(str(exc).split())}", file=sys.stderr)
             sys.exit(2)
         except KeyboardInterrupt:
             print(f"{name}: interrupted", file=sys.stderr)

@@ -644,8 +644,7 @@ def solve_ocp(
     every mesh tried. A result whose re-simulation still fails has ``success`` False and says so in its status.
     """
     braking, p = with_scenario(braking, params, scenario)
-    if objective == "fuel_at_time":
-        check_cycle_time(T)
+    check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements)
     settings = settings or OCPSettings()
     result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
     if not verify:
@@ -666,6 +665,37 @@ def solve_ocp(
         result.success = False
         result.status += " (re-simulation check failed)"
     return result
+
+
+def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any, starts: Any, max_interval: Any,
+                          max_refinements: Any) -> None:
+    """:func:`solve_ocp`'s arguments, each refused by name (a string settings was a TypeError from dataclasses, a
+    NaN start an error from numpy, T with another objective than fuel_at_time was ignored without a word)."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {shown(objective)}")
+    if objective == "fuel_at_time":
+        check_cycle_time(T)
+    elif T is not None:
+        raise ValueError(f"T is the cycle time of objective 'fuel_at_time'; objective {objective!r} takes none, got {shown(T)}")
+    if settings is not None and not isinstance(settings, OCPSettings):
+        raise ValueError(f"settings must be an OCPSettings or None, got {type(settings).__name__}")
+    if warm_start is not None and not isinstance(warm_start, OCPResult):
+        raise ValueError(f"warm_start must be an OCPResult or None, got {type(warm_start).__name__}")
+    if starts is not None:
+        ok = isinstance(starts, (tuple, list)) and all(
+            isinstance(st, (tuple, list)) and len(st) == 2 and all(_finite_number(v) for v in st)
+            and 0.1 <= st[0] <= 30.0 and 0.0 < st[1] <= 1.0 for st in starts)
+        if not ok:
+            raise ValueError("starts must be (leg time in [0.1, 30] s, acceleration fraction in (0, 1]) pairs, got "
+                             f"{shown(starts)}")
+    if not (_finite_number(max_interval) and 0.001 <= max_interval <= 10.0):
+        raise ValueError(f"max_interval must lie in [0.001, 10] s, got {shown(max_interval)}")
+    if isinstance(max_refinements, bool) or not isinstance(max_refinements, int) or not 0 <= max_refinements <= 20:
+        raise ValueError(f"max_refinements must be an integer in [0, 20], got {shown(max_refinements)}")
+
+
+def _finite_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _mesh_record(r: OCPResult) -> dict[str, Any]:
