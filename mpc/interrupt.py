@@ -87,3 +87,27 @@ def handling() -> Iterator[None]:
             signal.signal(signal.SIGINT, previous)
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)  # (None: set from C)
             _flag.clear()
+
+
+@contextmanager
+def guarded() -> Iterator[None]:
+    """The SIGINT handler for the block where none of this module's is in place (library use), in the main thread:
+    an interrupt inside CasADi is raised as KeyboardInterrupt when the block ends, whatever CasADi made of it (the
+    real-time iteration's ``sqpmethod`` raised a RuntimeError, which the solve took for a failed step). Without it, Ctrl-C during
+    ``run_closed_loop`` in a script was lost: the cycle ran on, on a step that had stopped half-way, and its result
+    was written."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is _handler:
+        yield
+        return
+    global _repeat, _signal
+    _flag.clear()
+    _signal, _repeat = signal.SIGINT, True
+    previous = signal.signal(signal.SIGINT, _handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        hit = _flag.is_set()
+        _flag.clear()
+        if hit:  # (in place of what CasADi made of it: a RuntimeError "... KeyboardInterrupt", a failed solve)
+            raise KeyboardInterrupt("interrupted")  # noqa: B012

@@ -197,11 +197,14 @@ def test_evaluate_user_controller_from_a_file(tmp_path, cache, capsys):
 
 
 def test_load_controller_builtins_follow_the_protocol():
+    import gymnasium as gym
+
+    obs, _ = gym.make("WheelLoader-v1", braking="tc").reset(seed=0)  # (a real observation: zeros have no phase)
     for spec in ("operator", "mpc", "ppo"):
         c = load_controller(spec, "tc")
         assert isinstance(c, Controller), spec
         if spec != "mpc":  # (its first act plans the cycle, 20-40 s: the MPC's own tests drive it through act)
-            assert c.act(np.zeros(12, np.float32)).shape == (4,)
+            assert c.act(obs).shape == (4,)
 
 
 def test_summary_aggregates_per_episode_values():
@@ -387,6 +390,14 @@ def test_plot_learning_curve_names_a_corrupt_run_file(tmp_path, files, needle):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not (tmp_path / "c.png").exists()
+
+
+def test_a_missing_optimum_under_no_solve_is_one_line(tmp_path, capsys):
+    """--no-solve with a perturbed start, whose optimum no file holds: a LookupError's traceback, exit 1, before."""
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--episodes", "2", "--no-solve",
+                        "--cache", tmp_path / "cache", "--out", tmp_path / "e.json")
+    assert code == 2 and "wl: error: no shipped or cached optimum" in err and "Traceback" not in err
+    assert not (tmp_path / "e.json").exists()
 
 
 # ------------------------------------------------------------------------------------------ report

@@ -79,3 +79,25 @@ def test_batches_decode_column_wise_and_bad_observations_are_named():
     for bad in (np.zeros(N_OBS - 1), np.full(N_OBS, np.nan), np.zeros((2, 3, N_OBS))):
         with pytest.raises(ValueError, match="observations of shape"):
             codec.decode_observation(bad)
+
+
+def test_an_observation_outside_its_space_is_refused_naming_the_entry():
+    """An engine speed of 50 omega_max, a speed of -20 V_max, a time of -200 s or no phase was planned from as if real
+    (the MPC reported a solved plan); each is a ValueError naming the entry and its range."""
+    import gymnasium as gym
+
+    from wl_env.codec import Codec
+
+    obs, _ = gym.make("WheelLoader-v1").reset(seed=0)
+    codec = Codec()
+    codec.decode_observation(obs)  # (the env's own: in range)
+    for i, v, needle in [(0, 50.0, r"obs\[0\] \(engine_speed"), (1, -20.0, r"obs\[1\]"), (6, -5.0, r"obs\[6\] \(time")]:
+        bad = obs.copy()
+        bad[i] = v
+        with pytest.raises(ValueError, match=needle + ".* must lie in"):
+            codec.decode_observation(bad)
+    for phases in ([0, 0, 0, 0], [1, 1, 0, 0], [0.5, 0.5, 0, 0]):
+        bad = obs.copy()
+        bad[8:12] = phases
+        with pytest.raises(ValueError, match="one-hot"):
+            codec.decode_observation(bad)

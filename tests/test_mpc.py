@@ -701,3 +701,18 @@ def test_run_closed_loop_refuses_a_controller_of_the_other_braking():
     ctrl = MPCController("service")  # (the tc env ran under the service plan without a word)
     with pytest.raises(ValueError, match="the controller plans service braking; the run has braking='tc'"):
         run_closed_loop("tc", controller=ctrl, score=False)
+
+
+def test_a_refused_reset_leaves_the_controller_as_it_was():
+    """A scenario of the other braking with a target time was refused after the target had been taken: the next
+    cycle ran in target-time mode (12 s where minimum time is ~8.2 s)."""
+    from wl_env.scenario import Scenario
+
+    ctrl = MPCController("service")
+    with pytest.raises(ValueError, match="plans service braking"):
+        ctrl.reset(scenario=Scenario(braking="tc"), target_time=12.0)
+    assert ctrl.config.mode == "time" and ctrl.config.target_time is None
+    with pytest.raises(ValueError, match="no file 'abc'"):  # (JSON or a dict, as the env takes them; was an AttributeError)
+        ctrl.reset(scenario="abc")
+    ctrl.reset(scenario={"payload": 9000.0})
+    assert ctrl.params.M_load == pytest.approx(9000.0)

@@ -310,3 +310,20 @@ def test_the_distance_alias_beside_a_scenario_is_refused(tmp_path, capsys):
                         "--out", str(tmp_path / "o.json")])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "--params sets distance, which the --scenario sets" in err, err
+
+
+def test_library_entry_points_refuse_bad_arguments_by_name():
+    """Were a TypeError ("unhashable type"), AttributeErrors, and a NaN target that reached the controller."""
+    from agents.operator import OperatorPolicy
+    from wl_env.rollout import run_episode
+    from wl_env.suites.min_time import estimate_min_time
+
+    assert len(load_suite("test").spread("service", np.int64(3))) == 3  # (a numpy integer, as MPCConfig takes it)
+    for call, needle in [(lambda: load_suite(["test"]), "unknown suite"),
+                         (lambda: estimate_min_time("abc"), "scenario must be a wl_env.scenario.Scenario"),
+                         (lambda: run_episode("abc", OperatorPolicy("service")), "env must be a single WheelLoader env"),
+                         (lambda: run_episode(gym.make("WheelLoader-v2"), None), "act\\(obs\\) method"),
+                         (lambda: run_episode(gym.make("WheelLoader-v2"), OperatorPolicy("service"), target_time=math.nan),
+                          "target_time must lie in")]:
+        with pytest.raises(ValueError, match=needle):
+            call()

@@ -58,18 +58,40 @@ def _params_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+# Output folders a command created for its outputs; removed again where it stops (interrupted, or an error) and left
+# them empty (an interrupted `wl pareto` left an empty --out folder).
+_CREATED: list[Path] = []
+
+
+def _created_by(make: Callable[[], Path], folder: Path) -> Path:
+    missing = [p for p in (folder, *folder.parents) if not p.exists()]
+    out = make()
+    _CREATED.extend(reversed(missing))
+    return out
+
+
 def _out_file(path: str, option: str = "--out") -> Path:
     """An output file's path, checked before the work: not a folder, its folder creatable and writable."""
     from wl_env.atomic_io import check_output_file
 
-    return check_output_file(path, option)
+    return _created_by(lambda: check_output_file(path, option), Path(path).parent)
 
 
 def _out_dir(path: str, option: str = "--out") -> Path:
     """An output folder, created and probed for writing before the work."""
     from wl_env.atomic_io import check_output_folder
 
-    return check_output_folder(path, f"{option} {path}")
+    return _created_by(lambda: check_output_folder(path, f"{option} {path}"), Path(path))
+
+
+def _remove_empty_created() -> None:
+    """The folders this command created and left empty, removed (the deepest first)."""
+    while _CREATED:
+        folder = _CREATED.pop()
+        try:
+            folder.rmdir()  # (only if empty)
+        except OSError:
+            pass
 
 
 def _ocp_cmd(args: argparse.Namespace) -> int:
@@ -641,13 +663,18 @@ def _run_command(args: argparse.Namespace) -> int:
     from wl_env.logs import cli_logging
 
     level = logging.DEBUG if args.verbose else logging.INFO
+    _CREATED.clear()
     with cli_logging(level), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
         try:
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            _CREATED.clear()
+            return code
         except KeyboardInterrupt:
+            _remove_empty_created()
             print("wl: interrupted", file=sys.stderr)
             return interrupt.exit_code()
-        except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
+        except (ValueError, LookupError, RuntimeError, OSError) as exc:  # (LookupError: an optimum --no-solve may not solve)
+            _remove_empty_created()
             if interrupt.interrupted():  # an interrupt a library turned into an error
                 print("wl: interrupted", file=sys.stderr)
                 return interrupt.exit_code()

@@ -55,6 +55,11 @@ N_TARGET_OBS = len(TARGET_OBS_NAMES)
 # (a target given in seconds may lie anywhere in [1, 40) s: up to ~6.3 T_min, down to ~0.16 T_min)
 TARGET_OBS_LOW = np.concatenate([SCENARIO_OBS_LOW, np.array([0.0, -1.0], dtype=np.float32)])
 TARGET_OBS_HIGH = np.concatenate([SCENARIO_OBS_HIGH, np.array([1.0, 6.0], dtype=np.float32)])
+# Each layout's bounds and names, by its length (decode_observation checks an observation against them), and the
+# slack of the check: the env clips to the float32 bounds exactly
+OBS_LAYOUTS = {N_OBS: (OBS_LOW, OBS_HIGH, OBS_NAMES), N_SCENARIO_OBS: (SCENARIO_OBS_LOW, SCENARIO_OBS_HIGH, SCENARIO_OBS_NAMES),
+               N_TARGET_OBS: (TARGET_OBS_LOW, TARGET_OBS_HIGH, TARGET_OBS_NAMES)}
+OBS_TOL = 1e-6
 
 
 def encode_speed_request(speed_request: Any, p: Any) -> Any:
@@ -168,6 +173,17 @@ class Codec:
             raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_TARGET_OBS},) (WheelLoaderTarget), "
                              f"({N_SCENARIO_OBS},) (v2) or ({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"
                              f"{'' if np.isfinite(o).all() else ' with non-finite entries'}")
+        # (in the observation space: an engine speed of 50 omega_max or a time of -200 s was planned from as if real)
+        low, high, names = OBS_LAYOUTS[o.shape[-1]]
+        outside = (o < low - OBS_TOL) | (o > high + OBS_TOL)
+        if outside.any():
+            i = int(np.flatnonzero(outside.reshape(-1, o.shape[-1]).any(axis=0))[0])
+            worst = o.reshape(-1, o.shape[-1])[:, i]
+            raise ValueError(f"obs[{i}] ({names[i]}) must lie in [{low[i]:g}, {high[i]:g}], got "
+                             f"{float(worst[np.argmax(np.maximum(low[i] - worst, worst - high[i]))]):g}")
+        phases = o[..., 8:12]
+        if not (np.isin(phases, (0.0, 1.0)).all() and (phases.sum(axis=-1) == 1.0).all()):
+            raise ValueError(f"obs[8:12] (the phase) must be one-hot: one 1 and three 0, got {phases.tolist()}"[:300])
         return o
 
     def decode_observation(self, obs: Any) -> Observation:

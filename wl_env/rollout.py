@@ -100,6 +100,16 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
     start state it reads from the observation), with a ``target_time`` (s) if given: the controller is
     told it (:func:`reset_controller`), and an env with ``observe_target`` (``WheelLoaderTarget-v0``)
     shows it in the observation (a controller that reads it there need not take it)."""
+    from wl_env.env import WheelLoaderEnv, check_target_time
+
+    # (each refused by name: a NaN or negative target reached the controller, a string was float()'s error)
+    if not isinstance(getattr(env, "unwrapped", None), WheelLoaderEnv):
+        raise ValueError(f"env must be a single WheelLoader env (gymnasium.make('WheelLoader-v2'), ...), got "
+                         f"{type(env).__name__}")
+    if not callable(getattr(controller, "act", None)):
+        raise ValueError(f"controller must have an act(obs) method, got {type(controller).__name__}")
+    if target_time is not None:
+        target_time = check_target_time(target_time)
     options = {} if scenario is None else {"scenario": scenario}
     observed = getattr(env.unwrapped, "observe_target", False)
     if observed and target_time is not None:  # the target env shows it in the observation

@@ -425,8 +425,9 @@ class SqpRtiSolver:
         steps = 0
         while True:
             steps += 1
-            sol = fn(x0=z, lam_x0=lam_x, lam_g0=lam_g, **args)
-            interrupt.check("")
+            with interrupt.guarded():  # (sqpmethod swallows a KeyboardInterrupt: only the flag tells)
+                sol = fn(x0=z, lam_x0=lam_x, lam_g0=lam_g, **args)
+                interrupt.check("")
             z, lam_x, lam_g = (np.array(sol[key]).ravel() for key in ("x", "lam_x", "lam_g"))
             g = np.array(sol["g"]).ravel()
             infeas = float(np.max(np.maximum(args["lbg"] - g, 0.0) + np.maximum(g - args["ubg"], 0.0), initial=0.0))

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES, check_braking
-from wl_env.params import LoaderParams, shown
+from wl_env.params import LoaderParams, plain, shown
 from wl_env.scenario import FIELDS, Scenario
 
 FOLDER = Path(__file__).resolve().parent
@@ -77,6 +77,7 @@ class Suite:
     def spread(self, braking: str, n: int | None = None) -> tuple[Scenario, ...]:
         """``n`` of the list's scenarios of one braking alternative, evenly spread over it (all if n is None
         or larger): a fixed sample, the same every run. A sampler suite gives its first n draws of seed 0."""
+        n = plain(n)  # (a numpy integer as the int it holds, as MPCConfig and Scenario take it)
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_SAMPLE):
             # (a sampler drew 10**11 scenarios, minutes and gigabytes before any check)
             raise ValueError(f"the sample size (--sample) must be an integer in [1, {MAX_SAMPLE}] or None, got {shown(n)}")
@@ -110,11 +111,15 @@ class Suite:
         return options[int(rng.integers(len(options)))]
 
 
-@cache
 def load_suite(name: str) -> Suite:
-    """The suite ``name`` (one of :data:`SUITES`), read from its file and validated."""
-    if name not in SUITES:
-        raise ValueError(f"unknown suite {name!r}; suites: {SUITES}")
+    """The suite ``name`` (one of :data:`SUITES`), read from its file and validated (once per process)."""
+    if not isinstance(name, str) or name not in SUITES:  # (a list was the cache's "unhashable type")
+        raise ValueError(f"unknown suite {shown(name)}; suites: {SUITES}")
+    return _load_suite(name)
+
+
+@cache
+def _load_suite(name: str) -> Suite:
     path = FOLDER / f"{name}.json"
     try:  # (every problem names the file: a bare JSONDecodeError, OverflowError or RecursionError did not)
         data = json.loads(path.read_text(encoding="utf-8"))

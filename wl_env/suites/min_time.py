@@ -53,6 +53,9 @@ def _model() -> dict[str, np.ndarray]:
 
 def estimate_min_time(scenario: Scenario) -> float:
     """The estimated minimum cycle time (s) of a scenario (its braking alternative's fit)."""
+    if not isinstance(scenario, Scenario):
+        raise ValueError(f"scenario must be a wl_env.scenario.Scenario (Scenario.parse reads one from JSON), got "
+                         f"{type(scenario).__name__}")
     c = _model()[scenario.braking]
     T = float((quadratic_terms(scenario.features()) @ c)[0])
     if not (math.isfinite(T) and T > 0):
