@@ -177,12 +177,24 @@ def write_policy(policy: Any, normalization: ObsNormalization | None, stem: str 
 
 
 # ---------------------------------------------------------------------------------------------- read
+# The files' sizes at most (bytes): a few bytes of JSON padded to 400 MB took 1 GB to read, and were accepted
+MAX_METADATA_BYTES, MAX_WEIGHTS_BYTES = 2**20, 2**30
+MAX_TENSORS = 4 * MAX_LAYERS + 16  # (a million empty tensors in a 75 MB file took 22 s and 1.7 GB before any check)
+
+
+def _check_size(path: Path, most: int, what: str) -> None:
+    size = path.stat().st_size
+    if size > most:
+        raise PolicyFileError(f"{what} {path} is {size} bytes; a policy's is at most {most}")
+
+
 def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     """The metadata, checked: format, network description, checksums of the weights and normalization."""
     path = files.metadata
     try:
+        _check_size(path, MAX_METADATA_BYTES, "policy metadata")
         meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:  # (nested too deeply)
+    except (OSError, ValueError, RecursionError) as exc:  # (nested too deeply; an integer of 5000 digits)
         raise PolicyFileError(f"policy metadata {path} is unreadable: {brief(exc)}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not policy metadata (no \"format\": \"{FORMAT}\"); a pickle-free policy is "
@@ -303,6 +315,9 @@ def _check_entry_sizes(path: Path) -> None:
                 version = np.lib.format.read_magic(f)
                 read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
                 shape, _, dtype = read(f, max_header_size=1000)
+            if Path(info.filename).stem not in NORMALIZATION_ENTRIES:  # (300 000 extra entries: 14 s, accepted)
+                raise PolicyFileError(f"normalization file {path}: entry {info.filename[:80]!r} is none of "
+                                      f"{', '.join(NORMALIZATION_ENTRIES)}")
             if math.prod(shape) > MAX_NORMALIZATION_VALUES or info.file_size > 64 * MAX_NORMALIZATION_VALUES:
                 raise PolicyFileError(f"normalization file {path}: entry {info.filename!r} holds {shape} values "
                                       f"({info.file_size} bytes); the statistics are at most "
@@ -321,7 +336,8 @@ def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
             data = {k: f[k] for k in NORMALIZATION_ENTRIES}
     except PolicyFileError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # truncated, not an npz, object arrays
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError) as exc:  # truncated, not an npz, object
+        # arrays; a dtype of 2 GB per item ('|S2000000000') under the value cap: 7 TiB asked of numpy
         raise PolicyFileError(f"normalization file {path} is unreadable: {brief(exc)}") from None
     scalars = {k: data[k] for k in ("clip_obs", "epsilon", "norm_obs")}
     if any(v.shape != () for v in scalars.values()) or scalars["norm_obs"].dtype != np.bool_ or any(
@@ -356,16 +372,22 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
     meta = read_metadata(files)
     net = meta["network"]
     try:
+        _check_size(files.weights, MAX_WEIGHTS_BYTES, "weights file")
+        _check_tensor_header(files.weights)
         state = load_tensors(files.weights.read_bytes())
-    except (SafetensorError, OSError, ValueError) as exc:
+    except (SafetensorError, OSError, ValueError, MemoryError) as exc:
         raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
-    if not all(t.is_floating_point() and bool(t.isfinite().all()) for t in state.values()):
-        raise PolicyFileError(f"weights file {files.weights}: every weight must be a finite float")
+    if not all(t.dtype == torch_float32() and bool(t.isfinite().all()) for t in state.values()):
+        # (float8 weights failed in isfinite, or loaded and drove another cycle; the exporter writes float32)
+        raise PolicyFileError(f"weights file {files.weights}: every weight must be a finite float32")
     held, least = sum(t.numel() for t in state.values()), _least_parameters(net)
     if held < least:  # (before building it: a few bytes of metadata could ask for gigabytes of layers)
         raise PolicyFileError(f"weights file {files.weights} holds {held} numbers; the network of {files.metadata.name} "
                               f"has at least {least}")
-    network = build_network(net)
+    try:
+        network = build_network(net)
+    except (ValueError, AssertionError) as exc:  # (a space with low > high: gymnasium's error, naming no file)
+        raise PolicyFileError(f"policy metadata {files.metadata}: its network cannot be built: {brief(exc)}") from None
     try:
         network.load_state_dict(state, strict=True)
     except RuntimeError as exc:  # missing or unexpected tensors, wrong shapes
@@ -373,6 +395,30 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
                               f"{' '.join(str(exc).split())}") from None
     normalization = read_normalization(files.normalization, net["observation_space"]["shape"][0])
     return network, normalization, meta
+
+
+def _check_tensor_header(path: Path) -> None:
+    """The safetensors header alone (its length, then JSON): at most MAX_TENSORS tensors, each float32, before the
+    tensors are read."""
+    with open(path, "rb") as f:
+        n = int.from_bytes(f.read(8), "little")
+        if not 2 <= n <= 2**20:
+            raise ValueError(f"a header of {n} bytes")
+        header = json.loads(f.read(n))
+    if not isinstance(header, dict):
+        raise ValueError("its header is no JSON object")
+    tensors = {k: v for k, v in header.items() if k != "__metadata__"}
+    if len(tensors) > MAX_TENSORS:
+        raise ValueError(f"{len(tensors)} tensors; a policy network has at most {MAX_TENSORS}")
+    dtypes = {v.get("dtype") for v in tensors.values() if isinstance(v, dict)}
+    if dtypes - {"F32"}:
+        raise ValueError(f"tensors of dtype {sorted(map(str, dtypes - {'F32'}))}; the weights are float32 (F32)")
+
+
+def torch_float32() -> Any:
+    import torch
+
+    return torch.float32
 
 
 # ---------------------------------------------------------------------------------------------- convert

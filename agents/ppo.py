@@ -285,7 +285,22 @@ class PPOPolicy:
         pass
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        action, _ = self.network.predict(self.normalize(obs), deterministic=True)
+        space = self.network.observation_space
+        o = np.asarray(obs, dtype=np.float64) if isinstance(obs, (np.ndarray, list, tuple)) else None
+        # (each refused by name: a 1-number obs was given an action, NaN was torch's error)
+        shaped = o is not None and o.ndim in (1, 2) and o.shape[-1:] == space.shape  # (one, or a batch (N, n))
+        if not shaped or not np.isfinite(o).all():
+            raise ValueError(f"obs must be {space.shape[0]} finite numbers ({self.env_id}'s observation), or a batch of "
+                             f"them, got {'shape ' + str(o.shape) if o is not None else type(obs).__name__}"
+                             f"{' with non-finite entries' if shaped else ''}")
+        outside = np.flatnonzero(((o < space.low - 1e-6) | (o > space.high + 1e-6)).reshape(-1, space.shape[0]).any(axis=0))
+        if outside.size:
+            i = int(outside[0])
+            column = o.reshape(-1, space.shape[0])[:, i]
+            worst = column[np.argmax(np.maximum(space.low[i] - column, column - space.high[i]))]
+            raise ValueError(f"obs[{i}] must lie in [{space.low[i]:g}, {space.high[i]:g}] ({self.env_id}'s observation "
+                             f"space), got {worst:g}")
+        action, _ = self.network.predict(self.normalize(o), deterministic=True)
         return np.asarray(action, dtype=np.float32)
 
     __call__ = act

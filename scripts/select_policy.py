@@ -72,8 +72,9 @@ def run(o: Options) -> dict[str, Any]:
     suite, rng = load_suite("train"), np.random.default_rng(o.seed)
     draws = [suite.sample(rng, o.braking) for _ in range(o.draws)]
     records = []
-    for path in o.policies:
-        controller = load_controller("ppo", o.braking, model=path)  # (checked before any episode runs)
+    # every policy read and checked before any episode runs (a bad second one surfaced after the first's 300 episodes)
+    controllers = {path: load_controller("ppo", o.braking, model=path) for path in o.policies}
+    for path, controller in controllers.items():
         fuel, successes, over, per_target = 0.0, 0, 0, {}
         for ratio in RATIOS:
             res = evaluate_controller(controller, o.braking, scenarios=draws, score=o.by == "gap", cache=o.cache,

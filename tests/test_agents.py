@@ -174,7 +174,8 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path):
     model = build_model(cfg, env, tmp_path / "tb")
     model.learn(1024)
     obs = env.get_original_obs()
-    obs = np.concatenate([obs, np.random.default_rng(1).uniform(-1, 1, obs.shape).astype(np.float32)])
+    space = env.observation_space  # (random observations within it: the policy refuses others)
+    obs = np.concatenate([obs, np.random.default_rng(1).uniform(space.low, space.high, obs.shape).astype(np.float32)])
     expected = model.predict(env.normalize_obs(obs), deterministic=True)[0]
     folder = save_model_files(model, env, tmp_path / "saved", {"braking": cfg.braking}, export=True)
     policy = load_policy(folder)  # the pickle-free policy.* in the folder
@@ -298,3 +299,16 @@ def test_evaluate_and_load_controller_refuse_bad_arguments_by_name(tmp_path):
         with pytest.raises(ValueError, match=needle):
             call()
     assert load_controller("operator", "service", scenario={"payload": 9000.0}).params.M_load == pytest.approx(9000.0)
+
+
+def test_a_learned_policy_refuses_an_observation_outside_its_space():
+    """A 1-number obs was given an action, an obs of 1e30 too, NaN was torch's error: each a ValueError by name."""
+    from agents.evaluate import load_controller
+
+    for spec in ("ppo", "plan"):
+        c = load_controller(spec, "service")
+        n = c.network.observation_space.shape[0]
+        for obs, needle in [(np.zeros(1), f"obs must be {n} finite numbers"), (0.5, "got float"),
+                            (np.full(n, np.nan), "non-finite"), (np.full(n, 1e30), "obs\\[0\\] must lie in")]:
+            with pytest.raises(ValueError, match=needle):
+                c.act(obs)

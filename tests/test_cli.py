@@ -400,6 +400,17 @@ def test_a_missing_optimum_under_no_solve_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "e.json").exists()
 
 
+@pytest.mark.parametrize("name, value, needle", [
+    ("WL_CACHE_DIR", "{file}", "$WL_CACHE_DIR: {file} is not a folder"),  # (failed after an episode, naming no variable)
+    ("WL_CODEGEN_DIR", "{file}", "$WL_CODEGEN_DIR: {file} is not a folder"),
+    ("WL_NLP_CACHE_SIZE", "abc", "$WL_NLP_CACHE_SIZE must be an integer in [1, 1000]")])
+def test_a_bad_environment_variable_is_one_line_before_any_work(tmp_path, capsys, monkeypatch, name, value, needle):
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv(name, value.format(file=tmp_path / "file"))
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--episodes", "1", "--out", tmp_path / "e.json")
+    assert code == 2 and err.startswith("wl: error: " + needle.format(file=tmp_path / "file")) and len(err.splitlines()) == 1
+
+
 # ------------------------------------------------------------------------------------------ report
 def test_report_rebuilds_the_run_report_from_results_json(tmp_path, cache, capsys):
     out = tmp_path / "results"

@@ -714,6 +714,30 @@ def codegen_mode():
     codegen.set_mode(None)
 
 
+def test_codegen_never_loads_from_a_folder_others_can_write(tmp_path, monkeypatch, caplog):
+    """A library is machine code the process runs: one planted in a shared cache (group- or world-writable, or another
+    user's) ran its constructor. Such a folder keeps the functions interpreted (a warning), or fails in mode "on"."""
+    import casadi as ca
+
+    from mpc.controller import codegen
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o777)
+    x = ca.SX.sym("x")
+    group = {"f": ca.Function("f", [x], [x * x])}
+    monkeypatch.setenv("WL_CODEGEN_DIR", str(shared))
+    monkeypatch.setenv("WL_CODEGEN", "auto")
+    with caplog.at_level(logging.WARNING):
+        assert codegen.compiled([group], [group["f"]]) == [None]
+    assert "is writable by others" in caplog.text and not list(shared.iterdir())
+    monkeypatch.setenv("WL_CODEGEN", "on")
+    with pytest.raises(codegen.CodegenError, match="writable by others"):
+        codegen.compiled([group], [group["f"]])
+    os.chmod(shared, 0o755)
+    assert codegen._writable_by_others(shared) == ""
+
+
 def test_codegen_mode_is_checked(monkeypatch, codegen_mode):
     from mpc.controller import codegen
 

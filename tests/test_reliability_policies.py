@@ -241,6 +241,57 @@ def test_weights_must_be_finite_and_braking_known(tmp_path):
         load_policy(stem)
 
 
+@pytest.mark.parametrize("tamper, needle", [
+    ("float8 weights", "every weight must be a finite float32|dtype"),  # (isfinite failed; F8_E5M2 drove another cycle)
+    ("million tensors", "tensors; a policy network has at most"),  # (22 s and 1.7 GB, then "Unexpected key(s)")
+    ("huge metadata", "a policy's is at most"),  # (400 MB of whitespace: 1 GB read, and accepted)
+    ("5000-digit integer", "policy metadata .* is unreadable"),  # (Python's int-digits error, naming no file)
+    ("low > high", "its network cannot be built"),  # (gymnasium's Box error, naming no file)
+    ("extra npz entries", "is none of"),  # (300 000 of them: 14 s, accepted)
+    ("2 GB per item", "normalization file .* is unreadable: MemoryError")])  # (numpy's "Unable to allocate 7.28 TiB",
+# a traceback)
+def test_hostile_policy_files_are_one_error_naming_the_file(tmp_path, tamper, needle):
+    import torch
+    from safetensors.torch import load, save
+
+    stem = _copy_shipped(tmp_path)
+    weights, meta_path, npz = (tmp_path / f"ppo_tc{part}" for part in (".safetensors", ".json", "_vecnormalize.npz"))
+    meta = json.loads(meta_path.read_text())
+    if tamper == "float8 weights":
+        weights.write_bytes(save({k: v.to(torch.float8_e5m2) for k, v in load(weights.read_bytes()).items()}))
+        _reseal(stem, "weights", weights)
+    elif tamper == "million tensors":
+        weights.write_bytes(save({**load(weights.read_bytes()), **{f"x{i}": torch.zeros(0) for i in range(1000)}}))
+        _reseal(stem, "weights", weights)
+    elif tamper == "huge metadata":
+        meta_path.write_text(json.dumps(meta) + " " * (2**20 + 1))
+    elif tamper == "5000-digit integer":
+        meta_path.write_text(json.dumps(meta).replace('"log_std_init": ', '"log_std_init": ' + "9" * 5000 + ", \"x\": ", 1))
+    elif tamper == "low > high":
+        space = meta["network"]["observation_space"]
+        space["low"], space["high"] = space["high"], space["low"]
+        meta_path.write_text(json.dumps(meta))
+    else:
+        with np.load(npz) as f:
+            data = {k: f[k] for k in f.files}
+        if tamper == "extra npz entries":
+            data.update({f"junk{i}": np.zeros(1) for i in range(50)})
+        if tamper == "2 GB per item":
+            del data["mean"]
+        np.savez(npz, **data)
+        if tamper == "2 GB per item":  # (a header under the value cap that asks numpy for 4000 x 2 GB; no data behind it)
+            import io
+            import zipfile
+
+            header = io.BytesIO()
+            np.lib.format.write_array_header_1_0(header, {"descr": "|S2000000000", "fortran_order": False, "shape": (4000,)})
+            with zipfile.ZipFile(npz, "a") as z:
+                z.writestr("mean.npy", header.getvalue())
+        _reseal(stem, "normalization", npz)
+    with pytest.raises(PolicyFileError, match=needle):
+        load_policy(stem)
+
+
 def test_metadata_larger_than_its_weights_is_refused_before_building(tmp_path, monkeypatch):
     """A small file declaring the largest allowed network (16 layers of 4096 each side: ~2 GB to build) is refused
     by counting its weights, before any layer is built."""

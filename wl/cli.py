@@ -641,20 +641,35 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    if os.environ.get("WL_CODEGEN") is not None:  # (read at the first NLP build: checked before any work)
-        from mpc.controller import codegen
-
-        try:
-            codegen.mode()
-        except ValueError as exc:
-            print(f"wl: error: {exc}", file=sys.stderr)
-            return 2
+    try:  # the environment's settings, read at the first NLP build or cache write: checked before any work
+        _check_environment()
+    except ValueError as exc:
+        print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
     code = _run_command(args)
     if code in (130, 143) and as_program and args.command != "train":
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def _check_environment() -> None:
+    """$WL_CODEGEN, $WL_NLP_CACHE_SIZE, and the folders $WL_CACHE_DIR and $WL_CODEGEN_DIR (probed by a write), each
+    a ValueError naming the variable (a $WL_CACHE_DIR that was a file failed after an episode, naming no variable)."""
+    from wl_env.atomic_io import check_output_folder
+
+    if os.environ.get("WL_CODEGEN") is not None:
+        from mpc.controller import codegen
+
+        codegen.mode()
+    if os.environ.get("WL_NLP_CACHE_SIZE") is not None:
+        from mpc.benchmark.ocp import nlp_cache_size
+
+        nlp_cache_size()
+    for name in ("WL_CACHE_DIR", "WL_CODEGEN_DIR"):
+        if os.environ.get(name):
+            check_output_folder(os.environ[name], f"${name}")
 
 
 def _run_command(args: argparse.Namespace) -> int:

@@ -29,6 +29,7 @@ import json
 import logging
 import os
 import shutil
+import stat
 import subprocess
 import tempfile
 from collections.abc import Sequence
@@ -119,6 +120,13 @@ def compiled(groups: Sequence[dict[str, ca.Function]], origins: Sequence[ca.Func
         log.info("no C compiler found: the NLP functions stay interpreted (CasADi's SX virtual machine)")
         return [None] * len(groups)
     folder = library_dir(cache)
+    shared = _writable_by_others(folder)
+    if shared:  # (a library is machine code the process runs: from a folder others can write, theirs)
+        if current == "on":
+            raise CodegenError(f"{shared}: the compiled libraries are machine code this process would run; set "
+                               f"${DIR_ENV} to a folder only you can write")
+        log.warning("%s: the NLP functions stay interpreted (set $%s to a folder only you can write)", shared, DIR_ENV)
+        return [None] * len(groups)
     keys = [_key(origin, g, cc) for origin, g in zip(origins, groups, strict=True)]
     out: list[dict[str, ca.Function] | None] = [_load(folder, k, g) for k, g in zip(keys, groups, strict=True)]
     if all(o is not None for o in out):
@@ -148,6 +156,22 @@ def compiled(groups: Sequence[dict[str, ca.Function]], origins: Sequence[ca.Func
             raise CodegenError(f"cannot build in {folder}: {exc}") from exc
         log.warning("cannot build in %s (%s): those functions stay interpreted", folder, exc)
     return out
+
+
+def _writable_by_others(folder: Path) -> str:
+    """Why ``folder`` (or a library in it, or a folder above it up to the first that is sticky) is not private: owned
+    by another user than this one or root, or writable by its group or others; "" if it is private or absent."""
+    me = os.getuid() if hasattr(os, "getuid") else None
+    paths = [*folder.glob("*.so"), folder, *folder.parents] if folder.exists() else []
+    for path in paths:
+        st = path.stat()
+        if path.is_dir() and st.st_mode & stat.S_ISVTX:  # (/tmp: others cannot replace what is not theirs below it)
+            break
+        if me is not None and st.st_uid not in (me, 0):
+            return f"{path} belongs to another user (uid {st.st_uid})"
+        if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            return f"{path} is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'}"
+    return ""
 
 
 def library_dir(cache: str | os.PathLike | None = None) -> Path:
