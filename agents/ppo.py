@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -253,6 +254,19 @@ def reward_config(cfg: PPOConfig, step: int | None = None):
 
 
 # ---------------------------------------------------------------------------------------------- policy
+@functools.cache
+def _n_env_actions(env_id: str) -> int:
+    """The size of a registered env's action (built once per id)."""
+    import gymnasium as gym
+
+
+    env = gym.make(env_id)
+    try:
+        return int(env.action_space.shape[0])
+    finally:
+        env.close()
+
+
 class PPOPolicy:
     """A trained PPO policy: ``act(obs)`` returns the deterministic action (mean of the Gaussian, clipped
     to the action space) for one observation (shape (12,)) or a batch (shape (n, 12)).
@@ -275,6 +289,9 @@ class PPOPolicy:
             known = N_OBS_OF_ENV.get(self.env_id)
             raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} "
                                   + (f"has {known}" if known is not None else f"is none of {sorted(N_OBS_OF_ENV)}"))
+        n_act, wanted = network.action_space.shape[0], _n_env_actions(self.env_id)
+        if n_act != wanted:  # (it failed at the first step, naming the controller: a 4-number policy on WheelLoaderPlan-v0)
+            raise PolicyFileError(f"the policy gives {n_act} numbers per action; its env {self.env_id!r} takes {wanted}")
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:

@@ -292,6 +292,19 @@ def test_hostile_policy_files_are_one_error_naming_the_file(tmp_path, tamper, ne
         load_policy(stem)
 
 
+def test_a_policy_whose_env_takes_another_action_is_refused_at_loading(tmp_path):
+    """A plan policy (14 numbers) told its env is WheelLoaderTarget-v6 (4) loaded and failed at the first step, naming
+    the controller, not the policy."""
+    for part in (".safetensors", "_vecnormalize.npz", ".json"):
+        shutil.copy(POLICIES / f"plan_target_tc{part}", tmp_path / f"plan_target_tc{part}")
+    meta_path = tmp_path / "plan_target_tc.json"
+    meta = json.loads(meta_path.read_text())
+    meta["config"]["env_id"] = "WheelLoaderTarget-v6"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(PolicyFileError, match="gives 14 numbers per action; its env 'WheelLoaderTarget-v6' takes 4"):
+        load_policy(tmp_path / "plan_target_tc")
+
+
 def test_metadata_larger_than_its_weights_is_refused_before_building(tmp_path, monkeypatch):
     """A small file declaring the largest allowed network (16 layers of 4096 each side: ~2 GB to build) is refused
     by counting its weights, before any layer is built."""
