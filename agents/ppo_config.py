@@ -10,7 +10,7 @@ from typing import Any
 
 from wl_env import cycle
 from wl_env.env import TARGET_POWER_RANGE
-from wl_env.params import MAX_NUM_ENVS, is_finite
+from wl_env.params import MAX_NUM_ENVS, is_real_number
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
@@ -50,18 +50,14 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
-
-
 # field -> (requirement as said in the error, test); a value is a number only if finite and not a bool
 _RULES: dict[str, tuple[str, Any]] = {
     "env_id": (f"one of {', '.join(ENV_IDS)}", lambda v: v in ENV_IDS),
     "scenario": (f"'' (the paper's cycle) or a suite name ({', '.join(SUITE_NAMES)})", lambda v: v in ("", *SUITE_NAMES)),
     "target": ("a range (lo, hi) of target ratios to T_min within [1, 3]",
-               lambda v: len(v) == 2 and all(_is_num(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
+               lambda v: len(v) == 2 and all(is_real_number(x) and 1 <= x <= 3 for x in v) and v[0] <= v[1]),
     "target_power": ("a number in [{:g}, {:g}] (the target ratio's draw: lo + (hi - lo) u**power; 1 uniform)".format(
-        *TARGET_POWER_RANGE), lambda v: _is_num(v) and TARGET_POWER_RANGE[0] <= v <= TARGET_POWER_RANGE[1]),
+        *TARGET_POWER_RANGE), lambda v: is_real_number(v) and TARGET_POWER_RANGE[0] <= v <= TARGET_POWER_RANGE[1]),
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str)),
     "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v < 2**31),  # (env seeds add the step)
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
@@ -69,38 +65,38 @@ _RULES: dict[str, tuple[str, Any]] = {
     "log_dir": ("a non-empty folder name", lambda v: isinstance(v, str) and v.strip() != ""),
     "run_name": ("a name without path separators", lambda v: isinstance(v, str) and "/" not in v and "\\" not in v
                  and v not in (".", "..")),
-    "time_limit": ("a finite number of seconds >= 0 (0: off)", lambda v: _is_num(v) and v >= 0),
+    "time_limit": ("a finite number of seconds >= 0 (0: off)", lambda v: is_real_number(v) and v >= 0),
     "torch_threads": (f"an integer in [1, {MAX_TORCH_THREADS}]", lambda v: _is_int(v) and 1 <= v <= MAX_TORCH_THREADS),
     "progress_bar": ("true or false", lambda v: isinstance(v, bool)),
-    "w_fuel": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
-    "w_time": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
+    "w_fuel": ("a finite number >= 0", lambda v: is_real_number(v) and v >= 0),
+    "w_time": ("a finite number >= 0", lambda v: is_real_number(v) and v >= 0),
     "reward": ("a mapping of RewardConfig fields to finite numbers",
-               lambda v: isinstance(v, dict) and all(map(_is_num, v.values()))),
-    "init_noise": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
-    "max_time": ("a finite number of seconds > 0", lambda v: _is_num(v) and v > 0),
+               lambda v: isinstance(v, dict) and all(map(is_real_number, v.values()))),
+    "init_noise": ("a number in [0, 1]", lambda v: is_real_number(v) and 0 <= v <= 1),
+    "max_time": ("a finite number of seconds > 0", lambda v: is_real_number(v) and v > 0),
     "curriculum_start": ("a mapping of RewardConfig fields to finite numbers",
-                         lambda v: isinstance(v, dict) and all(map(_is_num, v.values()))),
-    "curriculum_fraction": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
-    "learning_rate": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
+                         lambda v: isinstance(v, dict) and all(map(is_real_number, v.values()))),
+    "curriculum_fraction": ("a number in [0, 1]", lambda v: is_real_number(v) and 0 <= v <= 1),
+    "learning_rate": ("a finite number > 0", lambda v: is_real_number(v) and v > 0),
     "lr_schedule": ("'constant' or 'linear'", lambda v: v in ("constant", "linear")),
     "n_steps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "batch_size": ("an integer >= 2", lambda v: _is_int(v) and v >= 2),  # (SB3 asserts it: advantages normalized)
     "n_epochs": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
-    "gamma": ("a number in (0, 1]", lambda v: _is_num(v) and 0 < v <= 1),
-    "gae_lambda": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
-    "clip_range": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
-    "ent_coef": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
-    "vf_coef": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
-    "max_grad_norm": ("a finite number > 0", lambda v: _is_num(v) and v > 0),
-    "target_kl": ("none or a finite number > 0", lambda v: v is None or (_is_num(v) and v > 0)),
+    "gamma": ("a number in (0, 1]", lambda v: is_real_number(v) and 0 < v <= 1),
+    "gae_lambda": ("a number in [0, 1]", lambda v: is_real_number(v) and 0 <= v <= 1),
+    "clip_range": ("a finite number > 0", lambda v: is_real_number(v) and v > 0),
+    "ent_coef": ("a finite number >= 0", lambda v: is_real_number(v) and v >= 0),
+    "vf_coef": ("a finite number >= 0", lambda v: is_real_number(v) and v >= 0),
+    "max_grad_norm": ("a finite number > 0", lambda v: is_real_number(v) and v > 0),
+    "target_kl": ("none or a finite number > 0", lambda v: v is None or (is_real_number(v) and v > 0)),
     "net_arch": (f"one or more layer widths, integers in [1, {MAX_LAYER_WIDTH}]",
                  lambda v: len(v) >= 1 and all(_is_int(n) and 1 <= n <= MAX_LAYER_WIDTH for n in v)),
-    "log_std_init": ("a finite number", _is_num),
-    "log_std_final": ("none or a finite number", lambda v: v is None or _is_num(v)),
-    "shift_bias_init": ("a finite number", _is_num),
-    "coast_bias_init": ("a finite number", _is_num),
-    "fuel_bias_init": ("a finite number", _is_num),
-    "bucket_bias_init": ("a finite number", _is_num),
+    "log_std_init": ("a finite number", is_real_number),
+    "log_std_final": ("none or a finite number", lambda v: v is None or is_real_number(v)),
+    "shift_bias_init": ("a finite number", is_real_number),
+    "coast_bias_init": ("a finite number", is_real_number),
+    "fuel_bias_init": ("a finite number", is_real_number),
+    "bucket_bias_init": ("a finite number", is_real_number),
     "bounded_mean": ("true or false", lambda v: isinstance(v, bool)),
     "use_sde": ("true or false", lambda v: isinstance(v, bool)),
     "sde_sample_freq": ("an integer >= -1 (-1: once per rollout)", lambda v: _is_int(v) and v >= -1),
@@ -109,13 +105,13 @@ _RULES: dict[str, tuple[str, Any]] = {
     "eval_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "eval_episodes": (f"an integer >= 0, at most {MAX_EVAL_EPISODES}",
                       lambda v: _is_int(v) and 0 <= v <= MAX_EVAL_EPISODES),
-    "eval_init_noise": ("a number in [0, 1]", lambda v: _is_num(v) and 0 <= v <= 1),
+    "eval_init_noise": ("a number in [0, 1]", lambda v: is_real_number(v) and 0 <= v <= 1),
     "score": ("true or false", lambda v: isinstance(v, bool)),
     "checkpoint_freq": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "keep_checkpoints": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "bc_demos": ("'' or a folder of demonstration episodes", lambda v: isinstance(v, str)),
-    "bc_weight": ("a finite number >= 0", lambda v: _is_num(v) and v >= 0),
-    "bc_fraction": ("a number in (0, 1]", lambda v: _is_num(v) and 0 < v <= 1),
+    "bc_weight": ("a finite number >= 0", lambda v: is_real_number(v) and v >= 0),
+    "bc_fraction": ("a number in (0, 1]", lambda v: is_real_number(v) and 0 < v <= 1),
 }
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.atomic_io import check_output_file, save_figure, write_atomic
-from wl_env.params import is_finite
+from wl_env.params import is_real_number
 
 log = logging.getLogger(__name__)
 
@@ -256,7 +256,7 @@ def _problem(results: Any) -> str | None:
             front = results["fronts"][b]
             if len(front["T"]) != len(front["fuel_g"]) or len(front["T"]) < 2:
                 return f"the {b} front needs as many fuels as cycle times, at least 2"
-            if not all(map(_is_number, [front["T_min"], front["T_fuel_opt"], *front["T"], *front["fuel_g"]])):
+            if not all(map(is_real_number, [front["T_min"], front["T_fuel_opt"], *front["T"], *front["fuel_g"]])):
                 return f"the {b} front holds a value that is not a finite number"
             problem = check_front(front)  # what a cached front must be: times rising from T_min, fuel falling
             if problem:
@@ -268,32 +268,32 @@ def _problem(results: Any) -> str | None:
                 return f"a row lacks {missing}"
             if not (isinstance(r["controller"], str) and r["braking"] in BRAKINGS and isinstance(r["success"], bool)):
                 return "a row's controller is not a name, its braking not one of the brakings or its success not a bool"
-            if not (all(map(_is_number, (r["T"], r["fuel_g"], r["max_violation"])))
-                    and all(v is None or _is_number(v) for v in (r["time_gap"], r["fuel_gap"]))):
+            if not (all(map(is_real_number, (r["T"], r["fuel_g"], r["max_violation"])))
+                    and all(v is None or is_real_number(v) for v in (r["time_gap"], r["fuel_gap"]))):
                 return f"a row of {r['controller']!r} holds a value that is not a finite number"
         for tr in results["trajectories"]:
             if not (isinstance(tr["controller"], str) and tr["braking"] in BRAKINGS):
                 return "a trajectory's controller is not a name or its braking not one of the brakings"
             _check_trajectory(tr)
-        if not _is_number(results["wall_time_s"]):
+        if not is_real_number(results["wall_time_s"]):
             return "wall_time_s is not a number"
         suite = results.get("suite")
         if suite is not None:
             if not (isinstance(suite["suite"], str) and isinstance(suite["full"], bool)
-                    and all(_is_number(suite[k]) for k in ("version", "scenarios_per_braking"))
-                    and (suite["sample"] is None or _is_number(suite["sample"]))):
+                    and all(is_real_number(suite[k]) for k in ("version", "scenarios_per_braking"))
+                    and (suite["sample"] is None or is_real_number(suite["sample"]))):
                 return "the suite's name, version, sample, full or scenarios_per_braking is malformed"
             for r in suite["rows"]:
                 if not (isinstance(r["controller"], str) and r["braking"] in BRAKINGS
-                        and all(map(_is_number, (r["scenarios"], r["success_rate"], r["max_violation"])))
-                        and all(r.get(k) is None or _is_number(r[k]) for k in (
+                        and all(map(is_real_number, (r["scenarios"], r["success_rate"], r["max_violation"])))
+                        and all(r.get(k) is None or is_real_number(r[k]) for k in (
                             "time_gap_median", "time_gap_p90", "fuel_gap_median", "fuel_gap_p90", "lateness_median"))):
                     return f"a suite row of {r['controller']!r} holds a value that is not a finite number"
             for e in suite["episodes"]:
                 if not (isinstance(e["controller"], str) and e["braking"] in BRAKINGS and isinstance(e["success"], bool)
-                        and (e["fuel_gap"] is None or _is_number(e["fuel_gap"]))
+                        and (e["fuel_gap"] is None or is_real_number(e["fuel_gap"]))
                         and (e["scenario"] is None or (isinstance(e["scenario"], dict) and all(
-                            _is_number(e["scenario"][k]) for k in ("payload", "reverse_distance", "forward_distance"))))):
+                            is_real_number(e["scenario"][k]) for k in ("payload", "reverse_distance", "forward_distance"))))):
                     return "a suite episode's controller, braking, success, fuel_gap or scenario is malformed"
     except (KeyError, TypeError, IndexError, OverflowError) as exc:
         return f"missing or malformed entry {exc}"
@@ -302,17 +302,12 @@ def _problem(results: Any) -> str | None:
     return None
 
 
-def _is_number(v: Any) -> bool:
-    """A finite number: `wl run` writes NaN and infinity as null, so one in the file is damage."""
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
-
-
 def _check_trajectory(d: dict[str, Any]) -> None:
-    if not (isinstance(d["t"], list) and all(map(_is_number, d["t"]))):
+    if not (isinstance(d["t"], list) and all(map(is_real_number, d["t"]))):
         raise ValueError("a trajectory's times t are not a list of finite numbers")
     states = d["states"]  # (numbers, not numbers in strings: np.asarray(dtype=float) took "81.6", and the figure failed)
     if not (isinstance(states, list) and len(states) == len(d["t"])
-            and all(isinstance(row, list) and len(row) == 4 and all(map(_is_number, row)) for row in states)):
+            and all(isinstance(row, list) and len(row) == 4 and all(map(is_real_number, row)) for row in states)):
         raise ValueError(f"its states are not {len(d['t'])} rows of 4 finite numbers, one per time")
 
 

@@ -356,6 +356,12 @@ class LoaderParams:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def is_real_number(value: Any) -> bool:
+    """A finite int or float, not a bool (True is an int to Python, not a number to a validator); an int too large
+    for a float is not finite (:func:`is_finite`)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and is_finite(value)
+
+
 def is_finite(value: Any) -> bool:
     """``math.isfinite`` that says False for an int too large for a float (10**400 from JSON) instead of
     raising OverflowError: a validator then reports the value out of range."""

@@ -31,7 +31,16 @@ from mpc import interrupt
 from wl_env import cycle, limits
 from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
 from wl_env.model import derivatives
-from wl_env.params import DEFAULT_PARAMS, SCENARIO_FIELDS, LoaderParams, ParamsView, is_finite, resolve, shown
+from wl_env.params import (
+    DEFAULT_PARAMS,
+    SCENARIO_FIELDS,
+    LoaderParams,
+    ParamsView,
+    is_finite,
+    is_real_number,
+    resolve,
+    shown,
+)
 from wl_env.physics import lift
 
 log = logging.getLogger(__name__)
@@ -683,19 +692,15 @@ def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any
         raise ValueError(f"warm_start must be an OCPResult or None, got {type(warm_start).__name__}")
     if starts is not None:
         ok = isinstance(starts, (tuple, list)) and all(
-            isinstance(st, (tuple, list)) and len(st) == 2 and all(_finite_number(v) for v in st)
+            isinstance(st, (tuple, list)) and len(st) == 2 and all(is_real_number(v) for v in st)
             and 0.1 <= st[0] <= 30.0 and 0.0 < st[1] <= 1.0 for st in starts)
         if not ok:
             raise ValueError("starts must be (leg time in [0.1, 30] s, acceleration fraction in (0, 1]) pairs, got "
                              f"{shown(starts)}")
-    if not (_finite_number(max_interval) and 0.001 <= max_interval <= 10.0):
+    if not (is_real_number(max_interval) and 0.001 <= max_interval <= 10.0):
         raise ValueError(f"max_interval must lie in [0.001, 10] s, got {shown(max_interval)}")
     if isinstance(max_refinements, bool) or not isinstance(max_refinements, int) or not 0 <= max_refinements <= 20:
         raise ValueError(f"max_refinements must be an integer in [0, 20], got {shown(max_refinements)}")
-
-
-def _finite_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _mesh_record(r: OCPResult) -> dict[str, Any]:

@@ -40,7 +40,7 @@ from mpc.benchmark.ocp import (
     verification_passed,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, is_finite, resolve
+from wl_env.params import LoaderParams, is_real_number, resolve
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -125,16 +125,12 @@ class ParetoFront:
 
 
 # ---------------------------------------------------------------------------------------------- entry checks
-def _num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
-
-
 def _int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _nums(v: Any, n: int | None = None) -> bool:
-    return isinstance(v, list) and (n is None or len(v) == n) and all(map(_num, v))
+    return isinstance(v, list) and (n is None or len(v) == n) and all(map(is_real_number, v))
 
 
 def _rows(v: Any, n: int, width: int) -> bool:
@@ -156,17 +152,17 @@ def _short(v: Any) -> str:
 
 
 def _optional_num(v: Any) -> bool:
-    return v is None or _num(v)
+    return v is None or is_real_number(v)
 
 
 _RESULT_FIELDS = {
     "braking": lambda v: v in cycle.BRAKING_MODES, "objective": lambda v: v in OBJECTIVES,
-    "T": lambda v: _num(v) and v > 0, "fuel_g": lambda v: _num(v) and v > 0,
+    "T": lambda v: is_real_number(v) and v > 0, "fuel_g": lambda v: is_real_number(v) and v > 0,
     "phase_durations": lambda v: _nums(v, 4) and min(v) >= 0, "t": lambda v: _nums(v) and len(v) >= 2,
     "states": lambda v: isinstance(v, list), "controls": lambda v: isinstance(v, list),
     "phase": lambda v: isinstance(v, list) and all(_int(k) and 1 <= k <= 4 for k in v),
     "position": lambda v: isinstance(v, list), "status": lambda v: isinstance(v, str),
-    "success": lambda v: isinstance(v, bool), "iterations": _int, "wall_time": _num, "w_fuel": _optional_num,
+    "success": lambda v: isinstance(v, bool), "iterations": _int, "wall_time": is_real_number, "w_fuel": _optional_num,
     "target_T": _optional_num, "params_fingerprint": lambda v: isinstance(v, str),
     "mesh": lambda v: isinstance(v, list) and len(v) == 4 and all(_int(n) and n >= 2 for n in v), "degree": _int,
     "solver": lambda v: isinstance(v, str), "smoothing": lambda v: isinstance(v, list),
@@ -192,11 +188,11 @@ def check_result(d: dict[str, Any]) -> str | None:
 _FRONT_FIELDS = {
     "braking": lambda v: v in cycle.BRAKING_MODES, "T": lambda v: _nums(v) and len(v) >= 2,
     "fuel_g": lambda v: _nums(v) and len(v) >= 2 and min(v) > 0, "params_fingerprint": lambda v: isinstance(v, str),
-    "T_min": lambda v: _num(v) and v > 0, "T_fuel_opt": _num, "fuel_min_g": lambda v: _num(v) and v > 0,
+    "T_min": lambda v: is_real_number(v) and v > 0, "T_fuel_opt": is_real_number, "fuel_min_g": lambda v: is_real_number(v) and v > 0,
     "mesh": lambda v: isinstance(v, list) and len(v) == 4 and all(_int(n) and n >= 2 for n in v),
-    "wall_time": lambda v: _num(v) and v >= 0,
+    "wall_time": lambda v: is_real_number(v) and v >= 0,
     # (each with its cycle time: a shipped suite file's check reads p["T"], before the checksum)
-    "points": lambda v: isinstance(v, list) and all(isinstance(p, dict) and _num(p.get("T")) for p in v),
+    "points": lambda v: isinstance(v, list) and all(isinstance(p, dict) and is_real_number(p.get("T")) for p in v),
 }
 
 

@@ -61,7 +61,7 @@ from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.env import check_target_time
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, plain, resolve, shown
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, is_real_number, plain, resolve, shown
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
 from wl_env.scenario import Scenario, resolve_scenario
@@ -282,9 +282,6 @@ class MPCConfig:
     safety_filter: bool = True
 
     def __post_init__(self) -> None:
-        def real(v: Any) -> bool:  # (no bools, strings, NaN or an int too large for a float for a number)
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and is_finite(v)
-
         def count(v: Any, lo: int, hi: int) -> bool:
             return isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
 
@@ -296,32 +293,32 @@ class MPCConfig:
             raise ValueError(f"mode must be one of {MODES}, got {shown(self.mode)}")
         if self.mode == "target_time" or self.target_time is not None:
             check_target_time(self.target_time)
-        if self.mode == "weighted" and not (real(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
+        if self.mode == "weighted" and not (is_real_number(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
             raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {shown(self.w_fuel)}")
         # (a value another mode would ignore without a word)
         if self.mode != "weighted" and self.w_fuel is not None:
             raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {shown(self.w_fuel)}")
         if self.mode != "target_time" and self.target_time is not None:
             raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {shown(self.target_time)}")
-        if self.deadline_ms is not None and not (real(self.deadline_ms) and self.deadline_ms > 0):
+        if self.deadline_ms is not None and not (is_real_number(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {shown(self.deadline_ms)}")
         for name in ("realtime", "safety_filter"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {shown(getattr(self, name))}")
         if self.realtime and self.deadline_ms is not None:
             raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
-        if self.time_budget is not None and not (real(self.time_budget) and self.time_budget > 0):
+        if self.time_budget is not None and not (is_real_number(self.time_budget) and self.time_budget > 0):
             raise ValueError(f"time_budget must be > 0 s or None, got {shown(self.time_budget)}")
         if not count(self.max_iter, 1, 100_000):
             raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
         if not count(self.spare_steps, 1, 100):
             raise ValueError(f"spare_steps must be an integer in [1, 100], got {shown(self.spare_steps)}")
         if not (isinstance(self.rate_weight, (tuple, list)) and len(self.rate_weight) == 2
-                and all(real(w) and w >= 0 for w in self.rate_weight)):
+                and all(is_real_number(w) and w >= 0 for w in self.rate_weight)):
             raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {shown(self.rate_weight)}")
-        if not (real(self.tighten) and 0.0 <= self.tighten < 0.5):
+        if not (is_real_number(self.tighten) and 0.0 <= self.tighten < 0.5):
             raise ValueError(f"tighten must lie in [0, 0.5), got {shown(self.tighten)}")
-        if not (real(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
+        if not (is_real_number(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
             raise ValueError(f"omega_margin must lie in [0, 50] rad/s, got {shown(self.omega_margin)}")
         if self.horizon_steps is not None and self.horizon_steps != AUTO:
             if not count(self.horizon_steps, 2, 1000):
@@ -341,7 +338,7 @@ class MPCConfig:
             if self.horizon is None:
                 raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps "
                                  "(the full horizon here)")
-        if not (real(self.terminal_weight) and self.terminal_weight >= 0.0):
+        if not (is_real_number(self.terminal_weight) and self.terminal_weight >= 0.0):
             raise ValueError(f"terminal_weight must be a finite number >= 0, got {shown(self.terminal_weight)}")
 
     @property
