@@ -360,6 +360,7 @@ def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
 
 def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[str, Any]]:
     """(network, normalization, metadata) of a pickle-free policy; errors name the missing or bad file."""
+    import torch
     from safetensors import SafetensorError
     from safetensors.torch import load as load_tensors
 
@@ -377,7 +378,7 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
         state = load_tensors(files.weights.read_bytes())
     except (SafetensorError, OSError, ValueError, MemoryError) as exc:
         raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
-    if not all(t.dtype == torch_float32() and bool(t.isfinite().all()) for t in state.values()):
+    if not all(t.dtype == torch.float32 and bool(t.isfinite().all()) for t in state.values()):
         # (float8 weights failed in isfinite, or loaded and drove another cycle; the exporter writes float32)
         raise PolicyFileError(f"weights file {files.weights}: every weight must be a finite float32")
     held, least = sum(t.numel() for t in state.values()), _least_parameters(net)
@@ -413,12 +414,6 @@ def _check_tensor_header(path: Path) -> None:
     dtypes = {v.get("dtype") for v in tensors.values() if isinstance(v, dict)}
     if dtypes - {"F32"}:
         raise ValueError(f"tensors of dtype {sorted(map(str, dtypes - {'F32'}))}; the weights are float32 (F32)")
-
-
-def torch_float32() -> Any:
-    import torch
-
-    return torch.float32
 
 
 # ---------------------------------------------------------------------------------------------- convert

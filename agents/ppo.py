@@ -68,7 +68,7 @@ from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
 from wl_env.atomic_io import write_atomic
-from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS
+from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS, check_within
 from wl_env.plan import N_PLAN_ACTIONS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
@@ -310,13 +310,7 @@ class PPOPolicy:
             raise ValueError(f"obs must be {space.shape[0]} finite numbers ({self.env_id}'s observation), or a batch of "
                              f"them, got {'shape ' + str(o.shape) if o is not None else type(obs).__name__}"
                              f"{' with non-finite entries' if shaped else ''}")
-        outside = np.flatnonzero(((o < space.low - 1e-6) | (o > space.high + 1e-6)).reshape(-1, space.shape[0]).any(axis=0))
-        if outside.size:
-            i = int(outside[0])
-            column = o.reshape(-1, space.shape[0])[:, i]
-            worst = column[np.argmax(np.maximum(space.low[i] - column, column - space.high[i]))]
-            raise ValueError(f"obs[{i}] must lie in [{space.low[i]:g}, {space.high[i]:g}] ({self.env_id}'s observation "
-                             f"space), got {worst:g}")
+        check_within(o, space.low, space.high, where=f" ({self.env_id}'s observation space)")
         action, _ = self.network.predict(self.normalize(o), deterministic=True)
         return np.asarray(action, dtype=np.float32)
 

@@ -99,14 +99,11 @@ def guarded() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is _handler:
         yield
         return
-    global _repeat, _signal
-    _flag.clear()
-    _signal, _repeat = signal.SIGINT, True
-    previous = signal.signal(signal.SIGINT, _handler)
+    previous = install()
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)  # (None: set from C)
         hit = _flag.is_set()
         _flag.clear()
         if hit:  # (in place of what CasADi made of it: a RuntimeError "... KeyboardInterrupt", a failed solve)

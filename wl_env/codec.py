@@ -15,6 +15,7 @@ Works on floats and numpy arrays (a batch: arrays of shape (N,), or observations
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,6 +61,20 @@ TARGET_OBS_HIGH = np.concatenate([SCENARIO_OBS_HIGH, np.array([1.0, 6.0], dtype=
 OBS_LAYOUTS = {N_OBS: (OBS_LOW, OBS_HIGH, OBS_NAMES), N_SCENARIO_OBS: (SCENARIO_OBS_LOW, SCENARIO_OBS_HIGH, SCENARIO_OBS_NAMES),
                N_TARGET_OBS: (TARGET_OBS_LOW, TARGET_OBS_HIGH, TARGET_OBS_NAMES)}
 OBS_TOL = 1e-6
+
+
+def check_within(o: np.ndarray, low: np.ndarray, high: np.ndarray, names: Sequence[str] | None = None,
+                 where: str = "") -> None:
+    """ValueError naming the first entry of the observation ``o`` (or of any in a batch (N, n)) outside [low, high]
+    (OBS_TOL of slack), its range and its farthest value; ``where`` follows the range in the message."""
+    rows = o.reshape(-1, o.shape[-1])
+    outside = np.flatnonzero(((rows < low - OBS_TOL) | (rows > high + OBS_TOL)).any(axis=0))
+    if outside.size:
+        i = int(outside[0])
+        column = rows[:, i]
+        worst = float(column[np.argmax(np.maximum(low[i] - column, column - high[i]))])
+        raise ValueError(f"obs[{i}]{f' ({names[i]})' if names else ''} must lie in [{low[i]:g}, {high[i]:g}]{where}, "
+                         f"got {worst:g}")
 
 
 def encode_speed_request(speed_request: Any, p: Any) -> Any:
@@ -174,13 +189,7 @@ class Codec:
                              f"({N_SCENARIO_OBS},) (v2) or ({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"
                              f"{'' if np.isfinite(o).all() else ' with non-finite entries'}")
         # (in the observation space: an engine speed of 50 omega_max or a time of -200 s was planned from as if real)
-        low, high, names = OBS_LAYOUTS[o.shape[-1]]
-        outside = (o < low - OBS_TOL) | (o > high + OBS_TOL)
-        if outside.any():
-            i = int(np.flatnonzero(outside.reshape(-1, o.shape[-1]).any(axis=0))[0])
-            worst = o.reshape(-1, o.shape[-1])[:, i]
-            raise ValueError(f"obs[{i}] ({names[i]}) must lie in [{low[i]:g}, {high[i]:g}], got "
-                             f"{float(worst[np.argmax(np.maximum(low[i] - worst, worst - high[i]))]):g}")
+        check_within(o, *OBS_LAYOUTS[o.shape[-1]])
         phases = o[..., 8:12]
         if not (np.isin(phases, (0.0, 1.0)).all() and (phases.sum(axis=-1) == 1.0).all()):
             raise ValueError(f"obs[8:12] (the phase) must be one-hot: one 1 and three 0, got {phases.tolist()}"[:300])
