@@ -481,6 +481,8 @@ def evaluate_controller(
 
         if not isinstance(front, ParetoFront):
             raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
+        if front.braking != braking:  # (its parameters: matched per episode, see _score)
+            raise ValueError(f"front: the {front.braking!r} braking's, the episodes run {braking!r} braking")
     if cache is not None:  # (checked now: a file there failed only after the episodes)
         if not isinstance(cache, (str, os.PathLike)):
             raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")

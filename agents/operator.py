@@ -27,8 +27,8 @@ from wl_env.assist import (
 )
 from wl_env.codec import Codec
 from wl_env.model import derivatives
-from wl_env.params import LoaderParams, resolve
-from wl_env.scenario import Scenario
+from wl_env.params import LoaderParams, is_real_number, resolve
+from wl_env.scenario import Scenario, resolve_scenario
 from wl_env.step import OMEGA_FLOOR
 
 
@@ -44,10 +44,15 @@ class OperatorPolicy:
                  lift_off_time: float = 1.2, dt: float = 0.1) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = p = resolve(params)
-        if not 0.1 <= decel_margin <= 1.0:
-            raise ValueError(f"decel_margin must lie in [0.1, 1], got {decel_margin}")
-        if not 0.0 <= lift_off_time <= 5.0:
-            raise ValueError(f"lift_off_time must lie in [0, 5] s, got {lift_off_time}")
+        lo, hi = p.U_ab_bounds
+        for name, value, low, high, unit in (("decel_margin", decel_margin, 0.1, 1.0, ""),
+                                             ("lift_accel", lift_accel, 0.0, hi, " m/s^2 (the bucket's upper bound)"),
+                                             ("lift_off_time", lift_off_time, 0.0, 5.0, " s"), ("dt", dt, 0.01, 1.0, " s")):
+            # (nan, inf and strings slipped past the comparisons: lift_accel nan never lifted the bucket)
+            if not (is_real_number(value) and low <= value <= high and (name != "lift_accel" or value > 0)):
+                bracket = "(" if name == "lift_accel" else "["
+                raise ValueError(f"{name} must lie in {bracket}{low:g}, {high:g}]{unit}, got {value!r}")
+        decel_margin, lift_accel, lift_off_time, dt = map(float, (decel_margin, lift_accel, lift_off_time, dt))
         self.dt = dt
         self.a_limit = p.decel_max * p.g
         self.a_plan = decel_margin * self.a_limit  # m/s^2 the driver brakes with
@@ -60,6 +65,8 @@ class OperatorPolicy:
     def reset(self, scenario: Scenario | None = None) -> None:
         """Start a cycle; ``scenario``: drive that cycle (its distances, dump height, payload) from now on."""
         if scenario is not None:
+            if not isinstance(scenario, Scenario):  # (a dict or JSON, as the env and the MPC take them)
+                scenario = resolve_scenario(scenario, self.braking)
             if scenario.braking != self.braking:
                 raise ValueError(f"the operator drives {self.braking} braking; the scenario has {scenario.braking!r}")
             self.params = scenario.params(self.params)
@@ -68,6 +75,8 @@ class OperatorPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
         if obs.ndim == 2:
+            if len(obs) == 0:
+                raise ValueError("obs: a batch of no observation (shape (0, n))")
             return np.stack([self.act(o) for o in obs])
         p = self.params
         o = self.codec.decode_observation(obs)

@@ -105,7 +105,8 @@ def brief(exc: BaseException, limit: int = 160) -> str:
 
 
 def sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    with open(path, "rb") as f:  # (streamed: a file is not read whole into memory to be hashed)
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 # ---------------------------------------------------------------------------------------------- describe
@@ -211,11 +212,17 @@ def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     if env_id is not None and not isinstance(env_id, str):
         raise PolicyFileError(f"{path}: config.env_id must be an env id string, got {env_id!r}")
     recorded = meta.get("files")
-    for key, file in (("weights", files.weights), ("normalization", files.normalization)):
+    for key, file, most in (("weights", files.weights, MAX_WEIGHTS_BYTES),
+                            ("normalization", files.normalization, MAX_NORMALIZATION_BYTES)):
         entry = recorded.get(key) if isinstance(recorded, dict) else None
         if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
             raise PolicyFileError(f"{path}: files.{key}.sha256 is missing")
-        if sha256(file) != entry["sha256"]:
+        try:  # (the size before the hash: a 1.2 GB file took 5 s and 1.4 GB of memory to be refused)
+            _check_size(file, most, f"{key} file")
+            digest = sha256(file)
+        except OSError as exc:
+            raise PolicyFileError(f"{key} file {file} is unreadable: {brief(exc)}") from None
+        if digest != entry["sha256"]:
             raise PolicyFileError(f"{file} does not match its metadata {path.name} (sha256 differs): a corrupt or "
                                   f"mixed-up file")
     return meta
@@ -304,6 +311,8 @@ def build_network(net: dict[str, Any]) -> Any:
 
 
 MAX_NORMALIZATION_VALUES = 4096  # per entry: the statistics are a few floats per observation
+# the whole file: five entries of at most that many float64 values, with their zip and .npy headers
+MAX_NORMALIZATION_BYTES = 5 * (8 * MAX_NORMALIZATION_VALUES + 1024)
 
 
 def _check_entry_sizes(path: Path) -> None:
@@ -346,6 +355,8 @@ def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
     if not data["norm_obs"]:
         return None
     mean, var = data["mean"], data["var"]
+    if any(data[k].dtype.itemsize > 8 for k in ("mean", "var", "clip_obs", "epsilon")):  # (1e400 as a long double)
+        raise PolicyFileError(f"normalization file {path}: mean, var, clip_obs and epsilon must be float16/32/64")
     clip_obs, eps = float(data["clip_obs"]), float(data["epsilon"])
     if mean.shape != (obs_dim,) or var.shape != (obs_dim,) or mean.dtype.kind != "f" or var.dtype.kind != "f":
         raise PolicyFileError(f"normalization file {path}: mean and var must be {obs_dim} floats, got shapes "
@@ -376,7 +387,7 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
         _check_size(files.weights, MAX_WEIGHTS_BYTES, "weights file")
         _check_tensor_header(files.weights)
         state = load_tensors(files.weights.read_bytes())
-    except (SafetensorError, OSError, ValueError, MemoryError) as exc:
+    except (SafetensorError, OSError, ValueError, MemoryError, RecursionError) as exc:  # (a header nested 100 000 deep)
         raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
     if not all(t.dtype == torch.float32 and bool(t.isfinite().all()) for t in state.values()):
         # (float8 weights failed in isfinite, or loaded and drove another cycle; the exporter writes float32)
@@ -411,9 +422,9 @@ def _check_tensor_header(path: Path) -> None:
     tensors = {k: v for k, v in header.items() if k != "__metadata__"}
     if len(tensors) > MAX_TENSORS:
         raise ValueError(f"{len(tensors)} tensors; a policy network has at most {MAX_TENSORS}")
-    dtypes = {v.get("dtype") for v in tensors.values() if isinstance(v, dict)}
-    if dtypes - {"F32"}:
-        raise ValueError(f"tensors of dtype {sorted(map(str, dtypes - {'F32'}))}; the weights are float32 (F32)")
+    dtypes = {str(v.get("dtype"))[:40] if isinstance(v, dict) else type(v).__name__ for v in tensors.values()}
+    if dtypes - {"F32"}:  # (a dtype of ["F32"] failed as unhashable)
+        raise ValueError(f"tensors of dtype {sorted(dtypes - {'F32'})}; the weights are float32 (F32)")
 
 
 # ---------------------------------------------------------------------------------------------- convert

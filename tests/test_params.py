@@ -241,11 +241,13 @@ def overrides(draw):
 @given(over=overrides(), seed=st.integers(0, 2**16))
 def test_fuzz_overrides_are_rejected_by_name_or_run_finite(over, seed):
     """Every override is either rejected with a ValueError naming one of the given fields, or the
-    environment built with it runs (reset and 20 random steps) with finite observations and rewards."""
+    environment built with it runs (reset and 20 random steps) with finite observations and rewards, or its
+    step says that the integration diverged (IntegrationDiverged), never a silent blow-up."""
     import gymnasium as gym
     import numpy as np
 
     import wl_env  # noqa: F401
+    from wl_env.episode import IntegrationDiverged
 
     try:
         env = gym.make("WheelLoader-v1", params=over)
@@ -256,7 +258,39 @@ def test_fuzz_overrides_are_rejected_by_name_or_run_finite(over, seed):
     rng = np.random.default_rng(seed)
     assert np.all(np.isfinite(obs)), over
     for _ in range(20):
-        obs, reward, terminated, truncated, _ = env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
+        try:
+            obs, reward, terminated, truncated, info = env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
+        except IntegrationDiverged as exc:
+            assert "raise substeps" in str(exc), over
+            return
         assert np.all(np.isfinite(obs)) and math.isfinite(reward), over
+        omega, V = info["state"][:2]
+        assert 0.0 <= omega <= 2.0 * env.unwrapped.params.omega_max and abs(V) < 10.0, (over, info["state"])
         if terminated or truncated:
             break
+
+
+@pytest.mark.parametrize("over, substeps", [({"eta_lift": 0.01}, 1), ({"eta_lift": 1e-300}, 1), ({"J_ice": 0.5}, 1),
+                                            ({"gear_ratio": 500.0}, 1)])
+def test_a_step_made_unstable_by_the_parameters_raises_not_numbers(over, substeps):
+    """In-range parameters that make the fixed-step RK4 unstable (found by hostile-input testing, stop 59:
+    eta_lift 0.01 ran the engine to 8865 rad/s, then 6.8e14, and reported 135 kg of fuel; 1e-300 gave NaN) end
+    the run with IntegrationDiverged naming the fix, within a few steps."""
+    import gymnasium as gym
+    import numpy as np
+
+    import wl_env  # noqa: F401
+    from wl_env.episode import IntegrationDiverged
+    from wl_env.vector_env import WheelLoaderVectorEnv
+
+    env = gym.make("WheelLoader-v2", params=over, substeps=substeps)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    with pytest.raises(IntegrationDiverged, match="raise substeps"):
+        for _ in range(50):
+            env.step(rng.uniform(-1.0, 1.0, 4).astype(np.float32))
+    vec = WheelLoaderVectorEnv(4, params=over, substeps=substeps)
+    vec.reset(seed=0)
+    with pytest.raises(IntegrationDiverged, match="raise substeps"):
+        for _ in range(50):
+            vec.step(rng.uniform(-1.0, 1.0, (4, 4)).astype(np.float32))

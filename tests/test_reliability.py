@@ -902,3 +902,158 @@ def test_a_worker_count_out_of_range_is_refused_by_name_before_any_process(bad, 
         with pytest.raises(ValueError, match="workers must be an integer in"):
             solve_suite("test", cache=tmp_path, workers=bad)
         assert not any(tmp_path.iterdir())  # (refused before its cache folder was made)
+
+
+# ------------------------------------------------------------------------------------------ the library API, round 5
+def test_a_cycle_is_scored_against_its_own_braking_front_only():
+    """The service front scored a TC cycle (T_min 8.167 s, not 8.379; the fuel gap's sign flipped) and a front
+    of another machine gave its fuel to optimal_fuel_at (stop 59)."""
+    from mpc.benchmark.pareto import optimal_fuel_at
+    from mpc.benchmark.reference import shipped_fronts
+    from mpc.benchmark.scoring import score_run
+    from wl_env.params import DEFAULT_PARAMS
+
+    service = shipped_fronts()["service_" + DEFAULT_PARAMS.fingerprint()]
+    with pytest.raises(ValueError, match="'service' braking's, the cycle's is 'tc'"):
+        score_run(10.0, 60.0, "tc", front=service)
+    with pytest.raises(ValueError, match="braking must be one of"):
+        score_run(10.0, 60.0, "bogus", front=service)
+    with pytest.raises(ValueError, match="'service' braking's, the cycle's is 'tc'"):
+        optimal_fuel_at(10.0, "tc", front=service)
+    with pytest.raises(ValueError, match="solved for parameters"):
+        optimal_fuel_at(10.0, "service", params={"M_load": 12000}, front=service)
+    own = score_run(np.float32(10.0), np.int64(60), "service", front=service)  # (numpy's numbers are numbers)
+    assert own.T_min == pytest.approx(service.T_min) and own.T == 10.0
+    for bad in (10**400, "10", math.nan, True):
+        with pytest.raises(ValueError, match="T must be a finite number"):
+            score_run(bad, 60.0, "service", front=service)
+        with pytest.raises(ValueError, match="must be a finite number"):
+            service.fuel_at(bad)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"scenario": {"payload": 7000}, "params": {"M_load": 9000}}, "params sets M_load, which the scenario sets"),
+    ({"objective": "time", "w_fuel": 0.3}, "objective 'time' takes none"),
+    ({"objective": "weighted", "w_fuel": True}, "w_fuel must be a number in"),
+    ({"objective": "weighted", "w_fuel": "0.5"}, "w_fuel must be a number in"),
+    ({"objective": "weighted"}, "w_fuel must be a number in"),
+])
+def test_solve_ocp_refuses_what_it_would_drop_or_mistype(kwargs, needle):
+    """Each was solved: the params' payload dropped beside the scenario's, w_fuel ignored (yet recorded), True
+    solved as 1.0, a string a TypeError after the NLP's build (stop 59)."""
+    from mpc.benchmark.ocp import solve_ocp
+
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match=needle):
+        solve_ocp("service", **kwargs)
+    assert time.perf_counter() - t0 < 2.0  # (refused before the work)
+
+
+def test_an_inconsistent_warm_start_is_refused_by_name():
+    from dataclasses import replace
+
+    from mpc.benchmark.ocp import solve_ocp
+
+    r = fake_solve("service", "time")
+    assert pareto.check_result(replace(r).__dict__) is None
+    with pytest.raises(ValueError, match="warm_start is no consistent OCPResult: states, controls"):
+        solve_ocp("service", "time", warm_start=replace(r, states=r.states[:3]))
+
+
+@pytest.mark.parametrize("field, value", [
+    ("max_iter", "x"), ("max_iter", -5), ("max_iter", math.nan), ("degree", 2.5), ("degree", True),
+    ("tol", math.nan), ("tol", -1.0), ("intervals", (2.9,) * 4), ("intervals", ("a", 2, 2, 2)), ("intervals", 5),
+    ("intervals", (10**7,) * 4), ("smoothing", (math.nan, 0.0)), ("smoothing", (math.inf, 0.0)), ("print_level", 99)])
+def test_ocp_settings_are_checked_by_name(field, value):
+    """Each failed inside CasADi after the build, ran 60 s to an iteration limit, or was cut or taken silently
+    (intervals 2.9 became 2, degree True 1; stop 59)."""
+    with pytest.raises(ValueError, match=rf"^{field} must"):
+        OCPSettings(**{field: value})
+    assert OCPSettings(intervals=[np.int64(8)] * 4, smoothing=[0]).intervals == (8, 8, 8, 8)
+
+
+def test_run_closed_loop_refuses_a_controller_of_another_step_and_dropped_params():
+    """A controller planning 0.2 s steps drove the 0.1 s env to a 7.1 s cycle 3.7 m off its reversing point, with no
+    error (stop 59)."""
+    from mpc.controller.mpc import MPCController, run_closed_loop
+    from wl_env.scenario import Scenario
+
+    with pytest.raises(ValueError, match="controller plans steps of 0.2 s"):
+        run_closed_loop("service", controller=MPCController("service", dt=0.2), score=False)
+    sc = Scenario.nominal("service").replace(payload=7000.0)
+    with pytest.raises(ValueError, match="params sets M_load"):
+        run_closed_loop(scenario=sc, params={"M_load": 9000.0}, score=False)
+    with pytest.raises(ValueError, match="plant_params sets c_r"):
+        run_closed_loop(scenario=sc, plant_params={"c_r": 0.04}, score=False)
+
+
+def test_the_mpc_refuses_a_stalled_engine_observation():
+    """An observation with engine speed 0 lies in the space, and divided by zero in the safety filter (stop 59)."""
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+    from mpc.controller.mpc import MPCController
+
+    obs = gym.make("WheelLoader-v2").reset(seed=0)[0]
+    obs[0] = 0.0
+    with pytest.raises(ValueError, match="a stalled engine"):
+        MPCController("service").act(obs)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"decel_margin": "0.5"}, "decel_margin must lie in"), ({"lift_accel": math.nan}, "lift_accel must lie in"),
+    ({"lift_accel": -5.0}, "lift_accel must lie in"), ({"lift_accel": 0.0}, "lift_accel must lie in"),
+    ({"dt": 0.0}, "dt must lie in"), ({"lift_off_time": math.inf}, "lift_off_time must lie in")])
+def test_the_operator_checks_its_settings(kwargs, needle):
+    """lift_accel nan never lifted the bucket (4.3 m short, no error); dt 0 divided by zero (stop 59)."""
+    from agents.operator import OperatorPolicy
+
+    with pytest.raises(ValueError, match=needle):
+        OperatorPolicy(**kwargs)
+
+
+def test_the_operator_takes_a_scenario_as_the_mpc_does_and_refuses_an_empty_batch():
+    from agents.operator import OperatorPolicy
+
+    op = OperatorPolicy()
+    op.reset({"payload": 7000})
+    assert op.params.M_load == 7000.0
+    op.reset('{"payload": 8000}')
+    assert op.params.M_load == 8000.0
+    with pytest.raises(ValueError, match="a batch of no observation"):
+        op.act(np.zeros((0, 19)))
+
+
+def test_env_entry_points_refuse_what_they_cannot_run():
+    """A target env on a machine outside the scenario ranges failed only at reset, naming no field; the vector env
+    took reset(options=0); a ParamsView passed as params failed in replace() (stop 59)."""
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+    from wl_env.params import DEFAULT_PARAMS, ParamsView
+    from wl_env.vector_env import WheelLoaderVectorEnv
+
+    with pytest.raises(ValueError, match=r"observe_target: .*Scenario.payload must lie in \[6000, 13000\] kg"):
+        gym.make("WheelLoaderTarget-v6", params={"M_load": 1000.0})
+    vec = WheelLoaderVectorEnv(2)
+    for bad in (0, False, "", []):
+        with pytest.raises(ValueError, match="takes no options"):
+            vec.reset(options=bad)
+    vec.reset(options={})
+    with pytest.raises(ValueError, match="got a ParamsView"):
+        gym.make("WheelLoader-v2", params=ParamsView(DEFAULT_PARAMS, M_load=math.nan))
+
+
+def test_a_scenario_file_names_itself_and_refuses_a_field_given_twice(tmp_path):
+    """JSON keeps the last of two keys without a word ({"payload": 7000, "payload": 99999999}), and a field's range
+    error from a file named no file (stop 59)."""
+    from wl_env.scenario import Scenario
+
+    twice = tmp_path / "twice.json"
+    twice.write_text('{"payload": 7000, "payload": 9000}')
+    with pytest.raises(ValueError, match="twice.json: the field 'payload' is given twice"):
+        Scenario.parse(str(twice))
+    edge = tmp_path / "edge.json"
+    edge.write_text('{"payload": 13000.0000001}')
+    with pytest.raises(ValueError, match=r"edge.json: Scenario.payload must lie in \[6000, 13000\]"):
+        Scenario.parse(str(edge))

@@ -248,8 +248,14 @@ def test_weights_must_be_finite_and_braking_known(tmp_path):
     ("5000-digit integer", "policy metadata .* is unreadable"),  # (Python's int-digits error, naming no file)
     ("low > high", "its network cannot be built"),  # (gymnasium's Box error, naming no file)
     ("extra npz entries", "is none of"),  # (300 000 of them: 14 s, accepted)
-    ("2 GB per item", "normalization file .* is unreadable: MemoryError")])  # (numpy's "Unable to allocate 7.28 TiB",
-# a traceback)
+    ("2 GB per item", "normalization file .* is unreadable: MemoryError"),  # (numpy's "Unable to allocate 7.28 TiB",
+    # a traceback); stop 59's:
+    ("long double statistics", "must be float16/32/64"),  # (1e400 passed the finiteness check, then became inf)
+    ("header nested deep", "weights file .* is unreadable: RecursionError"),  # (a RecursionError traceback)
+    ("dtype a list", r"tensors of dtype .*F32.*; the weights are float32"),  # (TypeError: unhashable type: 'list')
+    ("sparse 1.2 GB weights", "weights file .* is 1288490188 bytes; a policy's is at most"),  # (read whole to be hashed:
+    # 5 s and 1.4 GB)
+    ("sparse 1 MB normalization", "normalization file .* bytes; a policy's is at most")])
 def test_hostile_policy_files_are_one_error_naming_the_file(tmp_path, tamper, needle):
     import torch
     from safetensors.torch import load, save
@@ -271,6 +277,20 @@ def test_hostile_policy_files_are_one_error_naming_the_file(tmp_path, tamper, ne
         space = meta["network"]["observation_space"]
         space["low"], space["high"] = space["high"], space["low"]
         meta_path.write_text(json.dumps(meta))
+    elif tamper in ("header nested deep", "dtype a list"):
+        body = weights.read_bytes()
+        n = int.from_bytes(body[:8], "little")
+        header = json.loads(body[8:8 + n])
+        if tamper == "header nested deep":
+            text = b"[" * 100_000 + b"]" * 100_000
+        else:
+            next(v for k, v in header.items() if k != "__metadata__")["dtype"] = ["F32"]
+            text = json.dumps(header).encode()
+        weights.write_bytes(len(text).to_bytes(8, "little") + text + body[8 + n:])
+        _reseal(stem, "weights", weights)
+    elif tamper.startswith("sparse"):
+        with open(weights if "weights" in tamper else npz, "r+b") as f:  # (sparse: no disk used)
+            f.truncate(1288490188 if "weights" in tamper else 2**20)
     else:
         with np.load(npz) as f:
             data = {k: f[k] for k in f.files}
@@ -278,6 +298,8 @@ def test_hostile_policy_files_are_one_error_naming_the_file(tmp_path, tamper, ne
             data.update({f"junk{i}": np.zeros(1) for i in range(50)})
         if tamper == "2 GB per item":
             del data["mean"]
+        if tamper == "long double statistics":
+            data["var"] = np.full(data["var"].shape, np.longdouble("1e400"))
         np.savez(npz, **data)
         if tamper == "2 GB per item":  # (a header under the value cap that asks numpy for 4000 x 2 GB; no data behind it)
             import io

@@ -13,7 +13,7 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, is_finite, plain, resolve, scenario_overrides, shown
+from wl_env.params import LoaderParams, check_no_overridden, is_finite, plain, resolve_machine, shown
 from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
@@ -36,15 +36,6 @@ def scenario_source(scenario: Scenario | dict | str | None, braking: str | None,
                          f"JSON file, got {shown(scenario)}")
     s = resolve_scenario(scenario, braking)
     return s, s.braking
-
-
-def check_no_overridden(params: Any, source: Scenario | Suite | None) -> None:
-    """A ``params`` dict that sets a field a scenario sets (payload, distances, ...) beside that scenario would be
-    dropped without a word: refused, naming the fields (as ``wl --params`` with ``--scenario``)."""
-    overridden = scenario_overrides(params) if source is not None else []
-    if overridden:
-        raise ValueError(f"params sets {', '.join(overridden)}, which the scenario sets: give them in the scenario "
-                         f"(a dict of Scenario fields) or leave the scenario out")
 
 
 def start_scenario(params: LoaderParams, braking: str, omega: float, H: float) -> Scenario | None:
@@ -140,6 +131,18 @@ def check_target_power(power: Any) -> float:
     if isinstance(power, bool) or not (isinstance(power, (int, float)) and is_finite(power) and lo <= power <= hi):
         raise ValueError(f"target_power must be a number in [{lo:g}, {hi:g}], got {shown(power)}")
     return float(power)
+
+
+def check_target_cycle(observe_target: bool, source: Any, machine: LoaderParams, braking: str) -> None:
+    """A target env without a scenario or suite runs the machine's own cycle: its T_min is estimated within the
+    scenario ranges only (:mod:`wl_env.suites.min_time`), so a cycle outside them is refused now, naming the
+    field, not at the first reset."""
+    if observe_target and source is None:
+        try:
+            Scenario.from_params(machine, braking)
+        except ValueError as exc:
+            raise ValueError(f"observe_target: the machine's cycle lies outside the scenario ranges, where no T_min "
+                             f"estimate sets a target: {exc}") from None
 
 
 def episode_target(scenario: Scenario | None, ratios: tuple[float, float], rng: np.random.Generator,
@@ -387,7 +390,7 @@ class WheelLoaderEnv(gym.Env):
     ) -> None:
         self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor, lift_off_load)
         self.coast, self.guards, self.lift_floor, self.lift_off_load = coast, guards, lift_floor, lift_off_load
-        self.machine = resolve(params)  # the machine; a scenario sets its cycle's fields
+        self.machine = resolve_machine(params)  # the machine; a scenario sets its cycle's fields
         self.observe_target = check_flag("observe_target", observe_target)
         if self.observe_target and not check_flag("observe_scenario", observe_scenario):
             raise ValueError("observe_target needs observe_scenario (the target's observation extends v2's)")
@@ -395,6 +398,7 @@ class WheelLoaderEnv(gym.Env):
         self.target_power = check_target_power(target_power)
         self._source, self.braking = scenario_source(scenario, braking, self.machine)
         check_no_overridden(params, self._source)
+        check_target_cycle(self.observe_target, self._source, self.machine, self.braking)
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")

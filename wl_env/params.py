@@ -357,9 +357,9 @@ class LoaderParams:
 
 
 def is_real_number(value: Any) -> bool:
-    """A finite int or float, not a bool (True is an int to Python, not a number to a validator); an int too large
-    for a float is not finite (:func:`is_finite`)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and is_finite(value)
+    """A finite real number (numpy's scalars included), not a bool (True is an int to Python, not a number to a
+    validator); an int too large for a float is not finite (:func:`is_finite`)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and is_finite(value)
 
 
 def is_finite(value: Any) -> bool:
@@ -444,6 +444,15 @@ def _coerce(name: str, value: Any) -> Any:
 DEFAULT_PARAMS = LoaderParams()
 
 
+def resolve_machine(params: LoaderParams | dict | None) -> LoaderParams:
+    """:func:`resolve` for a user's machine (an environment's): a :class:`ParamsView`, the vector env's and the
+    NLPs' internal view, holds no validated values of its own and is refused."""
+    if isinstance(params, ParamsView):
+        raise ValueError("params must be a LoaderParams, a dict of overrides or None, got a ParamsView (an internal "
+                         "view of per-loader or symbolic values)")
+    return resolve(params)
+
+
 def resolve(params: LoaderParams | dict | None) -> LoaderParams:
     """``None`` -> the defaults, a dict -> the defaults with those overrides, a LoaderParams (or a
     :class:`ParamsView`) -> itself."""
@@ -466,6 +475,16 @@ def scenario_overrides(params: Any) -> list[str]:
     dropped without a word: the env and the command line refuse them, naming these). ``distance``, the alias
     of both legs (:meth:`LoaderParams.replace`), counts too: it was dropped beside a scenario."""
     return sorted(set(params) & {*SCENARIO_FIELDS, "distance"}) if isinstance(params, dict) else []
+
+
+def check_no_overridden(params: Any, source: Any, name: str = "params", kept: tuple[str, ...] = ()) -> None:
+    """A ``params`` dict that sets a field a scenario sets (payload, distances, ...) beside that scenario
+    (``source``, a Scenario or Suite; None: none) would be dropped without a word: refused, naming the fields (as
+    ``wl --params`` with ``--scenario``). ``kept``: fields the caller does take from ``params``."""
+    overridden = [f for f in scenario_overrides(params) if f not in kept] if source is not None else []
+    if overridden:
+        raise ValueError(f"{name} sets {', '.join(overridden)}, which the scenario sets: give them in the scenario "
+                         f"(a dict of Scenario fields) or leave the scenario out")
 
 # loaders in one vector env (wl_env.vector_env; PPOConfig.num_envs): each holds its own state arrays and random
 # generator (~2 kB); the training's 64 are far below, and a mistyped count (1e9) is refused by name instead of

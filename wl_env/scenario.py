@@ -119,12 +119,19 @@ class Scenario:
             except (OSError, UnicodeDecodeError) as exc:
                 raise ValueError(f"{what}: cannot read it as text ({exc})") from None
         try:
-            data = json.loads(text)
+            data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
         except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
             raise ValueError(f"{what} is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
         except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
             raise ValueError(f"{what} is not a scenario: its JSON is nested too deeply") from None
-        return cls.from_dict(data)
+        except DuplicateKey as exc:
+            raise ValueError(f"{what}: the field {exc.args[0]!r} is given twice") from None
+        if what == name:
+            return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:  # (which file: a field's range alone did not say)
+            raise ValueError(f"{what}: {exc}") from None
 
     @classmethod
     def from_params(cls, params: LoaderParams, braking: str = "service") -> Scenario:
@@ -190,6 +197,19 @@ def param_distance(a: dict[str, float], b: dict[str, float]) -> float:
 def param_features(params: Any) -> tuple[Any, ...]:
     """The scenario features of a parameter set (LoaderParams or a batch :class:`~wl_env.params.ParamsView`)."""
     return tuple(feature(name, getattr(params, s.param) / s.to_param) for name, s in FIELDS.items())
+
+
+class DuplicateKey(Exception):
+    """A JSON object that names a key twice (json keeps the last without a word)."""
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise DuplicateKey(key[:80])
+        out[key] = value
+    return out
 
 
 def resolve_scenario(scenario: Scenario | dict | str | None, braking: str | None = None) -> Scenario:

@@ -25,7 +25,7 @@ from wl_env.env import (
     action_array,
     check_assist,
     check_flag,
-    check_no_overridden,
+    check_target_cycle,
     check_target_power,
     check_target_ratios,
     episode_target,
@@ -37,7 +37,16 @@ from wl_env.env import (
     target_features,
 )
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import MAX_NUM_ENVS, SCENARIO_FIELDS, LoaderParams, ParamsView, plain, resolve, shown
+from wl_env.params import (
+    MAX_NUM_ENVS,
+    SCENARIO_FIELDS,
+    LoaderParams,
+    ParamsView,
+    check_no_overridden,
+    plain,
+    resolve_machine,
+    shown,
+)
 from wl_env.scenario import Scenario
 from wl_env.suites import Suite
 
@@ -90,9 +99,10 @@ class WheelLoaderVectorEnv(VectorEnv):
         self.target_ratios = check_target_ratios(target)
         self.target_power = check_target_power(target_power)
         self.target_time, self.min_time_estimate = np.full(num_envs, np.nan), np.full(num_envs, np.nan)
-        self.machine = resolve(params)
+        self.machine = resolve_machine(params)
         self._source, self.braking = scenario_source(scenario, braking, self.machine)
         check_no_overridden(params, self._source)
+        check_target_cycle(self.observe_target, self._source, self.machine, self.braking)
         self.init_noise = float(init_noise)
         if isinstance(self._source, Suite):  # one scenario per loader, drawn at each reset
             self.params: LoaderParams | ParamsView = ParamsView(
@@ -120,8 +130,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         self._started = False
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
-        if options:
-            raise ValueError(f"WheelLoaderVectorEnv.reset takes no options, got {shown(options)}")
+        if options is not None and options != {}:  # (0, False, "" and [] passed a truthiness test)
+            raise ValueError(f"WheelLoaderVectorEnv.reset takes no options (None or {{}}), got {shown(options)}")
         if seed is not None:
             seed = plain(seed)
             if isinstance(seed, int) and not isinstance(seed, bool):

@@ -36,6 +36,7 @@ from wl_env.params import (
     SCENARIO_FIELDS,
     LoaderParams,
     ParamsView,
+    check_no_overridden,
     is_finite,
     is_real_number,
     resolve,
@@ -79,6 +80,9 @@ class OCPError(RuntimeError):
     """The solver did not find an optimum; the message carries its status."""
 
 
+MAX_PHASE_INTERVALS = 2000  # per phase (mesh refinement doubles them; 10**7 would build an NLP of 10**8 variables)
+
+
 @dataclass(frozen=True)
 class OCPSettings:
     """Mesh and solver settings. Defaults pass the mesh-refinement and re-simulation checks."""
@@ -94,13 +98,26 @@ class OCPSettings:
     print_level: int = 0
 
     def __post_init__(self) -> None:
+        def integer(v: Any) -> bool:  # (numpy's too; 2.9 was cut to 2 and True taken as 1)
+            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+        if not (isinstance(self.intervals, (tuple, list)) and len(self.intervals) == 4
+                and all(integer(n) and 2 <= n <= MAX_PHASE_INTERVALS for n in self.intervals)):
+            raise ValueError(f"intervals must be 4 integers in [2, {MAX_PHASE_INTERVALS}] (one per phase), got "
+                             f"{shown(self.intervals)}")
         object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
-        if len(self.intervals) != 4 or any(int(n) < 2 for n in self.intervals):
-            raise ValueError(f"intervals must be 4 integers >= 2 (one per phase), got {self.intervals}")
-        if not 1 <= self.degree <= 9:
-            raise ValueError(f"degree must lie in [1, 9], got {self.degree}")
-        if not self.smoothing or self.smoothing[-1] != 0.0 or any(k < 0 for k in self.smoothing):
-            raise ValueError(f"smoothing must be a non-empty sequence of k >= 0 ending with 0, got {self.smoothing}")
+        if not (integer(self.degree) and 1 <= self.degree <= 9):
+            raise ValueError(f"degree must be an integer in [1, 9], got {shown(self.degree)}")
+        if not (isinstance(self.smoothing, (tuple, list)) and 1 <= len(self.smoothing) <= 20
+                and all(is_real_number(k) and k >= 0 for k in self.smoothing) and self.smoothing[-1] == 0.0):
+            raise ValueError(f"smoothing must be 1 to 20 numbers k >= 0 ending with 0, got {shown(self.smoothing)}")
+        object.__setattr__(self, "smoothing", tuple(float(k) for k in self.smoothing))
+        if not (integer(self.max_iter) and 1 <= self.max_iter <= 100_000):
+            raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
+        if not (is_real_number(self.tol) and 0.0 < self.tol < 1.0):
+            raise ValueError(f"tol must be a number in (0, 1), got {shown(self.tol)}")
+        if not (integer(self.print_level) and 0 <= self.print_level <= 12):
+            raise ValueError(f"print_level must be an integer in [0, 12] (IPOPT's), got {shown(self.print_level)}")
         if self.solver != "ipopt":
             # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free
             # phase durations are global variables of this NLP.
@@ -620,6 +637,7 @@ def with_scenario(braking: str | None, params: LoaderParams | dict | None, scena
     from wl_env.scenario import resolve_scenario
 
     s = resolve_scenario(scenario, braking)
+    check_no_overridden(params, s)
     return s.braking, s.params(resolve(params))
 
 
@@ -653,7 +671,8 @@ def solve_ocp(
     every mesh tried. A result whose re-simulation still fails has ``success`` False and says so in its status.
     """
     braking, p = with_scenario(braking, params, scenario)
-    check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements)
+    check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements, w_fuel)
+    w_fuel = None if w_fuel is None else float(w_fuel)
     settings = settings or OCPSettings()
     result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
     if not verify:
@@ -665,6 +684,9 @@ def solve_ocp(
         # at least twice the intervals of the mesh that failed: a few more barely change the error
         mesh = tuple(max(n, 2 * m) for n, m in zip(
             refined_mesh(result.phase_durations, settings.intervals, max_interval / 2**attempt), result.mesh, strict=True))
+        if max(mesh) > MAX_PHASE_INTERVALS:  # (the result stands as it is: its check failed, and says so below)
+            log.warning("mesh refinement stopped: %s intervals would pass %d per phase", mesh, MAX_PHASE_INTERVALS)
+            break
         previous = result
         result = _solve_on_mesh(braking, objective, T, w_fuel, p, replace(settings, intervals=mesh), previous, (), verify)
         result.starts = previous.starts + result.starts
@@ -677,19 +699,32 @@ def solve_ocp(
 
 
 def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any, starts: Any, max_interval: Any,
-                          max_refinements: Any) -> None:
+                          max_refinements: Any, w_fuel: Any = None) -> None:
     """:func:`solve_ocp`'s arguments, each refused by name (a string settings was a TypeError from dataclasses, a
-    NaN start an error from numpy, T with another objective than fuel_at_time was ignored without a word)."""
+    NaN start an error from numpy, T with another objective than fuel_at_time was ignored without a word, as
+    w_fuel with another than weighted)."""
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {shown(objective)}")
     if objective == "fuel_at_time":
         check_cycle_time(T)
     elif T is not None:
         raise ValueError(f"T is the cycle time of objective 'fuel_at_time'; objective {objective!r} takes none, got {shown(T)}")
+    if objective == "weighted":
+        if not (is_real_number(w_fuel) and 0.0 <= w_fuel <= 1.0):
+            raise ValueError(f"w_fuel must be a number in [0, 1] for the weighted objective, got {shown(w_fuel)}")
+    elif w_fuel is not None:
+        raise ValueError(f"w_fuel is the fuel weight of objective 'weighted'; objective {objective!r} takes none, "
+                         f"got {shown(w_fuel)}")
     if settings is not None and not isinstance(settings, OCPSettings):
         raise ValueError(f"settings must be an OCPSettings or None, got {type(settings).__name__}")
-    if warm_start is not None and not isinstance(warm_start, OCPResult):
-        raise ValueError(f"warm_start must be an OCPResult or None, got {type(warm_start).__name__}")
+    if warm_start is not None:
+        if not isinstance(warm_start, OCPResult):
+            raise ValueError(f"warm_start must be an OCPResult or None, got {type(warm_start).__name__}")
+        from mpc.benchmark.pareto import check_result
+
+        problem = check_result(asdict(warm_start))  # (as a cached result is checked)
+        if problem:
+            raise ValueError(f"warm_start is no consistent OCPResult: {problem}")
     if starts is not None:
         ok = isinstance(starts, (tuple, list)) and all(
             isinstance(st, (tuple, list)) and len(st) == 2 and all(is_real_number(v) for v in st)

@@ -94,8 +94,9 @@ class ParetoFront:
         spaced evenly in u (:func:`front_times`), interpolate it closely. Between T_min and the first point
         (0.1 % above it) the first point's fuel is returned.
         """
-        if not math.isfinite(T):
-            raise ValueError(f"cycle time must be finite, got {T!r}")
+        if not is_real_number(T):
+            raise ValueError(f"cycle time must be a finite number of seconds, got {T!r}")
+        T = float(T)
         if T < self.T_min - 1e-6:
             raise ValueError(
                 f"cycle time {T:.3f} s is impossible: the minimum cycle time with {self.braking} braking is "
@@ -574,12 +575,30 @@ def pareto_fronts(
                           log_level=logging.INFO if progress else logging.WARNING)
 
 
+def check_front_of(front: ParetoFront, braking: str, params: LoaderParams) -> None:
+    """A front given to score a cycle must be that cycle's: the same braking and parameters (ValueError)."""
+    if not isinstance(front, ParetoFront):
+        raise ValueError(f"front must be a ParetoFront or None, got {type(front).__name__}")
+    if front.braking != braking:
+        raise ValueError(f"the front given is the {front.braking!r} braking's, the cycle's is {braking!r}: a cycle is "
+                         f"scored against its own optimum only")
+    if front.params_fingerprint not in ("", params.fingerprint()):
+        raise ValueError(f"the front given was solved for parameters {front.params_fingerprint}, the cycle ran "
+                         f"{params.fingerprint()}: a cycle is scored against its own optimum only")
+
+
 def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | dict | None = None,
                     cache: str | os.PathLike | None = None, front: ParetoFront | None = None) -> float:
     """Minimum fuel (g) at cycle time T: interpolated on the front, solved on demand past the fuel optimum.
 
-    Raises ``ValueError`` for a cycle time below the minimum.
+    Raises ``ValueError`` for a cycle time below the minimum, or a ``front`` of another cycle.
     """
+    if not (is_real_number(T) and T > 0):
+        raise ValueError(f"T (the cycle time) must be a finite number > 0 s, got {T!r}")
+    T = float(T)
+    cycle.check_braking(braking)
+    if front is not None:
+        check_front_of(front, braking, resolve(params))
     front = front or pareto_front(braking, params=params, cache=cache)
     if T < front.T_fuel_opt:
         return front.fuel_at(T)

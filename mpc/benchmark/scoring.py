@@ -8,16 +8,16 @@ nothing is scored against another cycle's front.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
-from mpc.benchmark.pareto import ParetoFront
+from mpc.benchmark.pareto import ParetoFront, check_front_of
 from mpc.benchmark.reference import reference_at
-from wl_env.params import LoaderParams, resolve
+from wl_env.cycle import check_braking
+from wl_env.params import LoaderParams, is_real_number, resolve
 
 
 @dataclass(frozen=True)
@@ -53,13 +53,14 @@ def score_run(
     evaluation. ``front`` must be that cycle's own front if given. ``solve`` False: only shipped or
     cached optima (LookupError if there is none)."""
     for name, v in (("T", T), ("fuel_g", fuel_g)):
-        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+        if not (is_real_number(v) and v > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    T, fuel_g = float(T), float(fuel_g)
+    check_braking(braking)
     p = resolve(params)
-    if front is not None and front.params_fingerprint not in ("", p.fingerprint()):
-        raise ValueError(f"the front given was solved for parameters {front.params_fingerprint}, the cycle ran "
-                         f"{p.fingerprint()}: a cycle is scored against its own optimum only")
-    ref = reference_at(float(T), braking, p, cache, front=front, solve=solve)
+    if front is not None:
+        check_front_of(front, braking, p)
+    ref = reference_at(T, braking, p, cache, front=front, solve=solve)
     return Score(braking=braking, T=float(T), fuel_g=float(fuel_g), T_min=ref["T_min"], time_gap=T / ref["T_min"] - 1.0,
                  fuel_opt_g=float(ref["fuel_opt_g"]), fuel_gap=fuel_g / ref["fuel_opt_g"] - 1.0,
                  reference=ref["reference"])

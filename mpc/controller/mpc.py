@@ -61,7 +61,16 @@ from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.env import check_target_time
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, is_finite, is_real_number, plain, resolve, shown
+from wl_env.params import (
+    SCENARIO_FIELDS,
+    LoaderParams,
+    check_no_overridden,
+    is_finite,
+    is_real_number,
+    plain,
+    resolve,
+    shown,
+)
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
 from wl_env.scenario import Scenario, resolve_scenario
@@ -574,6 +583,9 @@ class MPCController:
         o = self.codec.decode_observation(obs)
         if np.ndim(o.time) != 0:
             raise ValueError(f"the MPC acts on one observation, got shape {np.shape(obs)}")
+        if o.state[0] < self.params.omega_min:  # (in the observation space; 0 divided the safety filter's model)
+            raise ValueError(f"observation: engine speed {o.state[0]:.4g} rad/s, a stalled engine (below omega_min "
+                             f"{self.params.omega_min:g} rad/s the environment ends the cycle): no control to plan")
         return o.state, o.time, o.phase
 
     # ------------------------------------------------------------------ one step
@@ -1543,6 +1555,8 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         braking = scenario.braking if braking is None else cycle.check_braking(braking)
         if braking != scenario.braking:
             raise ValueError(f"braking={braking!r} contradicts the scenario's braking {scenario.braking!r}")
+        check_no_overridden(plant_params, scenario, "plant_params")
+        check_no_overridden(params, scenario, kept=("M_load", "c_r") if mismatch else ())
         plant = scenario.params(plant)
         model = scenario.params(model)
         if mismatch:
@@ -1553,6 +1567,9 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         raise ValueError(f"the controller plans {controller.braking} braking; the run has braking={braking!r}")
     env = gym.make("WheelLoader-v2", braking=braking, params=plant)
     core = env.unwrapped.core
+    if controller is not None and (controller.dt, controller.substeps) != (core.dt, core.substeps):
+        raise ValueError(f"the controller plans steps of {controller.dt:g} s in {controller.substeps} substep(s); the "
+                         f"environment takes {core.dt:g} s in {core.substeps}: build it with the environment's")
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps, solver=solver)
     told = None
     if controller is not None and scenario is not None:
