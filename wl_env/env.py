@@ -511,9 +511,14 @@ class WheelLoaderEnv(gym.Env):
             values = [float(v) for v in assisted_action(y, phase, self.codec.distance_to_go(y[4], phase), values,
                                                         self.params, self.braking, self.core.dt, self.coast,
                                                         self.guards, self.lift_floor, self.lift_off_load)]
-        t0 = self._t
-        r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
-        self._y, self._phase, self._t = r["y"], int(r["phase"]), r["t"]
+        t0, core = self._t, self.core
+        r = core.step(self._y, self._phase, self._t, self._rev_err, self._violation, values)
+        y = r["y"]
+        # (core.diverged inline: NaN fails the comparisons too)
+        if not (y[0] <= core.omega_diverged and -core.speed_diverged <= y[1] <= core.speed_diverged):
+            self._done = True  # (no episode to step on)
+            raise core.divergence(y, t0)
+        self._y, self._phase, self._t = y, int(r["phase"]), r["t"]
         if self.observe_target:
             r["reward"] = r["reward"] - lateness_charge(t0, r["t"], self.target_time, self.core.reward.late)
         self._rev_err, self._violation = r["rev_err"], r["violation"]

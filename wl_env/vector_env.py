@@ -214,6 +214,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         else:
             action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
+        if self.core.diverged(r["y"]):
+            raise self.core.divergence(r["y"], self._t)
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         reward = np.asarray(r["reward"], dtype=np.float64)
