@@ -124,12 +124,21 @@ def save_checkpoint(model: Any, vecnorm: Any, folder: Path, progress: dict[str, 
     folder): the policy as exported (``policy.*``), the optimizer's tensors (``optimizer.safetensors``) and its
     settings, update count and the normalization's running statistics (``training.json``), and ``progress``
     (``progress.json``); staged and made visible at once (a kill never leaves half a checkpoint)."""
-    from safetensors.torch import save as save_tensors
-
     folder = Path(folder)
     tmp = folder.parent / f".{folder.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    try:
+        _stage_checkpoint(model, vecnorm, tmp, progress)
+    except BaseException:  # (an interrupt while staging left the .tmp folder until the next resume)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return _replace_folder(tmp, folder)
+
+
+def _stage_checkpoint(model: Any, vecnorm: Any, tmp: Path, progress: dict[str, Any]) -> None:
+    from safetensors.torch import save as save_tensors
+
     write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", {"num_timesteps": model.num_timesteps})
     opt = model.policy.optimizer.state_dict()
     tensors = {f"{i}/{name}": v.detach().cpu().contiguous() for i, st in opt["state"].items()
@@ -145,7 +154,6 @@ def save_checkpoint(model: Any, vecnorm: Any, folder: Path, progress: dict[str, 
         "obs_rms": stats(vecnorm.obs_rms) if vecnorm is not None else None,
         "ret_rms": stats(vecnorm.ret_rms) if vecnorm is not None else None})
     write_json_atomic(tmp / "progress.json", progress)
-    return _replace_folder(tmp, folder)
 
 
 def _plain_setting(v: Any) -> bool:
@@ -737,9 +745,9 @@ def read_eval_csv(path: str | os.PathLike) -> list[dict[str, float]]:
     return rows
 
 
-def _truncate_eval_csv(path: Path, step: int) -> None:
+def _truncate_eval_csv(path: Path, step: int, write: bool = True) -> None:
     """On resume: keep the evaluations up to the checkpoint (later ones are redone; a line cut short by
-    the interruption is dropped)."""
+    the interruption is dropped); ``write`` False: only check that it can be (ValueError naming it)."""
     if not path.exists():
         return
     try:  # (a step that is no number, or a file that is no text: ValueError naming it, not a bare one)
@@ -755,7 +763,8 @@ def _truncate_eval_csv(path: Path, step: int) -> None:
         kept = [line for line in lines[1:] if keep(line)]
     except (ValueError, OSError, csv.Error) as exc:
         raise ValueError(f"{path} cannot be continued: {brief(exc, 200)}") from None
-    write_atomic(path, "".join(lines[:1] + kept))
+    if write and len(kept) != len(lines) - 1:  # (rewritten only to drop rows: its bytes are kept otherwise)
+        write_atomic(path, "".join(lines[:1] + kept))
 
 
 def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
@@ -934,20 +943,18 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
 
         demos = demo_samples(read_demo_folder(cfg.bc_demos, cfg.env_id), cfg.env_id, cfg.braking)
     check_env_settings(cfg)  # (before config.json is written: a run is never saved with settings its env refuses)
-    if ckpt is not None:  # (and its progress and eval.csv: a resume that fails on them records no command)
+    if ckpt is not None:  # (and its progress and eval.csv: a resume that fails on them changes nothing)
         progress, step = read_progress(ckpt)
-        _truncate_eval_csv(run_dir / "eval.csv", step)
-    if command:
-        commands.append(command)
+        _truncate_eval_csv(run_dir / "eval.csv", step, write=False)
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(run_dir / "config.json", {"config": cfg.to_dict(), "commands": commands})
 
     tb_dir = run_dir / "tb"
     if ckpt is not None:
         # Fresh episodes after the interruption; a different env seed so they are not a replay.
         env = make_env(cfg, seed=(cfg.seed + step) % 2**32)
         model = build_model(cfg, env, tb_dir)
-        restore_checkpoint(model, _vecnorm_of(env), ckpt)
+        restore_checkpoint(model, _vecnorm_of(env), ckpt)  # (a bad checkpoint: refused before anything is written)
+        _truncate_eval_csv(run_dir / "eval.csv", step)
         set_random_seed((cfg.seed + step) % 2**32)  # (after the build, which seeds with cfg.seed)
         model.num_timesteps = step
         state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))
@@ -960,6 +967,9 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         model = build_model(cfg, env, tb_dir)
         if cfg.init_policy:
             start_from(model, env, cfg)
+    if command:
+        commands.append(command)
+    write_json_atomic(run_dir / "config.json", {"config": cfg.to_dict(), "commands": commands})
 
     remaining = cfg.total_timesteps - step
     if remaining > 0:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from agents.ppo_config import MAX_EVAL_EPISODES, ConfigError, PPOConfig
+from mpc import interrupt
 from wl_env.atomic_io import check_output_folder
 
 log = logging.getLogger(__name__)
@@ -168,6 +169,17 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         check_output_folder(export.parent, f"--export {ns.export}")
     if getattr(ns, "cache", None) is not None:
         check_output_folder(ns.cache, f"--cache {ns.cache}")
+    if cfg.init_policy and not ns.resume:  # (its files read now: a missing one failed after the env's build)
+        from agents.policy_files import PolicyFileError, read_policy
+        from agents.ppo import _safe_stem
+
+        stem = _safe_stem(Path(cfg.init_policy).expanduser())
+        try:
+            if stem is None:
+                raise PolicyFileError("not a pickle-free policy (STEM.safetensors with its normalization and metadata)")
+            read_policy(stem)
+        except PolicyFileError as exc:
+            raise ValueError(f"--init-policy {cfg.init_policy}: {exc}") from None
     if ns.resume and set(given) - RUN_NAMING:
         log.warning("--resume uses the run's saved config; options other than the run's name are ignored")
     from agents.ppo import export_policy, train
@@ -188,7 +200,7 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         except KeyboardInterrupt:
             log.info("\ninterrupted; continue with: %s --run-name %s --log-dir %s --resume", prog,
                      shlex.quote(cfg.name), shlex.quote(cfg.log_dir))
-            return 130
+            return interrupt.exit_code()  # (130, or 143 for SIGTERM)
         print(json.dumps({k: summary[k] for k in ("num_timesteps", "wall_time", "last_eval")}, indent=2, default=str))
         if ns.export:
             meta = export_policy(cfg.run_dir, Path(ns.export).parent, Path(ns.export).name,
@@ -214,7 +226,7 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
         results = train_runs(cfgs, command=command, workers=ns.workers, ray_address=ns.ray)
     except KeyboardInterrupt:
         log.info("\ninterrupted; the same command resumes every run from its newest checkpoint")
-        return 130
+        return interrupt.exit_code()
     print(json.dumps({name: {k: s.get(k) for k in ("num_timesteps", "wall_time")} for name, s in results.items()},
                      indent=2))
     log.info("spread over the seeds: %s", Path(cfg.log_dir) / SUMMARY_FILE)

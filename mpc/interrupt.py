@@ -50,6 +50,19 @@ def interrupted() -> bool:
     return _flag.is_set()
 
 
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """``exc`` is what an interrupt became (the flag is set, or a KeyboardInterrupt lies in its chain): Ctrl-C that
+    landed inside numpy's import became an ImportError, inside CasADi's DM.__array__ a SystemError."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return _flag.is_set()
+
+
 def check(status: str | None = None) -> None:
     """Raise KeyboardInterrupt if this process was interrupted, or if ``status`` (a solver's return
     status) says the solve was aborted. Call it after every solver call."""

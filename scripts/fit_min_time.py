@@ -74,6 +74,8 @@ def main(o: Options) -> None:
     if not 2 * n_terms <= o.draws <= 10_000:
         raise ValueError(f"--draws must be an integer in [{2 * n_terms}, 10000] (twice the model's {n_terms} terms), "
                          f"got {o.draws}")
+    if not 0 <= o.seed < 2**32:  # (numpy's "expected non-negative integer" named no flag)
+        raise ValueError(f"--seed must be an integer in [0, 2**32), got {o.seed}")
     _out_file(o.out)
     jobs = {b: ("fit_min_time:solve_min_times", (b, o.draws, o.seed, o.cache)) for b in ("service", "tc")}
     results = run_in_workers(jobs, log_level=logging.INFO)

@@ -136,12 +136,21 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(exc))
     braking = braking or "service"
     front = None
-    if not args.no_front:
-        try:
-            from mpc.benchmark.pareto import ParetoFront, pareto_front
+    if args.front and not args.no_front:  # (a front given is checked: one of the other braking drew its lines here)
+        from mpc.benchmark.pareto import ParetoFront, check_front_of
+        from wl_env.params import DEFAULT_PARAMS
 
-            front = ParetoFront.load(args.front) if args.front else pareto_front(braking)
-        except Exception as e:  # noqa: BLE001
+        try:
+            front = ParetoFront.load(args.front)
+            check_front_of(front, braking, DEFAULT_PARAMS)
+        except (ValueError, OSError, TypeError, KeyError) as exc:
+            ap.error(f"--front {args.front}: {' '.join(str(exc).split())[:300]}")
+    elif not args.no_front:
+        try:
+            from mpc.benchmark.pareto import pareto_front
+
+            front = pareto_front(braking)
+        except Exception as e:  # noqa: BLE001  (the figure is drawn without the optimum's lines)
             print(f"warning: no Pareto front ({e})", file=sys.stderr)
     if not rows:
         ap.error(f"{csv_path} holds no evaluation rows: nothing to plot")

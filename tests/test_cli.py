@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -392,6 +393,51 @@ def test_plot_learning_curve_names_a_corrupt_run_file(tmp_path, files, needle):
     assert not (tmp_path / "c.png").exists()
 
 
+@pytest.mark.parametrize("front", ["other braking", "corrupt"])
+def test_plot_learning_curve_refuses_a_front_not_of_its_cycle(tmp_path, front):
+    """A service front on a TC curve was drawn without a word (or a traceback with rows to score); a corrupt
+    --front was only a warning (stop 59)."""
+    import subprocess
+    import sys
+
+    from mpc.benchmark.reference import shipped_fronts
+
+    (tmp_path / "eval.csv").write_bytes(b"step,a\n1,2\n")
+    path = tmp_path / "front.json"
+    shipped_fronts()["service_" + DEFAULT_PARAMS.fingerprint()].save(path)
+    if front == "corrupt":
+        path.write_text(path.read_text()[:100])
+    script = Path(__file__).resolve().parents[1] / "scripts" / "plot_learning_curve.py"
+    r = subprocess.run([sys.executable, str(script), str(tmp_path), "--out", str(tmp_path / "c.png"), "--front", str(path),
+                        "--braking", "tc" if front == "other braking" else "service"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and "--front" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert ("'service' braking's, the cycle's is 'tc'" in r.stderr) == (front == "other braking")
+    assert not (tmp_path / "c.png").exists()
+
+
+def test_scripts_take_what_ctrl_c_became_inside_a_library_as_an_interrupt():
+    """A SystemError out of CasADi's DM.__array__ ended train_bc.py with a traceback; the scripts had no handler
+    setting the interrupt flag, so an interrupt a solve swallowed was lost (stop 59)."""
+    from wl_env.logs import run_script
+
+    def casadi_like():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("returned a result with an exception set") from None
+
+    with pytest.raises(SystemExit) as exc:
+        run_script("script", casadi_like)
+    assert exc.value.code == 130
+
+    def a_bug():
+        raise SystemError("a bug of its own")
+
+    with pytest.raises(SystemError, match="a bug of its own"):
+        run_script("script", a_bug)
+
+
 def test_a_missing_optimum_under_no_solve_is_one_line(tmp_path, capsys):
     """--no-solve with a perturbed start, whose optimum no file holds: a LookupError's traceback, exit 1, before."""
     code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--episodes", "2", "--no-solve",
@@ -498,11 +544,13 @@ def _broken(results: dict, what: str) -> dict:
         results["fronts"]["service"]["T"] = results["fronts"]["service"]["T"][::-1]
     elif what == "string states":  # (passed as numbers, then the figure failed with half the report written)
         results["optima"]["service"]["states"] = [[str(v) for v in row] for row in results["optima"]["service"]["states"]]
+    elif what == "empty trajectory":  # (passed, then "too many indices" after three files, naming nothing; stop 59)
+        results["trajectories"][0]["t"], results["trajectories"][0]["states"] = [], []
     return results
 
 
 @pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge",
-                                  "controller", "times", "front", "string states"])
+                                  "controller", "times", "front", "string states", "empty trajectory"])
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
     if what != "missing":
@@ -531,6 +579,76 @@ def test_report_checks_its_files_before_writing_any(tmp_path, cache, capsys):
     assert not (out / "leaderboard.md").exists()
 
 
+def test_an_interrupted_report_leaves_the_report_as_it_was(tmp_path, cache, capsys, monkeypatch):
+    """Ctrl-C while drawing left 4 of the 5 new files beside the old fifth (stop 59): the files are drawn in a
+    staging folder and moved into --out together."""
+    out = tmp_path / "results"
+    wl.report.collect(out, cache=str(cache), brakings=("service",), suite_controllers=None,
+                      controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+    capsys.readouterr()
+    before = {f.name: f.read_bytes() for f in out.iterdir() if f.is_file()}
+    calls = []
+
+    def interrupted(fig, path, **kwargs):
+        calls.append(path)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(wl.report, "save_figure", interrupted)
+    code, _, err = _run(capsys, "report", "--results", out)
+    assert code == 130 and calls
+    assert {f.name: f.read_bytes() for f in out.iterdir() if f.is_file()} == before
+    assert [f.name for f in out.iterdir() if f.name.startswith(".report-")] == []
+    code, _, err = _run(capsys, "report", "--results", out, "--out", "")
+    assert code == 2 and "--out must name a folder" in err
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["mpc", "--target-time", "1", "--no-score"], "--target-time 1 s lies below the minimum cycle time"),
+    (["mpc", "--target-time", "7.9", "--braking", "tc", "--no-score"], "--target-time 7.9 s lies below"),
+    (["evaluate", "--controller", "mpc", "--target-time", "7"], "--target-time 7 s lies below"),
+    (["evaluate", "--controller", "operator", "--suite", "test", "--sample", "3", "--target-time", "8"],
+     "--target-time 8 s lies below the minimum cycle time of the"),
+])
+def test_a_target_time_under_the_minimum_is_refused_before_any_work(tmp_path, capsys, argv, needle):
+    """The MPC found it out after ~5 s of planning, naming MPCConfig.target_time; `wl evaluate` blamed the
+    controller's act() (stop 59)."""
+    t0 = time.perf_counter()
+    code, _, err = _run(capsys, *argv, "--out", tmp_path / "x" / "out.json")
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert time.perf_counter() - t0 < 3.0 and not (tmp_path / "x").exists()
+
+
+def test_an_interrupt_that_a_library_turned_into_another_error_exits_130(monkeypatch, capsys):
+    """Ctrl-C inside CasADi's DM.__array__ came out as a SystemError (exit 1, a traceback), inside numpy's import
+    at start-up as an ImportError (stop 59)."""
+    from mpc import interrupt
+
+    def casadi_like(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("<function DM.__array__> returned a result with an exception set") from None
+
+    class Parser:
+        def parse_args(self, argv):
+            return argparse.Namespace(func=casadi_like, command="params", verbose=False, version=False)
+
+    monkeypatch.setattr(wl.cli, "build_parser", Parser)
+    code, _, err = _run(capsys, "params")
+    assert code == 130 and err.strip() == "wl: interrupted"
+
+    def import_interrupted():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImportError('PyCapsule_Import could not import module "datetime"')  # noqa: B904
+
+    monkeypatch.setattr(wl.cli, "build_parser", import_interrupted)
+    code, _, err = _run(capsys, "params")
+    assert code == 130 and err.strip() == "wl: interrupted"
+    assert not interrupt.caused_by_interrupt(SystemError("a bug of its own"))
+
+
 # ------------------------------------------------------------------------------------------ errors, help
 @pytest.mark.parametrize("argv,needle", [
     (["evaluate", "--controller", "operator", "--braking", "hydraulic"], "--braking"),
@@ -556,7 +674,7 @@ def test_report_checks_its_files_before_writing_any(tmp_path, cache, capsys):
     (["params", "--set", ""], "--set is empty"),  # (printed the defaults)
     (["params", "--set", "[1]"], "--set must be a JSON object"),
     (["train", "--log-dir", "{tmp}", "--seed", "99999999999999999999"], "--seed must be an integer in [0, 2**31 - 1]"),
-    (["train", "--log-dir", "{tmp}", "--max-time", "0.1"], "max_time must be a number of seconds in [5 dt, 3600]"),
+    (["train", "--log-dir", "{tmp}", "--max-time", "0.1"], "--max-time must be a number of seconds in [0.5, 3600]"),
 ])
 def test_user_errors_are_one_line(tmp_path, capsys, argv, needle):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
@@ -658,7 +776,7 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["train", "--net-arch", "0"], "--net-arch", "[1, 4096]"),
     (["train", "--eval-episodes", "-1"], "--eval-episodes", ">= 0"),
     (["train", "--curriculum-fraction", "nan"], "--curriculum-fraction", "[0, 1]"),
-    (["train", "--learning-rate", "inf"], "--learning-rate", "> 0"),
+    (["train", "--learning-rate", "inf"], "--learning-rate", "(0, 1]"),
     (["train", "--export-episodes", "-3"], "--export-episodes", ">= 0"),
     # (accepted, then after the whole training a target env's evaluation drew 10**9 scenarios: a hang)
     (["train", "--export-episodes", "1000000000"], "--export-episodes", "at most 99999"),

@@ -731,9 +731,16 @@ def test_codegen_never_loads_from_a_folder_others_can_write(tmp_path, monkeypatc
     with caplog.at_level(logging.WARNING):
         assert codegen.compiled([group], [group["f"]]) == [None]
     assert "is writable by others" in caplog.text and not list(shared.iterdir())
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # (said once a process: each slot kind's build said it again)
+        assert codegen.compiled([group], [group["f"]]) == [None]
+    assert "writable by others" not in caplog.text
     monkeypatch.setenv("WL_CODEGEN", "on")
     with pytest.raises(codegen.CodegenError, match="writable by others"):
         codegen.compiled([group], [group["f"]])
+    # `wl` says so before any work (it failed after ~1.5 s of it)
+    assert wl.cli.main(["mpc", "--no-score", "--out", str(tmp_path / "m.json")]) == 2
+    assert not (tmp_path / "m.json").exists()
     os.chmod(shared, 0o755)
     assert codegen._writable_by_others(shared) == ""
 

@@ -4,6 +4,7 @@ controller, the episode and the step."""
 
 from __future__ import annotations
 
+import argparse
 import base64
 import hashlib
 import json
@@ -770,12 +771,64 @@ def test_a_run_is_not_saved_with_settings_its_env_refuses(tmp_path):
     from agents.ppo import train
     from agents.seeds import run_state
 
-    cfg = PPOConfig(max_time=0.1, score=False, progress_bar=False, log_dir=str(tmp_path), run_name="bad")
-    with pytest.raises(ValueError, match="max_time"):
+    cfg = PPOConfig(w_fuel=1e7, score=False, progress_bar=False, log_dir=str(tmp_path), run_name="bad")
+    with pytest.raises(ValueError, match="RewardConfig.w_fuel must lie in"):  # (the env's range, not the config's)
         train(cfg)
     assert not (cfg.run_dir / "config.json").exists()
     cfg.run_dir.mkdir(parents=True)
-    (cfg.run_dir / "config.json").write_text(json.dumps({"config": cfg.to_dict() | {"max_time": 40.0}}))
+    (cfg.run_dir / "config.json").write_text(json.dumps({"config": cfg.to_dict() | {"w_fuel": 0.5}}))
     assert run_state(cfg) == "new"
     with pytest.raises(ValueError, match="seed must be an integer in \\[0, 2\\*\\*31 - 1\\]"):
         PPOConfig(seed=2**40)
+
+
+def test_a_failed_resume_on_a_bad_checkpoint_changes_nothing(tmp_path):
+    """A checkpoint whose policy file was cut short failed the resume by name, but config.json had the failed
+    command and eval.csv was rewritten (its line endings changed) (stop 59)."""
+    from agents.ppo import CheckpointError, latest_checkpoint, train
+
+    cfg = _checkpointed_run(tmp_path)
+    ckpt = latest_checkpoint(cfg.run_dir)
+    with open(ckpt / "policy.safetensors", "r+b") as f:
+        f.truncate(100)
+    eval_csv = cfg.run_dir / "eval.csv"
+    eval_csv.write_bytes(eval_csv.read_bytes().replace(b"\n", b"\r\n"))
+    before = {f: f.read_bytes() for f in (cfg.run_dir / "config.json", eval_csv)}
+    with pytest.raises((CheckpointError, PolicyFileError), match="sha256 differs|policy"):
+        train(PPOConfig(log_dir=cfg.log_dir, run_name="r", progress_bar=False), resume=True, command="wl train --resume")
+    assert {f: f.read_bytes() for f in before} == before
+
+
+def test_an_interrupted_checkpoint_leaves_no_staging_folder(tmp_path, monkeypatch):
+    """SIGTERM (or Ctrl-C) while a checkpoint was staged left checkpoints/.step_*.tmp until the next resume; and
+    `wl train` exited 130 on SIGTERM, not 143 (stop 59)."""
+    import agents.ppo as ppo
+    import agents.train_cli as train_cli
+    from mpc import interrupt
+
+    cfg = PPOConfig(num_envs=2, n_steps=8, batch_size=16, net_arch=(8,), score=False, progress_bar=False,
+                    log_dir=str(tmp_path), run_name="s")
+    env = ppo.make_env(cfg)
+    env.reset()
+    model = ppo.build_model(cfg, env, tmp_path / "tb")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ppo, "write_json_atomic", killed)
+    folder = tmp_path / "checkpoints" / "step_1"
+    with pytest.raises(KeyboardInterrupt):
+        ppo.save_checkpoint(model, ppo._vecnorm_of(env), folder, {"num_timesteps": 0, "wall_time": 0.0})
+    assert not folder.exists() and list((tmp_path / "checkpoints").iterdir()) == []
+
+    def terminated(*args, **kwargs):
+        import signal
+
+        interrupt._handler(signal.SIGTERM, None)  # (as the handler `wl` installs does on SIGTERM)
+
+    monkeypatch.setattr(ppo, "train", terminated)
+    parser = argparse.ArgumentParser()
+    train_cli.add_train_args(parser)
+    ns = parser.parse_args(["--log-dir", str(tmp_path), "--run-name", "t"])
+    with interrupt.handling():
+        assert train_cli.run_train(ns, "wl train", "wl train") == 143

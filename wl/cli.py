@@ -148,9 +148,23 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_target_reachable(target_time: float | None, scenarios: list[Any]) -> None:
+    """A --target-time under a cycle's minimum time, refused now by name (the MPC found it out after seconds of
+    planning, naming MPCConfig.target_time; `wl evaluate` blamed the controller): against the T_min estimate of
+    each scenario (wl_env.suites.min_time, within 0.8 % on the `test` optima; 2 % allowed)."""
+    from wl_env.suites.min_time import estimate_min_time
+
+    for sc in [] if target_time is None else scenarios:
+        t_min = estimate_min_time(sc)
+        if target_time < 0.98 * t_min:
+            raise ValueError(f"--target-time {target_time:g} s lies below the minimum cycle time of the {sc.label()} "
+                             f"cycle (about {t_min:.2f} s with {sc.braking} braking)")
+
+
 def _mpc_cmd(args: argparse.Namespace) -> int:
     from mpc.controller.mpc import AUTO, MPCConfig, run_closed_loop
     from wl_env.atomic_io import write_json_atomic
+    from wl_env.scenario import Scenario
 
     if args.cache is not None:  # (before --out, whose folder its check may create)
         _out_dir(args.cache, "--cache")
@@ -193,6 +207,8 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.mismatch and scenario is None:
         raise ValueError("--mismatch plans a --scenario's cycle with the nominal payload and rolling resistance: "
                          "give --scenario")
+    if args.params is None:  # (the estimate knows the specification's machine)
+        _check_target_reachable(args.target_time, [scenario or Scenario.nominal(braking)])
     out = _out_file(args.out)  # (after the other options: its check may create its folder)
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
     result = run_closed_loop(braking, config, params=_params_from(args), plant_params=plant,
@@ -233,6 +249,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     episodes = 10 if args.episodes is None else args.episodes
     init_noise = 1.0 if args.init_noise is None else args.init_noise
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
+    _check_target_reachable(args.target_time, scenarios or [scenario or Scenario.nominal(braking)])
     # an unwritable --out fails now, not after the episodes; and after the other options, as its check may create
     # its folder (a bad --cache or --scenario left an empty one behind)
     out = _out_file(args.out)
@@ -281,6 +298,8 @@ def _report_cmd(args: argparse.Namespace) -> int:
     if not args.results.strip():  # (Path("") is the working folder)
         raise ValueError("--results must name the folder of `wl run`'s results.json, got an empty string")
     results = load_results(args.results)
+    if args.out is not None and not args.out.strip():  # (an empty --out wrote into --results without a word)
+        raise ValueError("--out must name a folder, got an empty string (leave it out to write into --results)")
     out = _out_dir(args.out or args.results, "--out" if args.out else "--results")
     written = render(results, out)
     print(f"report rebuilt from {Path(args.results) / 'results.json'}: {', '.join(str(p) for p in written)}")
@@ -375,7 +394,10 @@ def _params_from(args: argparse.Namespace):
     from wl_env.params import LoaderParams
 
     overrides = _params_overrides(args)
-    return None if overrides is None else LoaderParams.from_dict(overrides)
+    try:
+        return None if overrides is None else LoaderParams.from_dict(overrides)
+    except ValueError as exc:  # (it named LoaderParams.M_load, not the option that set it)
+        raise ValueError(f"--params: {exc}") from None
 
 
 def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
@@ -627,6 +649,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("wl: interrupted", file=sys.stderr)
         return 130
+    except ImportError as exc:  # (Ctrl-C inside numpy's import: "PyCapsule_Import could not import module")
+        from mpc import interrupt
+
+        if not interrupt.caused_by_interrupt(exc):
+            raise
+        print("wl: interrupted", file=sys.stderr)
+        return 130
     except UsageError as exc:
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
@@ -662,7 +691,8 @@ def _check_environment() -> None:
     if os.environ.get("WL_CODEGEN") is not None:
         from mpc.controller import codegen
 
-        codegen.mode()
+        if codegen.mode() == "on" and codegen.shared_library_folder():  # (it failed after ~1.5 s of work)
+            raise ValueError(f"$WL_CODEGEN=on: {codegen.shared_library_folder()}")
     if os.environ.get("WL_NLP_CACHE_SIZE") is not None:
         from mpc.benchmark.ocp import nlp_cache_size
 
@@ -685,6 +715,12 @@ def _run_command(args: argparse.Namespace) -> int:
             _CREATED.clear()
             return code
         except KeyboardInterrupt:
+            _remove_empty_created()
+            print("wl: interrupted", file=sys.stderr)
+            return interrupt.exit_code()
+        except SystemError as exc:  # (Ctrl-C inside CasADi's DM.__array__: "returned a result with an exception set")
+            if not interrupt.caused_by_interrupt(exc):
+                raise
             _remove_empty_created()
             print("wl: interrupted", file=sys.stderr)
             return interrupt.exit_code()

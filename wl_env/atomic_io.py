@@ -37,6 +37,11 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
         with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming no file)
+        Path(tmp).unlink(missing_ok=True)
+        if exc.filename is None:
+            raise type(exc)(exc.errno, f"{exc.strerror or exc} writing {path}") from None
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

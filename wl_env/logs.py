@@ -57,12 +57,19 @@ def run_script(name: str, main: Callable[[], Any], loggers: tuple[str, ...] | No
     message), as ``wl`` takes them, as one line ``name: error: ...`` and exit 2, Ctrl-C as exit 130 (the scripts
     write their outputs atomically at the end: nothing partial is left). ``loggers``: the loggers shown (default:
     the script's own)."""
-    with cli_logging(names=loggers or (name,)):
+    from mpc import interrupt  # (a signal module of its own: the flag that CasADi's solves check, as under `wl`)
+
+    with cli_logging(names=loggers or (name,)), interrupt.handling():
         try:
             main()
-        except (ValueError, OSError) as exc:
-            print(f"{name}: error: {' '.join(str(exc).split())}", file=sys.stderr)
-            sys.exit(2)
         except KeyboardInterrupt:
             print(f"{name}: interrupted", file=sys.stderr)
-            sys.exit(130)
+            sys.exit(interrupt.exit_code())
+        except BaseException as exc:  # (what Ctrl-C became inside a library: a SystemError, a RuntimeError, ...)
+            if isinstance(exc, SystemExit) or not interrupt.caused_by_interrupt(exc):
+                if isinstance(exc, (ValueError, OSError)):
+                    print(f"{name}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+                    sys.exit(2)
+                raise
+            print(f"{name}: interrupted", file=sys.stderr)
+            sys.exit(interrupt.exit_code())

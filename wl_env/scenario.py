@@ -112,7 +112,12 @@ class Scenario:
         if not text.startswith(("{", "[")):  # (a JSON list is read to say it is not an object)
             path = Path(text)
             if not is_file(path):
-                raise ValueError(f"{name} takes JSON text or a JSON file; no file {shown(text)}")
+                try:
+                    what_is = "is a folder" if path.is_dir() else "is not a regular file" if path.exists() else ""
+                except OSError:  # (a name too long)
+                    what_is = ""
+                raise ValueError(f"{name} takes JSON text or a JSON file; "
+                                 + (f"{shown(text)} {what_is}" if what_is else f"no file {shown(text)}"))
             what = f"{name} file {text}"
             try:
                 text = path.read_text()

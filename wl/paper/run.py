@@ -87,6 +87,8 @@ def reproduce(options: PaperOptions) -> dict[str, Any]:
 
     p = resolve(None)
     out, cache = Path(options.out), options.cache
+    if cache is not None:  # (an empty one wrote pareto/ into the working folder; `wl` refuses it)
+        check_output_folder(cache, f"--cache {cache}")
     check_output_folder(out, f"--out {out}")  # (before the solves, ~minutes; not when the figures are saved)
     t0 = time.perf_counter()
     log.info(f"parameters {p.fingerprint()}, cache {cache_dir(cache)}, {options.points} points per front -> {out}")
