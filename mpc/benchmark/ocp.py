@@ -674,7 +674,20 @@ def solve_ocp(
     check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements, w_fuel)
     w_fuel = None if w_fuel is None else float(w_fuel)
     settings = settings or OCPSettings()
-    result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
+    try:
+        result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
+    except OCPError:
+        if objective != "fuel_at_time" or warm_start is not None or starts is not None:
+            raise
+        # Just above T_min the templates can all fail (a TC scenario at 9.3 s, 0.5 % over its T_min of 9.256 s, was
+        # called infeasible): its minimum-time cycle, on the mesh that cycle needed, is a start that solves (as the
+        # scoring's direct solves start)
+        r_time = solve_ocp(braking, "time", params=p, settings=settings, verify=verify, refine=refine,
+                           max_interval=max_interval, max_refinements=max_refinements)
+        if T < r_time.T:
+            raise
+        result = _solve_on_mesh(braking, objective, T, w_fuel, p, replace(settings, intervals=tuple(r_time.mesh)),
+                                r_time, (), verify)
     if not verify:
         return result
     history = [_mesh_record(result)]

@@ -202,7 +202,7 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
     from the two of ``points`` around T and the template multi-start, the leanest kept. OCPError if all fail."""
     path = optima_folder(braking, params, cache) / f"fuel_at_T{T:.4f}.json"
     cached = _cached(path, braking, params, T=T)
-    if cached is not None:
+    if cached is not None and (mesh is None or sum(cached.mesh) >= sum(mesh)):  # (one on a coarser mesh: solved again)
         return cached
     below = [r for r in points if r.T <= T]
     above = [r for r in points if r.T > T]
