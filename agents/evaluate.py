@@ -518,6 +518,9 @@ def evaluate_controller(
             ran_scenario = env.unwrapped.episode_scenario
             rec: dict[str, Any] = {"episode": i, "init_noise": noise,
                                    "scenario": None if ran_scenario is None else ran_scenario.to_dict(),
+                                   # (the actual start, also where it lies outside the scenario ranges: the score's
+                                   # cycle, reproducible from the file)
+                                   "start_engine_speed_rad_s": float(ran.omega_0), "start_bucket_height_m": float(ran.H_0),
                                    **ep.to_dict(trajectory=trajectories),
                                    "T_min": None, "time_gap": None, "fuel_opt_g": None, "fuel_gap": None,
                                    "reference": None, "target_time": target,
