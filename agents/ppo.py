@@ -471,7 +471,8 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
         return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
     # own optimum would cost a solve per episode at every evaluation.
-    res = evaluate_controller(_Deterministic(act), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
+    # (on the policy's own env: WheelLoader-v2's 19 observations were fed v1's 12, and no v2 run could train)
+    res = evaluate_controller(_Deterministic(act, env_id), braking, episodes=1 + n_episodes, init_noise=init_noise, seed=seed,
                               score=with_score, front=front, env_kwargs=env_kwargs, name="policy", solve=False,
                               unknown="skip")
     nominal = res["per_episode"][0]
@@ -935,7 +936,8 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         cfg.progress_bar = given.progress_bar
         if ckpt is None:
             log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
-    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+    elif ((run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir())) or (run_dir / "final").exists():
+        # (a finished run shorter than --checkpoint-freq has no checkpoint: it was overwritten without a word)
         raise FileExistsError(f"{run_dir} already holds a run; pass resume=True (--resume) or another run name")
     demos = None
     if cfg.bc_demos:  # (read and checked before anything is built or written)

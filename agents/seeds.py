@@ -103,7 +103,9 @@ def train_one(cfg_dict: dict[str, Any], command: str | None = None) -> dict[str,
     state = run_state(cfg)
     if state != "new":  # (a run on disk is taken as this one only if it was made with the same settings)
         saved, _ = read_run_config(cfg.run_dir / "config.json")
-        ignored = {"progress_bar", "torch_threads"}  # (how it shows and threads, not what it learns)
+        # (how it shows and threads, not what it learns; and where its folder is: the same folder spelled otherwise,
+        # relative or with a trailing slash, was "other settings", refusing its read-back and its resume)
+        ignored = {"progress_bar", "torch_threads", "log_dir"}
         differ = sorted(k for k, v in cfg.to_dict().items() if k not in ignored and saved.to_dict().get(k) != v)
         if differ:
             then = "read it back" if state == "done" else "resume it"
@@ -196,6 +198,13 @@ def on_ray(jobs: dict[str, tuple[Any, tuple]], address: str) -> dict[str, Any]:
         except KeyboardInterrupt:
             for ref in pending:
                 ray.cancel(ref, force=True)
+            raise
+        except ray.exceptions.RayTaskError as exc:  # a run failed: the others stop, as local workers do
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, Exception):  # (the run's own error: one line, not Ray's coloured traceback)
+                raise cause from None
             raise
         return results
 

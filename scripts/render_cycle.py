@@ -20,6 +20,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repo, if not installed
 
+from mpc import interrupt  # noqa: E402
 from wl_env import cycle  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.env import WheelLoaderEnv  # noqa: E402
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:  # (the animation is written at the end: nothing partial is left)
         print("render_cycle.py: interrupted", file=sys.stderr)
-        return 130
+        return interrupt.exit_code()
     info = r["info"]
     size_kb = os.path.getsize(args.out) / 1024
     summary = f"wrote {args.out} ({r['frames']} frames at {args.fps:g} fps, {size_kb:.0f} kB)"
@@ -114,4 +115,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with interrupt.handling():  # (SIGTERM too: it left the animation's temporary file behind)
+        code = main()
+    sys.exit(code)

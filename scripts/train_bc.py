@@ -38,7 +38,8 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from wl_env.logs import PACKAGES, cli_logging  # noqa: E402
+from mpc import interrupt  # noqa: E402
+from wl_env.logs import PACKAGES, run_script  # noqa: E402
 
 log = logging.getLogger("train_bc")
 
@@ -135,7 +136,7 @@ def main(o: Options, command: str) -> int:
         demos = collect_demos(settings, o.episodes, folder, workers=o.workers)
     except KeyboardInterrupt:
         log.info("interrupted; the episodes in %s are kept, the same command goes on from them", folder)
-        return 130
+        return interrupt.exit_code()
     meta = {"commands": [command], "demos": {
         "folder": folder, "episodes": o.episodes, "seed": o.demo_seed, "target": list(o.target),
         "fast_share": o.fast_share, "dagger_rounds": o.dagger_rounds, "dagger_episodes": o.dagger_episodes,
@@ -165,7 +166,7 @@ def main(o: Options, command: str) -> int:
             demos += collect_demos(round_settings, o.dagger_episodes, f"{folder}_dagger{r}{suffix}", workers=o.workers)
         except KeyboardInterrupt:
             log.info("interrupted; the same command goes on from the episodes on disk")
-            return 130
+            return interrupt.exit_code()
         result = clone(demos, cfg, **fit)
         log.info("DAgger round %d: %d episodes, %d samples: validation loss %.5f", r, result.episodes, result.samples,
                  result.validation_loss)
@@ -179,10 +180,8 @@ def main(o: Options, command: str) -> int:
 
 if __name__ == "__main__":
     argv = sys.argv[1:]
-    with cli_logging(names=(*PACKAGES, "train_bc")):
-        try:
-            code = main(tyro.cli(Options, args=argv), "python scripts/train_bc.py " + shlex.join(argv))
-        except ValueError as exc:  # bad options: the message names them, no traceback
-            print(f"train_bc: error: {exc}", file=sys.stderr)
-            code = 2
-        sys.exit(code)
+    # (run_script: bad options one line, Ctrl-C or SIGTERM anywhere exit 130 / 143; it was a traceback outside the
+    # demonstrations' collection)
+    run_script("train_bc", lambda: sys.exit(main(tyro.cli(Options, args=argv),
+                                                  "python scripts/train_bc.py " + shlex.join(argv))),
+               loggers=(*PACKAGES, "train_bc"))

@@ -159,8 +159,9 @@ def test_a_direct_fuel_solve_near_t_min_is_made_on_a_fine_mesh(monkeypatch):
 def test_a_fuel_solve_the_templates_miss_just_above_t_min_starts_from_the_minimum_time_cycle(monkeypatch):
     """`wl ocp --objective fuel --time 9.3` on a TC scenario of T_min 9.256 s said no such cycle exists (every
     template start failed); the scoring found 84.83 g there. It now starts from the minimum-time cycle, on its mesh."""
-    import mpc.benchmark.ocp as ocp
     from fakes import fake_solve
+
+    import mpc.benchmark.ocp as ocp
 
     fake_solve.calls = []
     calls = []

@@ -90,3 +90,45 @@ def test_seeds_train_on_a_local_ray_instance_with_the_local_layout(tmp_path):
             assert (c.run_dir / f).exists(), f
         assert json.loads((c.run_dir / "final" / "summary.json").read_text())["seed"] == c.seed
     assert json.loads((tmp_path / SUMMARY_FILE).read_text())["points"]["tiny"]["seeds"] == [0, 1]
+
+
+def test_a_wheelloader_v2_run_trains_and_a_finished_run_is_not_overwritten(tmp_path):
+    """A run on WheelLoader-v2 (19 observations) was evaluated on v1 (12) and failed at its first evaluation, blaming
+    "controller policy"; a finished run shorter than a checkpoint was overwritten by another `wl train` without a word;
+    the same --log-dir spelled with a trailing slash was "other settings" to its read-back (stop 59)."""
+    from agents.seeds import train_one
+
+    cfg = tiny_ppo_config(tmp_path, env_id="WheelLoader-v2", total_timesteps=1024, eval_freq=512, eval_episodes=1,
+                          checkpoint_freq=10**6)
+    summary = train(cfg)
+    assert summary["num_timesteps"] >= 1024 and summary["last_eval"] is not None
+    assert latest_checkpoint(cfg.run_dir) is None
+    with pytest.raises(FileExistsError, match="already holds a run"):
+        train(dataclasses.replace(cfg, seed=1, learning_rate=1e-3))
+    again = train_one(dataclasses.replace(cfg, log_dir=cfg.log_dir + "/").to_dict())
+    assert again["num_timesteps"] == summary["num_timesteps"]
+
+
+def test_a_run_that_fails_on_ray_is_its_own_error(monkeypatch):
+    """Ray's RayTaskError reached the command line as its coloured traceback in one line (stop 59): the run's own
+    error is raised, and the other tasks are cancelled."""
+    import contextlib
+    import types
+
+    import ray.exceptions
+
+    import agents.seeds as seeds
+    import mpc.workers
+
+    cancelled = []
+
+    def get(ref):
+        raise ray.exceptions.RayTaskError("train_one", "Traceback ...", ValueError("a bad run"))
+
+    fake = types.SimpleNamespace(remote=lambda **kw: (lambda fn: types.SimpleNamespace(remote=lambda *a: object())),
+                                 wait=lambda pending, num_returns: (pending[:1], pending[1:]), get=get,
+                                 cancel=lambda ref, force: cancelled.append(ref), exceptions=ray.exceptions)
+    monkeypatch.setattr(mpc.workers, "ray_session", lambda address: contextlib.nullcontext(fake))
+    with pytest.raises(ValueError, match="^a bad run$") as exc:
+        seeds.on_ray({"a": (print, ()), "b": (print, ())}, "local")
+    assert "RayTaskError" not in type(exc.value).__name__ and "\x1b[" not in str(exc.value) and len(cancelled) == 1
