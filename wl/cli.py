@@ -691,8 +691,9 @@ def _check_environment() -> None:
     if os.environ.get("WL_CODEGEN") is not None:
         from mpc.controller import codegen
 
-        if codegen.mode() == "on" and codegen.shared_library_folder():  # (it failed after ~1.5 s of work)
-            raise ValueError(f"$WL_CODEGEN=on: {codegen.shared_library_folder()}")
+        shared = codegen.shared_library_folder() if codegen.mode() == "on" else ""
+        if shared:  # (it failed after ~1.5 s of work)
+            raise ValueError(f"$WL_CODEGEN=on: {shared}")
     if os.environ.get("WL_NLP_CACHE_SIZE") is not None:
         from mpc.benchmark.ocp import nlp_cache_size
 
