@@ -675,6 +675,13 @@ def test_an_interrupt_that_a_library_turned_into_another_error_exits_130(monkeyp
     (["params", "--set", "[1]"], "--set must be a JSON object"),
     (["train", "--log-dir", "{tmp}", "--seed", "99999999999999999999"], "--seed must be an integer in [0, 2**31 - 1]"),
     (["train", "--log-dir", "{tmp}", "--max-time", "0.1"], "--max-time must be a number of seconds in [0.5, 3600]"),
+    # stop 59: each failed after the env's build (torch's message, or init_policy's), or named no flag
+    (["train", "--log-dir", "{tmp}", "--log-std-init", "1e308"], "--log-std-init must be a number in [-20, 5]"),
+    (["train", "--log-dir", "{tmp}", "--max-grad-norm", "1e308"], "--max-grad-norm must be a number in (0, 1e6]"),
+    (["train", "--log-dir", "{tmp}", "--init-policy", "{tmp}/nothing"], "--init-policy {tmp}/nothing: not a pickle-free"),
+    (["train", "--log-dir", "{tmp}", "--run-name", "x" * 300], "--run-name must be a name of at most 200 characters"),
+    (["mpc", "--params", '{"M_load": -1}', "--out", "{tmp}/m.json"], "--params: LoaderParams.M_load must"),
+    (["evaluate", "--controller", "operator", "--scenario", "{tmp}"], "is a folder"),
 ])
 def test_user_errors_are_one_line(tmp_path, capsys, argv, needle):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]

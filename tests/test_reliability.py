@@ -1064,3 +1064,14 @@ def test_a_scenario_file_names_itself_and_refuses_a_field_given_twice(tmp_path):
     edge.write_text('{"payload": 13000.0000001}')
     with pytest.raises(ValueError, match=r"edge.json: Scenario.payload must lie in \[6000, 13000\]"):
         Scenario.parse(str(edge))
+
+
+def test_an_evaluation_records_each_episodes_actual_start():
+    """A start outside the scenario ranges was recorded as scenario null: its score could not be reproduced from the
+    file (stop 59)."""
+    from agents.evaluate import evaluate_controller, load_controller
+    from wl_env.params import DEFAULT_PARAMS
+
+    r = evaluate_controller(load_controller("operator", "service"), "service", episodes=3, init_noise=1.0, score=False)
+    starts = [(e["start_engine_speed_rad_s"], e["start_bucket_height_m"]) for e in r["per_episode"]]
+    assert starts[0] == (DEFAULT_PARAMS.omega_0, DEFAULT_PARAMS.H_0) and len(set(starts)) == 3

@@ -168,6 +168,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
     if args.cache is not None:  # (before --out, whose folder its check may create)
         _out_dir(args.cache, "--cache")
+    params = _params_from(args)  # (checked now: a bad one failed after --out's folder and the log line)
     if args.realtime and args.deadline_ms is not None:
         raise ValueError("--realtime and --deadline-ms exclude each other: a real-time step's deadline is its interval")
     if args.horizon_steps is not None and (args.realtime or args.deadline_ms is not None):
@@ -196,7 +197,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.payload_scale != 1.0 or args.rolling_scale != 1.0:
         from wl_env.params import resolve
 
-        machine = resolve(_params_from(args))
+        machine = resolve(params)
         try:
             plant = machine.variant(payload_scale=args.payload_scale, rolling_scale=args.rolling_scale)
         except ValueError as exc:  # (the machine's field alone would not say which option scaled it)
@@ -211,7 +212,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
         _check_target_reachable(args.target_time, [scenario or Scenario.nominal(braking)])
     out = _out_file(args.out)  # (after the other options: its check may create its folder)
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
-    result = run_closed_loop(braking, config, params=_params_from(args), plant_params=plant,
+    result = run_closed_loop(braking, config, params=params, plant_params=plant,
                              score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
     r = result.to_dict()
     write_json_atomic(out, r)
