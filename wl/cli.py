@@ -442,7 +442,9 @@ def _suite_cmd(args: argparse.Namespace) -> int:
             print(f"{r['key']}: " + ("OK" if r["ok"] else "MISMATCH") + (
                 f" (T_min {100 * r['T_min_rel']:+.3f} %, fuel up to {100 * r['fuel_rel_max']:.3f} %)" if "T_min_rel" in r
                 else f" ({r.get('problem')})"))
-        print(f"{len(rows) - len(bad)} of {len(rows)} shipped optima agree with a fresh solve")
+        # (with --cache, the solves it holds count: say so, not "a fresh solve")
+        against = "a fresh solve" if args.cache is None else f"the solves in --cache {args.cache} (cached ones included)"
+        print(f"{len(rows) - len(bad)} of {len(rows)} shipped optima agree with {against}")
         return 1 if bad else 0
     out = _out_file(args.out) if args.out is not None else None  # (an empty --out is an error, not the default)
     r = solve_suite(args.suite, cache=args.cache, out=out, workers=args.workers, ray_address=ray, limit=args.limit)
