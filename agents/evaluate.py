@@ -477,12 +477,9 @@ def evaluate_controller(
         raise ValueError(f"controller must have an act(obs) method (load_controller makes one from a name), got "
                          f"{type(controller).__name__}")
     if front is not None:
-        from mpc.benchmark.pareto import ParetoFront
+        from mpc.benchmark.pareto import check_front_of
 
-        if not isinstance(front, ParetoFront):
-            raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
-        if front.braking != braking:  # (its parameters: matched per episode, see _score)
-            raise ValueError(f"front: the {front.braking!r} braking's, the episodes run {braking!r} braking")
+        check_front_of(front, braking, None)  # (its parameters: matched per episode, see _score)
     if cache is not None:  # (checked now: a file there failed only after the episodes)
         if not isinstance(cache, (str, os.PathLike)):
             raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")

@@ -27,7 +27,7 @@ from wl_env.assist import (
 )
 from wl_env.codec import Codec
 from wl_env.model import derivatives
-from wl_env.params import LoaderParams, is_real_number, resolve
+from wl_env.params import LoaderParams, Range, is_real_number, resolve
 from wl_env.scenario import Scenario, resolve_scenario
 from wl_env.step import OMEGA_FLOOR
 
@@ -44,14 +44,14 @@ class OperatorPolicy:
                  lift_off_time: float = 1.2, dt: float = 0.1) -> None:
         self.braking = cycle.check_braking(braking)
         self.params = p = resolve(params)
-        lo, hi = p.U_ab_bounds
-        for name, value, low, high, unit in (("decel_margin", decel_margin, 0.1, 1.0, ""),
-                                             ("lift_accel", lift_accel, 0.0, hi, " m/s^2 (the bucket's upper bound)"),
-                                             ("lift_off_time", lift_off_time, 0.0, 5.0, " s"), ("dt", dt, 0.01, 1.0, " s")):
-            # (nan, inf and strings slipped past the comparisons: lift_accel nan never lifted the bucket)
-            if not (is_real_number(value) and low <= value <= high and (name != "lift_accel" or value > 0)):
-                bracket = "(" if name == "lift_accel" else "["
-                raise ValueError(f"{name} must lie in {bracket}{low:g}, {high:g}]{unit}, got {value!r}")
+        # (nan, inf and strings slipped past the comparisons: lift_accel nan never lifted the bucket)
+        for name, value, allowed, unit in (("decel_margin", decel_margin, Range(0.1, 1.0), ""),
+                                           ("lift_accel", lift_accel, Range(0.0, p.U_ab_bounds[1], lo_open=True),
+                                            " m/s^2 (the bucket's upper bound)"),
+                                           ("lift_off_time", lift_off_time, Range(0.0, 5.0), " s"),
+                                           ("dt", dt, Range(0.01, 1.0), " s")):
+            if not (is_real_number(value) and value in allowed):
+                raise ValueError(f"{name} must lie in {allowed}{unit}, got {value!r}")
         decel_margin, lift_accel, lift_off_time, dt = map(float, (decel_margin, lift_accel, lift_off_time, dt))
         self.dt = dt
         self.a_limit = p.decel_max * p.g

@@ -267,7 +267,6 @@ def _n_env_actions(env_id: str) -> int:
     """The size of a registered env's action (built once per id)."""
     import gymnasium as gym
 
-
     env = gym.make(env_id)
     try:
         return int(env.action_space.shape[0])
@@ -746,15 +745,16 @@ def read_eval_csv(path: str | os.PathLike) -> list[dict[str, float]]:
     return rows
 
 
-def _truncate_eval_csv(path: Path, step: int, write: bool = True) -> None:
-    """On resume: keep the evaluations up to the checkpoint (later ones are redone; a line cut short by
-    the interruption is dropped); ``write`` False: only check that it can be (ValueError naming it)."""
+def _eval_csv_up_to(path: Path, step: int) -> str | None:
+    """On resume: eval.csv with the evaluations up to the checkpoint (later ones are redone; a line cut short by
+    the interruption is dropped), or None if nothing is to be dropped; ValueError naming the file if it cannot be
+    continued. (Read before anything is written; written once the checkpoint is restored.)"""
     if not path.exists():
-        return
+        return None
     try:  # (a step that is no number, or a file that is no text: ValueError naming it, not a bare one)
         lines = path.read_text().splitlines(keepends=True)
         if not lines:
-            return
+            return None
         n_cols = len(next(csv.reader(lines[:1])))
 
         def keep(line: str) -> bool:
@@ -764,8 +764,8 @@ def _truncate_eval_csv(path: Path, step: int, write: bool = True) -> None:
         kept = [line for line in lines[1:] if keep(line)]
     except (ValueError, OSError, csv.Error) as exc:
         raise ValueError(f"{path} cannot be continued: {brief(exc, 200)}") from None
-    if write and len(kept) != len(lines) - 1:  # (rewritten only to drop rows: its bytes are kept otherwise)
-        write_atomic(path, "".join(lines[:1] + kept))
+    # (rewritten only to drop rows: its bytes are kept otherwise)
+    return "".join(lines[:1] + kept) if len(kept) != len(lines) - 1 else None
 
 
 def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
@@ -947,7 +947,7 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
     check_env_settings(cfg)  # (before config.json is written: a run is never saved with settings its env refuses)
     if ckpt is not None:  # (and its progress and eval.csv: a resume that fails on them changes nothing)
         progress, step = read_progress(ckpt)
-        _truncate_eval_csv(run_dir / "eval.csv", step, write=False)
+        eval_csv = _eval_csv_up_to(run_dir / "eval.csv", step)
     run_dir.mkdir(parents=True, exist_ok=True)
 
     tb_dir = run_dir / "tb"
@@ -956,7 +956,8 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         env = make_env(cfg, seed=(cfg.seed + step) % 2**32)
         model = build_model(cfg, env, tb_dir)
         restore_checkpoint(model, _vecnorm_of(env), ckpt)  # (a bad checkpoint: refused before anything is written)
-        _truncate_eval_csv(run_dir / "eval.csv", step)
+        if eval_csv is not None:
+            write_atomic(run_dir / "eval.csv", eval_csv)
         set_random_seed((cfg.seed + step) % 2**32)  # (after the build, which seeds with cfg.seed)
         model.num_timesteps = step
         state.update(wall_time=float(progress["wall_time"]), last_eval=progress.get("last_eval"))

@@ -649,10 +649,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()  # (it imports the packages: 0.3-1 s in which Ctrl-C printed a traceback)
         args = parser.parse_args(argv)
-    except KeyboardInterrupt:
-        print("wl: interrupted", file=sys.stderr)
-        return 130
-    except ImportError as exc:  # (Ctrl-C inside numpy's import: "PyCapsule_Import could not import module")
+    except (KeyboardInterrupt, ImportError) as exc:  # (ImportError: Ctrl-C inside numpy's import, "PyCapsule_Import ...")
         from mpc import interrupt
 
         if not interrupt.caused_by_interrupt(exc):
@@ -718,21 +715,15 @@ def _run_command(args: argparse.Namespace) -> int:
             code = int(args.func(args) or 0)
             _CREATED.clear()
             return code
-        except KeyboardInterrupt:
+        # (LookupError: an optimum --no-solve may not solve; SystemError: Ctrl-C inside CasADi's DM.__array__,
+        # "returned a result with an exception set")
+        except (KeyboardInterrupt, ValueError, LookupError, RuntimeError, OSError, SystemError) as exc:
             _remove_empty_created()
-            print("wl: interrupted", file=sys.stderr)
-            return interrupt.exit_code()
-        except SystemError as exc:  # (Ctrl-C inside CasADi's DM.__array__: "returned a result with an exception set")
-            if not interrupt.caused_by_interrupt(exc):
-                raise
-            _remove_empty_created()
-            print("wl: interrupted", file=sys.stderr)
-            return interrupt.exit_code()
-        except (ValueError, LookupError, RuntimeError, OSError) as exc:  # (LookupError: an optimum --no-solve may not solve)
-            _remove_empty_created()
-            if interrupt.interrupted():  # an interrupt a library turned into an error
+            if interrupt.caused_by_interrupt(exc):  # (also an interrupt a library turned into an error)
                 print("wl: interrupted", file=sys.stderr)
                 return interrupt.exit_code()
+            if isinstance(exc, SystemError):
+                raise
             print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
             return 2
 

@@ -62,14 +62,13 @@ def run_script(name: str, main: Callable[[], Any], loggers: tuple[str, ...] | No
     with cli_logging(names=loggers or (name,)), interrupt.handling():
         try:
             main()
-        except KeyboardInterrupt:
-            print(f"{name}: interrupted", file=sys.stderr)
-            sys.exit(interrupt.exit_code())
-        except BaseException as exc:  # (what Ctrl-C became inside a library: a SystemError, a RuntimeError, ...)
-            if isinstance(exc, SystemExit) or not interrupt.caused_by_interrupt(exc):
-                if isinstance(exc, (ValueError, OSError)):
-                    print(f"{name}: error: {' '.join(str(exc).split())}", file=sys.stderr)
-                    sys.exit(2)
-                raise
-            print(f"{name}: interrupted", file=sys.stderr)
-            sys.exit(interrupt.exit_code())
+        except SystemExit:
+            raise
+        except BaseException as exc:  # (Ctrl-C, or what it became inside a library: a SystemError, a RuntimeError, ...)
+            if interrupt.caused_by_interrupt(exc):
+                print(f"{name}: interrupted", file=sys.stderr)
+                sys.exit(interrupt.exit_code())
+            if isinstance(exc, (ValueError, OSError)):
+                print(f"{name}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+                sys.exit(2)
+            raise

@@ -72,7 +72,7 @@ PROVENANCE: dict[str, tuple[str, str]] = {
 
 
 @dataclass(frozen=True)
-class _Range:
+class Range:
     """An allowed interval, printed as in the error messages: [lo, hi], (lo, hi]..."""
 
     lo: float
@@ -89,60 +89,60 @@ class _Range:
         return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
 
 
-_EFFICIENCY = _Range(0.0, 1.0, lo_open=True)
+_EFFICIENCY = Range(0.0, 1.0, lo_open=True)
 # Allowed values of the scalar fields: physical limits with wide margins around the specification's
 # machine (a 32 t loader), so that they reject nonsense (a negative mass, a 1e300 kg loader, an efficiency
 # of 1.2) but not other machines, nor the robustness variants (payload x0.6..x3, rolling 0.015..0.05).
-_REAL_RANGES: dict[str, _Range] = {
-    "g": _Range(1.0, 30.0),
-    "J_ice": _Range(0.5, 100.0),
+_REAL_RANGES: dict[str, Range] = {
+    "g": Range(1.0, 30.0),
+    "J_ice": Range(0.5, 100.0),
     "eta_ig": _EFFICIENCY,
-    "q_hv": _Range(1e7, 1.5e8),
-    "V_d": _Range(1e-3, 0.1),
-    "U_mf_max": _Range(10.0, 2000.0),
-    "omega_min": _Range(10.0, 200.0),
-    "omega_max": _Range(50.0, 500.0),
-    "omega_0": _Range(10.0, 500.0),
-    "tc_phi_hi": _Range(0.5, 3.0),
+    "q_hv": Range(1e7, 1.5e8),
+    "V_d": Range(1e-3, 0.1),
+    "U_mf_max": Range(10.0, 2000.0),
+    "omega_min": Range(10.0, 200.0),
+    "omega_max": Range(50.0, 500.0),
+    "omega_0": Range(10.0, 500.0),
+    "tc_phi_hi": Range(0.5, 3.0),
     "eta_gb": _EFFICIENCY,
-    "gear_ratio": _Range(1.0, 500.0),
-    "r_w": _Range(0.1, 3.0),
-    "J_w": _Range(1.0, 1e5),
-    "M_veh": _Range(1000.0, 3e5),
-    "M_load": _Range(0.0, 2e5),
-    "c_r": _Range(0.0, 0.5),
+    "gear_ratio": Range(1.0, 500.0),
+    "r_w": Range(0.1, 3.0),
+    "J_w": Range(1.0, 1e5),
+    "M_veh": Range(1000.0, 3e5),
+    "M_load": Range(0.0, 2e5),
+    "c_r": Range(0.0, 0.5),
     "eta_lift": _EFFICIENCY,
-    "M_boom": _Range(10.0, 1e5),
-    "I_boom": _Range(1.0, 1e6),
-    "G": _Range(0.0, 10.0),
-    "r1": _Range(0.1, 10.0),
-    "r2": _Range(0.1, 10.0),
-    "x_c": _Range(-10.0, 10.0),
-    "y_c": _Range(-10.0, 10.0),
-    "r_piston": _Range(0.01, 1.0),
-    "r_rod": _Range(0.005, 1.0),
-    "P_cyl_max": _Range(1e6, 1e8),
-    "D_pump": _Range(1e-6, 1e-2),
-    "pump_speed_sat": _Range(1.0, 1000.0),
+    "M_boom": Range(10.0, 1e5),
+    "I_boom": Range(1.0, 1e6),
+    "G": Range(0.0, 10.0),
+    "r1": Range(0.1, 10.0),
+    "r2": Range(0.1, 10.0),
+    "x_c": Range(-10.0, 10.0),
+    "y_c": Range(-10.0, 10.0),
+    "r_piston": Range(0.01, 1.0),
+    "r_rod": Range(0.005, 1.0),
+    "P_cyl_max": Range(1e6, 1e8),
+    "D_pump": Range(1e-6, 1e-2),
+    "pump_speed_sat": Range(1.0, 1000.0),
     "eta_vol": _EFFICIENCY,
     "eta_cyl": _EFFICIENCY,
-    "U_b_max": _Range(100.0, 1e7),
-    "V_max": _Range(0.1, 20.0),
-    "decel_max": _Range(0.01, 2.0),
-    "H_0": _Range(0.0, 20.0),
-    "H_T": _Range(0.0, 20.0, lo_open=True),
-    "reverse_distance": _Range(0.5, 100.0),
-    "forward_distance": _Range(0.5, 100.0),
+    "U_b_max": Range(100.0, 1e7),
+    "V_max": Range(0.1, 20.0),
+    "decel_max": Range(0.01, 2.0),
+    "H_0": Range(0.0, 20.0),
+    "H_T": Range(0.0, 20.0, lo_open=True),
+    "reverse_distance": Range(0.5, 100.0),
+    "forward_distance": Range(0.5, 100.0),
 }
-_INT_RANGES: dict[str, _Range] = {"n_cyl": _Range(1, 24), "n_lift_cyl": _Range(1, 8)}
+_INT_RANGES: dict[str, Range] = {"n_cyl": Range(1, 24), "n_lift_cyl": Range(1, 8)}
 # Vector fields: (length, range of each entry). The shapes are what the model's equations index.
-_VECTORS: dict[str, tuple[int, _Range]] = {
-    "c_fr": (3, _Range(-10.0, 10.0)),  # bar/krpm^2, bar/krpm, bar
-    "tc_xi_poly": (7, _Range(-1e5, 1e5)),
-    "tc_kappa_poly": (7, _Range(-1e5, 1e5)),
-    "U_ab_bounds": (2, _Range(-50.0, 50.0)),
+_VECTORS: dict[str, tuple[int, Range]] = {
+    "c_fr": (3, Range(-10.0, 10.0)),  # bar/krpm^2, bar/krpm, bar
+    "tc_xi_poly": (7, Range(-1e5, 1e5)),
+    "tc_kappa_poly": (7, Range(-1e5, 1e5)),
+    "U_ab_bounds": (2, Range(-50.0, 50.0)),
 }
-_T_MAX_A, _T_MAX_B = _Range(-1e5, 1e5), _Range(-100.0, 100.0)  # N m, N m/rpm
+_T_MAX_A, _T_MAX_B = Range(-1e5, 1e5), Range(-100.0, 100.0)  # N m, N m/rpm
 
 
 @dataclass(frozen=True)
@@ -393,7 +393,7 @@ def _unit(name: str) -> str:
     return "" if unit == "-" or len(unit) > 10 else f" {unit}"
 
 
-def _number(name: str, value: Any, allowed: _Range, unit: str = "") -> float:
+def _number(name: str, value: Any, allowed: Range, unit: str = "") -> float:
     """A finite real number (no bool, no string) within ``allowed``, as a float."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"LoaderParams.{name} must be a number in {allowed}{unit}, got {shown(value)} "

@@ -131,11 +131,11 @@ class Scenario:
             raise ValueError(f"{what} is not a scenario: its JSON is nested too deeply") from None
         except DuplicateKey as exc:
             raise ValueError(f"{what}: the field {exc.args[0]!r} is given twice") from None
-        if what == name:
-            return cls.from_dict(data)
         try:
             return cls.from_dict(data)
         except ValueError as exc:  # (which file: a field's range alone did not say)
+            if what == name:
+                raise
             raise ValueError(f"{what}: {exc}") from None
 
     @classmethod

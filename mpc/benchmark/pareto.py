@@ -575,14 +575,15 @@ def pareto_fronts(
                           log_level=logging.INFO if progress else logging.WARNING)
 
 
-def check_front_of(front: ParetoFront, braking: str, params: LoaderParams) -> None:
-    """A front given to score a cycle must be that cycle's: the same braking and parameters (ValueError)."""
+def check_front_of(front: ParetoFront, braking: str, params: LoaderParams | None) -> None:
+    """A front given to score a cycle must be that cycle's: the same braking and parameters (ValueError; ``params``
+    None: the braking only, the caller matching the parameters per cycle)."""
     if not isinstance(front, ParetoFront):
-        raise ValueError(f"front must be a ParetoFront or None, got {type(front).__name__}")
+        raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
     if front.braking != braking:
         raise ValueError(f"the front given is the {front.braking!r} braking's, the cycle's is {braking!r}: a cycle is "
                          f"scored against its own optimum only")
-    if front.params_fingerprint not in ("", params.fingerprint()):
+    if params is not None and front.params_fingerprint not in ("", params.fingerprint()):
         raise ValueError(f"the front given was solved for parameters {front.params_fingerprint}, the cycle ran "
                          f"{params.fingerprint()}: a cycle is scored against its own optimum only")
 

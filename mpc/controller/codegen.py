@@ -120,14 +120,13 @@ def compiled(groups: Sequence[dict[str, ca.Function]], origins: Sequence[ca.Func
         log.info("no C compiler found: the NLP functions stay interpreted (CasADi's SX virtual machine)")
         return [None] * len(groups)
     folder = library_dir(cache)
-    shared = shared_library_folder(cache)
-    if shared:  # (a library is machine code the process runs: from a folder others can write, theirs)
+    reason = _writable_by_others(folder)
+    if reason:  # (a library is machine code the process runs: from a folder others can write, theirs)
         if current == "on":
-            raise CodegenError(shared)
-        if shared not in _WARNED:  # (once: each slot kind's build said it again, 8 times a run)
-            _WARNED.add(shared)
-            log.warning("%s: the NLP functions stay interpreted (set $%s to a folder only you can write)",
-                        shared.split(":")[0], DIR_ENV)
+            raise CodegenError(_shared_message(reason))
+        if reason not in _WARNED:  # (once: each slot kind's build said it again, 8 times a run)
+            _WARNED.add(reason)
+            log.warning("%s: the NLP functions stay interpreted (set $%s to a folder only you can write)", reason, DIR_ENV)
         return [None] * len(groups)
     keys = [_key(origin, g, cc) for origin, g in zip(origins, groups, strict=True)]
     out: list[dict[str, ca.Function] | None] = [_load(folder, k, g) for k, g in zip(keys, groups, strict=True)]
@@ -165,9 +164,12 @@ _WARNED: set[str] = set()
 
 def shared_library_folder(cache: str | os.PathLike | None = None) -> str:
     """Why the compiled libraries' folder may not be used (another user owns it, or others can write it), or ""."""
-    shared = _writable_by_others(library_dir(cache))
-    return (f"{shared}: the compiled libraries are machine code this process would run; set ${DIR_ENV} to a folder "
-            f"only you can write") if shared else ""
+    reason = _writable_by_others(library_dir(cache))
+    return _shared_message(reason) if reason else ""
+
+
+def _shared_message(reason: str) -> str:
+    return f"{reason}: the compiled libraries are machine code this process would run; set ${DIR_ENV} to a folder only you can write"
 
 
 def _writable_by_others(folder: Path) -> str:
