@@ -411,7 +411,8 @@ def test_bad_configuration_raises():
     for kw, name in ((dict(mode="target_time", target_time=1e9), "target_time must lie in \\[1, 40\\) s"),
                      (dict(mode="weighted", w_fuel="0.5"), "w_fuel"), (dict(time_budget="1"), "time_budget"),
                      (dict(max_iter=True), "max_iter"), (dict(rate_weight=5), "rate_weight"),
-                     (dict(omega_margin=math.nan), "omega_margin"), (dict(deadline_ms=True), "deadline_ms")):
+                     (dict(omega_margin=math.nan), "omega_margin"), (dict(deadline_ms=True), "deadline_ms"),
+                     (dict(parallel_search=1), "parallel_search must be True or False")):
         with pytest.raises(ValueError, match=name):  # (bare TypeErrors, or accepted, before)
             MPCConfig(**kw)
     with pytest.raises(ValueError, match="braking"):
@@ -503,6 +504,39 @@ def test_the_minimum_time_search_tries_a_step_fewer_from_the_other_leg():
     r = run_closed_loop("tc", MPCConfig(mode="time"), scenario=sc, score=False)
     assert r.episode.success and r.episode.max_violation == 0.0
     assert T_min <= r.episode.T <= T_min + 0.1  # (the grid's best: T_min rounded up to a step)
+
+
+def test_the_search_keeps_the_better_of_a_rounds_two_moves_forked_or_not(monkeypatch):
+    """TC ``test`` cycle 2 at minimum time: its first schedule (99 steps) misses the reversing point. The search's
+    first round solves the step added to phase 2 (100 steps) and, as the move it would try next, the step moved
+    there from phase 3 (99 steps, on its marks), and keeps the latter (measured: one move at a time took 7 solves to
+    the same 99 steps). The second move of each round is solved in a forked copy of the process where it can be,
+    else here: the same plan to the bit either way."""
+    from mpc.controller import forked
+    from mpc.controller.mpc import forget_plans
+    from wl_env.suites import load_suite
+
+    sc = load_suite("test").of("tc")[2]
+    forks = []
+    monkeypatch.setattr(forked, "ForkedCall", functools.partial(_counted, forks, forked.ForkedCall))
+    plans = {}
+    for parallel in (True, False):
+        forget_plans()  # (the second controller would start from the first's stored plan)
+        ctrl = MPCController("tc", sc.params(), MPCConfig(parallel_search=parallel))
+        env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
+        obs, _ = env.reset(seed=0, options={"scenario": sc})
+        ctrl.reset(sc)
+        ctrl.act(obs)
+        plans[parallel] = ctrl._sol
+    assert bool(forks) == forked.available()  # (2 CPUs on Linux: the first run forked its second moves)
+    assert steps_of(plans[True].counts) == 99 and plans[True].feasible
+    assert plans[True].counts == plans[False].counts and plans[True].J == plans[False].J
+    assert np.array_equal(plans[True].z, plans[False].z)
+
+
+def _counted(calls: list, cls: type, fn):
+    calls.append(fn)
+    return cls(fn)
 
 
 def test_a_mismatched_draw_in_range_keeps_the_limit_at_its_last_stop():

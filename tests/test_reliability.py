@@ -1075,3 +1075,43 @@ def test_an_evaluation_records_each_episodes_actual_start():
     r = evaluate_controller(load_controller("operator", "service"), "service", episodes=3, init_noise=1.0, score=False)
     starts = [(e["start_engine_speed_rad_s"], e["start_bucket_height_m"]) for e in r["per_episode"]]
     assert starts[0] == (DEFAULT_PARAMS.omega_0, DEFAULT_PARAMS.H_0) and len(set(starts)) == 3
+
+
+# ------------------------------------------------------------------ the forked schedule-move solve
+def _gone(pid: int) -> bool:
+    try:
+        os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        return True  # (reaped: no zombie left)
+    return False
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX's")
+def test_a_forked_call_returns_its_value_or_none_and_never_leaves_its_child():
+    """The first plan's second schedule move runs in a forked child (mpc.controller.forked): its value comes back
+    whole (larger than a pipe's buffer), a child that raises or hangs gives None (the hung one killed at the
+    timeout), and every child is reaped."""
+    from mpc.controller.forked import ForkedCall
+
+    big = np.arange(300_000, dtype=float)  # (2.4 MB: many pipe buffers)
+    call = ForkedCall(lambda: {"z": big * 2.0})
+    pid = call._pid
+    assert np.array_equal(call.result(timeout=30.0)["z"], big * 2.0) and _gone(pid)
+
+    def fails() -> None:
+        raise RuntimeError("a solver error in the child")
+
+    call = ForkedCall(fails)
+    pid = call._pid
+    assert call.result(timeout=30.0) is None and _gone(pid)
+
+    call = ForkedCall(lambda: time.sleep(60.0))
+    pid, t0 = call._pid, time.perf_counter()
+    assert call.result(timeout=0.3) is None
+    assert time.perf_counter() - t0 < 5.0 and _gone(pid)
+
+    call = ForkedCall(lambda: time.sleep(60.0))  # (the parent interrupted: its finally cancels the child)
+    pid = call._pid
+    call.cancel()
+    call.cancel()  # (idempotent)
+    assert _gone(pid)

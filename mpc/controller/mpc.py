@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from mpc.controller import forked
 from mpc.controller.estimator import ModelErrorEstimator
 from mpc.controller.grid import MIN_STOP_SPEED, N_X, GridNLP
 from mpc.controller.horizon import HorizonReference, horizon_counts, terminal_arguments
@@ -88,6 +89,7 @@ MIN_GAIN = 0.05
 MIN_GAIN_ONLINE = 0.2
 SEARCH_SOLVES = 12  # solves the first step may spend on the schedule
 SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's search
+FORKED_TIMEOUT_S = 1.0  # s at least that a round of the search waits for its forked solve (then solves it itself)
 # A short horizon's full plan is made again when the plant estimate [accel offset (m/s^2), accel gain, lift
 # gain] moves by more than this since it was made (or when the horizon's plan misses a target).
 REPLAN_ESTIMATE_CHANGE = np.array([0.02, 0.01, 0.01])
@@ -289,6 +291,9 @@ class MPCConfig:
     # plant estimate, predicts over the deceleration or speed limit has its brake, then its injection, eased.
     # It acts on controls from plans older than the state (real time, deadlines, fallbacks under model error).
     safety_filter: bool = True
+    # The first plan's schedule search solves each round's second move in a forked copy of this process, beside
+    # the first (Linux, 2+ CPUs; mpc.controller.forked). The plan is the same either way: only its time differs.
+    parallel_search: bool = True
 
     def __post_init__(self) -> None:
         def count(v: Any, lo: int, hi: int) -> bool:
@@ -311,7 +316,7 @@ class MPCConfig:
             raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {shown(self.target_time)}")
         if self.deadline_ms is not None and not (is_real_number(self.deadline_ms) and self.deadline_ms > 0):
             raise ValueError(f"deadline_ms must be > 0 ms or None, got {shown(self.deadline_ms)}")
-        for name in ("realtime", "safety_filter"):
+        for name in ("realtime", "safety_filter", "parallel_search"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {shown(getattr(self, name))}")
         if self.realtime and self.deadline_ms is not None:
@@ -1024,34 +1029,73 @@ class MPCController:
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         t.append(time.perf_counter())
         failed: set = set()
-        for _ in range(0 if cfg.realtime else SEARCH_SOLVES):
-            # a step fewer that did not hold the targets will not from another phase either, as a rule (the
-            # shifts come first) ...
-            removals = sum(1 for m in failed if m[1] is None) < 1
-            nlp = self._nlp(sol.first_phase)
-            move = self.schedule.candidate(sol, nlp, phase, k, failed, removals, MIN_GAIN) if sol.ok else None
-            if move is None or len(failed) >= SEARCH_FAILURES:
-                # ... but before it ends, a step fewer from the other leg is worth a try (measured on the `test`
-                # suite's 50 TC cycles: 5 a step faster, none slower; minimum-time planning +5..18 %)
-                move = self._other_leg_removal(sol, nlp, phase, k, failed)
-                if move is None:
-                    break
-            # (a minimum-time plan holds its targets with the fewest steps, no slack: a move starts far from the moved
-            # schedule's optimum, as a re-plan for a moved estimate does; measured, 16 `test` cycles: the search's
-            # IPOPT iterations -26 %, its time -23..-43 %, the same T. With a target time the plan has slack and far
-            # starts took 2.4x as long: 10 TC cycles at 1.15 T_min, stop 51. Weighted with w_fuel 0 ranks as minimum time:
-            # near, its search took 1.2-1.6x minimum time's on 5 TC draws, for the same cycles, stop 52)
-            with far_starts(cfg.fastest):
-                alt = self._try_move(sol, move, phase, x)
-            if self.schedule.cost(alt, k) < self.schedule.cost(sol, k):
-                sol, failed = alt, set()
+        solves = 0 if cfg.realtime else SEARCH_SOLVES
+        while solves > 0:
+            # Each round solves the move the search would try next and the one it would try after it if that one
+            # did not pay, side by side (forked_call), and keeps the better: the moves a one-by-one search would
+            # try, but where the first pays and the second pays more, the second. Measured on 20 `test` cycles at
+            # minimum time: ... (docs/benchmarks.md section 3)
+            first = self._search_move(sol, phase, k, failed)
+            if first is None:
+                break
+            second = self._search_move(sol, phase, k, failed | {first}) if solves > 1 else None
+            moves = [first] if second is None else [first, second]
+            alts = self._move_solves(sol, moves, phase, x)
+            solves -= len(moves)
+            best = min(alts, key=lambda alt: self.schedule.cost(alt, k))
+            if self.schedule.cost(best, k) < self.schedule.cost(sol, k):
+                sol, failed = best, set()
             else:
-                failed.add(move)
+                failed |= set(moves)
         t.append(time.perf_counter())
         self.planning_parts = dict(zip(("reference", "layout", "first_solve", "search"), np.diff(t).tolist(), strict=True))
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._take_first_plan(sol, "reference", key, ref)
+
+    def _search_move(self, sol: Solve, phase: int, k: int, failed: set) -> tuple | None:
+        """The first plan's next schedule move from ``sol`` with the moves in ``failed`` tried in vain (None: the
+        search ends)."""
+        # a step fewer that did not hold the targets will not from another phase either, as a rule (the shifts come
+        # first) ...
+        removals = sum(1 for m in failed if m[1] is None) < 1
+        nlp = self._nlp(sol.first_phase)
+        move = self.schedule.candidate(sol, nlp, phase, k, failed, removals, MIN_GAIN) if sol.ok else None
+        if move is None or len(failed) >= SEARCH_FAILURES:
+            # ... but before it ends, a step fewer from the other leg is worth a try (measured on the `test` suite's
+            # 50 TC cycles: 5 a step faster, none slower; minimum-time planning +5..18 %)
+            move = self._other_leg_removal(sol, nlp, phase, k, failed)
+        return move
+
+    def _move_solves(self, sol: Solve, moves: list[tuple], phase: int, x: np.ndarray) -> list[Solve]:
+        """The solves of schedule moves from ``sol`` (the first plan's search), the second in a forked copy of this
+        process beside the first where ``MPCConfig.parallel_search`` and the machine allow (the same solves either
+        way: the fork holds this process's NLPs and solvers as they are)."""
+        # (a minimum-time plan holds its targets with the fewest steps, no slack: a move starts far from the moved
+        # schedule's optimum, as a re-plan for a moved estimate does; measured, 16 `test` cycles: the search's IPOPT
+        # iterations -26 %, its time -23..-43 %, the same T. With a target time the plan has slack and far starts
+        # took 2.4x as long: 10 TC cycles at 1.15 T_min, stop 51. Weighted with w_fuel 0 ranks as minimum time:
+        # near, its search took 1.2-1.6x minimum time's on 5 TC draws, for the same cycles, stop 52)
+        def solve(move: tuple) -> Solve:
+            with far_starts(self.config.fastest):
+                return self._try_move(sol, move, phase, x)
+
+        def in_child() -> Solve:
+            alt = solve(moves[1])
+            alt.keep_lam_p()  # (its source holds the NLP, which stays here)
+            return alt
+
+        child = forked.ForkedCall(in_child) if len(moves) > 1 and self.config.parallel_search and forked.available() else None
+        try:
+            t0 = time.perf_counter()
+            alts = [solve(moves[0])]
+            if len(moves) > 1:
+                alt = child.result(timeout=max(FORKED_TIMEOUT_S, 4.0 * (time.perf_counter() - t0))) if child else None
+                alts.append(alt if alt is not None else solve(moves[1]))
+            return alts
+        finally:
+            if child is not None:
+                child.cancel()
 
     def _other_leg_removal(self, sol: Solve, nlp: GridNLP, phase: int, k: int, failed: set) -> tuple | None:
         """The first plan's search, before it ends: a step fewer from the leg (LEG) that none of the removals
