@@ -7,7 +7,8 @@ copy-on-write and starts in a few ms. The child runs the call and nothing else: 
 parent kills it), sends the pickled result through a pipe (its own result: nothing from a user is unpickled) and
 leaves with ``os._exit`` (no atexit handlers, no buffers of the parent's flushed twice). The parent's other threads
 are not in the child; one that held a lock the call needs would hang it, so the parent waits ``timeout`` at most,
-then kills it and does the work itself.
+then kills it and does the work itself (a child that crashes on a heap another thread was changing is a failed call
+too). The MPC forks only while none of its own threads runs a solve (:meth:`MPCController.end_episode`).
 """
 
 from __future__ import annotations
