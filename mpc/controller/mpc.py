@@ -494,6 +494,8 @@ class MPCController:
         # where a first plan from the continuous reference spent its time (s): "reference", "layout" (its slot
         # layout's NLPs and solvers built), "first_solve", "search" (the schedule moves); empty on other first plans
         self.planning_parts: dict[str, float] = {}
+        self._later_nlps: list[int] = []  # the first plan's layout's later-phase NLPs still to build
+        self._later_build_s = 0.0
         # what the first plan started from: "stored" (this cycle's, planned before in the process),
         # "neighbour" (real time: another target's or start's) or "reference" (the continuous optimum)
         self.first_plan_from = ""
@@ -1029,7 +1031,10 @@ class MPCController:
         t.append(time.perf_counter())
         counts = self._reference_schedule(ref, phase, k)
         self._slots = self._layout(key, {q: c + cfg.spare_steps for q, c in counts.items()})
-        self._prepare_nlps(phase)
+        # (the layout's NLP from this phase now; those from the later phases, for the re-plans there, while a
+        # single-move round of the search solves in a fork, else after the search: _build_later_nlps)
+        self.solver.prepare(self._nlp(phase))
+        self._later_nlps, self._later_build_s = list(range(phase + 1, 5)), 0.0
         t.append(time.perf_counter())
         sol = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, ref, x))
         t.append(time.perf_counter())
@@ -1053,8 +1058,12 @@ class MPCController:
                 sol, failed = best, set()
             else:
                 failed |= set(moves)
+        self._build_later_nlps()
         t.append(time.perf_counter())
-        self.planning_parts = dict(zip(("reference", "layout", "first_solve", "search"), np.diff(t).tolist(), strict=True))
+        parts = dict(zip(("reference", "layout", "first_solve", "search"), np.diff(t).tolist(), strict=True))
+        # (the later phases' builds in the layout's part, wherever in the search they ran)
+        parts["layout"], parts["search"] = parts["layout"] + self._later_build_s, parts["search"] - self._later_build_s
+        self.planning_parts = parts
         if not sol.ok:
             raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
         self._take_first_plan(sol, "reference", key, ref)
@@ -1086,12 +1095,23 @@ class MPCController:
             with far_starts(self.config.fastest):
                 return self._try_move(sol, move, phase, x)
 
-        def in_child() -> Solve:
-            alt = solve(moves[1])
+        def in_child(move: tuple) -> Solve:
+            alt = solve(move)
             alt.keep_lam_p()  # (its source holds the NLP, which stays here)
             return alt
 
-        child = forked.ForkedCall(in_child) if len(moves) > 1 and self.config.parallel_search and forked.available() else None
+        fork = self.config.parallel_search and forked.available()
+        if len(moves) == 1 and fork and self._later_nlps:
+            # a move alone: solved in the fork while this process builds the later phases' NLPs
+            child = forked.ForkedCall(lambda: in_child(moves[0]))
+            try:
+                t0 = time.perf_counter()
+                self._build_later_nlps()
+                alt = child.result(timeout=max(FORKED_TIMEOUT_S, 4.0 * (time.perf_counter() - t0)))
+                return [alt if alt is not None else solve(moves[0])]
+            finally:
+                child.cancel()
+        child = forked.ForkedCall(lambda: in_child(moves[1])) if len(moves) > 1 and fork else None
         try:
             t0 = time.perf_counter()
             alts = [solve(moves[0])]
@@ -1102,6 +1122,14 @@ class MPCController:
         finally:
             if child is not None:
                 child.cancel()
+
+    def _build_later_nlps(self) -> None:
+        """Build the first plan's layout's NLPs (and solvers) from the later phases, for the re-plans there, if
+        not built yet; their time is added to ``_later_build_s``."""
+        t0 = time.perf_counter()
+        while self._later_nlps:
+            self.solver.prepare(self._nlp(self._later_nlps.pop(0)))
+        self._later_build_s += time.perf_counter() - t0
 
     def _other_leg_removal(self, sol: Solve, nlp: GridNLP, phase: int, k: int, failed: set) -> tuple | None:
         """The first plan's search, before it ends: a step fewer from the leg (LEG) that none of the removals
