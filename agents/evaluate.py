@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from mpc import interrupt
 from wl_env import cycle
 from wl_env.atomic_io import check_output_folder
 from wl_env.controller import Controller
@@ -220,7 +221,11 @@ class _ActTimeout(BaseException):
     does not swallow it."""
 
 
+_alarm_fired = threading.Event()  # (the timer's raise inside a library may come back as another exception)
+
+
 def _on_alarm(signum: int, frame: Any) -> None:
+    _alarm_fired.set()
     raise _ActTimeout
 
 
@@ -278,18 +283,27 @@ class GuardedController:
         try:
             if timeout is None:
                 return fn(*args)
+            _alarm_fired.clear()
             signal.setitimer(signal.ITIMER_REAL, timeout)
             try:
                 return fn(*args)
             finally:
                 signal.setitimer(signal.ITIMER_REAL, 0.0)
         except _ActTimeout:
-            raise ControllerError(f"controller {self.name}: {what} did not return within the act timeout of "
-                                  f"{timeout:g} s (--act-timeout) at {self._where()}") from None
+            raise self._timed_out(what, timeout) from None
         except KeyboardInterrupt:
+            # (the timer inside IPOPT: CasADi returns an aborted solve, which the MPC raises as an interrupt; measured,
+            # `wl evaluate --controller mpc --act-timeout 1` exited 130 "interrupted")
+            if timeout is not None and _alarm_fired.is_set() and not interrupt.interrupted():
+                raise self._timed_out(what, timeout) from None
             raise
         except (Exception, SystemExit) as exc:  # SystemExit: a user's sys.exit() must not end wl evaluate quietly
             raise ControllerError(f"controller {self.name}: {what} failed at {self._where()}: {_brief(exc)}") from exc
+
+
+    def _timed_out(self, what: str, timeout: float) -> ControllerError:
+        return ControllerError(f"controller {self.name}: {what} did not return within the act timeout of "
+                               f"{timeout:g} s (--act-timeout) at {self._where()}")
 
 
 def _short(value: Any) -> str:

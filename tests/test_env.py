@@ -318,3 +318,85 @@ def test_a_stalled_engine_stops_at_zero_and_ends_the_episode():
         if term or trunc:
             break
     assert term and info["stalled"] and not info["is_success"]
+
+
+# ------------------------------------------------------------------ hostile inputs (stop 60's env round)
+def test_a_stalled_engine_is_no_success_even_at_the_truck():
+    """The operator's heavy cycle with the fuel cut for its last stop: the machine stands at the truck as the engine
+    stalls. The failure charge was paid and ``is_success`` said True (evaluations counted the cycle a success)."""
+    from wl_env import Scenario
+
+    sc = Scenario(payload=13000, dump_height=5.1)
+    env = gym.make("WheelLoader-v2", scenario=sc).unwrapped
+    op = OperatorPolicy(params=sc.params())
+    obs, _ = env.reset(seed=0)
+    for k in range(400):
+        a = op.act(obs)
+        if k >= 59:
+            a[0] = -1.0
+        obs, _, terminated, truncated, info = env.step(a)
+        if terminated or truncated:
+            break
+    assert info["stalled"] and info["completed"] and not info["is_success"]
+
+
+def test_a_loader_that_stalls_to_zero_is_reset_with_the_batch_and_never_divides_by_zero():
+    """A tiny engine inertia (in range) stalls the engine to 0 rad/s. The vector env's next-step autoreset stepped
+    that loader once more from omega 0 (NaN, then IntegrationDiverged for the whole batch); a single env with 2
+    substeps divided by zero (a bare ZeroDivisionError). Now the batch goes on, and the single env ends on the stall
+    or names the integration (IntegrationDiverged)."""
+    from wl_env.episode import IntegrationDiverged
+
+    params = {"J_ice": 0.5, "D_pump": 0.005}
+    venv = gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point", params=params)
+    venv.reset(seed=0)
+    ends = 0
+    for _ in range(5):
+        obs, _, terminated, _, _ = venv.step(np.tile([-1.0, 1.0, -1.0, -1.0], (2, 1)))
+        ends += int(terminated.sum())
+        assert np.isfinite(obs).all()
+    assert ends >= 2
+    env = gym.make("WheelLoader-v2", braking="tc", substeps=2, params={"J_ice": 0.5, "D_pump": 0.01}).unwrapped
+    env.reset(seed=0)
+    try:
+        for n in range(20):
+            _, _, terminated, _, _ = env.step(np.array([1, 1, -1, -1] if n < 5 else [-1, 1, -1, 1], np.float32))
+            if terminated:
+                break
+    except IntegrationDiverged:
+        pass
+
+
+def test_the_vector_target_env_falls_back_to_the_unperturbed_start_as_the_single_env():
+    """A start speed at the top of its range with init_noise: a perturbed start outside the ranges takes the
+    unperturbed start's target in the single env; the vector env raised (at reset and at autoresets)."""
+    params = {"omega_0": 2000 * math.pi / 30}
+    env = gym.make("WheelLoaderTarget-v6", params=params, init_noise=0.5).unwrapped
+    venv = gym.make_vec("WheelLoaderTarget-v6", num_envs=1, vectorization_mode="vector_entry_point", params=params,
+                        init_noise=0.5)
+    for seed in range(4):
+        single = env.reset(seed=seed)[1]["target_time"]
+        venv.reset(seed=seed)
+        assert venv.unwrapped.target_time[0] == pytest.approx(single)
+
+
+def test_a_control_interval_too_short_to_move_the_clock_is_refused_by_name():
+    from mpc.controller.mpc import MPCController
+
+    for dt in (5e-324, 1e-7, 0.0009):  # (5e-324 never advanced t; the plan env at 1e-7 ran 10^8 steps a plan)
+        with pytest.raises(ValueError, match=r"dt \(the control interval\) must lie in \[0.001, 1\] s"):
+            gym.make("WheelLoaderPlan-v0", dt=dt)
+    with pytest.raises(ValueError, match=r"must lie in \[0.001, 1\] s"):
+        MPCController("tc", dt=1e-7)
+
+
+def test_a_scenario_at_reset_refuses_the_payload_params_set_and_json_takes_the_envs_braking():
+    """A reset's scenario replaced M_load and c_r given by params= without a word (the constructor refused it);
+    JSON text naming no braking was read as service in a TC env (a dict took the env's)."""
+    env = gym.make("WheelLoader-v2", params={"M_load": 7000, "c_r": 0.02})
+    with pytest.raises(ValueError, match="params sets M_load, c_r, which the scenario sets"):
+        env.reset(options={"scenario": {"reverse_distance": 5.0}})
+    tc = gym.make("WheelLoader-v2", braking="tc")
+    _, info = tc.reset(options={"scenario": '{"payload": 7000}'})
+    assert info["scenario"].braking == "tc" and info["scenario"].payload == 7000
+    assert gym.make("WheelLoader-v2", braking="tc", scenario='{"payload": 7000}').unwrapped.scenario.braking == "tc"

@@ -703,8 +703,8 @@ def test_mpc_config_refuses_a_bad_terminal_weight_by_name(value):
     ({"substeps": True}, r"substeps must be an integer in \[1, 1000\]"),
     ({"substeps": 10**9}, r"substeps must be an integer in \[1, 1000\]"),  # (built its steps for hours)
     ({"substeps": "x"}, r"substeps must be an integer in \[1, 1000\]"),
-    ({"dt": True}, r"dt \(the control interval\) must lie in \(0, 1\] s"),  # (taken as 1 s)
-    ({"dt": 10**400}, r"dt \(the control interval\) must lie in \(0, 1\] s"),  # (OverflowError)
+    ({"dt": True}, r"dt \(the control interval\) must lie in \[0.001, 1\] s"),  # (taken as 1 s)
+    ({"dt": 10**400}, r"dt \(the control interval\) must lie in \[0.001, 1\] s"),  # (OverflowError)
     ({"config": {"mode": "time"}}, "config must be an MPCConfig or None, got dict"),  # (AttributeError)
     ({"solver": "ipopt"}, "solver must be a GridSolver"),
 ])
@@ -750,3 +750,37 @@ def test_a_refused_reset_leaves_the_controller_as_it_was():
         ctrl.reset(scenario="abc")
     ctrl.reset(scenario={"payload": 9000.0})
     assert ctrl.params.M_load == pytest.approx(9000.0)
+
+
+# ------------------------------------------------------------------ hostile inputs (stop 60's library round)
+def test_a_tighten_over_the_later_margins_cap_still_brakes_in_time():
+    """tighten 0.2 (in its range): the later steps' margin was capped at MAX_MARGIN (0.03), under the first step's,
+    so every plan braked harder later and the braking moved back a step each step: 0.22 m past the reversing
+    point, a failed cycle with no error."""
+    r = run_closed_loop("service", MPCConfig(tighten=0.2), score=False)
+    assert r.episode.success and r.episode.max_violation == 0.0
+
+
+def test_a_target_past_the_fuel_optimal_cycle_ends_with_it():
+    """A 30 s target on the nominal service cycle (its fuel-optimal cycle takes 21.3 s): the MPC stretched the cycle
+    to 30 s on 49.25 g where the fuel-optimal one takes 47.69 g; "the least fuel finishing by then" is that cycle."""
+    r = run_closed_loop("service", MPCConfig(mode="target_time", target_time=30.0), score=False)
+    assert r.episode.success and 20.5 < r.episode.T < 22.5 and r.episode.fuel_g < 47.9
+
+
+def test_the_mpc_refuses_what_would_drive_another_cycle_or_divide_by_nothing():
+    """A controller planned for 5 m legs on the run's 6.6 m cycle (1.6 m past the reversing point, reported as no
+    mismatch); a new episode's observation without reset() (an IndexError in the plan); a weighted mode of w_fuel
+    5e-324 (a ZeroDivisionError in the schedule's ranking after 2 s of planning)."""
+    short = Scenario(reverse_distance=5.0, forward_distance=5.0)
+    with pytest.raises(ValueError, match="the controller plans another machine or cycle than the run's model"):
+        run_closed_loop("service", controller=MPCController("service", short.params()), score=False)
+    with pytest.raises(ValueError, match=r"w_fuel 0 \(minimum time\) or in \[1e-06, 1\]"):
+        MPCConfig(mode="weighted", w_fuel=5e-324)
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service")
+    later = obs.copy()
+    ctrl._last, ctrl._last_t = (None, 1, None), 3.0  # (as after a step at t = 3 s)
+    with pytest.raises(ValueError, match="a new cycle starts with the controller's reset"):
+        ctrl.act(later)

@@ -29,6 +29,7 @@ from mpc.benchmark import store
 from mpc.benchmark.ocp import OCPSettings, get_ocp, template_guess
 from wl_env.atomic_io import write_atomic
 from wl_env.params import resolve
+from wl_env.scenario import Scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -1115,3 +1116,32 @@ def test_a_forked_call_returns_its_value_or_none_and_never_leaves_its_child():
     call.cancel()
     call.cancel()  # (idempotent)
     assert _gone(pid)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX's")
+def test_a_forked_calls_result_twice_after_cancel_or_with_a_bad_timeout_is_no_traceback():
+    from mpc.controller.forked import ForkedCall
+
+    call = ForkedCall(lambda: 42)
+    assert call.result(timeout=30.0) == 42 and call.result(timeout=30.0) is None  # (taken: TypeError from select)
+    call = ForkedCall(lambda: 42)
+    call.cancel()
+    assert call.result(timeout=30.0) is None
+    for bad in (None, math.nan, math.inf, -1.0, True):
+        call = ForkedCall(lambda: time.sleep(60.0))
+        pid = call._pid
+        with pytest.raises(ValueError, match="timeout must be a finite number of seconds >= 0"):
+            call.result(bad)
+        assert _gone(pid)  # (None left the child running)
+
+
+def test_an_act_timeout_inside_a_solver_is_the_timeout_not_an_interrupt():
+    """The act timeout's SIGALRM inside IPOPT comes back as an aborted solve, which the MPC raises as an interrupt:
+    `wl evaluate --controller mpc --act-timeout 1` exited 130 'interrupted'. It is the controller's timeout."""
+    from agents.evaluate import ControllerError, evaluate_controller
+    from mpc.controller.mpc import MPCController
+
+    with pytest.raises(ControllerError, match="did not return within the act timeout of 0.3 s"):
+        evaluate_controller(MPCController("tc"), "tc", episodes=1, init_noise=0.0, act_timeout=0.3, score=False,
+                            scenario=Scenario(payload=11321.0, braking="tc"))  # (a cycle no test planned: ~1 s)
+    assert not interrupt.interrupted()

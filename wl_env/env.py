@@ -398,6 +398,7 @@ class WheelLoaderEnv(gym.Env):
         self.target_power = check_target_power(target_power)
         self._source, self.braking = scenario_source(scenario, braking, self.machine)
         check_no_overridden(params, self._source)
+        self._params_given = params  # (a reset's scenario is checked against it too)
         check_target_cycle(self.observe_target, self._source, self.machine, self.braking)
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
@@ -448,6 +449,8 @@ class WheelLoaderEnv(gym.Env):
         if not self.observe_target and (target_time is not None or target_ratio is not None):
             raise ValueError("a target cycle time is an option of WheelLoaderTarget-v0 (observe_target=True)")
         source = self._source if chosen is None else scenario_source(chosen, self.braking, self.machine)[0]
+        if chosen is not None:  # (the payload params= set was replaced by the scenario's without a word)
+            check_no_overridden(self._params_given, source)
         if isinstance(source, Suite):
             source = source.sample(self.np_random, self.braking)
         self._set_scenario(source)

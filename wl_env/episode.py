@@ -77,6 +77,9 @@ class RewardConfig:
 
 
 MAX_EPISODE_TIME = 3600.0  # s: a cycle takes 8-25 s; an hour bounds an episode's work (and its arrays)
+# s: the shortest control interval (5e-324 s never moved the clock, t + dt == t, and the plan env at 1e-7 s drove
+# 10^8 steps per plan: neither ever ended)
+MIN_DT = 1e-3
 # A state past these multiples of the machine's top engine speed (the observation space ends at 1.5x) and top
 # speed in gear did not come from the physics but from a fixed-step RK4 made unstable by the parameters
 # (eta_lift 0.01: 8865 rad/s after one step, 6.8e14 after two)
@@ -111,8 +114,8 @@ class CycleStepper(Flattened):
         if fuel_action not in FUEL_ACTIONS:
             raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
         dt, substeps, max_time = plain(dt), plain(substeps), plain(max_time)
-        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and 0.0 < dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {shown(dt)}")
+        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and MIN_DT <= dt <= 1.0):
+            raise ValueError(f"dt (the control interval) must lie in [{MIN_DT:g}, 1] s, got {shown(dt)}")
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
         if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time)
@@ -166,14 +169,16 @@ class CycleStepper(Flattened):
                 return r
         return self._step(y, phase, t, rev_err, violation, action)
 
-    def diverged(self, y: Any) -> bool:
+    def diverged(self, y: Any, ignore: Any = None) -> bool:
         """The state ``y`` after a step lies past what the physics reaches (DIVERGED_OMEGA, DIVERGED_SPEED; NaN
         too): the envs raise :meth:`divergence` then. (They compare inline, as floats: the single env's step
-        takes ~20 us, and a call more cost 2-3 % of it.)"""
+        takes ~20 us, and a call more cost 2-3 % of it.) ``ignore``: a mask of loaders whose step is discarded
+        (the vector env's autoresets)."""
         omega, V = y[0], y[1]
         if type(omega) is float:
             return not (omega <= self.omega_diverged and -self.speed_diverged <= V <= self.speed_diverged)
-        return not (np.all(omega <= self.omega_diverged) and np.all(np.abs(V) <= self.speed_diverged))
+        ok = (omega <= self.omega_diverged) & (np.abs(V) <= self.speed_diverged)
+        return not np.all(ok if ignore is None else ok | ignore)
 
     def divergence(self, y: Any, t: Any) -> IntegrationDiverged:
         return IntegrationDiverged(
@@ -285,7 +290,8 @@ class CycleStepper(Flattened):
             completed, rw.target_distance * end_dist + rw.target_height * end_height, 0.0
         )
         reward = reward - ops.where(failed, rw.failure, 0.0)
-        success = completed & (rev_abs <= DISTANCE_TOL) & (end_dist <= DISTANCE_TOL) & (end_height <= HEIGHT_TOL)
+        # (a stall is a failure, also where the machine stands at the truck: the cycle counted as a success before)
+        success = completed & ~failed & (rev_abs <= DISTANCE_TOL) & (end_dist <= DISTANCE_TOL) & (end_height <= HEIGHT_TOL)
         # what the machine made of the commands (the first substep's saturations), and its converter now
         u_mf, u_ab, u_b, u_mf_torque, u_ab_pressure = u_first
         cmd_mf, cmd_ab = ops.clip(u_cmd[0], 0.0, p.U_mf_max), ops.clip(u_cmd[1], *p.U_ab_bounds)

@@ -376,6 +376,8 @@ def plain(value: Any) -> Any:
     checks still refuse); anything else as it is. For arguments checked with ``isinstance(v, (int, float))``."""
     import numpy as np
 
+    if isinstance(value, np.floating) and value.dtype.itemsize < 8 and np.isfinite(value):
+        return float(str(value))  # (its shortest decimal: np.float32(0.015).item() is 0.01499..., under a range's 0.015)
     return value.item() if isinstance(value, np.generic) and value.dtype.kind in "biuf" else value
 
 

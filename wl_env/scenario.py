@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.cycle import BRAKING_MODES
-from wl_env.params import DEFAULT_PARAMS, LoaderParams, is_finite, shown
+from wl_env.params import DEFAULT_PARAMS, LoaderParams, is_finite, plain, shown
 
 RPM = math.pi / 30.0  # rad/s per rpm
 
@@ -77,7 +77,7 @@ class Scenario:
 
     def __post_init__(self) -> None:
         for name, spec in FIELDS.items():
-            v = getattr(self, name)
+            v = plain(getattr(self, name))
             allowed = f"[{spec.lo:g}, {spec.hi:g}]" + ("" if spec.unit == "-" else f" {spec.unit}")
             if isinstance(v, bool) or not isinstance(v, numbers.Real):
                 raise ValueError(f"Scenario.{name} must be a number in {allowed}, got {shown(v)} ({type(v).__name__})")
@@ -105,9 +105,10 @@ class Scenario:
         return cls(**data)
 
     @classmethod
-    def parse(cls, text: str, name: str = "--scenario") -> Scenario:
+    def parse(cls, text: str, name: str = "--scenario", braking: str | None = None) -> Scenario:
         """A scenario from JSON text or from the path of a JSON file; errors name it ``name`` (the CLI's
-        ``--scenario`` by default; the library's ``scenario``) and the file."""
+        ``--scenario`` by default; the library's ``scenario``) and the file. ``braking``: the braking of JSON that
+        names none (default: the field's default)."""
         text, what = text.strip(), name
         if not text.startswith(("{", "[")):  # (a JSON list is read to say it is not an object)
             path = Path(text)
@@ -131,6 +132,8 @@ class Scenario:
             raise ValueError(f"{what} is not a scenario: its JSON is nested too deeply") from None
         except DuplicateKey as exc:
             raise ValueError(f"{what}: the field {exc.args[0]!r} is given twice") from None
+        if braking is not None and isinstance(data, dict) and "braking" not in data:
+            data = {"braking": braking, **data}
         try:
             return cls.from_dict(data)
         except ValueError as exc:  # (which file: a field's range alone did not say)
@@ -224,8 +227,8 @@ def resolve_scenario(scenario: Scenario | dict | str | None, braking: str | None
         return Scenario.nominal(braking or "service")
     if isinstance(scenario, dict):
         scenario = Scenario.from_dict({"braking": braking, **scenario} if braking and "braking" not in scenario else scenario)
-    elif isinstance(scenario, str):
-        scenario = Scenario.parse(scenario, "scenario")
+    elif isinstance(scenario, str):  # (as a dict: JSON without a braking takes this one)
+        scenario = Scenario.parse(scenario, "scenario", braking)
     elif not isinstance(scenario, Scenario):
         raise ValueError(f"scenario must be a Scenario, a dict of its fields or JSON, got {type(scenario).__name__}")
     if braking is not None and braking != scenario.braking:

@@ -56,10 +56,13 @@ def effective_controls(y: State, gear: Any, brake: Any, u_mf: Any, u_ab: Any, u_
     u_ab = ops.fmax(u_ab, -V_b / h)  # the bucket is not lowered in this cycle
     u_mf_torque = engine.max_fuel_injection(omega, p)
     u_mf = ops.clip(u_mf, 0.0, u_mf_torque)  # injection range, torque limit
-    # Governor: at most the injection that brings omega to omega_max by the end of the substep.
-    phi = torque_converter.speed_ratio(V, omega, gear, p)
-    t_pump = torque_converter.pump_torque(phi, omega, p) * (abs(gear) / p.gear_ratio)
-    t_load = t_pump + lift.lift_power(V_b, u_ab, p) / omega
+    # Governor: at most the injection that brings omega to omega_max by the end of the substep. (The loads at
+    # OMEGA_FLOOR as in rhs: an engine that stalled to 0 within a step divided by zero here, where the
+    # episode ends on the stall; the same values everywhere above it.)
+    omega_load = ops.fmax(omega, OMEGA_FLOOR)
+    phi = torque_converter.speed_ratio(V, omega_load, gear, p)
+    t_pump = torque_converter.pump_torque(phi, omega_load, p) * (abs(gear) / p.gear_ratio)
+    t_load = t_pump + lift.lift_power(V_b, u_ab, p) / omega_load
     t_needed = engine.friction_torque(omega, p) + t_load + p.J_ice * (p.omega_max - omega) / h
     u_mf = ops.fmin(u_mf, ops.fmax(t_needed / p.T_ig_per_mg, 0.0))
     u_b = ops.clip(u_b, 0.0, p.U_b_max) * brake

@@ -172,12 +172,13 @@ class WheelLoaderVectorEnv(VectorEnv):
                 s = self.scenarios[i]
                 if self.init_noise > 0.0 or s is None:
                     p_i = drawn.get(i) or (s.params(self.machine) if s is not None else self.machine)
-                    start = start_scenario(p_i, self.braking, omega[j], H[j]) if self.init_noise > 0.0 else (
-                        start_scenario(p_i, self.braking, p_i.omega_0, p_i.H_0))
+                    # (a perturbed start outside the ranges: the unperturbed one's target, as the single env's)
+                    unperturbed = s or start_scenario(p_i, self.braking, p_i.omega_0, p_i.H_0)
+                    start = (start_scenario(p_i, self.braking, omega[j], H[j]) if self.init_noise > 0.0 else None) or unperturbed
                 else:
                     start = s
                 self.min_time_estimate[i], self.target_time[i] = episode_target(
-                    start or s, self.target_ratios, self._rngs[i], power=self.target_power)
+                    start, self.target_ratios, self._rngs[i], power=self.target_power)
         y = tuple(a.copy() for a in self._y)
         for a in y:
             a[idx] = 0.0
@@ -214,7 +215,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         else:
             action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
-        if self.core.diverged(r["y"]):
+        if self.core.diverged(r["y"], ignore=resetting):  # (a finished loader's step is discarded: it starts anew)
             raise self.core.divergence(r["y"], self._t)
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]

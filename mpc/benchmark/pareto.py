@@ -607,9 +607,11 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
     p = resolve(params)
     path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}" / f"T_{T:.3f}.json"
     cached = cached_result(path, objective="fuel_at_time", braking=braking, params=p)
-    if cached is not None:
+    if cached is not None and cached.success:  # (a failed one, cached before it was refused, is solved again)
         return cached.fuel_g
     r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,
                   settings=replace(OCPSettings(), intervals=tuple(front.mesh)))
+    if not r.success:  # (its fuel was returned and cached: a cycle that fails its re-simulation is no optimum)
+        raise OCPError(f"no verified {braking} optimum at T = {float(T):.3f} s: {r.status}")
     save_result(r, path)
     return r.fuel_g

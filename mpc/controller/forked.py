@@ -14,6 +14,7 @@ too). The MPC forks only while none of its own threads runs a solve (:meth:`MPCC
 from __future__ import annotations
 
 import logging
+import math
 import os
 import pickle
 import select
@@ -61,25 +62,28 @@ class ForkedCall:
 
     def result(self, timeout: float) -> Any | None:
         """The call's return value, or None if the child failed, died or did not answer within ``timeout`` s
-        (it is killed then)."""
-        chunks, deadline = [], time.monotonic() + timeout
+        (a finite number >= 0; it is killed then), or if its result was taken or the call cancelled before."""
         try:
-            while True:
-                left = deadline - time.monotonic()
-                if left <= 0 or not select.select([self._fd], [], [], left)[0]:
-                    log.warning("a forked schedule-move solve gave no answer in %.1f s: killed, solved here", timeout)
-                    return None
-                chunk = os.read(self._fd, 1 << 20)
-                if not chunk:
-                    break
-                chunks.append(chunk)
-            status = _reap(self._pid)
-            self._pid = None
-            if status != 0 or not chunks:
-                return None
-            return pickle.loads(b"".join(chunks))
+            if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0.0 <= timeout < math.inf:
+                raise ValueError(f"timeout must be a finite number of seconds >= 0, got {timeout!r}")
+            return None if self._fd is None else self._read(timeout)
         finally:
             self.cancel()
+
+    def _read(self, timeout: float) -> Any | None:
+        chunks, deadline = [], time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self._fd], [], [], left)[0]:
+                log.warning("a forked schedule-move solve gave no answer in %.1f s: killed, solved here", timeout)
+                return None
+            chunk = os.read(self._fd, 1 << 20)
+            if not chunk:
+                break
+            chunks.append(chunk)
+        status = _reap(self._pid)
+        self._pid = None
+        return pickle.loads(b"".join(chunks)) if status == 0 and chunks else None
 
     def cancel(self) -> None:
         """Kill the child if it still runs, and reap it (idempotent)."""

@@ -63,6 +63,7 @@ from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.env import check_target_time
+from wl_env.episode import MIN_DT
 from wl_env.params import (
     SCENARIO_FIELDS,
     LoaderParams,
@@ -90,6 +91,10 @@ MIN_GAIN = 0.05
 MIN_GAIN_ONLINE = 0.2
 SEARCH_SOLVES = 12  # solves the first step may spend on the schedule
 SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's search
+# A target past this multiple of the scenario's estimated T_min may lie past its fuel-optimal cycle's time (at least
+# 2.07 T_min on the 100 `test` fronts): the reference is then that cycle where it ends by the target
+FUEL_OPTIMUM_ABOVE = 1.9
+MIN_W_FUEL = 1e-6  # the least fuel weight of the weighted mode other than 0 (MPCConfig)
 FORKED_TIMEOUT_S = 1.0  # s at least that a round of the search waits for its forked solve (then solves it itself)
 # A short horizon's full plan is made again when the plant estimate [accel offset (m/s^2), accel gain, lift
 # gain] moves by more than this since it was made (or when the horizon's plan misses a target).
@@ -308,8 +313,11 @@ class MPCConfig:
             raise ValueError(f"mode must be one of {MODES}, got {shown(self.mode)}")
         if self.mode == "target_time" or self.target_time is not None:
             check_target_time(self.target_time)
-        if self.mode == "weighted" and not (is_real_number(self.w_fuel) and 0.0 <= self.w_fuel <= 1.0):
-            raise ValueError(f"mode 'weighted' needs w_fuel in [0, 1], got {shown(self.w_fuel)}")
+        # (a weight under MIN_W_FUEL prices a step at more grams than a float holds: 5e-324 divided by zero in the
+        # schedule's ranking, 1e-310 made every schedule cost inf; 0 is minimum time)
+        if self.mode == "weighted" and not (is_real_number(self.w_fuel) and (
+                self.w_fuel == 0.0 or MIN_W_FUEL <= self.w_fuel <= 1.0)):
+            raise ValueError(f"mode 'weighted' needs w_fuel 0 (minimum time) or in [{MIN_W_FUEL:g}, 1], got {shown(self.w_fuel)}")
         # (a value another mode would ignore without a word)
         if self.mode != "weighted" and self.w_fuel is not None:
             raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {shown(self.w_fuel)}")
@@ -406,8 +414,8 @@ class MPCController:
             raise ValueError(f"solver must be a GridSolver (solve() and prepare()) or None, got {type(solver).__name__}")
         self.config = config or MPCConfig()
         dt, substeps = plain(dt), plain(substeps)
-        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and 0.0 < dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in (0, 1] s, got {shown(dt)}")
+        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and MIN_DT <= dt <= 1.0):
+            raise ValueError(f"dt (the control interval) must lie in [{MIN_DT:g}, 1] s, got {shown(dt)}")
         # (the environment's range: int() took 1.7 as 1, 0 divided by zero and 10**9 built its steps for hours)
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {shown(substeps)}")
@@ -472,6 +480,7 @@ class MPCController:
         self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
+        self._last_t = 0.0  # s: the time of the previous step's observation
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self._step_start: float | None = None  # deadline and real time: when the step began (time.perf_counter() s)
         self.estimator.reset()
@@ -513,6 +522,10 @@ class MPCController:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
+        if self._last is not None and t < self._last_t - 1e-6:  # (a new episode's first step: an IndexError in the plan)
+            raise ValueError(f"the observation's time {t:.2f} s lies before the last step's {self._last_t:.2f} s: a new "
+                             "cycle starts with the controller's reset()")
+        self._last_t = t
         if self._last is not None:
             if self._ahead is not None:  # (the worker's to learn from, before its next solve)
                 self._transitions.append((*self._last, x, phase))
@@ -1151,8 +1164,9 @@ class MPCController:
         durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
         if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
             durations = {q: d for q, d in durations.items() if q >= phase}
-        if self.config.mode == "target_time":
-            n = max(self.schedule.target_steps - k, len(durations))
+        if self.config.mode == "target_time":  # (the target's steps; the fuel-optimal cycle's where it ends sooner)
+            n = max(min(self.schedule.target_steps - k, int(math.ceil(sum(durations.values()) / self.dt - 1e-6))),
+                    len(durations))
         else:
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
         return apportion(durations, n, self.dt)
@@ -1414,6 +1428,9 @@ class MPCController:
             return solve_ocp(b, objective, T=T, w_fuel=cfg.w_fuel if objective == "weighted" else None,
                              warm_start=warm, starts=(), **opts)
         if T is not None:
+            lean = self._fuel_optimum_by(T, opts)
+            if lean is not None:
+                return lean
             try:  # (the split of the time between the phases has local optima: REFERENCE_STARTS)
                 return solve_ocp(b, "fuel_at_time", T=T, starts=tuple((T / 2.0, a) for a in REFERENCE_STARTS[b]), **opts)
             except OCPError:
@@ -1445,6 +1462,26 @@ class MPCController:
         if cfg.fastest:
             return solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
         return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)
+
+    def _fuel_optimum_by(self, T: float, opts: dict[str, Any]) -> Any:
+        """The fuel-optimal cycle (free time) where it finishes by the target T (s), else None. Solved only for a
+        target past FUEL_OPTIMUM_ABOVE times the scenario's estimated T_min: a target past the fuel-optimal cycle's
+        time was met by stretching the cycle to it, on more fuel (service at 30 s: 49.25 g where the fuel-optimal
+        cycle takes 47.69 g in 21.3 s)."""
+        from mpc.benchmark.ocp import OCPError, solve_ocp
+        from wl_env.suites.min_time import estimate_min_time
+
+        try:
+            t_min = estimate_min_time(Scenario.from_params(self.params, self.braking))
+        except ValueError:  # (a machine outside the scenario ranges: no estimate, the target's cycle as before)
+            return None
+        if T <= FUEL_OPTIMUM_ABOVE * t_min:
+            return None
+        try:
+            lean = solve_ocp(self.braking, "fuel", **opts)
+        except OCPError:
+            return None
+        return lean if lean.T <= T else None
 
     def _guess(self, phase: int, counts: dict[int, int], ref: Any, x: np.ndarray) -> np.ndarray:
         """A decision vector from the continuous optimum: each phase's steps at phase-normalized times."""
@@ -1518,7 +1555,11 @@ class MPCController:
         one, and more as the plans mispredict the engine speed. With TC braking the converter's drag at
         the shift follows the engine speed, which a fuel cut sets about a second before, with no way to
         slow the engine further: the errors of that second add up (1.6 % of the limit per rad/s)."""
-        return min(self.config.tighten + MARGIN_PER_RAD_S * self.estimator.omega_error_rms, MAX_MARGIN)
+        # (never under the first step's: with tighten over MAX_MARGIN every plan kept the margin in its first step
+        # and braked harder later, so the braking moved a step back each step: tighten 0.2 overshot the reversing
+        # point by 0.22 m)
+        tighten = self.config.tighten
+        return max(min(tighten + MARGIN_PER_RAD_S * self.estimator.omega_error_rms, MAX_MARGIN), tighten)
 
     # ------------------------------------------------------------------ helpers
     def project_state(self, x: np.ndarray, phase: int) -> np.ndarray:
@@ -1648,6 +1689,11 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
     if controller is not None and (controller.dt, controller.substeps) != (core.dt, core.substeps):
         raise ValueError(f"the controller plans steps of {controller.dt:g} s in {controller.substeps} substep(s); the "
                          f"environment takes {core.dt:g} s in {core.substeps}: build it with the environment's")
+    if controller is not None and scenario is None and controller.params != model:
+        # (a controller of 5 m legs drove the 6.6 m cycle, 1.6 m past the reversing point, and the result said model
+        # and plant were the same)
+        raise ValueError("the controller plans another machine or cycle than the run's model (params=, default nominal): "
+                         "build it with the run's params, or give the run the scenario it plans (scenario=)")
     ctrl = controller or MPCController(braking, model, config, dt=core.dt, substeps=core.substeps, solver=solver)
     told = None
     if controller is not None and scenario is not None:
