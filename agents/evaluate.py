@@ -39,6 +39,7 @@ from wl_env.scenario import Scenario, resolve_scenario
 log = logging.getLogger(__name__)
 
 BUILTIN_CONTROLLERS = ("ppo", "plan", "bc", "operator", "mpc")
+MAX_SEED = 2**31 - 1  # the evaluation seed's largest value (the training's too: agents.ppo_config)
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
 # the shipped policies: PPO on the paper's cycle (WheelLoader-v1), and the target-conditioned PPO and
 # behaviour-cloned (imitation) policies of the target task (the env each was trained on is in its metadata)
@@ -282,13 +283,14 @@ class GuardedController:
     def _call(self, what: str, fn: Callable[..., Any], *args: Any, timeout: float | None) -> Any:
         try:
             if timeout is None:
-                return fn(*args)
-            _alarm_fired.clear()
-            signal.setitimer(signal.ITIMER_REAL, timeout)
-            try:
-                return fn(*args)
-            finally:
-                signal.setitimer(signal.ITIMER_REAL, 0.0)
+                out = fn(*args)
+            else:
+                _alarm_fired.clear()
+                signal.setitimer(signal.ITIMER_REAL, timeout)
+                try:
+                    out = fn(*args)
+                finally:
+                    signal.setitimer(signal.ITIMER_REAL, 0.0)
         except _ActTimeout:
             raise self._timed_out(what, timeout) from None
         except KeyboardInterrupt:
@@ -298,8 +300,12 @@ class GuardedController:
                 raise self._timed_out(what, timeout) from None
             raise
         except (Exception, SystemExit) as exc:  # SystemExit: a user's sys.exit() must not end wl evaluate quietly
+            interrupt.check()  # (Ctrl-C inside the controller's own solver, come back as its error)
             raise ControllerError(f"controller {self.name}: {what} failed at {self._where()}: {_brief(exc)}") from exc
-
+        # Ctrl-C that the controller, or the CasADi solve it ran, swallowed (CasADi returns it as a failed solve): the
+        # evaluation ran on to the end, exit 0, its --out replaced (stop 60)
+        interrupt.check()
+        return out
 
     def _timed_out(self, what: str, timeout: float) -> ControllerError:
         return ControllerError(f"controller {self.name}: {what} did not return within the act timeout of "
@@ -349,8 +355,9 @@ def check_settings(episodes: int, init_noise: float, seed: int) -> None:
         raise ValueError(f"episodes must be an integer in [1, {MAX_EPISODES}], got {_short(episodes)}")
     if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
         raise ValueError(f"init_noise must lie in [0, 1], got {_short(init_noise)}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {_short(seed)}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        # (a 4300-digit seed ran the episodes, then failed to be written to the JSON)
+        raise ValueError(f"seed must be an integer in [0, {MAX_SEED}], got {_short(seed)}")
 
 
 def check_env_kwargs(env_id: Any, env_kwargs: Any, braking: str) -> None:

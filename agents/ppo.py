@@ -934,6 +934,11 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         given = cfg
         cfg, commands = read_run_config(saved)
         cfg.progress_bar = given.progress_bar
+        if ckpt is None and (run_dir / "final").exists():
+            # (it trained again from step 0 over the finished run's policy, eval.csv and tb/)
+            raise FileExistsError(f"{run_dir} holds a finished run with no checkpoint to resume from (it ended before "
+                                  f"its first --checkpoint-freq steps): its policy is {run_dir / 'final'}; train "
+                                  "another run name to train again")
         if ckpt is None:
             log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif ((run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir())) or (run_dir / "final").exists():

@@ -233,4 +233,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from wl_env.logs import run_script
+
+    run_script("bench_env", lambda: sys.exit(main()))  # (Ctrl-C: exit 130, no traceback)

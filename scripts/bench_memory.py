@@ -85,6 +85,8 @@ def main() -> None:
             proc.wait()
             raise
         wall = time.perf_counter() - t0
+    if proc.returncode != 0:  # (a failed run's figures were written as a measurement, exit 0)
+        sys.exit(f"bench_memory: wl run failed (exit {proc.returncode}): no figures")
     largest = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0  # KiB on Linux
     figures = {"exit_code": proc.returncode, "wall_s": round(wall, 1), "peak_tree_mb": round(peak),
                "peak_at_s": round(peak_at), "largest_process_mb": round(largest), "period_s": args.period}

@@ -214,6 +214,8 @@ def main() -> None:
         ap.error("--min-time-only runs no corner (they are mismatch runs): drop one of them")
     if args.horizons_only and not args.horizons:
         ap.error("--horizons-only needs --horizons")
+    if not all(2 <= h <= 1000 for h in args.horizons):  # (0 failed after the full-horizon runs, a traceback)
+        ap.error(f"--horizons must be integers in [2, 1000] (MPCConfig.horizon_steps), got {args.horizons}")
     if args.horizons and args.deadline_ms is not None:
         ap.error("--horizons runs the synchronous controller without a deadline (MPCConfig.horizon_steps)")
     # (a candidate that takes only the short horizons' NLPs is IPOPT on the full horizon: not run there)

@@ -104,8 +104,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="timings of each single and full solve")
     ap.add_argument("--pareto-repeats", type=int, default=3, help="timings of each Pareto sweep mode")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
-    ap.add_argument("--skip-pareto", action="store_true")
-    ap.add_argument("--pareto-only", action="store_true", help="time the Pareto sweeps only")
+    which = ap.add_mutually_exclusive_group()  # (both: nothing timed, exit 0, an empty --json written)
+    which.add_argument("--skip-pareto", action="store_true")
+    which.add_argument("--pareto-only", action="store_true", help="time the Pareto sweeps only")
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 
@@ -141,4 +142,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from wl_env.logs import run_script
+
+    run_script("bench_ocp", main)  # (Ctrl-C: exit 130, no traceback; a ValueError: one line, exit 2)

@@ -99,4 +99,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from wl_env.logs import run_script
+
+    run_script("bench_rti_qp", main)  # (Ctrl-C: exit 130, no traceback; a ValueError: one line, exit 2)

@@ -546,10 +546,12 @@ def _broken(results: dict, what: str) -> dict:
         results["optima"]["service"]["states"] = [[str(v) for v in row] for row in results["optima"]["service"]["states"]]
     elif what == "empty trajectory":  # (passed, then "too many indices" after three files, naming nothing; stop 59)
         results["trajectories"][0]["t"], results["trajectories"][0]["states"] = [], []
+    elif what == "brakings twice":  # (passed, then a staging file was missing, naming an internal path; stop 60)
+        results["brakings"] = ["service", "service"]
     return results
 
 
-@pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge",
+@pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge", "brakings twice",
                                   "controller", "times", "front", "string states", "empty trajectory"])
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
@@ -1123,3 +1125,40 @@ def test_a_bad_codegen_mode_is_one_line_before_any_work(tmp_path, capsys, monkey
     code, err = _attempt(capsys, ["mpc", "--braking", "tc", "--no-score", "--out", str(tmp_path / "o.json")])
     assert code == 2 and not no_work
     assert err.strip() == "wl: error: $WL_CODEGEN must be one of auto, on, off; got 'fast'"
+
+
+def test_a_dollar_in_a_controllers_name_is_drawn_as_it_is(tmp_path, cache, capsys):
+    """A `$` in a controller's name started matplotlib's mathtext: a parse error naming neither file nor field."""
+    out = tmp_path / "results"
+    results = wl.report.collect(out, cache=str(cache), brakings=("service",), suite_controllers=None,
+                                controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+    results = json.loads(json.dumps(results))
+    for r in results["rows"]:
+        r["controller"] = "$\\frac{$ " + r["controller"]
+    for tr in results["trajectories"]:
+        tr["controller"] = "$\\frac{$"
+    (out / "results.json").write_text(json.dumps(results))
+    capsys.readouterr()
+    code, _, err = _run(capsys, "report", "--results", out)
+    assert code == 0, err
+    assert "$\\frac{$" in (out / "leaderboard.md").read_text()
+
+
+def test_outputs_and_options_are_checked_before_the_work(tmp_path, capsys):
+    """Stop 60's command-line round: `--out newdir/` became a file named newdir; `wl pareto` found a folder in the way
+    of its second front's file after solving both, the first written; a 4300-digit --seed failed after the episodes;
+    --params naming a field twice kept the last."""
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--episodes", "1", "--no-score",
+                        "--out", f"{tmp_path}/newdir/")
+    assert code == 2 and "names a folder (its trailing /)" in err and not (tmp_path / "newdir").exists()
+    out = tmp_path / "p"
+    (out / "pareto_tc.json").mkdir(parents=True)
+    (out / "pareto_service.json").write_text('{"old": 1}')
+    code, _, err = _run(capsys, "pareto", "--cache", tmp_path / "c", "--out", out)
+    assert code == 2 and "pareto_tc.json is a folder" in err
+    assert (out / "pareto_service.json").read_text() == '{"old": 1}'
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--episodes", "1", "--no-score",
+                        "--seed", "9" * 4000, "--out", tmp_path / "e.json")
+    assert code == 2 and "--seed: must be an integer in [0, 2147483647]" in err
+    code, _, err = _run(capsys, "mpc", "--params", '{"M_load": 9000, "M_load": 9500}', "--out", tmp_path / "m.json")
+    assert code == 2 and "--params: the field 'M_load' is given twice" in err

@@ -105,6 +105,11 @@ def test_a_wheelloader_v2_run_trains_and_a_finished_run_is_not_overwritten(tmp_p
     assert latest_checkpoint(cfg.run_dir) is None
     with pytest.raises(FileExistsError, match="already holds a run"):
         train(dataclasses.replace(cfg, seed=1, learning_rate=1e-3))
+    # (--resume trained it again from step 0 over its policy, eval.csv and tb/: stop 60)
+    eval_csv = (cfg.run_dir / "eval.csv").read_text()
+    with pytest.raises(FileExistsError, match="holds a finished run with no checkpoint to resume from"):
+        train(cfg, resume=True)
+    assert (cfg.run_dir / "eval.csv").read_text() == eval_csv
     again = train_one(dataclasses.replace(cfg, log_dir=cfg.log_dir + "/").to_dict())
     assert again["num_timesteps"] == summary["num_timesteps"]
 

@@ -139,6 +139,8 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
         _out_dir(args.cache, "--cache")
     out = _out_dir(args.out)
     brakings = ("service", "tc") if args.braking in (None, "both") else (args.braking,)
+    for b in brakings:  # (each front's file before any solve: a folder in the way failed after both, one written)
+        _out_file(str(out / f"pareto_{b}.json"))
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
     for b, front in fronts.items():
@@ -364,14 +366,20 @@ def _act_timeout(text: str) -> float:
 
 def _seed(text: str) -> int:
     value = _number(text, int)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    from agents.evaluate import MAX_SEED
+
+    if not 0 <= value <= MAX_SEED:  # (a 4300-digit seed failed after the episodes, naming no option)
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, {MAX_SEED}]" + (f", got {value}" if value < 0 else ""))
     return value
 
 
 def _json_option(text: str, option: str) -> Any:
+    from wl_env.scenario import DuplicateKey, no_duplicate_keys
+
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=no_duplicate_keys)
+    except DuplicateKey as exc:  # (json kept the last value without a word; --scenario refused it)
+        raise ValueError(f"{option}: the field {exc.args[0]!r} is given twice") from None
     except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
         raise ValueError(f"{option} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
     except RecursionError:  # (a RuntimeError, not a JSONDecodeError)

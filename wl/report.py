@@ -244,6 +244,12 @@ def load_results(folder: str | Path) -> dict[str, Any]:
     return results
 
 
+def _plain_text(text: str) -> str:
+    """``text`` as matplotlib draws it literally: a ``$`` in a controller's or a suite's name started mathtext (a
+    parse error naming neither the file nor the field)."""
+    return text.replace("$", r"\$")
+
+
 def _problem(results: Any) -> str | None:
     """What keeps :func:`render` from drawing ``results``, or None."""
     from mpc.benchmark.pareto import check_front
@@ -253,7 +259,8 @@ def _problem(results: Any) -> str | None:
     if results.get("format") != RESULTS_FORMAT:
         return f"format {results.get('format')!r}, this version renders format {RESULTS_FORMAT}"
     try:
-        if not results["brakings"] or not set(results["brakings"]) <= set(BRAKINGS):
+        if (not results["brakings"] or not set(results["brakings"]) <= set(BRAKINGS)
+                or len(set(results["brakings"])) != len(results["brakings"])):  # (twice: a staging file missing)
             return f"brakings {results['brakings']!r}, expected some of {list(BRAKINGS)}"
         for b in results["brakings"]:
             front = results["fronts"][b]
@@ -380,7 +387,7 @@ def _draw(results: dict[str, Any], out: Path, staging: Path) -> list[Path]:
         for r in rows:
             if r["braking"] == b and r["controller"] in markers and r.get("completed"):
                 ax.plot(r["T"], r["fuel_g"], markers[r["controller"]], color=colors[b], mfc="none", ms=8,
-                        label=f"{r['controller']}, {b}")
+                        label=_plain_text(f"{r['controller']}, {b}"))
     ax.set_xlabel("cycle time (s)")
     ax.set_ylabel("fuel (g)")
     ax.grid(alpha=0.3)
@@ -398,7 +405,7 @@ def _draw(results: dict[str, Any], out: Path, staging: Path) -> list[Path]:
             ax.plot(results["optima"][b]["t"], opt[:, i] * scale[i], "k-", lw=2, label="optimum (min time)")
             for tr in results["trajectories"]:
                 if tr["braking"] == b:
-                    ax.plot(tr["t"], np.asarray(tr["states"])[:, i] * scale[i], lw=1, label=tr["controller"])
+                    ax.plot(tr["t"], np.asarray(tr["states"])[:, i] * scale[i], lw=1, label=_plain_text(tr["controller"]))
             ax.set_ylabel(labels[i])
             ax.grid(alpha=0.3)
         for ax in axes[1]:
@@ -455,7 +462,7 @@ def suite_figure(suite: dict[str, Any], path: Path) -> Path:
                 continue
             gap = [100 * e["fuel_gap"] for e in eps]
             axes[0].plot([e["scenario"]["payload"] / 1000 for e in eps], gap, marker, color=f"C{k}", mfc="none",
-                         label=f"{name}, {b}")
+                         label=_plain_text(f"{name}, {b}"))
             axes[1].plot([e["scenario"]["reverse_distance"] + e["scenario"]["forward_distance"] for e in eps], gap,
                          marker, color=f"C{k}", mfc="none")
     axes[0].set_xlabel("payload (t)")
@@ -464,7 +471,7 @@ def suite_figure(suite: dict[str, Any], path: Path) -> Path:
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"`{suite['suite']}` suite: fuel gap per scenario (successful episodes)")
+    fig.suptitle(_plain_text(f"`{suite['suite']}` suite: fuel gap per scenario (successful episodes)"))
     fig.tight_layout()
     out = save_figure(fig, path, dpi=120)
     plt.close(fig)

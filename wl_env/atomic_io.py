@@ -91,6 +91,8 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     in. (The benchmarks wrote their ``--json`` only after minutes of work.)"""
     if not str(path).strip():
         raise ValueError(f"{option} must name a file, got an empty string")
+    if str(path).endswith(("/", os.sep)):  # (Path drops the slash: `--out newdir/` became a file named newdir)
+        raise ValueError(f"{option} {path} names a folder (its trailing /): give a file name")
     real = _regular_file(Path(path), option)
     check_output_folder(real.parent, f"{option} {path}")
     return Path(path)

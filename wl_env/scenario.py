@@ -125,7 +125,7 @@ class Scenario:
             except (OSError, UnicodeDecodeError) as exc:
                 raise ValueError(f"{what}: cannot read it as text ({exc})") from None
         try:
-            data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
+            data = json.loads(text, object_pairs_hook=no_duplicate_keys)
         except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
             raise ValueError(f"{what} is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
         except RecursionError:  # (a RuntimeError, not a JSONDecodeError)
@@ -211,7 +211,8 @@ class DuplicateKey(Exception):
     """A JSON object that names a key twice (json keeps the last without a word)."""
 
 
-def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+def no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """json's ``object_pairs_hook`` that raises DuplicateKey for a key given twice."""
     out: dict[str, Any] = {}
     for key, value in pairs:
         if key in out:
