@@ -281,6 +281,7 @@ class GuardedController:
         raise ControllerError(f"controller {self.name}: {what} at {self._where()}")
 
     def _call(self, what: str, fn: Callable[..., Any], *args: Any, timeout: float | None) -> Any:
+        timed_out = False
         try:
             if timeout is None:
                 out = fn(*args)
@@ -296,12 +297,15 @@ class GuardedController:
         except KeyboardInterrupt:
             # (the timer inside IPOPT: CasADi returns an aborted solve, which the MPC raises as an interrupt; measured,
             # `wl evaluate --controller mpc --act-timeout 1` exited 130 "interrupted")
-            if timeout is not None and _alarm_fired.is_set() and not interrupt.interrupted():
-                raise self._timed_out(what, timeout) from None
-            raise
+            if not (timeout is not None and _alarm_fired.is_set() and not interrupt.interrupted()):
+                raise
+            timed_out = True  # (raised below, outside this handler: an error whose context is a KeyboardInterrupt
+            # is what Ctrl-C became, to the command line's interrupt.caused_by_interrupt)
         except (Exception, SystemExit) as exc:  # SystemExit: a user's sys.exit() must not end wl evaluate quietly
             interrupt.check()  # (Ctrl-C inside the controller's own solver, come back as its error)
             raise ControllerError(f"controller {self.name}: {what} failed at {self._where()}: {_brief(exc)}") from exc
+        if timed_out:
+            raise self._timed_out(what, timeout)
         # Ctrl-C that the controller, or the CasADi solve it ran, swallowed (CasADi returns it as a failed solve): the
         # evaluation ran on to the end, exit 0, its --out replaced (stop 60)
         interrupt.check()

@@ -59,9 +59,7 @@ def caused_by_interrupt(exc: BaseException) -> bool:
         if isinstance(e, KeyboardInterrupt):
             return True
         seen.add(id(e))
-        # (the chain as Python shows it: a context raised ``from None`` is not a cause; the act timeout's
-        # ControllerError, raised from None over the KeyboardInterrupt IPOPT made of the timer, was taken for Ctrl-C)
-        e = e.__cause__ or (None if e.__suppress_context__ else e.__context__)
+        e = e.__cause__ or e.__context__
     return _flag.is_set()
 
 

@@ -172,9 +172,11 @@ def test_numpy_scalars_are_the_numbers_they_hold():
     import wl_env  # noqa: F401
 
     kw = {"dt": np.float32(0.1), "substeps": np.int64(2), "init_noise": np.float32(0.5), "w_fuel": np.float64(2.0)}
-    a, b = gym.make("WheelLoader-v2", **kw), gym.make("WheelLoader-v2", **{k: v.item() for k, v in kw.items()})
+    # (a float32 as the decimal it prints: np.float32(0.015).item() is 0.01499..., under a range's 0.015; stop 60)
+    a, b = gym.make("WheelLoader-v2", **kw), gym.make("WheelLoader-v2", **{k: float(str(v)) if v.dtype.kind == "f" else
+                                                                             v.item() for k, v in kw.items()})
     np.testing.assert_array_equal(a.reset(seed=3)[0], b.reset(seed=3)[0])
-    assert a.unwrapped.core.dt == float(np.float32(0.1)) and type(a.unwrapped.core.dt) is float
+    assert a.unwrapped.core.dt == 0.1 and type(a.unwrapped.core.dt) is float
     t = gym.make("WheelLoaderTarget-v3")
     assert t.reset(seed=0, options={"target_time": np.float32(10.0)})[1] is not None and t.unwrapped.target_time == 10.0
     v = gym.make_vec("WheelLoader-v2", num_envs=2, vectorization_mode="vector_entry_point")

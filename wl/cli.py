@@ -348,6 +348,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _mpc_fuel_weight(text: str) -> float:
+    """The MPC's weighted mode's fuel weight: 0, or in [MIN_W_FUEL, 1] (a smaller one prices a step past a float)."""
+    from mpc.controller.mpc import MIN_W_FUEL
+
+    value = _unit_float(text)
+    if 0.0 < value < MIN_W_FUEL:
+        raise argparse.ArgumentTypeError(f"must be 0 (minimum time) or in [{MIN_W_FUEL:g}, 1], got {value:g}")
+    return value
+
+
 def _unit_float(text: str) -> float:
     value = _number(text, float)
     if not 0.0 <= value <= 1.0:  # false for NaN too
@@ -519,7 +529,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--min-time", action="store_true", help="minimum cycle time (default)")
     g.add_argument("--target-time", type=_float_in(1, 40, open_hi=True, unit=" s"), metavar="T",
                    help="minimum fuel, finishing by T seconds, in [1, 40) (the episode ends at 40 s)")
-    g.add_argument("--w-fuel", type=_unit_float, metavar="W", help="weighted fuel/time objective, fuel weight W in [0, 1]")
+    g.add_argument("--w-fuel", type=_mpc_fuel_weight, metavar="W",
+                   help="weighted fuel/time objective, fuel weight W: 0 (minimum time) or in [1e-06, 1]")
     p.add_argument("--deadline-ms", type=_float_in(0, 100, open_lo=True, unit=" ms"), metavar="MS",
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
     p.add_argument("--realtime", action="store_true", help="real-time MPC: each step applies the plan solved while "
