@@ -797,7 +797,7 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
     (["mpc", "--payload-scale", "inf"], "--payload-scale", "[0, 10]"),
     (["mpc", "--params", '{"M_load": 150000}', "--payload-scale", "10"], "--payload-scale", "[0, 200000] kg"),
     (["pareto", "--points", "2"], "--points", "[3, 100]"),
-    (["evaluate", "--controller", "operator", "--seed=-1"], "--seed", ">= 0"),
+    (["evaluate", "--controller", "operator", "--seed=-1"], "--seed", "in [0, 2147483647], got -1"),
     (["evaluate", "--controller", "operator", "--episodes", "99999999999999999999"], "--episodes", "[1, 100000]"),
     (["evaluate", "--controller", "operator", "--act-timeout", "1e308"], "--act-timeout", "(0, 86400]"),
     (["evaluate", "--controller", "operator", "--scenario", "[1, 2]"], "--scenario", "JSON object"),

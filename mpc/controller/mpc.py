@@ -1164,9 +1164,11 @@ class MPCController:
         durations = dict(zip(range(1, 5), ref.phase_durations, strict=True))
         if phase > 1:  # a controller started mid-cycle: the reference's later phases, in the time left
             durations = {q: d for q, d in durations.items() if q >= phase}
-        if self.config.mode == "target_time":  # (the target's steps; the fuel-optimal cycle's where it ends sooner)
-            n = max(min(self.schedule.target_steps - k, int(math.ceil(sum(durations.values()) / self.dt - 1e-6))),
-                    len(durations))
+        if self.config.mode == "target_time":
+            n = self.schedule.target_steps - k
+            if ref.objective == "fuel":  # (the fuel-optimal cycle, where it ends before the target: its own steps)
+                n = min(n, int(math.ceil(sum(durations.values()) / self.dt - 1e-6)))
+            n = max(n, len(durations))
         else:
             n = max(int(round(sum(durations.values()) / self.dt)), len(durations))
         return apportion(durations, n, self.dt)
