@@ -307,7 +307,7 @@ class MPCConfig:
 
         for f in dataclasses.fields(self):  # (a numpy scalar as the Python number it holds: np.int64(20) steps
             v = getattr(self, f.name)       # was "must be an integer", np.float32 a target JSON cannot write)
-            object.__setattr__(self, f.name, type(v)(map(plain, v)) if isinstance(v, (tuple, list)) else plain(v))
+            object.__setattr__(self, f.name, tuple(map(plain, v)) if isinstance(v, (tuple, list)) else plain(v))
 
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {shown(self.mode)}")
