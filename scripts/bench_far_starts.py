@@ -36,6 +36,8 @@ class Options:
 
 
 def run(o: Options) -> dict[str, Any]:
+    if not o.brakings:  # (an empty list failed in numpy: "need at least one array to concatenate")
+        raise ValueError("--brakings needs at least one of service, tc")
     for b in o.brakings:
         check_braking(b)
     if o.out is not None:

@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from agents.ppo import read_eval_csv  # noqa: E402
+from agents.ppo import EVAL_FIELDS, read_eval_csv  # noqa: E402
 from wl_env.atomic_io import save_figure  # noqa: E402
 
 GAP_TARGET = 0.15
@@ -154,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"warning: no Pareto front ({e})", file=sys.stderr)
     if not rows:
         ap.error(f"{csv_path} holds no evaluation rows: nothing to plot")
+    missing = [c for c in ("step", "T", "fuel_g") if c not in rows[0]]  # (another CSV: an empty plot, exit 0)
+    if missing:
+        ap.error(f"{csv_path} is no evaluation log: it has no {', '.join(missing)} column (eval.csv has {EVAL_FIELDS[0]}, ...)")
     if front is not None:  # score the rows logged while no front was at hand
         from mpc.benchmark.scoring import score_run
 

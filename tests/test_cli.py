@@ -334,6 +334,10 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
     (["bench_far_starts.py", "--brakings", "moon"], "braking must be one of"),
+    (["bench_far_starts.py", "--brakings"], "--brakings needs at least one of service, tc"),  # (numpy's concatenate error)
+    (["bench_mpc.py", "--horizons", "0"], "--horizons must be integers in [2, 1000]"),  # (a traceback after the runs)
+    (["bench_ocp.py", "--skip-pareto", "--pareto-only"], "not allowed with argument"),  # (nothing timed, exit 0)
+    (["bench_rti_qp.py", "--target", "1"], "target_time 1 s is impossible"),  # (a traceback)
     (["bench_mumps_ordering.py", "--orders", "2", "3"], "--orders must be two or more distinct values of [0, 2, 4, 5, 6, 7]"),
     (["bench_mumps_ordering.py", "--orders", "2"], "--orders must be two or more distinct values"),
     (["bench_mumps_ordering.py", "--scenarios", "0"], "nothing to run: --scenarios 0 without --corners"),
@@ -1162,3 +1166,16 @@ def test_outputs_and_options_are_checked_before_the_work(tmp_path, capsys):
     assert code == 2 and "--seed: must be an integer in [0, 2147483647]" in err
     code, _, err = _run(capsys, "mpc", "--params", '{"M_load": 9000, "M_load": 9500}', "--out", tmp_path / "m.json")
     assert code == 2 and "--params: the field 'M_load' is given twice" in err
+
+
+def test_plot_learning_curve_refuses_a_csv_that_is_no_evaluation_log(tmp_path):
+    """A CSV without the evaluation's columns drew an empty plot, exit 0 (stop 60)."""
+    import subprocess
+    import sys
+
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    script = Path(__file__).resolve().parents[1] / "scripts" / "plot_learning_curve.py"
+    r = subprocess.run([sys.executable, str(script), str(tmp_path / "x.csv"), "--no-front", "--out", str(tmp_path / "x.png")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "is no evaluation log: it has no step, T, fuel_g column" in r.stderr
+    assert not (tmp_path / "x.png").exists()

@@ -820,7 +820,8 @@ def _result(ocp: CycleOCP, z: np.ndarray, info: dict[str, Any], objective: str, 
         t=sol["t"].tolist(), states=sol["states"].tolist(), controls=sol["controls"].tolist(),
         phase=[int(v) for v in sol["phase"]], position=sol["position"].tolist(), status=info["status"],
         success=True, iterations=info["iterations"], wall_time=sum(r.get("wall_time", 0.0) for r in records),
-        w_fuel=w_fuel, target_T=T, params_fingerprint=p.fingerprint(), mesh=list(ocp.settings.intervals),
+        w_fuel=None if w_fuel is None else float(w_fuel), target_T=None if T is None else float(T),  # (numpy's: no JSON)
+        params_fingerprint=p.fingerprint(), mesh=list(ocp.settings.intervals),
         degree=ocp.settings.degree, solver=ocp.settings.solver, smoothing=info["smoothing"], starts=records,
         scenario_fields=scenario_fields(p), scenario=scenario_of(p, ocp.braking),
     )
