@@ -237,7 +237,8 @@ def _portable(exc: BaseException) -> BaseException:
         return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
-def _die_with_parent(parent_pid: int) -> None:
+def kill_with_parent() -> None:
+    """This process gets SIGKILL when its parent dies (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing)."""
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -245,7 +246,11 @@ def _die_with_parent(parent_pid: int) -> None:
             PR_SET_PDEATHSIG = 1
             ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
         except (OSError, AttributeError):
-            pass  # the watchdog below still ends it
+            pass
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    kill_with_parent()  # (where it cannot be armed, the watchdog below still ends it)
     if os.getppid() != parent_pid:  # the parent died before the death signal was armed
         os._exit(1)
     threading.Thread(target=_watchdog, args=(parent_pid,), name="wl-parent-watchdog", daemon=True).start()

@@ -1145,3 +1145,28 @@ def test_an_act_timeout_inside_a_solver_is_the_timeout_not_an_interrupt():
         evaluate_controller(MPCController("tc"), "tc", episodes=1, init_noise=0.0, act_timeout=0.3, score=False,
                             scenario=Scenario(payload=11321.0, braking="tc"))  # (a cycle no test planned: ~1 s)
     assert not interrupt.interrupted()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork, /proc/self/fd and SIGCHLD as on Linux")
+def test_a_forked_call_survives_a_refused_fork_and_an_ignored_sigchld(monkeypatch):
+    """A fork refused at the process limit (EAGAIN) ended the run (`wl: error: [Errno 11]`) and leaked the pipe; with
+    SIGCHLD ignored by the caller the child's whole result was thrown away (its exit status unknown) and every move
+    solved twice (stop 60's fork round)."""
+    import errno
+
+    from mpc.controller import forked
+
+    previous = signal.signal(signal.SIGCHLD, signal.SIG_IGN)
+    try:
+        assert forked.ForkedCall(lambda: [1, 2, 3]).result(timeout=30.0) == [1, 2, 3]
+    finally:
+        signal.signal(signal.SIGCHLD, previous)
+    fds = len(os.listdir("/proc/self/fd"))
+
+    def refused() -> int:
+        raise OSError(errno.EAGAIN, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(forked.os, "fork", refused)
+    for _ in range(5):
+        assert forked.ForkedCall(lambda: 1).result(timeout=30.0) is None
+    assert len(os.listdir("/proc/self/fd")) == fds

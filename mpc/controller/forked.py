@@ -5,7 +5,9 @@ builds them again, ~0.2 s per slot layout after its machine's model), and two th
 not 2x (CasADi takes the GIL at every function evaluation; docs/benchmarks.md section 3). A fork shares them
 copy-on-write and starts in a few ms. The child runs the call and nothing else: it ignores SIGINT (an interrupted
 parent kills it), sends the pickled result through a pipe (its own result: nothing from a user is unpickled) and
-leaves with ``os._exit`` (no atexit handlers, no buffers of the parent's flushed twice). The parent's other threads
+leaves with ``os._exit`` (no atexit handlers; the parent's output buffers are flushed before the fork, so the child
+writes none of them again); it dies with its parent (``prctl``, as the workers of :mod:`mpc.workers`). A fork the
+system refuses (the process limit) is a failed call: the caller solves the move itself. The parent's other threads
 are not in the child; one that held a lock the call needs would hang it, so the parent waits ``timeout`` at most,
 then kills it and does the work itself (a child that crashes on a heap another thread was changing is a failed call
 too). The MPC forks only while none of its own threads runs a solve (:meth:`MPCController.end_episode`).
@@ -25,6 +27,8 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
+from mpc.workers import kill_with_parent
+
 log = logging.getLogger(__name__)
 
 
@@ -38,14 +42,31 @@ class ForkedCall:
     """``fn()`` started in a forked child; :meth:`result` waits for its return value, :meth:`cancel` kills it."""
 
     def __init__(self, fn: Callable[[], Any]) -> None:
+        self._pid: int | None = None
+        self._fd: int | None = None
+        parent = os.getpid()
         read_fd, write_fd = os.pipe()
-        with warnings.catch_warnings():  # (Python 3.12+ warns of fork in a threaded process: see the module's note)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            pid = os.fork()
+        for stream in (sys.stdout, sys.stderr):  # (the child must not write out the parent's buffered output again)
+            try:
+                stream.flush()
+            except (AttributeError, OSError, ValueError):
+                pass
+        try:
+            with warnings.catch_warnings():  # (Python 3.12+ warns of fork in a threaded process: see the module's note)
+                warnings.simplefilter("ignore", DeprecationWarning)
+                pid = os.fork()
+        except OSError as exc:  # (EAGAIN at the process limit, ENOMEM: the call fails, the caller solves it itself)
+            os.close(read_fd)
+            os.close(write_fd)
+            log.warning("no fork for a schedule-move solve (%s): solved here", exc)
+            return
         if pid == 0:  # the child
             code = 1
             try:
                 os.close(read_fd)
+                kill_with_parent()  # (a parent killed with SIGKILL leaves no child solving on)
+                if os.getppid() != parent:
+                    os._exit(1)
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
                 data = pickle.dumps(fn(), protocol=pickle.HIGHEST_PROTOCOL)
                 view = memoryview(data)
@@ -57,8 +78,7 @@ class ForkedCall:
             finally:
                 os._exit(code)
         os.close(write_fd)
-        self._pid: int | None = pid
-        self._fd: int | None = read_fd
+        self._pid, self._fd = pid, read_fd
 
     def result(self, timeout: float) -> Any | None:
         """The call's return value, or None if the child failed, died or did not answer within ``timeout`` s
@@ -83,7 +103,12 @@ class ForkedCall:
             chunks.append(chunk)
         status = _reap(self._pid)
         self._pid = None
-        return pickle.loads(b"".join(chunks)) if status == 0 and chunks else None
+        if not chunks or status not in (0, None):  # (None: reaped elsewhere, SIGCHLD ignored; a whole result counts)
+            return None
+        try:
+            return pickle.loads(b"".join(chunks))
+        except (pickle.UnpicklingError, EOFError, ValueError):  # (cut short: a child that died while writing)
+            return None
 
     def cancel(self) -> None:
         """Kill the child if it still runs, and reap it (idempotent)."""
