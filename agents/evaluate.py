@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.ppo_config import MAX_SEED
 from mpc import interrupt
 from wl_env import cycle
 from wl_env.atomic_io import check_output_folder
@@ -39,7 +40,6 @@ from wl_env.scenario import Scenario, resolve_scenario
 log = logging.getLogger(__name__)
 
 BUILTIN_CONTROLLERS = ("ppo", "plan", "bc", "operator", "mpc")
-MAX_SEED = 2**31 - 1  # the evaluation seed's largest value (the training's too: agents.ppo_config)
 POLICY_DIR = Path(__file__).resolve().parent / "policies"
 # the shipped policies: PPO on the paper's cycle (WheelLoader-v1), and the target-conditioned PPO and
 # behaviour-cloned (imitation) policies of the target task (the env each was trained on is in its metadata)

@@ -50,6 +50,8 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+MAX_SEED = 2**31 - 1  # the largest seed of a training run or an evaluation (gymnasium's env seeds add steps to it)
+
 # field -> (requirement as said in the error, test); a value is a number only if finite and not a bool
 _RULES: dict[str, tuple[str, Any]] = {
     "env_id": (f"one of {', '.join(ENV_IDS)}", lambda v: v in ENV_IDS),
@@ -59,7 +61,7 @@ _RULES: dict[str, tuple[str, Any]] = {
     "target_power": ("a number in [{:g}, {:g}] (the target ratio's draw: lo + (hi - lo) u**power; 1 uniform)".format(
         *TARGET_POWER_RANGE), lambda v: is_real_number(v) and TARGET_POWER_RANGE[0] <= v <= TARGET_POWER_RANGE[1]),
     "init_policy": ("'' or the path of a pickle-free policy", lambda v: isinstance(v, str) and len(v) <= 4096),
-    "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v < 2**31),  # (env seeds add the step)
+    "seed": ("an integer in [0, 2**31 - 1]", lambda v: _is_int(v) and 0 <= v <= MAX_SEED),  # (env seeds add the step)
     "total_timesteps": ("an integer >= 1", lambda v: _is_int(v) and v >= 1),
     "num_envs": (f"an integer in [1, {MAX_NUM_ENVS}]", lambda v: _is_int(v) and 1 <= v <= MAX_NUM_ENVS),
     "log_dir": ("a non-empty folder name", lambda v: isinstance(v, str) and v.strip() != "" and len(v) <= 4096),

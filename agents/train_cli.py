@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from agents.ppo_config import MAX_EVAL_EPISODES, ConfigError, PPOConfig
+from agents.ppo_config import MAX_EVAL_EPISODES, MAX_SEED, ConfigError, PPOConfig
 from mpc import interrupt
 from wl_env.atomic_io import check_output_folder
 
@@ -116,7 +116,7 @@ def _count(text: str, most: int | None = None) -> int:
 
 def _seed(text: str) -> int:
     """``--seeds``: each in PPOConfig.seed's range, said as this flag's (not as the field's, after the parse)."""
-    return _count(text, 2**31 - 1)
+    return _count(text, MAX_SEED)
 
 
 def _episodes(text: str) -> int:

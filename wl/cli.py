@@ -376,7 +376,7 @@ def _act_timeout(text: str) -> float:
 
 def _seed(text: str) -> int:
     value = _number(text, int)
-    from agents.evaluate import MAX_SEED
+    from agents.ppo_config import MAX_SEED
 
     if not 0 <= value <= MAX_SEED:  # (a 4300-digit seed failed after the episodes, naming no option)
         raise argparse.ArgumentTypeError(f"must be an integer in [0, {MAX_SEED}]" + (f", got {value}" if value < 0 else ""))

@@ -80,6 +80,16 @@ MAX_EPISODE_TIME = 3600.0  # s: a cycle takes 8-25 s; an hour bounds an episode'
 # s: the shortest control interval (5e-324 s never moved the clock, t + dt == t, and the plan env at 1e-7 s drove
 # 10^8 steps per plan: neither ever ended)
 MIN_DT = 1e-3
+
+
+def check_control_interval(dt: Any) -> float:
+    """``dt`` (s) as a float if it lies in [MIN_DT, 1] (numpy's numbers too), else ValueError naming it."""
+    dt = plain(dt)
+    if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and MIN_DT <= dt <= 1.0):
+        raise ValueError(f"dt (the control interval) must lie in [{MIN_DT:g}, 1] s, got {shown(dt)}")
+    return float(dt)
+
+
 # A state past these multiples of the machine's top engine speed (the observation space ends at 1.5x) and top
 # speed in gear did not come from the physics but from a fixed-step RK4 made unstable by the parameters
 # (eta_lift 0.01: 8865 rad/s after one step, 6.8e14 after two)
@@ -113,9 +123,7 @@ class CycleStepper(Flattened):
     ) -> None:
         if fuel_action not in FUEL_ACTIONS:
             raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
-        dt, substeps, max_time = plain(dt), plain(substeps), plain(max_time)
-        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and MIN_DT <= dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in [{MIN_DT:g}, 1] s, got {shown(dt)}")
+        dt, substeps, max_time = check_control_interval(dt), plain(substeps), plain(max_time)
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
         if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time)

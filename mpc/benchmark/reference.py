@@ -116,7 +116,7 @@ def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike
         if not r.success:
             raise OCPError(f"the {braking} minimum-time cycle of this scenario fails its re-simulation: {r.status}")
     # The minimum time moves with the mesh: on the default one it lay up to 0.7 % high (the nominal service cycle
-    # 8.1666 s against 8.1369 s at <= 0.07 s per interval, a 10 m-leg scenario 11.024 s against 10.971 s), and the MPC
+    # 8.1666 s against 8.1427 s at <= 0.07 s per interval, a 10 m-leg scenario 11.024 s against 10.971 s), and the MPC
     # scored a time gap of -0.21 % against it (stop 60). A cached coarse one is solved again too.
     try:
         fine = solve_ocp(braking, "time", params=params, warm_start=r, starts=(),

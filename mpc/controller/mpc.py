@@ -63,12 +63,11 @@ from mpc.controller.terminal import terminal_control
 from wl_env import cycle
 from wl_env.codec import Codec
 from wl_env.env import check_target_time
-from wl_env.episode import MIN_DT
+from wl_env.episode import check_control_interval
 from wl_env.params import (
     SCENARIO_FIELDS,
     LoaderParams,
     check_no_overridden,
-    is_finite,
     is_real_number,
     plain,
     resolve,
@@ -414,10 +413,8 @@ class MPCController:
         if solver is not None and not all(callable(getattr(solver, m, None)) for m in ("solve", "prepare")):
             raise ValueError(f"solver must be a GridSolver (solve() and prepare()) or None, got {type(solver).__name__}")
         self.config = config or MPCConfig()
-        dt, substeps = plain(dt), plain(substeps)
-        if isinstance(dt, bool) or not (isinstance(dt, (int, float)) and is_finite(dt) and MIN_DT <= dt <= 1.0):
-            raise ValueError(f"dt (the control interval) must lie in [{MIN_DT:g}, 1] s, got {shown(dt)}")
-        # (the environment's range: int() took 1.7 as 1, 0 divided by zero and 10**9 built its steps for hours)
+        dt, substeps = check_control_interval(dt), plain(substeps)  # (the environment's range)
+        # (int() took 1.7 substeps as 1, 0 divided by zero and 10**9 built its steps for hours)
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
             raise ValueError(f"substeps must be an integer in [1, 1000], got {shown(substeps)}")
         self.dt, self.substeps = float(dt), substeps
@@ -1114,25 +1111,19 @@ class MPCController:
             alt.keep_lam_p()  # (its source holds the NLP, which stays here)
             return alt
 
+        # The fork takes the second move, or a move alone while this process builds the later phases' NLPs.
         fork = self.config.parallel_search and forked.available()
-        if len(moves) == 1 and fork and self._later_nlps:
-            # a move alone: solved in the fork while this process builds the later phases' NLPs
-            child = forked.ForkedCall(lambda: in_child(moves[0]))
-            try:
-                t0 = time.perf_counter()
-                self._build_later_nlps()
-                alt = child.result(timeout=max(FORKED_TIMEOUT_S, 4.0 * (time.perf_counter() - t0)))
-                return [alt if alt is not None else solve(moves[0])]
-            finally:
-                child.cancel()
-        child = forked.ForkedCall(lambda: in_child(moves[1])) if len(moves) > 1 and fork else None
+        away = None if not fork else 1 if len(moves) > 1 else 0 if self._later_nlps else None
+        child = None if away is None else forked.ForkedCall(lambda: in_child(moves[away]))
         try:
             t0 = time.perf_counter()
-            alts = [solve(moves[0])]
-            if len(moves) > 1:
-                alt = child.result(timeout=max(FORKED_TIMEOUT_S, 4.0 * (time.perf_counter() - t0))) if child else None
-                alts.append(alt if alt is not None else solve(moves[1]))
-            return alts
+            alts = {i: solve(m) for i, m in enumerate(moves) if i != away}
+            if away == 0:
+                self._build_later_nlps()
+            if away is not None:
+                alt = child.result(timeout=max(FORKED_TIMEOUT_S, 4.0 * (time.perf_counter() - t0)))
+                alts[away] = alt if alt is not None else solve(moves[away])
+            return [alts[i] for i in range(len(moves))]
         finally:
             if child is not None:
                 child.cancel()
