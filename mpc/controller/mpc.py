@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import itertools
 import logging
 import math
 import os
@@ -1363,16 +1364,29 @@ class MPCController:
             self._replan = None
 
     def _prepare_horizons(self) -> None:
-        """Build the NLPs and solvers of the horizons along the schedule left (cached: built once)."""
-        counts = dict(self._counts)
-        for q in sorted(counts):
-            # the horizon from each of the phase's full steps, then with none left: from the stop step of
-            # phases 2 and 4, or, in phases 1 and 3, a plant that has not yet reached the phase's end
-            # (unprepared, that layout was built mid-cycle: 1.3-1.9 s steps)
-            while counts[q] >= 0:
-                self.solver.prepare(self._horizon_nlp(q, counts)[0])
-                counts[q] -= 1
-            del counts[q]
+        """Build the NLPs and solvers of the horizons along the schedule left and along each schedule a move
+        away from it, which a re-plan may take (cached: built once). A re-plan's new horizons were built at the
+        step that took it up: TC x1.2 / x1.3, 22.6 ms of a 59 ms step (stop 60)."""
+        cap = self.config.horizon + 1  # (a phase with more steps left than that ends any horizon open in it)
+        base = {q: min(n, cap) for q, n in self._counts.items()}
+        schedules = {tuple(base.items())}
+        for move in itertools.permutations([None, *base], 2):
+            c = moved(base, move)
+            if min(c.values()) >= 0:
+                schedules.add(tuple((q, min(n, cap)) for q, n in c.items()))
+        prepared = set()
+        for schedule in schedules:
+            counts = dict(schedule)
+            for q in sorted(counts):
+                # the horizon from each of the phase's full steps, then with none left: from the stop step of
+                # phases 2 and 4, or, in phases 1 and 3, a plant that has not yet reached the phase's end
+                # (unprepared, that layout was built mid-cycle: 1.3-1.9 s steps)
+                for n in range(counts[q], -1, -1):
+                    counts[q] = n
+                    key = (q, horizon_counts(counts, q, self.config.horizon)[1])
+                    if key not in prepared:
+                        prepared.add(key)
+                        self.solver.prepare(self._horizon_nlp(q, counts)[0])
 
     def _horizon_solve(self, x: np.ndarray, phase: int) -> tuple[Solve, GridNLP]:
         """Solve the next ``horizon_steps`` of the schedule from state x, warm-started from the last horizon's

@@ -132,6 +132,9 @@ def step_model(braking: str, params: LoaderParams, dt: float, substeps: int, ome
 # with its IPOPT holds a few MB beside its machine's slot functions (measured at stop 45: a layout's four
 # +41 MB in a fresh process, the next layout's +7 MB; 50-200 MB each before).
 NLP_CACHE = 8
+# The short horizons' NLPs and solvers: those along a schedule and along each schedule a move away from it (
+# MPCController._prepare_horizons), 9-12 a cycle, and their machine's other layouts' (slots under a horizon's).
+HORIZON_CACHE = 16
 
 
 CacheInfo = collections.namedtuple("CacheInfo", "hits misses maxsize currsize")
@@ -174,10 +177,10 @@ class _NLPCache:
 grid_nlp = _NLPCache(NLP_CACHE)
 
 
-@functools.lru_cache(maxsize=NLP_CACHE)
+@functools.lru_cache(maxsize=HORIZON_CACHE)
 def horizon_nlp(model: StepModel, first_phase: int, slots: tuple[tuple[int, int], ...], open_phase: int | None) -> GridNLP:
     """A short horizon's NLP, ending open in ``open_phase`` (None: at the cycle's end). A cache of its own
-    (with its solvers): a cycle slides through ~6 of them, which would push the full layouts out of theirs."""
+    (with its solvers): a cycle prepares 9-12 of them, which would push the full layouts out of theirs."""
     return GridNLP(model, first_phase, dict(slots), "SX", open_phase, short=True)
 
 
@@ -290,7 +293,7 @@ def _build_ipopt(nlp: GridNLP, warm: bool, max_iter: int, max_wall_time: float |
 
 # the full layouts' solvers, and the short horizons' (each a cache of its own, as their NLPs)
 _ipopt = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
-_ipopt_horizon = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
+_ipopt_horizon = functools.lru_cache(maxsize=HORIZON_CACHE)(_build_ipopt)
 
 
 class IpoptSolver:
@@ -380,7 +383,7 @@ class FatropSolver:
                             lam_p_source=functools.partial(np.ravel, np.array(sol["lam_p"])), f=float(sol["f"]))
 
 
-@functools.lru_cache(maxsize=NLP_CACHE)
+@functools.lru_cache(maxsize=HORIZON_CACHE)  # (the real-time iteration runs on the short horizons)
 def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
     qp_opts = {"hpipm": {**stage_structure(nlp), "hpipm": {"warm_start": True}}, "osqp": {"osqp": {"verbose": False}}}.get(qpsol, {})
     # The Lagrangian's Hessian is indefinite (the dynamics' curvature under the multipliers), which an
