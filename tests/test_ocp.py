@@ -1,6 +1,8 @@
 """The optimal control benchmark: converges, reproduces in simulation, refines, fails clearly."""
 
 import json
+import math
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -234,3 +236,161 @@ def test_the_optimum_a_step_over_the_minimum_time_is_found_from_the_cycles_own_f
 def test_solve_ocp_refuses_bad_arguments_by_name_before_any_solve(kwargs, needle):
     with pytest.raises(ValueError, match=needle):
         solve_ocp("service", **{"objective": "time", **kwargs})
+
+
+def _front(T, fuel, **changes):
+    base = dict(braking="service", T=T, fuel_g=fuel, params_fingerprint=resolve(None).fingerprint(), T_min=8.0,
+                T_fuel_opt=21.0, fuel_min_g=47.5, mesh=[20, 12, 20, 12])
+    return ParetoFront(**{**base, **changes})
+
+
+@pytest.mark.parametrize("T, fuel", [
+    ([9.0, 8.0, 11.0, 15.0, 21.0], [70.0, 95.0, 55.0, 49.0, 47.5]),  # unsorted: scored 59.4 g at 10 s (60.3)
+    ([8.0, 9.0, 9.0, 15.0, 21.0], [95.0, 70.0, 60.0, 49.0, 47.5]),  # a time twice: 53.8 g, a division by zero
+    ([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, float("nan"), 55.0, 49.0, 47.5]),  # fuel gap nan
+    ([8.0], [95.0]), (None, None),  # an IndexError / a TypeError
+    ([8.0, 9.0, 11.0, 15.0, 21.0], [40.0, 70.0, 55.0, 49.0, 47.5])])  # fuel rising: a fuel gap of -3.3 %
+def test_a_given_front_that_is_no_front_is_refused_by_name(T, fuel, tmp_path):
+    """A front given to score or look up a cycle is checked as a cached one is, before it is interpolated."""
+    from mpc.benchmark.pareto import optimal_fuel_at
+
+    front = _front(T, fuel)
+    with pytest.raises(ValueError, match="front is no valid Pareto front"):
+        score_run(10.0, 60.0, "service", front=front, cache=tmp_path, solve=False)
+    with pytest.raises(ValueError, match="front is no valid Pareto front"):
+        optimal_fuel_at(10.0, "service", front=front, cache=tmp_path)
+    if fuel is None or fuel[0] != 40.0:  # (a fuel that rises interpolates: a polished front may hold a local optimum)
+        with pytest.raises(ValueError, match="cannot be interpolated"):
+            front.fuel_at(10.0)
+    good = _front(np.array([8.0, 9.0, 11.0, 15.0, 21.0]), np.array([95.0, 70.0, 55.0, 49.0, 47.5]), mesh=(20, 12, 20, 12))
+    assert score_run(10.0, 60.0, "service", front=good, solve=False).fuel_opt_g == pytest.approx(60.3095, abs=1e-4)
+
+
+def test_scoring_refuses_what_no_optimum_holds_before_any_solve(monkeypatch, tmp_path):
+    """score_run(1e300, ...) solved the minimum-time cycle and then failed with an OSError (the optimum's file
+    name too long); direct_fuel_at(nan) solved it and then refused T; smoothness() solved before it found the
+    trajectory empty."""
+    from mpc.benchmark import reference
+    from mpc.benchmark.pareto import optimal_fuel_at
+    from mpc.benchmark.scoring import smoothness
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved before the arguments were checked")
+
+    monkeypatch.setattr(reference, "solve_ocp", no_solve)
+    monkeypatch.setattr(reference, "fixed_time_optimum", no_solve)
+    front = _front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5])
+    with pytest.raises(ValueError, match=r"T must be a cycle time in \(0, 60\] s"):
+        score_run(1e300, 60.0, "service", front=front, cache=tmp_path)
+    with pytest.raises(ValueError, match=r"T \(the cycle time\) must be a number in \(0, 60\] s"):
+        optimal_fuel_at(1e300, "service", front=front, cache=tmp_path)
+    for T in (float("nan"), 1e300, -1.0):
+        with pytest.raises(ValueError, match=r"T must be a finite cycle time in \[0.4, 60\] s"):
+            reference.direct_fuel_at("service", T, DEFAULT_PARAMS, tmp_path)
+    with pytest.raises(ValueError, match="controls must be finite rows"):
+        smoothness([], 10.0, "service", cache=tmp_path)
+    with pytest.raises(ValueError, match="T must be a finite cycle time"):
+        smoothness([[100.0, 0.0, 0.0]] * 3, float("nan"), "service", cache=tmp_path)
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_cache_that_is_no_folder_is_refused_by_name(monkeypatch, tmp_path):
+    """A file as the cache was a NotADirectoryError's traceback from the first lookup (score_run, known_front,
+    optimal_fuel_at); a file inside the cache where a folder belongs is no entry (the shipped optimum serves)."""
+    from mpc.benchmark.pareto import cache_dir, optimal_fuel_at
+    from mpc.benchmark.reference import known_front, min_time_of
+
+    file = tmp_path / "f"
+    file.write_text("")
+    for cache in (file, file / "sub"):
+        with pytest.raises(ValueError, match="cache must be a folder, but .*/f is a file"):
+            score_run(10.0, 60.0, "service", cache=cache)
+        with pytest.raises(ValueError, match="cache must be a folder"):
+            known_front("service", DEFAULT_PARAMS, cache=cache)
+    front = _front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5])
+    with pytest.raises(ValueError, match="cache must be a folder"):
+        optimal_fuel_at(30.0, "service", front=front, cache=file)
+    for cache in ("", " ", 5):
+        with pytest.raises(ValueError, match="cache must be a folder path or None"):
+            cache_dir(cache)
+    monkeypatch.setenv("WL_CACHE_DIR", str(file))
+    with pytest.raises(ValueError, match=r"\$WL_CACHE_DIR must be a folder"):
+        min_time_of("service", DEFAULT_PARAMS)
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "pareto").write_text("")
+    assert known_front("service", DEFAULT_PARAMS, cache=tmp_path / "c")[1] == "shipped"
+
+
+def test_a_front_is_not_ended_by_a_cycle_that_fails_its_re_simulation(monkeypatch, tmp_path):
+    """The front's T_min, T_fuel_opt and fuel_min_g came from its end cycles whether or not they re-simulated:
+    a minimum-time cycle that failed its check set the T_min every time gap was scored against."""
+    from dataclasses import replace as dc_replace
+
+    from fakes import fake_solve
+
+    from mpc.benchmark import pareto
+
+    def failing_min_time(*args, **kwargs):
+        r = fake_solve(*args, **kwargs)
+        if r.objective == "time":
+            r = dc_replace(r, success=False, status="Solve_Succeeded (re-simulation check failed)",
+                           verification={"passed": False})
+        return r
+
+    fake_solve.calls = []
+    monkeypatch.setattr(pareto, "solve_ocp", failing_min_time)
+    with pytest.raises(OCPError, match="minimum-time cycle fails its re-simulation.*check failed"):
+        pareto.pareto_front("service", n_points=3, cache=tmp_path, neighbour=False)
+    assert not list(tmp_path.rglob("front.json"))
+    monkeypatch.setattr(pareto, "solve_ocp", fake_solve)  # (a numpy count is a count)
+    front = pareto.pareto_front("service", n_points=np.int64(3), cache=tmp_path / "ok", neighbour=False)
+    assert front.T_min == 7.0 and len(front.T) == 3
+
+
+def test_a_result_file_is_checked_when_read(tmp_path):
+    """OCPResult.load took a string T and states of any shape as they were; a changed entry of save_result
+    was taken without its checksum. Results round-trip through to_dict/from_dict and JSON exactly."""
+    from dataclasses import replace as dc_replace
+
+    from fakes import fake_solve
+
+    from mpc.benchmark.pareto import save_result
+
+    r = dc_replace(fake_solve("service", "time"), T=np.float64(7.0), iterations=np.int64(10),
+                   verification={"passed": True, "reversing_error_m": float("nan")})
+    back = OCPResult.load(r.save(tmp_path / "r.json"))
+    assert back.T == r.T and back.iterations == 10 and math.isnan(back.verification["reversing_error_m"])
+    text = json.dumps(r.to_dict())  # (NaN != NaN: compared as the JSON text)
+    assert json.dumps(OCPResult.from_dict(json.loads(text)).to_dict()) == text
+    f32 = dc_replace(r, fuel_g=np.float32(80.1), verification={"passed": True})  # (json.dumps failed on numpy's)
+    assert OCPResult.from_dict(json.loads(json.dumps(f32.to_dict()))).fuel_g == np.float32(80.1)
+    s = score_run(np.float32(10.0), np.float64(66.0), "service", front=_front([8.0, 9.0, 11.0, 15.0, 21.0],
+                                                                                [95.0, 70.0, 55.0, 49.0, 47.5]))
+    from mpc.benchmark.scoring import Score
+
+    assert Score.from_dict(json.loads(json.dumps(s.to_dict()))) == s
+    with pytest.raises(ValueError, match="score field 'fuel_gap' must be a finite number"):
+        Score.from_dict({**s.to_dict(), "fuel_gap": float("nan")})
+    assert OCPResult.load(save_result(r, tmp_path / "e.json")).fuel_g == r.fuel_g
+    for change, needle in (({"T": "abc"}, "field 'T'"), ({"states": [[1.0]]}, "do not match"),
+                           ({"fuel_g": float("nan")}, "field 'fuel_g'")):
+        data = {**json.loads((tmp_path / "r.json").read_text()), **change}
+        (tmp_path / "bad.json").write_text(json.dumps(data))
+        with pytest.raises(ValueError, match=f"bad.json is not a consistent OCP result: .*{needle}"):
+            OCPResult.load(tmp_path / "bad.json")
+    entry = json.loads((tmp_path / "e.json").read_text())
+    (tmp_path / "e.json").write_text(json.dumps({**entry, "fuel_g": 1.0}))
+    with pytest.raises(ValueError, match="checksum mismatch"):
+        OCPResult.load(tmp_path / "e.json")
+
+
+def test_a_front_short_of_its_fuel_optimal_end_is_not_extrapolated():
+    """A front whose last point lies before T_fuel_opt (its end left out) extrapolated its last cubic: 41.7 g at
+    15 s on one ending at 11 s, under the fuel minimum of 47.5 g, so a 45 g cycle scored a negative fuel gap.
+    The fuel-optimal end is a point of the front: it is interpolated up to it."""
+    short = _front([8.0, 8.5, 9.0, 11.0], [95.0, 75.0, 70.0, 55.0])
+    fuel = [short.fuel_at(T) for T in (11.0, 12.0, 15.0, 18.0, 20.9)]
+    assert fuel[0] == pytest.approx(55.0) and all(55.0 >= a >= b >= 47.5 for a, b in pairwise(fuel))
+    assert score_run(15.0, 55.0, "service", front=short, solve=False).fuel_gap > 0
+    full = _front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5])
+    assert full.fuel_at(10.0) == pytest.approx(60.3095, abs=1e-4)  # (a front with its end: as before)

@@ -181,3 +181,16 @@ def test_a_fuel_solve_the_templates_miss_just_above_t_min_starts_from_the_minimu
                                     ("fuel_at_time", (40, 24, 40, 24), True)]
     with pytest.raises(ocp.OCPError):  # (below the minimum time found: the templates' error stands)
         solve_ocp("tc", "fuel_at_time", T=6.0, verify=False)
+
+
+def test_reference_lookups_take_params_as_the_solves_do(tmp_path):
+    """known_front and min_time_of took only a LoaderParams: a dict of overrides or None (as solve_ocp and
+    score_run take them) was an AttributeError ('dict' object has no attribute 'fingerprint')."""
+    nominal = known_front("service", DEFAULT_PARAMS, tmp_path)
+    for params in (None, {}, {"M_load": DEFAULT_PARAMS.M_load}):
+        assert known_front("service", params, tmp_path)[0].T_min == nominal[0].T_min
+        assert reference.min_time_of("service", params, tmp_path, solve=False) == nominal[0].T_min
+    with pytest.raises(ValueError, match="params must be a LoaderParams"):
+        reference.min_time_of("service", "nominal", tmp_path, solve=False)
+    with pytest.raises(LookupError):
+        reference.min_time_of("service", {"M_load": 9000.0}, tmp_path, solve=False)

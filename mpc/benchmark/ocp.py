@@ -128,6 +128,18 @@ class OCPSettings:
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
 
+def as_plain(obj: Any) -> Any:
+    """``obj`` with numpy's scalars and arrays as the Python numbers and lists they hold (exactly: float32 0.1 as
+    0.10000000149...), tuples as lists, NaN kept: what ``json.dumps`` takes and gives back (it failed on an int64)."""
+    if isinstance(obj, (np.generic, np.ndarray)):
+        return obj.tolist()
+    if isinstance(obj, dict):
+        return {k: as_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [as_plain(v) for v in obj]
+    return obj
+
+
 @dataclass
 class OCPResult:
     """An optimal cycle. ``controls[i]`` holds on ``[t[i], t[i+1])``; ``phase[i]`` is the phase of sample i."""
@@ -159,26 +171,49 @@ class OCPResult:
     scenario: dict[str, Any] | None = None  # the wl_env.scenario.Scenario solved (None: outside the scenario ranges)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return as_plain(asdict(self))
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write as JSON, atomically (a temporary file renamed over the target)."""
         return write_json_atomic(path, self.to_dict())
 
     @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> OCPResult:
+        """The result :meth:`to_dict` gave; ValueError if ``data`` is not a consistent one (as a cached result
+        is checked: fields, types, finite numbers, shapes)."""
+        from mpc.benchmark.pareto import check_result
+
+        if not isinstance(data, dict):
+            raise ValueError(f"an OCP result is a mapping, got {type(data).__name__}")
+        missing = {"braking", "objective", "T", "fuel_g", "t", "states", "controls", "phase"} - set(data)
+        if missing:
+            raise ValueError(f"not an OCP result: missing fields {sorted(missing)}")
+        problem = check_result(data)
+        if problem:
+            raise ValueError(f"not a consistent OCP result: {problem}")
+        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+
+    @classmethod
     def load(cls, path: str | os.PathLike) -> OCPResult:
+        """A result :meth:`save` (or :func:`mpc.benchmark.pareto.save_result`, then its checksum too) wrote;
+        ValueError naming the file if it is not a consistent one (a string T or states of another shape
+        were taken as they were)."""
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no OCP result at {path}")
         try:
             data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise ValueError(f"{path} is not valid JSON: {exc}") from None
-        known = set(cls.__dataclass_fields__)
-        missing = {"braking", "objective", "T", "fuel_g", "t", "states", "controls", "phase"} - set(data)
-        if missing:
-            raise ValueError(f"{path} is not an OCP result: missing fields {sorted(missing)}")
-        return cls(**{k: v for k, v in data.items() if k in known})
+        if isinstance(data, dict) and "schema" in data:  # an entry: its schema and checksum checked too
+            from mpc.benchmark.pareto import RESULT_KIND, check_result
+            from mpc.benchmark.store import read_entry
+
+            data = read_entry(path, RESULT_KIND, check_result)
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"{path} is {exc}" if str(exc).startswith("not") else f"{path}: {exc}") from None
 
     @property
     def mesh_times(self) -> np.ndarray:
@@ -735,7 +770,7 @@ def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any
             raise ValueError(f"warm_start must be an OCPResult or None, got {type(warm_start).__name__}")
         from mpc.benchmark.pareto import check_result
 
-        problem = check_result(asdict(warm_start))  # (as a cached result is checked)
+        problem = check_result(warm_start.to_dict())  # (as a cached result is checked; numpy's numbers too)
         if problem:
             raise ValueError(f"warm_start is no consistent OCPResult: {problem}")
     if starts is not None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
 import time
 from collections.abc import Callable
@@ -32,6 +33,7 @@ import numpy as np
 
 from mpc.benchmark import store
 from mpc.benchmark.ocp import (
+    MAX_CYCLE_TIME,
     OBJECTIVES,
     OCPError,
     OCPResult,
@@ -40,7 +42,7 @@ from mpc.benchmark.ocp import (
     verification_passed,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, is_real_number, resolve
+from wl_env.params import LoaderParams, is_real_number, resolve, shown
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -59,11 +61,22 @@ NEAR_POINT_SLACK, SECOND_POINT_SLACK = 3e-3, 6e-3  # front_times: points at T_mi
 
 
 def cache_dir(path: str | os.PathLike | None = None) -> Path:
-    """Where solved optima are kept: ``path``, else $WL_CACHE_DIR, else ~/.cache/wheel-loader-gym."""
+    """Where solved optima are kept: ``path``, else $WL_CACHE_DIR, else ~/.cache/wheel-loader-gym. ValueError
+    naming ``cache`` (or the variable) if that is no folder path, or it or a folder above it is a file (a file
+    as the cache was a NotADirectoryError's traceback from the first lookup, or after a solve)."""
     if path is not None:
-        return Path(path)
-    env = os.environ.get(CACHE_ENV)
-    return Path(env) if env else Path.home() / ".cache" / "wheel-loader-gym"
+        if not isinstance(path, (str, os.PathLike)) or not str(path).strip():  # ("" is the working folder)
+            raise ValueError(f"cache must be a folder path or None, got {shown(path)}")
+        folder, name = Path(path), "cache"
+    else:
+        env = os.environ.get(CACHE_ENV)
+        folder, name = (Path(env), f"${CACHE_ENV}") if env else (Path.home() / ".cache" / "wheel-loader-gym", "cache")
+    above = folder
+    while not os.path.lexists(above) and above != above.parent:
+        above = above.parent
+    if os.path.lexists(above) and not above.is_dir():
+        raise ValueError(f"{name} must be a folder, but {above} is {'a file' if above.is_file() else 'no folder'}")
+    return folder
 
 
 @dataclass
@@ -97,6 +110,9 @@ class ParetoFront:
         if not is_real_number(T):
             raise ValueError(f"cycle time must be a finite number of seconds, got {T!r}")
         T = float(T)
+        problem = self.interpolation_problem()
+        if problem:  # (unsorted or repeated times interpolated to NaN or any number; one point: an IndexError)
+            raise ValueError(f"this {self.braking} front cannot be interpolated: {problem}")
         if T < self.T_min - 1e-6:
             raise ValueError(
                 f"cycle time {T:.3f} s is impossible: the minimum cycle time with {self.braking} braking is "
@@ -107,8 +123,28 @@ class ParetoFront:
                 f"cycle time {T:.3f} s lies beyond the fuel-optimal cycle ({self.T_fuel_opt:.3f} s); "
                 f"use optimal_fuel_at(), which solves such points on demand"
             )
-        u = np.sqrt(np.asarray(self.T) - self.T_min)
-        return float(pchip(u, np.asarray(self.fuel_g), math.sqrt(max(T, self.T[0]) - self.T_min)))
+        times, fuel = list(self.T), list(self.fuel_g)
+        if T > times[-1] and times[-1] < self.T_fuel_opt - 1e-6:
+            # A front whose fuel-optimal end was left out (or cut off) ends at a point short of T_fuel_opt: past it
+            # the cubic was extrapolated (41.7 g at 15 s on a front ending at 11 s, under its fuel minimum of
+            # 47.5 g). That end is a point of the front: interpolated up to it.
+            times.append(float(self.T_fuel_opt))
+            fuel.append(float(self.fuel_min_g))
+        u = np.sqrt(np.asarray(times) - self.T_min)
+        return float(pchip(u, np.asarray(fuel), math.sqrt(max(T, times[0]) - self.T_min)))
+
+    def interpolation_problem(self) -> str | None:
+        """What keeps :meth:`fuel_at` from interpolating this front (the rest of :func:`check_front` aside: a
+        polished front may hold a local optimum), or None."""
+        T, fuel = (list(v) if isinstance(v, (list, tuple, np.ndarray)) else None for v in (self.T, self.fuel_g))
+        if not (_nums(T) and _nums(fuel) and len(T) == len(fuel) >= 2):
+            return f"cycle times {_short(self.T)} and fuels {_short(self.fuel_g)} are not 2 or more finite pairs"
+        if any(b <= a for a, b in pairwise(T)):
+            return "the cycle times T do not increase"
+        if not (is_real_number(self.T_min) and is_real_number(self.T_fuel_opt) and is_real_number(self.fuel_min_g)
+                and self.T_min <= T[0] + 1e-9 and T[-1] <= self.T_fuel_opt + 1e-9):
+            return f"T_min {self.T_min!r} and T_fuel_opt {self.T_fuel_opt!r} do not bound the points"
+        return None
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write as a checked cache entry (schema, checksum), atomically; ValueError if the front is bad."""
@@ -386,8 +422,9 @@ def pareto_front(
     from mpc.benchmark.ocp import machine_key, scenario_fields, scenario_of, with_scenario
 
     braking, p = with_scenario(braking, params, scenario)
-    if not (isinstance(n_points, int) and 3 <= n_points <= 100):
+    if not (isinstance(n_points, numbers.Integral) and not isinstance(n_points, bool) and 3 <= n_points <= 100):
         raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
+    n_points = int(n_points)  # (numpy's: its folder's name and the JSON)
     fingerprint = p.fingerprint()
     say = progress or log.info
     folder = front_folder(braking, n_points, p, cache)
@@ -439,6 +476,9 @@ def pareto_front(
     say(f"[{braking}] minimum time {r_time.T:.3f} s, {r_time.fuel_g:.2f} g; minimum fuel")
     r_fuel = end("min_fuel", "fuel")
     say(f"[{braking}] minimum fuel {r_fuel.fuel_g:.2f} g at {r_fuel.T:.3f} s")
+    for r, what in ((r_time, "minimum-time"), (r_fuel, "minimum-fuel")):
+        if not r.verification.get("passed"):  # (its T_min, T_fuel_opt or fuel_min_g bound the front and score cycles)
+            raise OCPError(f"the {braking} {what} cycle fails its re-simulation, no end of a front: {r.status}")
     times = front_times(r_time.T, r_fuel.T, n_points)
 
     def mesh_at(i: int) -> OCPSettings:
@@ -580,6 +620,12 @@ def check_front_of(front: ParetoFront, braking: str, params: LoaderParams | None
     None: the braking only, the caller matching the parameters per cycle)."""
     if not isinstance(front, ParetoFront):
         raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
+    try:  # (as a cached front is checked: unsorted, repeated or NaN points scored any number, NaN included)
+        problem = check_front(store.as_read(front.__dict__))
+    except (TypeError, ValueError) as exc:
+        problem = f"not JSON-like ({exc})"
+    if problem:
+        raise ValueError(f"front is no valid Pareto front: {problem}")
     if front.braking != braking:
         raise ValueError(f"the front given is the {front.braking!r} braking's, the cycle's is {braking!r}: a cycle is "
                          f"scored against its own optimum only")
@@ -594,8 +640,8 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
 
     Raises ``ValueError`` for a cycle time below the minimum, or a ``front`` of another cycle.
     """
-    if not (is_real_number(T) and T > 0):
-        raise ValueError(f"T (the cycle time) must be a finite number > 0 s, got {T!r}")
+    if not (is_real_number(T) and 0 < T <= MAX_CYCLE_TIME):  # (1e300 s: an OSError, its cache file's name too long)
+        raise ValueError(f"T (the cycle time) must be a number in (0, {MAX_CYCLE_TIME:g}] s, got {T!r}")
     T = float(T)
     cycle.check_braking(braking)
     if front is not None:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mpc.benchmark import store
-from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, refined_mesh, solve_ocp
+from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, check_cycle_time, refined_mesh, solve_ocp
 from mpc.benchmark.optima import fixed_time_optimum, optima_folder
 from mpc.benchmark.pareto import (
     CACHE_VERSION,
@@ -38,7 +38,7 @@ from mpc.benchmark.pareto import (
     save_result,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, resolve
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,7 @@ def shipped_fronts() -> dict[str, ParetoFront]:
 def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None,
                 n_points: int = DEFAULT_POINTS) -> tuple[ParetoFront, str] | None:
     """(the front of this cycle, "shipped" or "cached") without solving anything, or None."""
+    params = resolve(params)  # (a dict or None was an AttributeError)
     path = front_folder(cycle.check_braking(braking), n_points, params, cache) / "front.json"
     data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint(), {"braking": braking})
     if data is not None:
@@ -106,6 +107,7 @@ FINE_MESH_BELOW, FINE_MESH_INTERVAL = 1.05, 0.07
 def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> OCPResult:
     """The cycle's minimum time, solved (cached): from the nearest front's minimum-time cycle and the templates,
     then on a mesh of at most FINE_MESH_INTERVAL s per interval from it (the shorter verified cycle of the two)."""
+    braking, params = cycle.check_braking(braking), resolve(params)
     path = optima_folder(braking, params, cache) / "min_time.json"
     r = cached_result(path, objective="time", braking=braking, params=params)
     if r is not None and (on_fine_mesh(r) or (r.verification or {}).get("fine_mesh_failed")):
@@ -145,6 +147,9 @@ def direct_fuel_at(braking: str, T: float, params: LoaderParams, cache: str | os
     """Minimum fuel at the cycle time T, solved (cached): :func:`mpc.benchmark.optima.fixed_time_optimum`
     from the nearest front's points around T (on its finest mesh; and from the cycle's own minimum-time
     cycle where none lies below T) and the templates; OCPError unless it re-simulates."""
+    # (checked before the minimum-time solve below: a NaN T cost one and was refused after it, 1e300 was an
+    # OSError, its file name too long)
+    braking, T, params = cycle.check_braking(braking), check_cycle_time(T), resolve(params)
     guides = [g for g in _guides(braking, params, cache) if g.objective != "time"]
     below = [g for g in guides if g.T <= T]
     if not below:
@@ -169,6 +174,7 @@ def direct_fuel_at(braking: str, T: float, params: LoaderParams, cache: str | os
 def min_time_of(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None, solve: bool = True) -> float:
     """A cycle's minimum time T_min (s): the known front's, else solved directly (unless ``solve`` is
     False: then LookupError)."""
+    params = resolve(params)
     known = known_front(braking, params, cache)
     if known is not None:
         return float(known[0].T_min)

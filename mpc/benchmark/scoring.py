@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from mpc.benchmark.ocp import MAX_CYCLE_TIME, as_plain
 from mpc.benchmark.pareto import ParetoFront, check_front_of
 from mpc.benchmark.reference import reference_at
 from wl_env.cycle import check_braking
@@ -36,7 +37,20 @@ class Score:
     reference: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return as_plain(asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Score:
+        """The score :meth:`to_dict` gave; ValueError naming the field that is missing or no number."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a score is a mapping, got {type(data).__name__}")
+        for name in cls.__dataclass_fields__:
+            if name not in data and name != "reference":
+                raise ValueError(f"not a score: missing field {name!r}")
+            if name not in ("braking", "reference") and not is_real_number(data[name]):
+                raise ValueError(f"score field {name!r} must be a finite number, got {data[name]!r}")
+        check_braking(data["braking"])
+        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
 
 
 def score_run(
@@ -55,6 +69,9 @@ def score_run(
     for name, v in (("T", T), ("fuel_g", fuel_g)):
         if not (is_real_number(v) and v > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    if T > MAX_CYCLE_TIME:  # (no optimum holds it: 1e300 s was solved for, then an OSError, its file name too long)
+        raise ValueError(f"T must be a cycle time in (0, {MAX_CYCLE_TIME:g}] s (the longest cycle the OCP holds), "
+                         f"got {T!r}")
     T, fuel_g = float(T), float(fuel_g)
     check_braking(braking)
     p = resolve(params)
@@ -96,11 +113,12 @@ def smoothness(controls: Any, T: float, braking: str, params: LoaderParams | dic
                cache: str | os.PathLike | None = None) -> Smoothness:
     """A cycle's control movement (:func:`total_variation`) against the optimum's at its cycle time T (s)
     (the minimum-fuel OCP at T, :func:`mpc.benchmark.reference.direct_fuel_at`, cached)."""
+    from mpc.benchmark.ocp import check_cycle_time
     from mpc.benchmark.reference import direct_fuel_at
 
-    p = resolve(params)
-    opt = direct_fuel_at(braking, float(T), p, cache)
-    tv_mf, tv_ab = total_variation(controls)
+    tv_mf, tv_ab = total_variation(controls)  # (checked before the solve: an empty trajectory failed after it)
+    T, p = check_cycle_time(T), resolve(params)
+    opt = direct_fuel_at(check_braking(braking), T, p, cache)
     o_mf, o_ab = total_variation(opt.controls)
     return Smoothness(tv_fuel_injection_mg=tv_mf, tv_bucket_acceleration=tv_ab, optimum_tv_fuel_injection_mg=o_mf,
                       optimum_tv_bucket_acceleration=o_ab, ratio_fuel_injection=tv_mf / max(o_mf, 1e-9),

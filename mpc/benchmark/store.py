@@ -52,11 +52,15 @@ def checksum(data: dict[str, Any]) -> str:
     return "sha256:" + hashlib.sha256(canonical(body).encode()).hexdigest()
 
 
+def as_read(payload: dict[str, Any]) -> dict[str, Any]:
+    """``payload`` as an entry of it reads back: numpy -> Python, tuples -> lists, NaN -> null. (TypeError
+    for what JSON cannot hold.)"""
+    return json.loads(json.dumps(_finite(payload), default=_json_default, allow_nan=False))
+
+
 def write_entry(path: str | os.PathLike, kind: str, payload: dict[str, Any], check: Check) -> Path:
     """Write ``payload`` as an entry of ``kind`` atomically; BadEntry (nothing written) if it fails ``check``."""
-    # normalized as it will read back (numpy -> Python, tuples -> lists, NaN -> null), so the checksum
-    # taken now is the one recomputed on load
-    data = json.loads(json.dumps(_finite(payload), default=_json_default, allow_nan=False))
+    data = as_read(payload)  # (so the checksum taken now is the one recomputed on load)
     data.pop("checksum", None)
     data["schema"] = {"kind": kind, "version": SCHEMA_VERSION}
     problem = check(data)
@@ -160,7 +164,7 @@ def load_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
     try:
         seen = path.lstat()
         return read_entry(path, kind, check, fingerprint, expect)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # (a file where a folder above it belongs: no entry there)
         return None
     except BadEntry as exc:
         moved = set_aside(path, seen)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
 import tempfile
 import time
@@ -35,6 +36,7 @@ from mpc.benchmark.pareto import (
 )
 from mpc.benchmark.reference import SUITE_KIND, check_suite_file, shipped_fronts
 from wl_env.cycle import BRAKING_MODES
+from wl_env.params import shown
 from wl_env.scenario import Scenario, param_distance
 from wl_env.suites import load_suite
 
@@ -136,6 +138,18 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain.
     ``job``: the per-scenario solve as ``module:function(scenario, cache, n_points) -> entry`` (default
     :func:`solve_one`)."""
+    def count(v: Any) -> bool:  # (numpy's integers too; not a bool)
+        return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+    # (limit 0 or -1 wrote a suite file without the scenarios, 2.5 was a TypeError from a slice; a bad n_points
+    # failed in the workers, ray_chunk 0 in range())
+    if not (limit is None or (count(limit) and limit >= 1)):
+        raise ValueError(f"limit must be None or an integer >= 1 (scenarios per braking alternative), got {shown(limit)}")
+    if not (count(n_points) and 3 <= n_points <= 100):
+        raise ValueError(f"n_points must be an integer in [3, 100], got {shown(n_points)}")
+    if not (count(ray_chunk) and ray_chunk >= 1):
+        raise ValueError(f"ray_chunk must be an integer >= 1 (scenarios per Ray task), got {shown(ray_chunk)}")
+    limit, n_points, ray_chunk = None if limit is None else int(limit), int(n_points), int(ray_chunk)
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
