@@ -394,3 +394,11 @@ def test_a_front_short_of_its_fuel_optimal_end_is_not_extrapolated():
     assert score_run(15.0, 55.0, "service", front=short, solve=False).fuel_gap > 0
     full = _front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5])
     assert full.fuel_at(10.0) == pytest.approx(60.3095, abs=1e-4)  # (a front with its end: as before)
+
+
+def test_a_fixed_time_optimum_no_start_finds_gives_each_start_s_solver_status(tmp_path):
+    """Every start failing was "no optimum found" alone: the starts' solver statuses were dropped."""
+    from mpc.benchmark.optima import fixed_time_optimum
+
+    with pytest.raises(OCPError, match=r"no optimum found .* T = 6 s: templates: .*solver status: Infeasible_Problem"):
+        fixed_time_optimum("service", 6.0, DEFAULT_PARAMS, tmp_path, None, [])

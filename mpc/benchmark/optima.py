@@ -117,28 +117,25 @@ def front_optima(braking: str, n_points: int, params: LoaderParams,
 
 
 def multistart_fixed_time(braking: str, T: float, params: LoaderParams, settings: OCPSettings,
-                          warm_starts: Sequence[OCPResult] = (), templates: bool = True) -> OCPResult | None:
+                          warm_starts: Sequence[OCPResult] = (), templates: bool = True,
+                          failures: list[str] | None = None) -> OCPResult | None:
     """The best optimum at a fixed cycle time: minimum fuel at T from several starts, the leanest solved
     once more with the re-simulation check (and mesh refinement if that fails).
 
     Starts: each of ``warm_starts`` and (``templates``) the OCP's template multi-start. Continuation
     from a neighbouring optimum alone can stay in a worse local optimum, which the templates often leave.
-    Returns None if every start fails.
+    Returns None if every start fails; ``failures`` (if given) then holds each start's error, with its
+    solver status.
     """
     cands: list[tuple[str, OCPResult]] = []
-    for ws in warm_starts:
+    starts = [(f"warm start T = {ws.T:.3f} s", {"warm_start": ws}) for ws in warm_starts]
+    for name, kw in starts + ([("templates", {})] if templates else []):
         try:
-            cands.append((f"warm start T = {ws.T:.3f} s",
-                          solve_ocp(braking, "fuel_at_time", T=T, params=params, settings=settings, warm_start=ws,
-                                    verify=False)))
-        except OCPError:
-            pass
-    if templates:
-        try:
-            cands.append(("templates", solve_ocp(braking, "fuel_at_time", T=T, params=params, settings=settings,
-                                                 verify=False)))
-        except OCPError:
-            pass
+            cands.append((name, solve_ocp(braking, "fuel_at_time", T=T, params=params, settings=settings, verify=False,
+                                          **kw)))
+        except OCPError as exc:
+            if failures is not None:
+                failures.append(f"{name}: {exc}")
     if not cands:
         return None
     name, best = min(cands, key=lambda c: c[1].fuel_g)
@@ -208,9 +205,11 @@ def fixed_time_optimum(braking: str, T: float, params: LoaderParams, cache: str 
     above = [r for r in points if r.T > T]
     neighbours = ([max(below, key=lambda r: r.T)] if below else []) + ([min(above, key=lambda r: r.T)] if above else [])
     log.info(f"[{braking}] minimum fuel at T = {T:g} s")
-    r = multistart_fixed_time(braking, T, params, _settings(mesh) if mesh else OCPSettings(), neighbours)
+    failures: list[str] = []
+    r = multistart_fixed_time(braking, T, params, _settings(mesh) if mesh else OCPSettings(), neighbours,
+                              failures=failures)
     if r is None:
-        raise OCPError(f"no optimum found for the {braking} cycle at T = {T:g} s")
+        raise OCPError(f"no optimum found for the {braking} cycle at T = {T:g} s: " + "; ".join(failures))
     log.info(f"[{braking}] fuel at T = {T:g} s: {r.fuel_g:.3f} g"
              + ("" if passed(r) else " (re-simulation check NOT passed)"))
     save_result(r, path)
