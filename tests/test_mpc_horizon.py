@@ -466,3 +466,31 @@ def test_re_plans_beside_the_horizon_keep_a_mismatched_plant_within_the_limits_d
         if slow is not None:
             runs.append((ep.T, ep.fuel_g, np.array(ep.trajectory.controls)))
     assert runs[0][:2] == runs[1][:2] and np.array_equal(runs[0][2], runs[1][2])
+
+
+def test_a_failed_real_time_iteration_tries_again_from_the_full_plan_before_ipopt():
+    """Where the real-time iteration fails from the last horizon's plan (a re-plan taken up leaves it far from the
+    new one), it tries once more from the full plan's alone before IPOPT takes the step (measured: IPOPT took 35 ms
+    of TC x1.2 / x1.3's 59 ms step 16; the second iteration met it)."""
+    ctrl = MPCController("tc", config=MPCConfig(mode="target_time", target_time=11.0))
+    env = gym.make("WheelLoader-v2", braking="tc")
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):  # (the first plan, then horizons: the last one's plan is the next one's warm start)
+        obs = env.step(ctrl.act(obs))[0]
+    inner, starts = ctrl.solver.primary, []
+
+    class FailsOnce:
+        def prepare(self, nlp):
+            inner.prepare(nlp)
+
+        def solve(self, nlp, args, x0, lam_x0=None, lam_g0=None):
+            starts.append(np.array(x0))
+            if len(starts) == 1:
+                return SolverResult(ok=False, status="forced failure", iterations=1)
+            return inner.solve(nlp, args, x0, lam_x0, lam_g0)
+
+    ctrl.solver.primary = FailsOnce()
+    ctrl.act(obs)
+    assert len(starts) == 2 and not np.array_equal(starts[0], starts[1])  # (the second from the full plan's alone)
+    assert ctrl.solver.handed_over == 0 and ctrl.last_info["status"].startswith("forced failure, then")
+    assert not ctrl.last_info["fallback"]

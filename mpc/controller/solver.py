@@ -457,11 +457,11 @@ class FallbackSolver:
         self.lazy_fallback = lazy_fallback
         self.handed_over = 0  # solves the first solver failed and the fallback took
 
-    def _primary_takes(self, nlp: GridNLP) -> bool:
+    def primary_takes(self, nlp: GridNLP) -> bool:
         return nlp.short or not self.short_only
 
     def prepare(self, nlp: GridNLP) -> None:
-        primary = self._primary_takes(nlp)
+        primary = self.primary_takes(nlp)
         if primary:
             self.primary.prepare(nlp)
         if not (primary and self.lazy_fallback):
@@ -469,7 +469,7 @@ class FallbackSolver:
 
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
-        if not self._primary_takes(nlp):
+        if not self.primary_takes(nlp):
             return self.fallback.solve(nlp, args, x0, lam_x0, lam_g0)
         first = self.primary.solve(nlp, args, x0, lam_x0, lam_g0)
         if first.ok:
