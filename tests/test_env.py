@@ -400,3 +400,47 @@ def test_a_scenario_at_reset_refuses_the_payload_params_set_and_json_takes_the_e
     _, info = tc.reset(options={"scenario": '{"payload": 7000}'})
     assert info["scenario"].braking == "tc" and info["scenario"].payload == 7000
     assert gym.make("WheelLoader-v2", braking="tc", scenario='{"payload": 7000}').unwrapped.scenario.braking == "tc"
+
+
+# ------------------------------------------------------------------ hostile inputs (the environments' round)
+def test_a_refused_reset_leaves_the_generator_as_it_was():
+    """A reset refused for its options (a target of 50 s, a ratio of 9) reseeded the generator and drew a scenario
+    before the check: the episodes after it were not those of the seed. An options dict with keys of two types was
+    a TypeError (sorting them for the message)."""
+    kw = {"scenario": "train", "init_noise": 0.5}
+    a, b = (gym.make("WheelLoaderTarget-v6", **kw).unwrapped for _ in range(2))
+    a.reset(seed=1)
+    b.reset(seed=1)
+    for options in ({"target_time": 50.0}, {"target_ratio": 9.0}, {"target_time": 10.0, "target_ratio": 2.0},
+                    {1: 2, "colour": 3}):
+        with pytest.raises(ValueError, match="target|colour"):
+            b.reset(seed=5, options=options)
+        obs_a, info_a = a.reset()
+        obs_b, info_b = b.reset()
+        assert np.array_equal(obs_a, obs_b) and info_a == info_b
+
+
+def test_numpy_float32_params_are_taken_as_the_decimals_they_print():
+    """np.float32(0.01) was refused as under decel_max's 0.01 ("must lie in [0.01, 2] g, got np.float32(0.01)"), and
+    0.03 was stored as 0.0299999993: another machine's fingerprint than the default's."""
+    from wl_env.params import DEFAULT_PARAMS
+
+    env = gym.make("WheelLoader-v2", params={"decel_max": np.float32(0.01)}).unwrapped
+    assert env.machine.decel_max == 0.01
+    same = {"c_r": np.float32(0.03), "omega_max": np.float32(230.4), "c_fr": np.array(DEFAULT_PARAMS.c_fr, np.float32),
+            "T_max_lines": np.array(DEFAULT_PARAMS.T_max_lines, np.float32)}
+    env = gym.make("WheelLoader-v2", params=same).unwrapped
+    assert env.machine == DEFAULT_PARAMS and env.machine.fingerprint() == DEFAULT_PARAMS.fingerprint()
+    with pytest.raises(ValueError, match=r"LoaderParams\.c_fr\[0\] must be a number"):
+        gym.make("WheelLoader-v2", params={"c_fr": np.zeros((3, 1))})
+
+
+@pytest.mark.parametrize("field", ["fuel_ref_g", "time_ref"])
+@pytest.mark.parametrize("value", [5e-324, 1e-300, 1e-4, 0.0, -1.0])
+def test_a_reward_reference_too_small_for_a_finite_reward_is_refused_by_name(field, value):
+    """time_ref 5e-324 passed as > 0 and made the first reward -inf; 1e-300 gave -5e298 (-inf in float32)."""
+    with pytest.raises(ValueError, match=rf"RewardConfig\.{field} must lie in \[0.001, 1e\+06\]"):
+        gym.make("WheelLoader-v2", reward={field: value})
+    env = gym.make("WheelLoader-v2", reward={field: 1e-3})
+    env.reset(seed=0)
+    assert np.isfinite(np.float32(env.step(np.ones(4, np.float32))[1]))

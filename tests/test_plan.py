@@ -144,3 +144,23 @@ def test_ppo_trains_on_the_plan_env_and_its_policy_is_evaluated_as_any_target_po
                               min_time="estimate")
     (episode,) = res["per_episode"]
     assert episode["completed"] and episode["target_time"] > 0 and episode["T"] > 1.0
+
+
+@pytest.mark.parametrize("dt", [0.0, float("nan"), -0.1, "0.1", 5.0])
+def test_the_plan_driver_refuses_a_control_interval_by_name(dt):
+    """dt 0 or NaN held the bucket by a NaN action, which v6 blamed on the action; a string was numpy's TypeError;
+    a negative interval ran a plan with no hold."""
+    with pytest.raises(ValueError, match=r"dt \(the control interval\) must lie in \[0.001, 1\] s"):
+        PlanDriver(plan(), dt=dt)
+
+
+def test_the_vector_plan_env_gives_the_same_info_keys_at_its_autoreset_step():
+    """The step that starts the new cycles returned {} as its infos: infos["is_success"] was a KeyError every other step."""
+    venv = gym.make_vec("WheelLoaderPlan-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    *_, ended = venv.step(np.stack([plan(), plan()]))
+    obs, rewards, terminated, truncated, started = venv.step(np.stack([plan(), plan()]))
+    assert sorted(started) == sorted(ended)
+    assert not started["is_success"].any() and not started["steps"].any() and not started["t"].any()
+    assert not (rewards.any() or terminated.any() or truncated.any())
+    assert np.array_equal(started["target_time"], venv.unwrapped.target_time) and np.isfinite(started["target_time"]).all()

@@ -327,3 +327,38 @@ def test_library_entry_points_refuse_bad_arguments_by_name():
                           "target_time must lie in")]:
         with pytest.raises(ValueError, match=needle):
             call()
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"limit": 0}, "limit must be None or an integer >= 1"),  # (wrote the suite's file without its scenarios)
+    ({"limit": -1}, "limit must be None or an integer >= 1"),  # (left out each chain's last scenario)
+    ({"limit": 2.5}, "limit must be None or an integer >= 1"),  # (a TypeError from a slice)
+    ({"n_points": 2}, r"n_points must be an integer in \[3, 100\]"),  # (failed in the workers, if at all)
+    ({"ray_chunk": 0}, "ray_chunk must be an integer >= 1")])
+def test_a_suite_solve_checks_its_arguments_before_any_work(tmp_path, kwargs, needle):
+    from mpc.benchmark.suite import solve_suite
+
+    with pytest.raises(ValueError, match=needle):
+        solve_suite("nominal", cache=tmp_path, workers=1, job="fakes:fake_front_job", **kwargs)
+    assert not any(tmp_path.iterdir())
+    r = solve_suite("nominal", cache=tmp_path, workers=1, job="fakes:fake_front_job", limit=np.int64(1))
+    assert len(r.entries) == 2
+
+
+def test_scenario_text_replace_and_braking_are_read_or_refused_by_name(tmp_path):
+    """Scenario.parse(5) and parse(b"...") were an AttributeError and a TypeError, parse("") said "'' is a folder",
+    replace(colour=1) was a TypeError, and a braking spelled np.str_("tc") was kept as numpy's string."""
+    from pathlib import Path
+
+    for text, needle in [(5, r"scenario takes JSON text or the path of a JSON file, got 5 \(int\)"),
+                         (b'{"payload": 7000}', r"got b'.*' \(bytes\)"), (None, "NoneType"),
+                         ("", "got an empty text"), ("  \n", "got an empty text")]:
+        with pytest.raises(ValueError, match=needle):
+            Scenario.parse(text, "scenario")
+    f = tmp_path / "s.json"
+    f.write_text('{"payload": 7000}')
+    assert Scenario.parse(Path(f)).payload == 7000.0
+    with pytest.raises(ValueError, match=r"unknown Scenario field\(s\) \['colour'\]"):
+        Scenario().replace(colour=1)
+    s = Scenario(braking=np.str_("tc"))
+    assert type(s.braking) is str and s == Scenario(braking="tc") and repr(s) == repr(Scenario(braking="tc"))

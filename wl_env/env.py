@@ -435,7 +435,6 @@ class WheelLoaderEnv(gym.Env):
         seed = plain(seed)  # (a numpy integer; gymnasium's own refusal is not a ValueError and takes True for 1)
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
             raise ValueError(f"seed must be an integer >= 0 or None, got {shown(seed)}")
-        super().reset(seed=seed)
         self._done = True  # (until this reset succeeds: one that fails leaves no half-reset episode to step)
         if options is not None and not isinstance(options, dict):
             raise ValueError(f"WheelLoaderEnv.reset's options must be a dict or None, got {shown(options)}")
@@ -445,12 +444,21 @@ class WheelLoaderEnv(gym.Env):
         if options:
             allowed = "the options 'scenario', 'target_time' and 'target_ratio'" if self.observe_target else (
                 "only the option 'scenario'")
-            raise ValueError(f"WheelLoaderEnv.reset takes {allowed}, got {sorted(options)}")
+            raise ValueError(f"WheelLoaderEnv.reset takes {allowed}, got {sorted(map(str, options))}")
         if not self.observe_target and (target_time is not None or target_ratio is not None):
             raise ValueError("a target cycle time is an option of WheelLoaderTarget-v0 (observe_target=True)")
+        # Every option is checked before the generator is seeded or drawn from: a refused reset (a target of 50 s)
+        # reseeded it and drew a scenario, so the episodes after it were not the seed's.
+        if target_time is not None and target_ratio is not None:
+            raise ValueError("give the option target_time or target_ratio, not both")
+        if target_time is not None:
+            check_target_time(target_time)
+        if target_ratio is not None:
+            check_target_ratios(target_ratio, "target_ratio")
         source = self._source if chosen is None else scenario_source(chosen, self.braking, self.machine)[0]
         if chosen is not None:  # (the payload params= set was replaced by the scenario's without a word)
             check_no_overridden(self._params_given, source)
+        super().reset(seed=seed)
         if isinstance(source, Suite):
             source = source.sample(self.np_random, self.braking)
         self._set_scenario(source)

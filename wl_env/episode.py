@@ -35,6 +35,9 @@ FLATTEN_AFTER_STEPS = 300
 
 
 MAX_REWARD_WEIGHT = 1e6  # each term of a step's reward stays finite in float32 under any weight up to this
+# the references the fuel (g) and time (s) terms divide by: time_ref 5e-324 made the first reward -inf (1e-300: -5e298,
+# -inf in float32); down to this, a term under the largest weight stays far inside float32
+MIN_REWARD_REF = 1e-3
 
 
 @dataclass(frozen=True)
@@ -69,11 +72,9 @@ class RewardConfig:
             object.__setattr__(self, f.name, v)  # (a numpy scalar kept as the Python number it holds)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and is_finite(v)):
                 raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {shown(v)}")
-            if not 0 <= v <= MAX_REWARD_WEIGHT:  # (1e308 passed as finite and made the first reward -inf)
-                raise ValueError(f"RewardConfig.{f.name} must lie in [0, {MAX_REWARD_WEIGHT:g}], got {v!r}")
-        for name in ("fuel_ref_g", "time_ref"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"RewardConfig.{name} must be > 0, got {getattr(self, name)!r}")
+            lo = MIN_REWARD_REF if f.name in ("fuel_ref_g", "time_ref") else 0
+            if not lo <= v <= MAX_REWARD_WEIGHT:  # (1e308 passed as finite and made the first reward -inf)
+                raise ValueError(f"RewardConfig.{f.name} must lie in [{lo:g}, {MAX_REWARD_WEIGHT:g}], got {v!r}")
 
 
 MAX_EPISODE_TIME = 3600.0  # s: a cycle takes 8-25 s; an hour bounds an episode's work (and its arrays)

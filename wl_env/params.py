@@ -397,6 +397,9 @@ def _unit(name: str) -> str:
 
 def _number(name: str, value: Any, allowed: Range, unit: str = "") -> float:
     """A finite real number (no bool, no string) within ``allowed``, as a float."""
+    # (a float32 as the decimal it prints: np.float32(0.01) was refused as under decel_max's 0.01, and 0.03 was
+    # stored as 0.0299999993, another fingerprint than the default's)
+    value = plain(value)
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"LoaderParams.{name} must be a number in {allowed}{unit}, got {shown(value)} "
                          f"({type(value).__name__})")
@@ -411,7 +414,8 @@ def _number(name: str, value: Any, allowed: Range, unit: str = "") -> float:
 def _sequence(name: str, value: Any, length: int, of: str) -> list[Any]:
     """A list or tuple (or 1-d array) of exactly ``length`` entries."""
     if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
-        value = value.tolist()  # a numpy array
+        # a numpy array, by entry (its scalars as plain() reads them: tolist() gives a float32's binary value)
+        value = list(value) if getattr(value, "ndim", 0) >= 1 else value.tolist()
     if not isinstance(value, (list, tuple)):
         raise ValueError(f"LoaderParams.{name} must be a list of {length} {of}, got {shown(value)} ({type(value).__name__})")
     if len(value) != length:

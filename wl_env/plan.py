@@ -56,6 +56,7 @@ from gymnasium.vector.utils import batch_space
 
 from wl_env.codec import N_SCENARIO_OBS, Codec
 from wl_env.env import WheelLoaderEnv, action_array
+from wl_env.episode import check_control_interval
 from wl_env.params import LoaderParams
 from wl_env.vector_env import WheelLoaderVectorEnv
 
@@ -122,7 +123,9 @@ class PlanDriver:
     def __init__(self, plan: Any, params: LoaderParams | None = None, dt: float = 0.1) -> None:
         self.plan = _check_plan(plan, (N_PLAN_ACTIONS,), "plan")[None]
         self.codec = Codec(params, observe_scenario=True)
-        self.dt = dt
+        # (the env's control interval: 0 or NaN held the bucket by a NaN action, blamed on the action; a string was
+        # numpy's TypeError; a negative one ran a plan with no hold)
+        self.dt = check_control_interval(dt)
         self.reset()
 
     def reset(self) -> None:
@@ -172,7 +175,9 @@ class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
         if self._needs_reset.any():  # (the one-step episodes all ended: they start anew, their plans unused)
             self._reset_where(self._needs_reset)
             zeros = np.zeros(n, dtype=bool)
-            return self._obs(), np.zeros(n), zeros, zeros.copy(), {}
+            # (the infos of any other step, of the new starts: they were {}, and infos["is_success"] a KeyError)
+            infos = {**self._infos(zeros.copy(), np.zeros(n)), "steps": np.zeros(n, dtype=np.int64)}
+            return self._obs(), np.zeros(n), zeros, zeros.copy(), infos
         dt = self.core.dt
         total, steps = np.zeros(n), np.zeros(n, dtype=np.int64)
         done = np.zeros(n, dtype=bool)

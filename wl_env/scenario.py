@@ -84,6 +84,8 @@ class Scenario:
             if not (is_finite(v) and spec.lo <= float(v) <= spec.hi):  # (is_finite: ints too large for a float)
                 raise ValueError(f"Scenario.{name} must lie in {allowed}, got {shown(v)}")
             object.__setattr__(self, name, float(v))
+        if isinstance(self.braking, str):  # (a str subclass, np.str_ say, as the str it holds: its == may say yes to anything)
+            object.__setattr__(self, "braking", str.__str__(self.braking))
         if self.braking not in BRAKING_MODES:
             raise ValueError(f"Scenario.braking must be one of {BRAKING_MODES}, got {shown(self.braking)}")
 
@@ -109,7 +111,13 @@ class Scenario:
         """A scenario from JSON text or from the path of a JSON file; errors name it ``name`` (the CLI's
         ``--scenario`` by default; the library's ``scenario``) and the file. ``braking``: the braking of JSON that
         names none (default: the field's default)."""
+        if isinstance(text, Path):  # (a path as the CLI's text names it)
+            text = str(text)
+        if not isinstance(text, str):  # (an int or bytes failed in strip(): an AttributeError, a TypeError)
+            raise ValueError(f"{name} takes JSON text or the path of a JSON file, got {shown(text)} ({type(text).__name__})")
         text, what = text.strip(), name
+        if not text:  # (Path("") is the working folder: the error said "'' is a folder")
+            raise ValueError(f"{name} takes JSON text or a JSON file, got an empty text")
         if not text.startswith(("{", "[")):  # (a JSON list is read to say it is not an object)
             path = Path(text)
             if not is_file(path):
@@ -148,6 +156,11 @@ class Scenario:
         return cls(braking=braking, **{name: round(getattr(params, s.param) / s.to_param, 9) for name, s in FIELDS.items()})
 
     def replace(self, **changes: Any) -> Scenario:
+        """A copy with some fields changed (validated); an unknown name is a ValueError naming it (it was a TypeError)."""
+        known = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(changes) - set(known))
+        if unknown:
+            raise ValueError(f"unknown Scenario field(s) {shown(unknown, 200)}; known: {known}")
         return dataclasses.replace(self, **changes)
 
     # ------------------------------------------------------------------ what it means for the model

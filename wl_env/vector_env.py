@@ -232,16 +232,19 @@ class WheelLoaderVectorEnv(VectorEnv):
             truncated[resetting] = False
             success[resetting] = False
         self._needs_reset = terminated | truncated
-        infos = {
+        return self._obs(), reward, terminated, truncated, self._infos(success, np.asarray(r["excess"], dtype=np.float64))
+
+    def _infos(self, success: np.ndarray, violation: np.ndarray) -> dict[str, np.ndarray]:
+        """A step's infos (per loader, arrays of shape (N,)): the loaders' state now, their success and violation."""
+        return {
             "t": self._t.copy(),
             "fuel_g": self._y[5] * 1000.0,
             "phase": self._phase.copy(),
             "is_success": success,
             "reversing_error": self._rev_err.copy(),
-            "violation": np.asarray(r["excess"], dtype=np.float64),
+            "violation": violation,
             **({"target_time": self.target_time.copy()} if self.observe_target else {}),
         }
-        return self._obs(), reward, terminated, truncated, infos
 
     def _obs(self) -> np.ndarray:
         cols = self.core.codec.encode_observation(self._y, self._phase, self._t)  # (after the autoresets)
