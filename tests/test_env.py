@@ -444,3 +444,17 @@ def test_a_reward_reference_too_small_for_a_finite_reward_is_refused_by_name(fie
     env = gym.make("WheelLoader-v2", reward={field: 1e-3})
     env.reset(seed=0)
     assert np.isfinite(np.float32(env.step(np.ones(4, np.float32))[1]))
+
+
+def test_a_braking_given_as_a_str_subclass_is_kept_as_the_plain_str():
+    """np.str_("tc") was kept as numpy's string; a str subclass whose == says yes to anything passed as any braking."""
+    class Anything(str):
+        def __eq__(self, other):
+            return True
+
+        __hash__ = str.__hash__
+
+    env = gym.make("WheelLoader-v2", braking=np.str_("tc"))
+    assert type(env.unwrapped.braking) is str and env.unwrapped.braking == "tc"
+    with pytest.raises(ValueError, match="braking must be one of"):
+        gym.make("WheelLoader-v2", braking=Anything("brakes"))

@@ -24,6 +24,9 @@ MIN_PHASE_DURATION = 0.1  # s, each phase lasts at least this long (MODEL.md, "T
 
 
 def check_braking(braking: str) -> str:
+    """``braking`` as the plain str of one of BRAKING_MODES; ValueError naming the allowed ones otherwise."""
+    if isinstance(braking, str):  # (a str subclass, np.str_ say, as the str it holds: its == may say yes to anything)
+        braking = str.__str__(braking)
     if braking not in BRAKING_MODES:
         raise ValueError(f"braking must be one of {BRAKING_MODES} ('service' brakes or 'tc' braking), got {braking!r}")
     return braking

@@ -23,7 +23,7 @@ def scenario_source(scenario: Scenario | dict | str | None, braking: str | None,
     """(a fixed Scenario, a Suite to draw from, or None for the given params; the braking alternative). A suite
     is checked against ``machine``, if given: each of its cycles must fit it (:meth:`Suite.check_machine`)."""
     if braking is not None:  # (not `braking or "service"`: a falsy braking such as "" or {} is an error)
-        cycle.check_braking(braking)
+        braking = cycle.check_braking(braking)
     if isinstance(scenario, str) and scenario in SUITES:
         suite, braking = load_suite(scenario), braking or "service"
         if machine is not None:
