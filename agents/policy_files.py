@@ -53,6 +53,21 @@ class PolicyFileError(ValueError):
     """A policy file that is missing, unreadable or inconsistent; the message names the file."""
 
 
+def check_policy_output(path: str | Path, option: str) -> Path:
+    """The path ``PATH`` of a policy to be written as PATH.safetensors, PATH_vecnormalize.npz and PATH.json, each
+    checked before the work (:func:`wl_env.atomic_io.check_output_file`): a ValueError naming ``option`` if one is a
+    folder, a pipe or a device, or their folder cannot be written in (a folder at PATH_vecnormalize.npz failed the
+    export after the training)."""
+    from wl_env.atomic_io import check_output_file
+
+    if not str(path).strip():
+        raise ValueError(f"{option} must name the policy's path (PATH.safetensors, ...), got an empty string")
+    path = Path(path)
+    for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX, METADATA_SUFFIX):
+        check_output_file(path.with_name(path.name + suffix), f"{option} {path}")
+    return path
+
+
 @dataclass(frozen=True)
 class PolicyFiles:
     """The three files of a pickle-free policy."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import logging
 import os
@@ -61,6 +62,36 @@ def ray_address(text: str) -> str:
     if not is_ray_address(text):
         raise argparse.ArgumentTypeError(f"must be {RAY_ADDRESS_FORMS}, got {text!r}")
     return text
+
+
+@functools.cache
+def _once(cls: type[argparse.Action]) -> type[argparse.Action]:
+    """``cls`` that refuses to be given again with another value in one command line (:func:`refuse_repeated_options`)."""
+    class Once(cls):  # type: ignore[valid-type, misc]
+        def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                     option_string: str | None = None) -> None:
+            given = namespace.__dict__.setdefault("_options_given", {})
+            super().__call__(parser, namespace, values, option_string)
+            value = getattr(namespace, self.dest, None)
+            if self.dest in given and given[self.dest] != value:
+                parser.error(f"argument {'/'.join(self.option_strings)}: given twice with different values (give "
+                             f"each option once)")
+            given[self.dest] = value
+
+    return Once
+
+
+def refuse_repeated_options(parser: argparse.ArgumentParser) -> None:
+    """Every option of ``parser`` and of its subcommands an error when given twice with different values: argparse
+    kept the last one without a word (``--episodes 1 ... --episodes 100`` ran 100; ``--reward failure=1 --reward shaping=2`` dropped
+    ``failure``; ``--score ... --no-score`` did not score)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in {id(p): p for p in action.choices.values()}.values():
+                refuse_repeated_options(sub)
+        elif action.option_strings and not isinstance(action, (argparse._HelpAction, argparse._VersionAction,
+                                                              argparse._AppendAction, argparse._CountAction)):
+            action.__class__ = _once(type(action))
 
 
 def add_dataclass_args(parser: argparse.ArgumentParser, cls: type) -> None:
@@ -159,14 +190,10 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         cfg.reward = {**PPOConfig().reward, **cfg.reward}
     # output paths checked before the training, not after it
     check_output_folder(cfg.log_dir, f"--log-dir {cfg.log_dir}")
-    if ns.export is not None:
-        if not ns.export.strip():
-            raise ValueError("--export must name the policy's path (PATH.safetensors, ...), got an empty string")
-        export = Path(ns.export)
-        for suffix in (".safetensors", "_vecnormalize.npz", ".json"):
-            if export.with_name(export.name + suffix).is_dir():
-                raise ValueError(f"--export {ns.export}: {export.name + suffix} is a folder")
-        check_output_folder(export.parent, f"--export {ns.export}")
+    if ns.export is not None:  # (each of its files: a pipe at PATH.json failed after the training)
+        from agents.policy_files import check_policy_output
+
+        check_policy_output(ns.export, "--export")
     if getattr(ns, "cache", None) is not None:
         check_output_folder(ns.cache, f"--cache {ns.cache}")
     if cfg.init_policy and not ns.resume:  # (its files read now: a missing one failed after the env's build)

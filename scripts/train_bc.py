@@ -118,10 +118,10 @@ def main(o: Options, command: str) -> int:
     check_output_folder(o.log_dir, f"--log-dir {o.log_dir}")
     if o.demos:
         check_output_folder(o.demos, f"--demos {o.demos}")
-    if o.export:
-        if not o.export.strip():
-            raise ValueError(f"--export must name the policy's path (PATH.safetensors, ...), got {o.export!r}")
-        check_output_folder(Path(o.export).parent, f"--export {o.export}")
+    if o.export:  # (each of its files: a folder at PATH.json failed after the demonstrations and the fit)
+        from agents.policy_files import check_policy_output
+
+        check_policy_output(o.export, "--export")
     if o.clone_base or o.graft_base:  # (read and checked now, not after an hour of demonstrations)
         from agents.imitation import read_base
 

@@ -32,7 +32,8 @@ from pathlib import Path
 
 import tyro
 
-from wl_env.atomic_io import atomic_path, check_output_folder, write_json_atomic
+from agents.policy_files import check_policy_output
+from wl_env.atomic_io import atomic_path, check_output_file, check_output_folder, write_json_atomic
 from wl_env.logs import cli_logging, run_script
 
 log = logging.getLogger("train_plan_policy")
@@ -170,9 +171,12 @@ def main(o: Options) -> dict[int, dict]:
         if getattr(o, name) is not None and not getattr(o, name).strip():
             raise ValueError(f"--{name} must name a path, got an empty string")
     check_output_folder(o.log_dir, f"--log-dir {o.log_dir}")
-    for name in ("export", "curve"):
-        if getattr(o, name) is not None:
-            check_output_folder(Path(getattr(o, name)).parent, f"--{name} {getattr(o, name)}")
+    # each file they write, not only their folder: a folder at CURVE.csv or EXPORT.json failed after the training
+    if o.export is not None:
+        check_policy_output(o.export, "--export")
+    if o.curve is not None:
+        for suffix in (".csv", ".png"):
+            check_output_file(Path(o.curve).with_name(Path(o.curve).name + suffix), f"--curve {o.curve}")
     results = {}
     for seed, summaries in train_stages(o).items():
         out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],

@@ -28,7 +28,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.train_cli import add_train_args, run_train  # noqa: E402
+from agents.train_cli import add_train_args, refuse_repeated_options, run_train  # noqa: E402
 from wl_env.logs import cli_logging  # noqa: E402
 
 PROG = "python scripts/train_ppo.py"
@@ -37,6 +37,7 @@ PROG = "python scripts/train_ppo.py"
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_train_args(parser)
+    refuse_repeated_options(parser)
     argv = sys.argv[1:] if argv is None else argv
     ns = parser.parse_args(argv)
     with cli_logging():

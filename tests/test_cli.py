@@ -1179,3 +1179,95 @@ def test_plot_learning_curve_refuses_a_csv_that_is_no_evaluation_log(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "is no evaluation log: it has no step, T, fuel_g column" in r.stderr
     assert not (tmp_path / "x.png").exists()
+
+
+def test_an_output_that_is_one_of_the_inputs_is_refused_before_the_work(tmp_path, capsys, no_work):
+    """`wl evaluate --model P --out P.json` wrote the evaluation over the policy's metadata (the policy was lost, exit
+    0); `wl ocp/mpc --scenario s.json --out s.json` over the scenario; a symbolic link to the input too."""
+    import shutil
+
+    from agents.evaluate import default_policy_path
+
+    shipped = default_policy_path("service")
+    for f in shipped.parent.glob(f"{shipped.stem}*"):
+        shutil.copy(f, tmp_path / f.name)
+    policy = tmp_path / shipped.stem
+    before = (tmp_path / f"{shipped.stem}.json").read_bytes()
+    (tmp_path / "link.json").symlink_to(tmp_path / f"{shipped.stem}.json")
+    for model, out in ((policy, f"{shipped.stem}.json"), (f"{policy}.safetensors", f"{shipped.stem}_vecnormalize.npz"),
+                       (policy, "link.json")):
+        code, err = _attempt(capsys, ["evaluate", "--controller", "ppo", "--model", str(model), "--episodes", "1",
+                                      "--no-score", "--out", str(tmp_path / out)])
+        assert code == 2 and "is the input file" in err and len(err.strip().splitlines()) == 1, err
+    assert (tmp_path / f"{shipped.stem}.json").read_bytes() == before
+    scenario = tmp_path / "s.json"
+    scenario.write_text('{"payload": 12000}')
+    for argv in (["ocp"], ["mpc", "--no-score"], ["evaluate", "--controller", "operator"]):
+        code, err = _attempt(capsys, [*argv, "--scenario", str(scenario), "--out", str(scenario)])
+        assert code == 2 and f"--out {scenario} is the input file" in err, err
+    assert scenario.read_text() == '{"payload": 12000}' and not no_work
+    code, err = _attempt(capsys, ["ocp", "--scenario", str(scenario), "--out", str(tmp_path / "o.json")])
+    assert code is None, err  # (another file is fine)
+
+
+def test_an_option_given_twice_with_another_value_is_refused(tmp_path, capsys, no_work):
+    """argparse kept the last value without a word: `--episodes 1 ... --episodes 100` ran 100 episodes, `--reward
+    failure=1 --reward shaping=2` dropped failure, `--score --no-score` did not score."""
+    import importlib.util
+
+    for argv, option in ((["evaluate", "--controller", "operator", "--episodes", "1", "--episodes", "100"], "--episodes"),
+                         (["evaluate", "--controller", "operator", "--epi", "1", "--episodes", "2"], "--episodes"),
+                         (["train", "--reward", "failure=1", "--reward", "shaping=2"], "--reward"),
+                         (["train", "--score", "--no-score"], "--score/--no-score"),
+                         (["mpc", "--rate-weight", "1", "2", "--rate-weight", "1", "3"], "--rate-weight")):
+        code, err = _attempt(capsys, [*argv, "--out" if argv[0] != "train" else "--log-dir", str(tmp_path / "o")])
+        assert code == 2 and f"argument {option}: given twice with different values" in err, err
+        assert len(err.strip().splitlines()) == 1
+    assert not no_work
+    # the same value twice is what was meant
+    code, err = _attempt(capsys, ["-v", "-v", "evaluate", "--controller", "operator", "--episodes", "2", "--episodes", "2",
+                                  "--out", str(tmp_path / "e.json")])
+    assert code is None and no_work[-1][2]["episodes"] == 2, err
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_ppo.py"
+    spec = importlib.util.spec_from_file_location("train_ppo_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    with pytest.raises(SystemExit):
+        script.main(["--seed", "1", "--seed", "2", "--log-dir", str(tmp_path)])
+    assert "argument --seed: given twice with different values" in capsys.readouterr().err
+
+
+def test_pareto_takes_the_scenarios_braking_and_refuses_both_beside_it(tmp_path, capsys, no_work):
+    """A --scenario naming tc braking: `wl pareto` solved both fronts (and with --braking both said nothing), where
+    every other command takes the scenario's braking."""
+    code, err = _attempt(capsys, ["pareto", "--scenario", '{"braking": "tc"}', "--braking", "both", "--out", str(tmp_path)])
+    assert code == 2 and "--braking both contradicts the --scenario's braking 'tc'" in err and not no_work
+    code, err = _attempt(capsys, ["pareto", "--scenario", '{"braking": "tc"}', "--out", str(tmp_path)])
+    assert code is None and tuple(no_work[-1][1][0]) == ("tc",), err
+    code, err = _attempt(capsys, ["pareto", "--scenario", '{"payload": 9000}', "--out", str(tmp_path)])
+    assert code is None and tuple(no_work[-1][1][0]) == ("service", "tc"), err
+
+
+def test_a_policy_export_or_curve_file_in_the_way_is_refused_before_the_training(tmp_path, capsys, monkeypatch,
+                                                                                   no_work):
+    """Only the folder of `--export PATH` (and train_plan_policy.py's `--curve`) was checked: a folder at
+    PATH.safetensors or CURVE.csv, or a pipe at PATH.json (`wl train`), failed after the whole training."""
+    import agents.imitation
+
+    (tmp_path / "e.safetensors").mkdir()
+    (tmp_path / "c.csv").mkdir()
+    os.mkfifo(tmp_path / "p.json")
+    code, err = _attempt(capsys, ["train", "--log-dir", str(tmp_path / "runs"), "--export", str(tmp_path / "p")])
+    assert code == 2 and f"--export {tmp_path / 'p'}: {tmp_path / 'p.json'} is not a regular file" in err
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import train_bc
+    import train_plan_policy
+
+    monkeypatch.setattr(agents.imitation, "collect_demos", lambda *a, **k: pytest.fail("reached the demonstrations"))
+    with pytest.raises(ValueError, match="e.safetensors is a folder"):
+        train_bc.main(train_bc.Options(log_dir=str(tmp_path / "runs"), export=str(tmp_path / "e")), "train_bc.py")
+    monkeypatch.setattr(train_plan_policy, "train_stages", lambda o: pytest.fail("reached the training"))
+    for kw, needle in (({"curve": str(tmp_path / "c")}, "c.csv is a folder"),
+                       ({"export": str(tmp_path / "e")}, "e.safetensors is a folder")):
+        with pytest.raises(ValueError, match=needle):
+            train_plan_policy.main(train_plan_policy.Options(log_dir=str(tmp_path / "runs"), **kw))

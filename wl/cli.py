@@ -84,6 +84,28 @@ def _out_dir(path: str, option: str = "--out") -> Path:
     return _created_by(lambda: check_output_folder(path, f"{option} {path}"), Path(path))
 
 
+def _scenario_file(args: argparse.Namespace) -> list[Path]:
+    """The --scenario's file, if it names one (not JSON text)."""
+    text = (getattr(args, "scenario", None) or "").strip()
+    return [Path(text)] if text and not text.startswith(("{", "[")) else []
+
+
+def _not_an_input(out: Path, inputs: list[Path], option: str = "--out") -> None:
+    """ValueError if the output file ``out`` is one of the files the command reads (the same file by any path: the
+    result was written over it, e.g. `wl ocp --scenario s.json --out s.json` or the policy's metadata of --model)."""
+    try:
+        written = os.stat(out)
+    except OSError:  # (a new file is no input)
+        return
+    for path in inputs:
+        try:
+            same = os.path.samestat(written, os.stat(path))
+        except OSError:
+            continue
+        if same:
+            raise ValueError(f"{option} {out} is the input file {path}: the result would replace it; give another path")
+
+
 def _remove_empty_created() -> None:
     """The folders this command created and left empty, removed (the deepest first)."""
     while _CREATED:
@@ -112,6 +134,7 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
     params = _params_from(args)
     scenario = _scenario_from(args)
     out = _out_file(args.out)
+    _not_an_input(out, _scenario_file(args))
     settings = OCPSettings(hessian=args.hessian) if args.hessian else None
     braking = scenario.braking if scenario is not None else args.braking or "service"
     log.info(f"solving the {braking} {objective} OCP ...")
@@ -131,16 +154,20 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
 
     params = _params_from(args)
     scenario = _scenario_from(args, braking_given=args.braking not in (None, "both"))
-    if scenario is not None:  # the scenario's cycle on the machine: both alternatives unless --braking says one
+    named = None if scenario is None else _scenario_braking(args)
+    if named is not None and args.braking == "both":  # (both were solved: the scenario's braking dropped unsaid)
+        raise ValueError(f"--braking both contradicts the --scenario's braking {named!r}")
+    if scenario is not None:  # the scenario's cycle on the machine: both alternatives unless it or --braking says one
         from wl_env.params import resolve
 
         params = scenario.params(resolve(params))
     if args.cache is not None:  # (before --out: a bad --cache left a new, empty --out folder behind)
         _out_dir(args.cache, "--cache")
     out = _out_dir(args.out)
-    brakings = ("service", "tc") if args.braking in (None, "both") else (args.braking,)
+    brakings = (named,) if named is not None and args.braking is None else (
+        ("service", "tc") if args.braking in (None, "both") else (args.braking,))
     for b in brakings:  # (each front's file before any solve: a folder in the way failed after both, one written)
-        _out_file(str(out / f"pareto_{b}.json"))
+        _not_an_input(_out_file(str(out / f"pareto_{b}.json")), _scenario_file(args))
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
     for b, front in fronts.items():
@@ -213,6 +240,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.params is None:  # (the estimate knows the specification's machine)
         _check_target_reachable(args.target_time, [scenario or Scenario.nominal(braking)])
     out = _out_file(args.out)  # (after the other options: its check may create its folder)
+    _not_an_input(out, _scenario_file(args))
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
     result = run_closed_loop(braking, config, params=params, plant_params=plant,
                              score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
@@ -233,7 +261,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
 
 
 def _evaluate_cmd(args: argparse.Namespace) -> int:
-    from agents.evaluate import aggregate, evaluate_controller, load_controller, summary_line
+    from agents.evaluate import aggregate, controller_files, evaluate_controller, load_controller, summary_line
     from wl_env.atomic_io import write_json_atomic
     from wl_env.scenario import Scenario
     from wl_env.suites import load_suite
@@ -256,9 +284,10 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     # an unwritable --out fails now, not after the episodes; and after the other options, as its check may create
     # its folder (a bad --cache or --scenario left an empty one behind)
     out = _out_file(args.out)
+    targeted = args.target_time is not None or args.target_ratio is not None
+    _not_an_input(out, _scenario_file(args) + controller_files(args.controller, braking, args.model, targeted=targeted))
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
-    targeted = args.target_time is not None or args.target_ratio is not None
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
                                  scenario=scenario or (scenarios[0] if scenarios else None), targeted=targeted)
     if args.controller.strip() == "ppo" and args.model is None and not targeted and (
@@ -437,12 +466,18 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         raise ValueError(f"--params sets {', '.join(overridden)}, which the --scenario sets: give them in the scenario")
     given = args.braking is not None if braking_given is None else braking_given
     if given:
-        text = args.scenario.strip()
-        data = json.loads(text if text.startswith("{") else Path(text).read_text())  # (parse read it: it is valid)
-        if "braking" in data and data["braking"] != args.braking:
-            raise ValueError(f"--braking {args.braking} contradicts the --scenario's braking {data['braking']!r}")
+        named = _scenario_braking(args)
+        if named is not None and named != args.braking:
+            raise ValueError(f"--braking {args.braking} contradicts the --scenario's braking {named!r}")
         s = s.replace(braking=args.braking)
     return s
+
+
+def _scenario_braking(args: argparse.Namespace) -> str | None:
+    """The braking the --scenario names itself (None: it names none; its braking is then --braking's or the default)."""
+    text = args.scenario.strip()
+    data = json.loads(text if text.startswith("{") else Path(text).read_text())  # (Scenario.parse read it: it is valid)
+    return data.get("braking")
 
 
 def _suite_cmd(args: argparse.Namespace) -> int:
@@ -511,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_ocp_cmd)
 
     p = sub.add_parser("pareto", help="the fuel-time Pareto front (cached)")
-    p.add_argument("--braking", choices=["service", "tc", "both"], help="default: both")
+    p.add_argument("--braking", choices=["service", "tc", "both"], help="default: the scenario's, else both")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
     p.add_argument("--points", type=_int_in(3, 100), default=11, help="cycle times on the front, 3..100 (default 11)")
     p.add_argument("--params", metavar="JSON", help="parameter overrides as JSON")
@@ -607,7 +642,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
     p.set_defaults(func=_evaluate_cmd)
 
-    from agents.train_cli import add_train_args, ray_address
+    from agents.train_cli import add_train_args, ray_address, refuse_repeated_options
 
     p = sub.add_parser("train", help="train a PPO policy (stable-baselines3 on the native vector env)",
                        description="Train a PPO policy for WheelLoader-v1; every field of agents.ppo.PPOConfig is a "
@@ -643,6 +678,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--results", required=True, metavar="DIR", help="the folder holding results.json")
     p.add_argument("--out", metavar="DIR", help="where to write the report (default: the --results folder)")
     p.set_defaults(func=_report_cmd)
+    refuse_repeated_options(parser)
     return parser
 
 
