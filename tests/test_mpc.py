@@ -784,3 +784,74 @@ def test_the_mpc_refuses_what_would_drive_another_cycle_or_divide_by_nothing():
     ctrl._last, ctrl._last_t = (None, 1, None), 3.0  # (as after a step at t = 3 s)
     with pytest.raises(ValueError, match="a new cycle starts with the controller's reset"):
         ctrl.act(later)
+
+
+# ------------------------------------------------------------------ hostile inputs (the MPC's API, another round)
+@pytest.mark.parametrize("kwargs, match", [
+    ({"rate_weight": (1e308, 1e308)}, r"rate_weight must be two weights in \[0, 1e\+06\]"),  # (Invalid_Number_Detected)
+    ({"rate_weight": (0.1, 1e7)}, r"rate_weight must be two weights in \[0, 1e\+06\]"),
+    ({"terminal_weight": 1e308}, r"terminal_weight must be a finite number >= 0, at most 1e\+06"),  # (inf derivatives)
+    ({"deadline_ms": 5e-324}, r"deadline_ms must be >= 0.001 ms"),  # (0 s: IPOPT's "Invalid options" traceback)
+])
+def test_mpc_config_refuses_weights_that_overflow_the_nlp(kwargs, match):
+    """rate_weight 1e308 failed the first plan after 2 s of planning ("no plan ... Invalid_Number_Detected");
+    terminal_weight 1e308 made the RTI's Hessian inf. `wl mpc --rate-weight` takes [0, 1e6]. deadline_ms 5e-324 is 0 s,
+    which IPOPT refused as its time limit at the first plan (a CasADi RuntimeError)."""
+    with pytest.raises(ValueError, match=match):
+        MPCConfig(**kwargs)
+    MPCConfig(rate_weight=(1e6, 0.0), terminal_weight=1e6)
+
+
+def test_the_mpc_refuses_an_observation_that_is_no_array_of_numbers_or_of_another_cycle():
+    """A dict was a bare TypeError; a boolean or complex observation was cast without a word (True as 1.0, a full
+    engine speed); a v2 observation of a 5 m cycle was planned as the controller's 6.6 m one."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service")
+    for bad in ({"a": 1}, obs.astype(bool), obs.astype(complex), np.array([str(v) for v in obs]), None):
+        with pytest.raises(ValueError, match=r"obs must be a WheelLoader observation \(an array of real numbers\)"):
+            ctrl.act(bad)
+    short = Scenario(reverse_distance=5.0)
+    obs5, _ = gym.make("WheelLoader-v2", braking="service", scenario=short).reset(seed=0)
+    with pytest.raises(ValueError, match=r"a cycle of reverse_distance 5 m; this MPC plans 6.6 m: .*reset\(scenario="):
+        ctrl.act(obs5)
+    ctrl.reset(scenario=short)
+    ctrl.state_from_obs(obs5)  # (told, it plans that cycle; a float16 copy is the same one)
+    ctrl.state_from_obs(obs5.astype(np.float16))
+    with pytest.raises(ValueError, match="plant_params moves the cycle's marks off the model's"):  # (before the env)
+        run_closed_loop("service", plant_params={"reverse_distance": 7.0}, score=False)
+
+
+def test_act_takes_one_observation_per_step_and_applied_checks_the_action():
+    """The same observation twice moved a nominal plant's estimate to gain 1.08 and dropped a step from the schedule; a
+    skipped one was learnt from as one step. applied() took NaN as the previous control, [5, ...] as 780 mg where the
+    env applies 260 mg, and a short action was an IndexError."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service", config=MPCConfig(parallel_search=False))
+    a = ctrl.act(obs)
+    for bad in (np.array([np.nan, 0.0, 0.0, 0.0]), np.zeros(1), 0.5, np.zeros((2, 4)), np.zeros(5), "x"):
+        with pytest.raises(ValueError, match="action must be"):
+            ctrl.applied(bad)
+    ctrl.applied(np.array([5.0, 0.0, -1.0, -1.0]))
+    assert ctrl._last[2][0] == pytest.approx(P.U_mf_max)  # (clipped as the env's step clips it)
+    ctrl.applied(a)
+    with pytest.raises(ValueError, match="act\\(\\) takes one observation per control step of 0.1 s"):
+        ctrl.act(obs)  # (the same one again)
+    obs1, *_ = env.step(a)
+    obs2, *_ = env.step(a)
+    with pytest.raises(ValueError, match="a repeated or skipped observation"):
+        ctrl.act(obs2)
+    counts = dict(ctrl._counts)
+    ctrl.act(obs1)  # (the refused ones changed nothing: one step further on the schedule)
+    assert sum(counts.values()) - sum(ctrl._counts.values()) == 1
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"score": "no"}, "score must be True or False, got 'no'"),  # (scored the run)
+    ({"score": None}, "score must be True or False, got None"),
+    ({"plant_params": "abc"}, "plant_params: params must be a LoaderParams"),  # (named params)
+])
+def test_run_closed_loop_names_score_and_plant_params(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        run_closed_loop("service", **kwargs)

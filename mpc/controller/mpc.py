@@ -63,8 +63,8 @@ from mpc.controller.solver import (
 )
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
-from wl_env.codec import Codec
-from wl_env.env import check_target_time
+from wl_env.codec import N_OBS, N_SCENARIO_OBS, Codec
+from wl_env.env import action_array, check_target_time
 from wl_env.episode import check_control_interval
 from wl_env.params import (
     SCENARIO_FIELDS,
@@ -77,7 +77,7 @@ from wl_env.params import (
 )
 from wl_env.physics import lift
 from wl_env.rollout import EpisodeResult
-from wl_env.scenario import Scenario, resolve_scenario
+from wl_env.scenario import FIELDS, NUMERIC_FIELDS, Scenario, feature, resolve_scenario
 
 if TYPE_CHECKING:
     from mpc.benchmark.scoring import Score
@@ -97,6 +97,8 @@ SEARCH_FAILURES = 2  # moves in a row that do not pay end the first step's searc
 # bench's 16 s targets, 1.96 T_min, paid 0.7-0.9 s more first-step planning for a fuel-optimal cycle of ~21 s)
 FUEL_OPTIMUM_ABOVE = 2.0
 MIN_W_FUEL = 1e-6  # the least fuel weight of the weighted mode other than 0 (MPCConfig)
+# The largest rate_weight and terminal_weight (MPCConfig): 1e308 overflowed the NLPs' derivatives to inf
+MAX_WEIGHT = 1e6
 FORKED_TIMEOUT_S = 1.0  # s at least that a round of the search waits for its forked solve (then solves it itself)
 # A short horizon's full plan is made again when the plant estimate [accel offset (m/s^2), accel gain, lift
 # gain] moves by more than this since it was made (or when the horizon's plan misses a target).
@@ -128,6 +130,7 @@ REALTIME_MARGIN_S = 0.005
 # (median) and up to 11 ms late on a loaded machine (`wl mpc --braking tc --deadline-ms 100`: 50 of 84 steps
 # over 100 ms, max 111 ms, beside two solver runs).
 DEADLINE_RESERVE_S = 0.005
+MIN_DEADLINE_MS = 1e-3  # the shortest MPCConfig.deadline_ms: in seconds, a positive number IPOPT takes as its time limit
 MOVE_INTERVALS = 4
 MAX_LEAD = 8  # steps a real-time solve may plan ahead (0.8 s at 0.1 s)
 REFERENCE_MESH = (12, 8, 12, 8)  # the continuous reference only sets the first schedule and guess
@@ -144,6 +147,14 @@ REFERENCE_STARTS = {"service": (0.3, 0.5), "tc": (0.5,)}
 # cycles from this one alone every T was the same but one, a step faster; fuel within -0.4..+0.6 % on 10 of the
 # others, +8.6 % on the faster one; the reference 0.18-0.19 s against 0.36-0.38 s.
 MIN_TIME_REFERENCE_STARTS = ((4.2, 0.8),)
+# act(): an observation's time must lie this fraction of dt from one step after the last one's (the float32 time
+# observed is within 5e-6 s)
+STEP_TIME_TOL = 0.25
+# act(): the scenario fields that place the cycle's marks, which a v2 or target env's observation carries (features in
+# [-1, 1]: float32's within 1e-7 of the controller's for the same cycle, float16's 5e-4); a cycle off by more than this
+# (3 mm in distance, 0.8 mm in height; the episode allows 5 cm and 2 cm) is another one
+OBSERVED_MARKS = ("reverse_distance", "forward_distance", "dump_height")
+MARK_FEATURE_TOL = 1e-3
 TARGET_BELOW_T_MIN = 0.01  # a target this fraction under the benchmark's T_min is run as fast as possible, not refused
 _REFERENCES: dict[tuple, Any] = {}  # the continuous references, per model and mode (OCP results)
 
@@ -325,8 +336,9 @@ class MPCConfig:
             raise ValueError(f"w_fuel is mode 'weighted''s; mode {self.mode!r} takes none, got {shown(self.w_fuel)}")
         if self.mode != "target_time" and self.target_time is not None:
             raise ValueError(f"target_time is mode 'target_time''s; mode {self.mode!r} takes none, got {shown(self.target_time)}")
-        if self.deadline_ms is not None and not (is_real_number(self.deadline_ms) and self.deadline_ms > 0):
-            raise ValueError(f"deadline_ms must be > 0 ms or None, got {shown(self.deadline_ms)}")
+        # (5e-324 ms is 0 s: "Invalid options were detected by Ipopt" for its max_wall_time, a CasADi traceback)
+        if self.deadline_ms is not None and not (is_real_number(self.deadline_ms) and self.deadline_ms >= MIN_DEADLINE_MS):
+            raise ValueError(f"deadline_ms must be >= {MIN_DEADLINE_MS:g} ms (1 µs) or None, got {shown(self.deadline_ms)}")
         for name in ("realtime", "safety_filter", "parallel_search"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {shown(getattr(self, name))}")
@@ -338,9 +350,11 @@ class MPCConfig:
             raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
         if not count(self.spare_steps, 1, 100):
             raise ValueError(f"spare_steps must be an integer in [1, 100], got {shown(self.spare_steps)}")
+        # (1e308 made the first plan's gradient inf: "no plan ... Invalid_Number_Detected" after 2 s; `wl mpc
+        # --rate-weight` takes [0, 1e6])
         if not (isinstance(self.rate_weight, (tuple, list)) and len(self.rate_weight) == 2
-                and all(is_real_number(w) and w >= 0 for w in self.rate_weight)):
-            raise ValueError(f"rate_weight must be two weights >= 0 (U_mf, U_ab), got {shown(self.rate_weight)}")
+                and all(is_real_number(w) and 0 <= w <= MAX_WEIGHT for w in self.rate_weight)):
+            raise ValueError(f"rate_weight must be two weights in [0, {MAX_WEIGHT:g}] (U_mf, U_ab), got {shown(self.rate_weight)}")
         if not (is_real_number(self.tighten) and 0.0 <= self.tighten < 0.5):
             raise ValueError(f"tighten must lie in [0, 0.5), got {shown(self.tighten)}")
         if not (is_real_number(self.omega_margin) and 0.0 <= self.omega_margin <= 50.0):
@@ -363,8 +377,9 @@ class MPCConfig:
             if self.horizon is None:
                 raise ValueError("replan_lag_steps re-plans a short horizon's reference: it needs horizon_steps "
                                  "(the full horizon here)")
-        if not (is_real_number(self.terminal_weight) and self.terminal_weight >= 0.0):
-            raise ValueError(f"terminal_weight must be a finite number >= 0, got {shown(self.terminal_weight)}")
+        if not (is_real_number(self.terminal_weight) and 0.0 <= self.terminal_weight <= MAX_WEIGHT):
+            raise ValueError(f"terminal_weight must be a finite number >= 0, at most {MAX_WEIGHT:g}, "
+                             f"got {shown(self.terminal_weight)}")
 
     @property
     def fastest(self) -> bool:
@@ -525,6 +540,13 @@ class MPCController:
         if self._last is not None and t < self._last_t - 1e-6:  # (a new episode's first step: an IndexError in the plan)
             raise ValueError(f"the observation's time {t:.2f} s lies before the last step's {self._last_t:.2f} s: a new "
                              "cycle starts with the controller's reset()")
+        # (the estimator learns from the step between two observations as one of dt: the same observation twice took
+        # a step of nothing, the nominal plant's estimate moved to gain 1.08 and a step left the schedule; a skipped
+        # one, or an env of another dt, took two steps as one)
+        if self._last is not None and abs(t - self._last_t - self.dt) > STEP_TIME_TOL * self.dt:
+            raise ValueError(f"act() takes one observation per control step of {self.dt:g} s: the last step's was at "
+                             f"{self._last_t:.4g} s, this one is at {t:.4g} s (a repeated or skipped observation, or an "
+                             "environment of another dt)")
         self._last_t = t
         if self._last is not None:
             if self._ahead is not None:  # (the worker's to learn from, before its next solve)
@@ -591,9 +613,15 @@ class MPCController:
         """The env applied ``action`` instead of this controller's last one (a shadow expert labelling another
         controller's states, e.g. DAgger): the estimator and the rate penalty take that one as the last
         control, and its shift request (> 0 in phase 1 or 3) as the phase change."""
+        # (checked and clipped as the env's step does: a NaN became the next plans' previous control, a short one an
+        # IndexError, 5.0 a previous injection of 780 mg where the env applied its 260 mg cap)
+        a = action_array(action, "action")
+        if a.shape != (4,) or not np.isfinite(a).all():
+            raise ValueError(f"action must be 4 finite numbers [fuel, bucket, brake, shift] in [-1, 1] (the env clips "
+                             f"them), got {shown(action)}")
         if self._last is None:
             return
-        a = np.asarray(action, dtype=float)
+        a = np.clip(a, -1.0, 1.0)
         self.safety.forget_prediction()  # (its prediction was of this controller's control)
         x, phase = self._last[0], self._obs_phase
         u = np.array(self.codec.decode_action(float(a[0]), float(a[1]), float(a[2])))
@@ -605,13 +633,34 @@ class MPCController:
 
     def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
         """[omega, V, H, V_b, s], elapsed time and phase from an observation (:class:`wl_env.codec.Codec`)."""
+        # (a dict was a bare TypeError; booleans or complex numbers were cast without a word)
+        try:
+            kind = np.asarray(obs).dtype.kind
+        except (TypeError, ValueError):
+            kind = "O"
+        if kind not in "iuf":
+            raise ValueError(f"obs must be a WheelLoader observation (an array of real numbers), got {shown(obs)}")
         o = self.codec.decode_observation(obs)
         if np.ndim(o.time) != 0:
             raise ValueError(f"the MPC acts on one observation, got shape {np.shape(obs)}")
+        self._check_cycle(np.asarray(obs, dtype=float))
         if o.state[0] < self.params.omega_min:  # (in the observation space; 0 divided the safety filter's model)
             raise ValueError(f"observation: engine speed {o.state[0]:.4g} rad/s, a stalled engine (below omega_min "
                              f"{self.params.omega_min:g} rad/s the environment ends the cycle): no control to plan")
         return o.state, o.time, o.phase
+
+    def _check_cycle(self, obs: np.ndarray) -> None:
+        """A v2 or target env's observation carries its cycle's marks (the scenario's features): they must be the
+        ones this controller plans. (The payload and rolling resistance may differ: the estimator learns them.)"""
+        if obs.shape[-1] < N_SCENARIO_OBS:  # (v1's carries none)
+            return
+        for name in OBSERVED_MARKS:
+            spec, seen = FIELDS[name], float(obs[N_OBS + NUMERIC_FIELDS.index(name)])
+            planned = getattr(self.params, spec.param) / spec.to_param
+            if abs(seen - min(max(feature(name, planned), -1.0), 1.0)) > MARK_FEATURE_TOL:  # (the env clips them)
+                raise ValueError(f"the observation is of a cycle of {name} {spec.lo + 0.5 * (seen + 1.0) * (spec.hi - spec.lo):.4g} "
+                                 f"{spec.unit}; this MPC plans {planned:.4g} {spec.unit}: tell it the episode's scenario "
+                                 "(reset(scenario=...))")
 
     # ------------------------------------------------------------------ one step
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
@@ -1680,8 +1729,10 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
     if scenario is not None and not isinstance(scenario, Scenario):
         raise ValueError(f"scenario must be a wl_env.scenario.Scenario or None, got {type(scenario).__name__} "
                          "(Scenario.parse reads one from JSON)")
-    if not isinstance(mismatch, bool):
-        raise ValueError(f"mismatch must be True or False, got {shown(mismatch)}")
+    mismatch, score = plain(mismatch), plain(score)  # (np.bool_ as the bool it holds, as MPCConfig takes it)
+    for name, flag in (("mismatch", mismatch), ("score", score)):  # (score="no" scored the run)
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name} must be True or False, got {shown(flag)}")
     if mismatch and scenario is None:  # (it was ignored without a word)
         raise ValueError("mismatch plans a scenario's cycle with the nominal payload and rolling resistance: "
                          "give a scenario")
@@ -1691,7 +1742,10 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")
     config = config or MPCConfig()
     model = resolve(params)
-    plant = resolve(plant_params) if plant_params is not None else model
+    try:
+        plant = resolve(plant_params) if plant_params is not None else model
+    except ValueError as exc:  # (it said "params must be ...")
+        raise ValueError(f"plant_params: {exc}") from None
     if scenario is not None:
         braking = scenario.braking if braking is None else cycle.check_braking(braking)
         if braking != scenario.braking:
@@ -1703,6 +1757,11 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         if mismatch:
             base = resolve(params)
             model = model.replace(M_load=base.M_load, c_r=base.c_r)
+    moved = [f"{name} {getattr(model, FIELDS[name].param):g} / {getattr(plant, FIELDS[name].param):g}"
+             for name in OBSERVED_MARKS if getattr(model, FIELDS[name].param) != getattr(plant, FIELDS[name].param)]
+    if moved:  # (the plan aimed at the model's marks, the episode judged the plant's: a failed cycle, no error)
+        raise ValueError(f"plant_params moves the cycle's marks off the model's (model / plant: {', '.join(moved)}): "
+                         "a model-mismatch study varies what the estimator learns (payload, rolling resistance, ...)")
     braking = cycle.check_braking(braking or (controller.braking if controller is not None else "service"))
     if controller is not None and controller.braking != braking:  # (it planned one cycle while the env ran the other)
         raise ValueError(f"the controller plans {controller.braking} braking; the run has braking={braking!r}")
