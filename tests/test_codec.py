@@ -101,3 +101,14 @@ def test_an_observation_outside_its_space_is_refused_naming_the_entry():
         bad[8:12] = phases
         with pytest.raises(ValueError, match="one-hot"):
             codec.decode_observation(bad)
+
+
+def test_an_observation_of_no_real_numbers_is_refused_by_name():
+    """A dict was a bare TypeError; booleans, complex numbers or digit strings were cast without a word (a bool
+    array read as the engine at omega_max) for every controller that decodes observations (operator, plan driver, MPC)."""
+    obs, _ = gym.make("WheelLoader-v2").reset(seed=0)
+    codec = Codec(observe_scenario=True)
+    for bad in ({"a": 1}, obs.astype(bool), obs.astype(complex), np.array([str(v) for v in obs]), None):
+        with pytest.raises(ValueError, match=r"obs must be WheelLoader observations \(arrays of real numbers\)"):
+            codec.decode_observation(bad)
+    assert codec.decode_observation(obs.astype(np.float16)).phase == 1

@@ -809,7 +809,7 @@ def test_the_mpc_refuses_an_observation_that_is_no_array_of_numbers_or_of_anothe
     obs, _ = env.reset(seed=0)
     ctrl = MPCController("service")
     for bad in ({"a": 1}, obs.astype(bool), obs.astype(complex), np.array([str(v) for v in obs]), None):
-        with pytest.raises(ValueError, match=r"obs must be a WheelLoader observation \(an array of real numbers\)"):
+        with pytest.raises(ValueError, match=r"obs must be WheelLoader observations \(arrays of real numbers\)"):
             ctrl.act(bad)
     short = Scenario(reverse_distance=5.0)
     obs5, _ = gym.make("WheelLoader-v2", braking="service", scenario=short).reset(seed=0)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import LoaderParams, resolve, shown
 from wl_env.physics.backend import ops_for
 from wl_env.scenario import FIELDS, Scenario, param_features
 
@@ -183,6 +183,14 @@ class Codec:
         return tuple(ops.clip(f, lo, hi) for f, lo, hi in zip(features, self._low, self._high, strict=True))
 
     def _checked(self, obs: Any) -> np.ndarray:
+        # (real numbers only: a dict was a bare TypeError, and booleans, complex numbers or digit strings were cast
+        # without a word, a bool array read as the engine at omega_max)
+        try:
+            kind = np.asarray(obs).dtype.kind
+        except (TypeError, ValueError):
+            kind = "O"
+        if kind not in "iuf":
+            raise ValueError(f"obs must be WheelLoader observations (arrays of real numbers), got {shown(obs)}")
         o = np.asarray(obs, dtype=np.float64)
         if o.shape[-1:] not in ((N_OBS,), (N_SCENARIO_OBS,), (N_TARGET_OBS,)) or o.ndim > 2 or not np.isfinite(o).all():
             raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_TARGET_OBS},) (WheelLoaderTarget), "

@@ -633,14 +633,7 @@ class MPCController:
 
     def state_from_obs(self, obs: np.ndarray) -> tuple[np.ndarray, float, int]:
         """[omega, V, H, V_b, s], elapsed time and phase from an observation (:class:`wl_env.codec.Codec`)."""
-        # (a dict was a bare TypeError; booleans or complex numbers were cast without a word)
-        try:
-            kind = np.asarray(obs).dtype.kind
-        except (TypeError, ValueError):
-            kind = "O"
-        if kind not in "iuf":
-            raise ValueError(f"obs must be a WheelLoader observation (an array of real numbers), got {shown(obs)}")
-        o = self.codec.decode_observation(obs)
+        o = self.codec.decode_observation(obs)  # (real numbers of a WheelLoader layout, else a ValueError naming obs)
         if np.ndim(o.time) != 0:
             raise ValueError(f"the MPC acts on one observation, got shape {np.shape(obs)}")
         self._check_cycle(np.asarray(obs, dtype=float))
