@@ -59,7 +59,7 @@ from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
 from mpc.controller import codegen  # noqa: E402
-from mpc.controller.mpc import AUTO, MPCConfig, forget_plans, run_closed_loop  # noqa: E402
+from mpc.controller.mpc import AUTO, MAX_WEIGHT, MPCConfig, forget_plans, run_closed_loop  # noqa: E402
 from mpc.controller.solver import SOLVERS, release_solvers  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
@@ -159,8 +159,8 @@ def check_options(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None
         ap.error(f"--suite-sample must be an integer in [0, {MAX_SAMPLE}], got {args.suite_sample}")
     if args.deadline_ms is not None and not (math.isfinite(args.deadline_ms) and args.deadline_ms > 0):
         ap.error(f"--deadline-ms must be a number > 0, got {args.deadline_ms:g}")
-    if not (math.isfinite(args.terminal_weight) and args.terminal_weight >= 0):
-        ap.error(f"--terminal-weight must be a number >= 0, got {args.terminal_weight:g}")
+    if not (math.isfinite(args.terminal_weight) and 0 <= args.terminal_weight <= MAX_WEIGHT):
+        ap.error(f"--terminal-weight must be a number in [0, {MAX_WEIGHT:g}], got {args.terminal_weight:g}")
     if args.rate_sweep and not all(math.isfinite(w) and w >= 0 for w in args.rate_sweep):
         ap.error(f"--rate-sweep weights must each be a number >= 0, got {' '.join(f'{w:g}' for w in args.rate_sweep)}")
 
