@@ -92,11 +92,13 @@ def write_json_atomic(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_io.write_json_atomic(path, obj, indent=2, nan_as_null=True)
 
 
-def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any], export: bool = False) -> Path:
+def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, Any], export: bool = False,
+                     summary: bool = False) -> Path:
     """model.zip + vecnormalize.pkl + progress.json into ``folder``, made visible at once (dir rename).
 
     ``export`` also writes the pickle-free policy (policy.safetensors, policy_vecnormalize.npz, policy.json
-    with ``extra`` as metadata) that :func:`load_policy` and :func:`export_policy` read without trust.
+    with ``extra`` as metadata) that :func:`load_policy` and :func:`export_policy` read without trust;
+    ``summary`` also ``extra`` as summary.json, the mark of a finished run.
     """
     folder = Path(folder)
     tmp = folder.parent / f".{folder.name}.tmp"
@@ -108,6 +110,8 @@ def save_model_files(model: Any, vecnorm: Any, folder: Path, extra: dict[str, An
     if export:
         write_policy(model.policy, ObsNormalization.of_vecnormalize(vecnorm), tmp / "policy", extra)
     write_json_atomic(tmp / "progress.json", extra)
+    if summary:  # (staged too: written after the rename, a kill between left a finished run that read as none)
+        write_json_atomic(tmp / "summary.json", extra)
     return _replace_folder(tmp, folder)
 
 
@@ -987,15 +991,13 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
         if state["last_eval"] != model.num_timesteps:
             evaluation.evaluate()  # the final policy is the learning curve's last point
     wall = state["wall_time"] + time.time() - state["t0"]
-    final = save_model_files(model, _vecnorm_of(env), run_dir / "final", export=True, extra={
+    final = save_model_files(model, _vecnorm_of(env), run_dir / "final", export=True, summary=True, extra={
         "num_timesteps": int(model.num_timesteps), "wall_time": wall, "braking": cfg.braking, "seed": cfg.seed,
         "config": cfg.to_dict(), "commands": commands, "last_eval": state.get("last_eval_row"),
         "stopped_by_time_limit": bool(state.get("timed_out")),
     })
     env.close()
-    summary = json.loads((final / "progress.json").read_text())
-    write_json_atomic(final / "summary.json", summary)
-    return summary
+    return json.loads((final / "summary.json").read_text())
 
 
 # ---------------------------------------------------------------------------------------------- shipping

@@ -121,3 +121,38 @@ def guarded() -> Iterator[None]:
         _flag.clear()
         if hit:  # (in place of what CasADi made of it: a RuntimeError "... KeyboardInterrupt", a failed solve)
             raise KeyboardInterrupt("interrupted")  # noqa: B012
+
+
+def _defer(signum: int, frame: Any) -> None:
+    global _signal
+    if _flag.is_set():  # a second one: raised now (a start that hangs must not be deaf to Ctrl-C)
+        raise KeyboardInterrupt
+    _signal = signal.Signals(signum)
+    _flag.set()
+
+
+@contextmanager
+def deferred() -> Iterator[None]:
+    """The first SIGINT (or SIGTERM where :func:`handling` raises on it) noted but not raised inside the block, and
+    raised as KeyboardInterrupt when it ends; a second one is raised at once. For a call that an exception would
+    leave half done, with nothing to clean up after it: Ctrl-C inside ``ray.init`` left the local instance's agents
+    running, orphaned, which no ``ray.shutdown()`` could find. In the main thread only (elsewhere no signal
+    arrives)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    held = {s: h for s, h in held.items() if h is _handler or h is signal.default_int_handler}
+    was_set = _flag.is_set()
+    for s in held:
+        signal.signal(s, _defer)
+    try:
+        yield
+    finally:
+        for s, h in held.items():
+            signal.signal(s, h)
+        hit = _flag.is_set() and not was_set
+        if hit and held.get(signal.SIGINT) is not _handler:  # (library use: Python's default handler keeps no flag)
+            _flag.clear()
+    if hit:
+        raise KeyboardInterrupt("interrupted")

@@ -30,7 +30,7 @@ import threading
 import time
 import traceback
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 from mpc import interrupt
@@ -65,8 +65,15 @@ def ray_session(address: str) -> Iterator[Any]:
     if started:
         check_ray_address(address)
         check_reachable(address)
-        ray.init(address=None if address == "local" else address, include_dashboard=False,
-                 logging_level=logging.WARNING, log_to_driver=False)
+        # (Ctrl-C inside the start of a local instance left its agents running, orphaned; a start of 3-6 s)
+        hold = interrupt.deferred() if address == "local" else nullcontext()
+        try:
+            with hold:
+                ray.init(address=None if address == "local" else address, include_dashboard=False,
+                         logging_level=logging.WARNING, log_to_driver=False)
+        except KeyboardInterrupt:  # (arrived during the start: raised once it is done, and undone here)
+            ray.shutdown()
+            raise
     try:
         yield ray
     finally:

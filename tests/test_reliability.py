@@ -1170,3 +1170,119 @@ def test_a_forked_call_survives_a_refused_fork_and_an_ignored_sigchld(monkeypatc
     for _ in range(5):
         assert forked.ForkedCall(lambda: 1).result(timeout=30.0) is None
     assert len(os.listdir("/proc/self/fd")) == fds
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupt_during_the_ray_start_stops_the_instance_it_started(monkeypatch, sig):
+    """Ctrl-C that landed inside ``ray.init`` (`wl suite solve --ray`, 4 s in) left the local instance's
+    DashboardAgent and RuntimeEnvAgent running, orphaned, which no ``ray.shutdown()`` could find: the start now
+    ends first, and is undone."""
+    import types
+
+    from mpc.workers import ray_session
+
+    calls: list[str] = []
+
+    def init(**kwargs):
+        os.kill(os.getpid(), sig)  # (the handler runs at the next bytecode: inside the start)
+        time.sleep(0.05)
+        calls.append("started")
+
+    fake = types.SimpleNamespace(is_initialized=lambda: False, init=init, shutdown=lambda: calls.append("shutdown"))
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    with interrupt.handling():
+        with pytest.raises(KeyboardInterrupt):
+            with ray_session("local"):
+                calls.append("body")
+        assert interrupt.exit_code() == 128 + sig
+    assert calls == ["started", "shutdown"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(KeyboardInterrupt), interrupt.deferred():  # a second Ctrl-C is raised at once (a hung start)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        calls.append("held")
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        calls.append("not held")
+    assert calls[-1] == "held" and not interrupt.interrupted()
+
+
+def test_a_training_killed_as_its_final_folder_appears_reads_as_finished(tmp_path, monkeypatch):
+    """A kill between the rename of a run's ``final/`` and the write of its ``summary.json`` (env.close() between)
+    left a finished run that read as none: the same `wl train --seeds` failed with "already holds a run" for good."""
+    from fakes import tiny_ppo_config
+
+    import agents.ppo as ppo
+    from agents.seeds import run_state, train_one
+
+    cfg = tiny_ppo_config(tmp_path, total_timesteps=256, num_envs=4, n_steps=64, batch_size=64, n_epochs=1,
+                          eval_freq=10**6, eval_episodes=1, checkpoint_freq=10**6, net_arch=(8,))
+    replace_folder = ppo._replace_folder
+
+    def killed_after_final(tmp: Path, folder: Path) -> Path:
+        out = replace_folder(tmp, folder)
+        if folder.name == "final":
+            raise KeyboardInterrupt
+        return out
+
+    monkeypatch.setattr(ppo, "_replace_folder", killed_after_final)
+    with pytest.raises(KeyboardInterrupt):
+        train_one(cfg.to_dict())
+    monkeypatch.undo()
+    assert run_state(cfg) == "done"
+    assert train_one(cfg.to_dict())["num_timesteps"] == 256  # read back, not trained again
+
+
+def test_a_killed_wl_run_goes_on_from_the_controllers_it_finished(tmp_path, monkeypatch, caplog):
+    """`wl run` killed after some of its controllers (each up to minutes, 10 min in all) ran every one of them again
+    when run again: each finished evaluation is kept in --out until results.json is written, read back only if it
+    is exactly what was written for the same arguments."""
+    import dataclasses
+
+    import wl.report
+    from agents.operator import OperatorPolicy
+
+    # (the shipped nominal front; a fake time-optimal cycle on it)
+    monkeypatch.setattr(pareto, "min_time_result", lambda b, cache=None: dataclasses.replace(fake_solve(b), T=9.0))
+
+    ran: list[str] = []
+    stop = {"second"}
+
+    def listing(b: str) -> list:
+        def make(name: str) -> OperatorPolicy:
+            ran.append(name)
+            if name in stop:
+                raise KeyboardInterrupt
+            return OperatorPolicy(b)
+
+        return [(n, lambda n=n: make(n)) for n in ("first", "second", "third")]
+
+    def collect(out: Path) -> dict:
+        return wl.report.collect(out, cache=str(tmp_path / "cache"), controllers=listing, brakings=("service",),
+                                 suite_controllers=None)
+
+    out = tmp_path / "results"
+    with pytest.raises(KeyboardInterrupt):
+        collect(out)
+    assert ran == ["first", "second"] and len(list((out / wl.report.KEEP_DIR).glob("*.json"))) == 1
+    stop.clear()
+    resumed = collect(out)
+    assert ran[2:] == ["second", "third"]  # the first one read back
+    assert not (out / wl.report.KEEP_DIR).exists()
+    whole = collect(tmp_path / "whole")
+    assert ran[4:] == ["first", "second", "third"]  # (a finished run keeps nothing: evaluated afresh)
+    for r in (resumed, whole):
+        r.pop("wall_time_s")
+    assert json.dumps(resumed, default=str) == json.dumps(whole, default=str)
+
+    stop.add("third")  # a kept file cut short is run again, with a warning naming it
+    with pytest.raises(KeyboardInterrupt):
+        collect(out)
+    kept = sorted((out / wl.report.KEEP_DIR).glob("*.json"))
+    for path in kept:
+        path.write_text(path.read_text()[:100])
+    stop.clear()
+    ran.clear()
+    with caplog.at_level(logging.WARNING):
+        collect(out)
+    assert ran == ["first", "second", "third"] and len(kept) == 2 and all(str(p) in caplog.text for p in kept)

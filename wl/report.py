@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 BRAKINGS = ("service", "tc")
 RESULTS_FILE = "results.json"
 RESULTS_FORMAT = 3  # 1: rows only (cannot be re-rendered); 2: + fronts, optima, trajectories; 3: + the suite
+KEEP_DIR = ".evaluations"  # in `wl run`'s --out: each finished controller evaluation until results.json is written
 SUITE = "test"  # the suite leaderboard's suite (its optima are shipped: nothing is solved for it)
 SUITE_SAMPLE = 10  # scenarios per braking alternative the main job runs by default (--full-suite: all)
 ROW_KEYS = ("controller", "braking", "T", "fuel_g", "time_gap", "fuel_gap", "max_violation", "success")
@@ -89,11 +90,12 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
                   controllers: Callable[[str], list[tuple[str, Callable[[], Any]]]] = suite_controllers,
                   brakings: tuple[str, ...] = BRAKINGS,
                   at_targets: Callable[[str], list[tuple[str, Callable[[], Any]]]] | None = target_controllers,
-                  targets: tuple[tuple[str, float], ...] = TARGETS, isolate: bool = False) -> dict[str, Any]:
+                  targets: tuple[tuple[str, float], ...] = TARGETS, isolate: bool = False,
+                  keep: Path | None = None) -> dict[str, Any]:
     """Every controller on ``sample`` scenarios of the suite per braking alternative (None: all of them),
     each episode scored against its own scenario's optimum: the suite leaderboard's rows and episodes.
     ``at_targets``' controllers run at each of ``targets`` (a row each, with its lateness). ``isolate``:
-    each controller's run in a worker process of its own (:func:`evaluation`)."""
+    each controller's run in a worker process of its own (:func:`evaluation`); ``keep``: as there."""
     from wl_env.suites import load_suite
 
     s = load_suite(suite)
@@ -106,7 +108,8 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
         for listing, name, label, ratio in runs:
             log.info(f"[{suite} suite, {b}] {name}{'' if label is None else ', target ' + label}: "
                      f"{len(scenarios)} scenarios")
-            ev = evaluation(listing, b, name, isolate, scenarios=scenarios, cache=cache, name=name, target_ratio=ratio)
+            ev = evaluation(listing, b, name, isolate, keep=keep, scenarios=scenarios, cache=cache, name=name,
+                            target_ratio=ratio)
             sm = ev["summary"]
             rows.append({"controller": name, "braking": b, "target": label, "scenarios": len(scenarios),
                          "success_rate": sm["success_rate"],
@@ -123,7 +126,74 @@ def collect_suite(suite: str = SUITE, sample: int | None = SUITE_SAMPLE, cache: 
 
 
 def evaluation(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], braking: str, controller: str,
-               isolate: bool = False, **kwargs: Any) -> dict[str, Any]:
+               isolate: bool = False, keep: Path | None = None, **kwargs: Any) -> dict[str, Any]:
+    """:func:`_evaluation`, kept in the folder ``keep`` once done (atomically, with its arguments' key and a
+    checksum) and read back from there instead of run again: a `wl run` killed after some controllers goes on
+    from there when run again (it ran every controller again, up to 10 min). A kept file that is not exactly
+    one of these is run again."""
+    key = _evaluation_key(listing, braking, controller, kwargs) if keep is not None else None
+    if key is not None:
+        kept = _read_kept(keep / f"{key}.json", key)
+        if kept is not None:
+            log.info(f"[{braking}] {controller}: the evaluation of an interrupted run, kept in {keep}")
+            return kept
+    result = _evaluation(listing, braking, controller, isolate, **kwargs)
+    if key is not None:
+        from wl_env.atomic_io import write_json_atomic
+
+        keep.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(keep / f"{key}.json", {"key": key, "checksum": _kept_checksum(result), "result": result})
+    return result
+
+
+def _plain(o: Any) -> Any:
+    """JSON of an evaluation's arguments (its key) and result: scenarios, fronts and arrays as their values."""
+    if hasattr(o, "to_dict"):
+        return o.to_dict()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if hasattr(o, "__dict__"):
+        return vars(o)
+    return str(o)
+
+
+def _evaluation_key(listing: Any, braking: str, controller: str, kwargs: dict[str, Any]) -> str:
+    import hashlib
+
+    from wl_env import __version__
+
+    what = {"version": __version__, "format": RESULTS_FORMAT, "listing": f"{listing.__module__}.{listing.__qualname__}",
+            "braking": braking, "controller": controller, "kwargs": kwargs}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=_plain).encode()).hexdigest()[:32]
+
+
+def _kept_checksum(result: Any) -> str:
+    import hashlib
+
+    text = json.dumps(result, sort_keys=True, separators=(",", ":"), default=_plain)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _read_kept(path: Path, key: str) -> dict[str, Any] | None:
+    """The result kept at ``path`` for ``key``, or None (none, or not exactly what was written: a warning)."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        if (isinstance(data, dict) and data.get("key") == key and isinstance(data.get("result"), dict)
+                and data.get("checksum") == _kept_checksum(data["result"])):
+            return data["result"]
+        problem = "its key or checksum does not match"
+    except (OSError, ValueError, RecursionError) as exc:
+        problem = " ".join(str(exc).split())[:200]
+    log.warning(f"{path}: not a kept evaluation ({problem}); running it again")
+    return None
+
+
+def _evaluation(listing: Callable[[str], list[tuple[str, Callable[[], Any]]]], braking: str, controller: str,
+                isolate: bool = False, **kwargs: Any) -> dict[str, Any]:
     """:func:`agents.evaluate.evaluate_controller` of the ``controller`` so named in ``listing(braking)``, with
     ``kwargs``; every solver it built is dropped after it (the next controller plans with other NLPs).
 
@@ -187,6 +257,7 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fronts, optima, rows, trajectories = {}, {}, [], []
+    keep = out / KEEP_DIR  # (each controller's finished evaluation: a killed run goes on from there)
     known = {b: known_front(b, DEFAULT_PARAMS, cache) for b in brakings}
     missing = tuple(b for b in brakings if known[b] is None)
     solved = {b: known[b][0] for b in brakings if known[b] is not None}
@@ -209,7 +280,8 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
         release_solvers()  # (the optima's OCPs, if solved here)
         for name, _ in controllers(b):
             log.info(f"[{b}] {name}")
-            ev = evaluation(controllers, b, name, isolate, episodes=1, seed=0, front=front, cache=cache, trajectories=True)
+            ev = evaluation(controllers, b, name, isolate, keep=keep, episodes=1, seed=0, front=front, cache=cache,
+                            trajectories=True)
             ep = ev["per_episode"][0]
             rows.append({"controller": name, "braking": b, "T": ep["T"], "fuel_g": ep["fuel_g"],
                          "time_gap": ep["time_gap"], "fuel_gap": ep["fuel_gap"], "max_violation": ep["max_violation"],
@@ -217,12 +289,13 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
             traj = ep["trajectory"]
             trajectories.append({"controller": name, "braking": b, "t": traj["t"], "states": traj["states"]})
     suite = (collect_suite(sample=suite_sample, cache=cache, controllers=suite_controllers, brakings=brakings,
-                           isolate=isolate)
+                           isolate=isolate, keep=keep)
              if suite_controllers is not None else None)
     results = {"format": RESULTS_FORMAT, "brakings": list(brakings), "rows": rows, "fronts": fronts,
                "optima": optima, "trajectories": trajectories, "suite": suite,
                "wall_time_s": time.perf_counter() - t_start}
     write_json_atomic(out / RESULTS_FILE, results)
+    shutil.rmtree(keep, ignore_errors=True)  # (done: a later run evaluates afresh)
     return results
 
 
