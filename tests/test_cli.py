@@ -319,7 +319,7 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_mpc.py", "--targets", "nan"], "--targets must lie in [1, 40) s"),
     (["bench_mpc.py", "--suite-sample", "-1"], "--suite-sample must be an integer in [0, 100000]"),
     (["bench_mpc.py", "--deadline-ms", "-5"], "--deadline-ms must be a number > 0"),
-    (["bench_mpc.py", "--terminal-weight", "nan"], "--terminal-weight must be a number >= 0"),
+    (["bench_mpc.py", "--terminal-weight", "nan"], "--terminal-weight must be a number in [0, 1e+06]"),
     (["bench_mpc.py", "--rate-sweep", "0.1", "nan"], "--rate-sweep weights must each be a number >= 0"),
     (["bench_memory.py", "--period", "nan"], "--period must be a number of seconds in [0.01, 60]"),  # (wl run orphaned)
     (["bench_rti_qp.py", "--solvers", "nope"], "invalid choice: 'nope'"),
@@ -328,8 +328,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_env.py", "--single-steps", "100000000000"], "--single-steps must be an integer in [1, 10000000]"),  # (745 GiB)
     (["bench_env.py", "--repeats", "-1", "--quick"], "--repeats must be an integer in [1, 1000]"),
     (["bench_grid_min_time.py", "tc", "1000"], "R (reach) must be an integer in [1, 8]"),
-    (["select_policy.py", "--policies", "/nonexistent"], "no policy in /nonexistent"),  # (a FileNotFoundError's traceback)
-    (["bench_agents.py", "--suite", "test", "--runs", "/nonexistent"], "no policy in /nonexistent"),
+    (["select_policy.py", "--policies", "/nonexistent"], "/nonexistent: expected"),  # (a FileNotFoundError's traceback)
+    (["bench_agents.py", "--suite", "test", "--runs", "/nonexistent"], "/nonexistent: expected"),
     (["distill_plans.py", "--policy", "agents/policies/plan_target_tc", "--out", ""], "--out must name the policy's file stem"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
@@ -552,11 +552,16 @@ def _broken(results: dict, what: str) -> dict:
         results["trajectories"][0]["t"], results["trajectories"][0]["states"] = [], []
     elif what == "brakings twice":  # (passed, then a staging file was missing, naming an internal path; stop 60)
         results["brakings"] = ["service", "service"]
+    elif what == "front of the other braking":  # (drawn as the service front without a word; stop 61)
+        results["fronts"]["service"]["braking"] = "tc"
+    elif what == "fuel_min_g off its point":  # (drawn; stop 61)
+        results["fronts"]["service"]["fuel_min_g"] = results["fronts"]["service"]["fuel_g"][-1] - 1.0
     return results
 
 
 @pytest.mark.parametrize("what", ["missing", "garbled", "trajectories", "states", "row", "old", "nan", "huge", "brakings twice",
-                                  "controller", "times", "front", "string states", "empty trajectory"])
+                                  "controller", "times", "front", "string states", "empty trajectory",
+                                  "front of the other braking", "fuel_min_g off its point"])
 def test_report_errors_are_one_line(tmp_path, cache, capsys, what):
     out = tmp_path / "results"
     if what != "missing":

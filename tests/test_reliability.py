@@ -1190,6 +1190,15 @@ def test_an_interrupt_during_the_ray_start_stops_the_instance_it_started(monkeyp
 
     fake = types.SimpleNamespace(is_initialized=lambda: False, init=init, shutdown=lambda: calls.append("shutdown"))
     monkeypatch.setitem(sys.modules, "ray", fake)
+    # (Python's own handler, as in a program: a pytest-xdist worker ignores SIGINT)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _interrupt_during_the_ray_start(ray_session, calls, sig)
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def _interrupt_during_the_ray_start(ray_session, calls, sig):
     with interrupt.handling():
         with pytest.raises(KeyboardInterrupt):
             with ray_session("local"):

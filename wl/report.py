@@ -344,6 +344,8 @@ def _problem(results: Any) -> str | None:
             problem = check_front(front)  # what a cached front must be: times rising from T_min, fuel falling
             if problem:
                 return f"the {b} front: {problem}"
+            if front["braking"] != b:  # (the other braking's front was drawn as this one's)
+                return f"the {b} front is the {front['braking']!r} braking's"
             _check_trajectory(results["optima"][b])
         for r in results["rows"]:
             missing = [k for k in ROW_KEYS if k not in r]

@@ -248,6 +248,9 @@ def check_front(d: dict[str, Any]) -> str | None:
         return "the fuel rises with the cycle time (on a front it falls)"
     if not (d["T_min"] <= T[0] + 1e-9 and T[-1] <= d["T_fuel_opt"] + 1e-9 and d["fuel_min_g"] <= fuel[-1] + 1e-9):
         return "T_min, T_fuel_opt or fuel_min_g do not bound the points"
+    if T[-1] >= d["T_fuel_opt"] - 1e-9 and abs(fuel[-1] - d["fuel_min_g"]) > 1e-9 * max(1.0, abs(fuel[-1])):
+        # (the last point is the fuel-optimal cycle: fuel_min_g is its fuel; a report drew one that was not)
+        return f"the fuel-optimal point's fuel {fuel[-1]!r} g is not fuel_min_g {d['fuel_min_g']!r} g"
     return None
 
 

@@ -119,7 +119,14 @@ def compiled(groups: Sequence[dict[str, ca.Function]], origins: Sequence[ca.Func
             raise CodegenError(f"{MODE_ENV}=on but no C compiler found ($CC, cc, gcc or clang on the PATH)")
         log.info("no C compiler found: the NLP functions stay interpreted (CasADi's SX virtual machine)")
         return [None] * len(groups)
-    folder = library_dir(cache)
+    try:
+        folder = library_dir(cache)
+    except ValueError as exc:  # (a file where the cache folder goes: as a folder that cannot be made, below)
+        where = Path(cache) / CACHE_SUBDIR if isinstance(cache, (str, os.PathLike)) else cache
+        if current == "on":
+            raise CodegenError(f"cannot build in {where}: {exc}") from exc
+        log.warning("cannot build in %s (%s): those functions stay interpreted", where, exc)
+        return [None] * len(groups)
     reason = _writable_by_others(folder)
     if reason:  # (a library is machine code the process runs: from a folder others can write, theirs)
         if current == "on":
