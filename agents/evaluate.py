@@ -146,10 +146,8 @@ def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind:
     from agents.ppo import load_policy
 
     policy = load_policy(path, trust_pickle=trust_pickle)
-    plan_env = policy.env_id in PLAN_ENV_IDS
-    if (kind == "plan") != plan_env:  # (a per-step policy ran as --controller plan, and was reported as one)
-        raise ValueError(f"--model {path} is a policy of {policy.env_id}: "
-                         f"{'--controller plan' if plan_env else '--controller ppo or bc'} runs it")
+    if kind == "plan" and policy.env_id not in PLAN_ENV_IDS:  # (a per-step policy ran, reported as the plan policy)
+        raise ValueError(f"--model {path} is a policy of {policy.env_id}, not of a plan env: --controller ppo runs it")
     if policy.braking not in (None, braking):
         # Allowed (a cross-evaluation is a legitimate experiment), but usually a mix-up.
         log.warning("the policy %s was trained with %s braking, evaluated with %s", path, policy.braking, braking)
