@@ -11,23 +11,28 @@ commands spell, have no tyro spelling.)
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
+import io
+import itertools
 import json
 import logging
 import os
 import shlex
+import sys
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from agents.ppo_config import MAX_EVAL_EPISODES, MAX_SEED, ConfigError, PPOConfig
 from mpc import interrupt
 from wl_env.atomic_io import check_output_folder
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 # options that only name the run: with --resume everything else comes from the run's saved config
 RUN_NAMING = {"braking", "seed", "run_name", "log_dir", "progress_bar"}
@@ -94,6 +99,73 @@ def refuse_repeated_options(parser: argparse.ArgumentParser) -> None:
             action.__class__ = _once(type(action))
 
 
+def refuse_repeated_argv(argv: Sequence[str]) -> None:
+    """A ``ValueError`` naming the first ``--option`` of ``argv`` given twice with different values, for parsers
+    :func:`refuse_repeated_options` cannot reach (tyro's; one built inside a library): they keep the last one without a
+    word. The values compared are the words up to the next ``--option`` (``--x=v`` is ``--x v``, ``--no-x`` is ``--x``
+    turned off, ``_`` is ``-``); a bare ``--`` ends the options."""
+    given: dict[str, tuple[str, ...]] = {}
+    name, values = None, []
+    for word in [*argv, "--"]:
+        if word.startswith("--"):
+            if name is not None:
+                if name in given and given[name] != tuple(values):
+                    raise ValueError(f"argument --{name}: given twice with different values (give each option once)")
+                given[name] = tuple(values)
+            if word == "--":
+                return
+            name, sep, value = word[2:].replace("_", "-").partition("=")
+            values = [value] if sep else []
+            if name.startswith("no-") and not sep:  # (tyro's --no-x of a bool --x)
+                name, values = name[3:], ["\0off"]
+        elif name is not None:
+            values.append(word)
+
+
+def policy_input_files(spec: str | Path) -> list[Path]:
+    """The files a policy option reads (a pickle-free policy's stem, one of its files or its run folder: its three
+    files; anything else: the path itself), for :func:`check_not_an_input`."""
+    from agents.policy_files import PolicyFiles
+    from agents.ppo import _safe_stem
+
+    stem = _safe_stem(Path(spec).expanduser())
+    if stem is None:
+        return [Path(spec)]
+    files = PolicyFiles.of(stem)
+    return [files.weights, files.normalization, files.metadata]
+
+
+def tyro_options(cls: type[T], args: Sequence[str] | None = None) -> T:
+    """``tyro.cli(cls, args=args)`` whose errors are a ``ValueError`` of one line (tyro draws a multi-line box; under
+    :func:`wl_env.logs.run_script` it becomes ``name: error: ...``, exit 2), an option given twice with different
+    values among them (:func:`refuse_repeated_argv`). ``--help`` prints and exits as before."""
+    import tyro
+
+    argv = list(sys.argv[1:] if args is None else args)
+    refuse_repeated_argv(argv)
+    captured, columns = io.StringIO(), os.environ.get("COLUMNS")
+    if not {"-h", "--help"} & set(argv):  # (tyro wraps its error box to the terminal: a message of one line stays one)
+        os.environ["COLUMNS"] = "100000"
+    try:
+        with contextlib.redirect_stderr(captured):
+            options = tyro.cli(cls, args=argv)
+    except SystemExit as exc:
+        if exc.code in (0, None):  # (--help)
+            sys.stderr.write(captured.getvalue())
+            raise
+        lines = [line.strip(" │╭╮╰╯") for line in captured.getvalue().splitlines()]
+        if lines and lines[0].startswith("─"):  # a box: its title, then the message down to the first rule
+            lines = list(itertools.takewhile(lambda line: not line.startswith("─"), lines[1:]))
+        raise ValueError(" ".join(" ".join(lines).split()) or f"bad options (exit status {exc.code})") from None
+    finally:
+        if columns is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = columns
+    sys.stderr.write(captured.getvalue())  # (tyro's warnings, if any)
+    return options
+
+
 def add_dataclass_args(parser: argparse.ArgumentParser, cls: type) -> None:
     """One flag per dataclass field (``--field-name``); the field's metadata["help"] is the help text.
 
@@ -130,8 +202,14 @@ def config_from_args(cls: type, ns: argparse.Namespace) -> tuple[Any, dict[str, 
             given[f.name] = dict(v) if typing.get_origin(hints[f.name]) is dict else v
     try:
         return cls(**given), given
-    except ConfigError as exc:  # said as the flag the user typed
-        raise ValueError(f"--{exc.field.replace('_', '-')} must be {exc.requirement}, got {exc.value!r}") from None
+    except ConfigError as exc:
+        raise flag_error(exc) from None
+
+
+def flag_error(exc: ConfigError) -> ValueError:
+    """A PPOConfig field's error said as the flag of the same name the user typed (``--num-envs``, not
+    ``PPOConfig.num_envs``)."""
+    return ValueError(f"--{exc.field.replace('_', '-')} must be {exc.requirement}, got {exc.value!r}")
 
 
 def _count(text: str, most: int | None = None) -> int:

@@ -99,6 +99,9 @@ def main() -> None:
     ap.add_argument("--mpc-sample", type=_int_in(1, 1000), default=10, help="--suite: scenarios per braking the MPC runs")
     ap.add_argument("--runs", nargs="+", metavar="RUN_DIR", help="--suite: instead, these runs' policies (e.g. one per "
                     "seed) at the three targets, and each metric's median and interquartile range over them")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 

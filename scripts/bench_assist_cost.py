@@ -40,6 +40,9 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", metavar="PATH")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 
@@ -70,4 +73,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from wl_env.logs import run_script
+
+    run_script("bench_assist_cost", main)  # (Ctrl-C was a traceback; the JSON is written only at the end)

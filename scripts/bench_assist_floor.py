@@ -26,12 +26,12 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
 import wl_env  # noqa: E402, F401  (registers the envs)
 import wl_env.assist as assist  # noqa: E402
+from agents.train_cli import tyro_options  # noqa: E402
 from mpc.benchmark.reference import min_time_of  # noqa: E402
 from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -122,4 +122,4 @@ def run(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_script("bench_assist_floor", lambda: run(tyro.cli(Options)))
+    run_script("bench_assist_floor", lambda: run(tyro_options(Options)))

@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the actions and the resets")
     ap.add_argument("--quick", action="store_true", help="small sizes and 3 rounds (a smoke test, not a measurement)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw timings and the summary as JSON")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args(argv)
     from wl_env.atomic_io import check_output_option
 

@@ -42,6 +42,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--braking", choices=("service", "tc"), nargs="+", default=["service", "tc"])
     ap.add_argument("--json", metavar="PATH")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     check_output_option(ap, args.json, "--json")
     rows = []

@@ -40,6 +40,9 @@ def main() -> None:
     ap.add_argument("braking", nargs="?", default="tc", choices=("service", "tc"))
     ap.add_argument("reach", nargs="?", type=int, default=2, help="R: steps per phase around the plan's schedule")
     ap.add_argument("--same-length", action="store_true", help="schedules as long as the plan's, for the least fuel")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     a = ap.parse_args()
     if not 1 <= a.reach <= 8:  # ((2R + 1)^4 schedules: R = 1000 looped for hours over slots a phase does not have)
         ap.error(f"R (reach) must be an integer in [1, 8], got {a.reach}")

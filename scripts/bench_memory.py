@@ -58,6 +58,9 @@ def main() -> None:
     ap.add_argument("--cache", help="the optimum cache (default: an empty temporary one)")
     ap.add_argument("--period", type=float, default=0.5, help="seconds between samples")
     ap.add_argument("--json", metavar="PATH", help="also write the figures")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 

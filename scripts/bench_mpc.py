@@ -196,6 +196,9 @@ def main() -> None:
     ap.add_argument("--braking", nargs="+", default=["service", "tc"], choices=["service", "tc"])
     ap.add_argument("--rate-sweep", type=float, nargs="+", metavar="W",
                     help="instead: the TC cycle at 11 s with each control-rate weight W (on U_mf and U_ab)")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 
@@ -320,7 +323,7 @@ def write_with_speed(out: str | None, options: Any, summary: dict[str, Any], rec
 
 
 if __name__ == "__main__":
-    from wl_env.logs import cli_logging
+    from wl_env.logs import PACKAGES, run_script
 
-    with cli_logging():  # the optima's progress, as `wl` shows it
-        main()
+    # the optima's progress, as `wl` shows it; Ctrl-C or SIGTERM (also what CasADi made of it) exit 130 / 143
+    run_script("bench_mpc", main, PACKAGES)

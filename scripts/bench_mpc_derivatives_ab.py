@@ -58,6 +58,9 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=["compiled", "mapped"])
     ap.add_argument("--rti", action="store_true", help="also the 10-step horizon under the real-time iteration")
     ap.add_argument("--json", metavar="PATH")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     if not 1 <= args.rounds <= 20:
         raise ValueError(f"--rounds must be an integer in [1, 20], got {args.rounds}")

@@ -56,6 +56,9 @@ def main() -> None:
     ap.add_argument("--horizon-solver", choices=("ipopt", "sqp-rti"), default="sqp-rti")
     ap.add_argument("--json", metavar="PATH", help="also write the rows")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # (a child: one cycle, JSON on stdout)
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 

@@ -76,6 +76,9 @@ def main() -> None:
     ap.add_argument("--layouts", type=int, default=2, help="slot layouts to build (1..8)")
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument("--variant", choices=VARIANTS, help=argparse.SUPPRESS)  # (the child process's)
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     if not 1 <= args.layouts <= 8:
         raise ValueError(f"--layouts must be an integer in [1, 8], got {args.layouts}")

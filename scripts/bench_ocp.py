@@ -107,6 +107,9 @@ def main() -> None:
     which = ap.add_mutually_exclusive_group()  # (both: nothing timed, exit 0, an empty --json written)
     which.add_argument("--skip-pareto", action="store_true")
     which.add_argument("--pareto-only", action="store_true", help="time the Pareto sweeps only")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     from wl_env.atomic_io import check_output_option
 

@@ -17,8 +17,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-import tyro
 
+from agents.train_cli import tyro_options
 from wl_env.atomic_io import check_output_file, write_json_atomic
 from wl_env.logs import run_script
 
@@ -128,4 +128,4 @@ def main(o: Options) -> list[Ceiling]:
 
 
 if __name__ == "__main__":
-    run_script("bench_plan_ceiling", lambda: main(tyro.cli(Options)))
+    run_script("bench_plan_ceiling", lambda: main(tyro_options(Options)))

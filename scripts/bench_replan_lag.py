@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
+from agents.train_cli import tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -97,4 +97,4 @@ def run(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_script("bench_replan_lag", lambda: run(tyro.cli(Options)))
+    run_script("bench_replan_lag", lambda: run(tyro_options(Options)))

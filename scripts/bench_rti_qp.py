@@ -51,6 +51,9 @@ def main() -> None:
     ap.add_argument("--solves", type=int, default=20, help="warm starts to build QPs at")
     ap.add_argument("--solvers", nargs="+", default=["hpipm", "hpipm-speed", "osqp", "qrqp"],
                     choices=["hpipm", "hpipm-speed", "osqp", "qrqp"])
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     if not 1 <= args.solves <= 1000:  # (0 ran the whole cycle, then "no warm-started solve captured", exit 1)
         ap.error(f"--solves must be an integer in [1, 1000], got {args.solves}")

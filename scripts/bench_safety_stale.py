@@ -71,6 +71,9 @@ def main() -> None:
     ap.add_argument("--braking", choices=("service", "tc"), nargs="+", default=["tc"])
     ap.add_argument("--safety-filter", choices=("on", "off", "both"), default="both")
     ap.add_argument("--json", metavar="PATH")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     check_output_option(ap, args.json, "--json")
     if not all(1 <= n <= 100 for n in args.every):

@@ -20,10 +20,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import tyro
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
+from agents.train_cli import tyro_options  # noqa: E402
 from mpc.benchmark.suite import solve_suite  # noqa: E402
 from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
 from wl_env.logs import cli_logging, run_script  # noqa: E402
@@ -93,4 +92,4 @@ def main(o: Options) -> dict[str, dict[str, float]]:
 
 if __name__ == "__main__":
     with cli_logging():  # the solves' progress, as before; run_script: a bad option as one line, exit 2
-        run_script("bench_suite", lambda: main(tyro.cli(Options)))
+        run_script("bench_suite", lambda: main(tyro_options(Options)))

@@ -29,9 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tyro
 
-from wl_env.atomic_io import atomic_path, check_output_file
+from agents.policy_files import METADATA_SUFFIX, NORMALIZATION_SUFFIX, WEIGHTS_SUFFIX, check_policy_output
+from agents.train_cli import policy_input_files, tyro_options
+from wl_env.atomic_io import atomic_path, check_not_an_input, check_output_file
 from wl_env.logs import run_script
 
 log = logging.getLogger("distill_plans")
@@ -74,9 +75,14 @@ def check(o: Options) -> None:
         raise ValueError(f"--learning-rate must lie in (0, 1], got {o.learning_rate!r}")
     if not Path(o.out).name.strip() or Path(o.out).name in (".", ".."):  # ("" passed as the file ".json", and failed
         raise ValueError(f"--out must name the policy's file stem (PATH/NAME), got {str(o.out)!r}")  # after the work)
-    check_output_file(Path(f"{o.out}.json"), "--out")
+    check_policy_output(o.out, "--out")  # (each of its files: a folder at OUT.safetensors failed after the work)
     if o.demos is not None:
         check_output_file(o.demos, "--demos")
+    # (--out P of --policy P wrote the distilled policy over the one it distils, after the work)
+    inputs = policy_input_files(o.policy)
+    for path in [Path(f"{o.out}{suffix}") for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX, METADATA_SUFFIX)]:
+        check_not_an_input(path, inputs, "--out")
+    check_not_an_input(o.demos or Path(f"{o.out}_searches.npz"), inputs, "--demos")
 
 
 def plan_env(config: Any, num_envs: int):
@@ -278,4 +284,4 @@ def main(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_script("distill_plans", lambda: main(tyro.cli(Options)))
+    run_script("distill_plans", lambda: main(tyro_options(Options)))

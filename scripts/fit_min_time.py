@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
+from agents.train_cli import tyro_options  # noqa: E402
 from wl_env.atomic_io import write_json_atomic  # noqa: E402
-from wl_env.logs import cli_logging  # noqa: E402
+from wl_env.logs import PACKAGES, run_script  # noqa: E402
 
 log = logging.getLogger("fit_min_time")
 
@@ -110,9 +110,5 @@ def main(o: Options) -> None:
 
 
 if __name__ == "__main__":
-    with cli_logging():
-        try:
-            main(tyro.cli(Options))
-        except ValueError as exc:  # bad options: the message names them, no traceback
-            print(f"fit_min_time: error: {exc}", file=sys.stderr)
-            sys.exit(2)
+    # bad options one line, exit 2; Ctrl-C or SIGTERM during the solves exit 130 / 143 (was a traceback)
+    run_script("fit_min_time", lambda: main(tyro_options(Options)), PACKAGES)

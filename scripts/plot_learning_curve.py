@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-front", action="store_true", help="do not draw the optimum's references")
     ap.add_argument("--front", default=None, metavar="JSON",
                     help="a saved Pareto front (ParetoFront.save) instead of mpc.benchmark.pareto.pareto_front(braking)")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args(argv)
     src = Path(args.source)
     csv_path = src / "eval.csv" if src.is_dir() else src

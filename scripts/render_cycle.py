@@ -41,6 +41,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=0, help="reset seed")
     ap.add_argument("--max-steps", type=int, default=None,
                     help="stop after this many steps (frames = steps + 1); default: the whole cycle")
+    from agents.train_cli import refuse_repeated_options
+
+    refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args(argv)
     if args.out is None:
         args.out = f"cycle_{args.braking}.gif"

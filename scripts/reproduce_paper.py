@@ -16,9 +16,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo, if not installed
 
+from agents.train_cli import refuse_repeated_argv  # noqa: E402
 from wl.paper.run import main  # noqa: E402
-from wl_env.logs import cli_logging  # noqa: E402
+from wl_env.logs import PACKAGES, run_script  # noqa: E402
+
+
+def run() -> None:
+    refuse_repeated_argv(sys.argv[1:])  # (wl.paper.run's parser kept the last of an option given twice, without a word)
+    sys.exit(main(description=__doc__))
+
 
 if __name__ == "__main__":
-    with cli_logging():  # the library's progress on stderr
-        sys.exit(main(description=__doc__))
+    # the library's progress on stderr; Ctrl-C or SIGTERM anywhere (also what CasADi made of it) exit 130 / 143
+    run_script("reproduce_paper", run, PACKAGES)

@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
+from agents.train_cli import tyro_options  # noqa: E402
 from mpc.benchmark import store  # noqa: E402
 from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp  # noqa: E402
 from mpc.benchmark.reference import REFERENCE_DIR, SUITE_KIND, check_suite_file  # noqa: E402
@@ -97,4 +97,4 @@ def run(o: Options) -> list[dict[str, Any]]:
 
 
 if __name__ == "__main__":
-    run_script("resolve_unverified_points", lambda: run(tyro.cli(Options)))
+    run_script("resolve_unverified_points", lambda: run(tyro_options(Options)))

@@ -24,12 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
+from agents.train_cli import policy_input_files, tyro_options  # noqa: E402
 from wl.report import TARGETS  # noqa: E402
-from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
+from wl_env.atomic_io import check_not_an_input, check_output_file, write_json_atomic  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 
@@ -62,6 +62,8 @@ def check(o: Options) -> None:
         raise ValueError("--cache keeps the optima of --by gap: not with --by fuel")
     if o.json is not None:
         check_output_file(o.json, "--json")
+        for policy in o.policies:  # (--json P.json of --policies P wrote the records over the policy's metadata)
+            check_not_an_input(o.json, policy_input_files(policy), "--json")
 
 
 def run(o: Options) -> dict[str, Any]:
@@ -110,4 +112,4 @@ def run(o: Options) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    run_script("select_policy", lambda: run(tyro.cli(Options)))
+    run_script("select_policy", lambda: run(tyro_options(Options)))

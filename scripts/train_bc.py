@@ -34,10 +34,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import tyro
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.train_cli import tyro_options  # noqa: E402
 from mpc import interrupt  # noqa: E402
 from wl_env.logs import PACKAGES, run_script  # noqa: E402
 
@@ -99,11 +98,15 @@ def write_policy_copy(stem: str | Path, out: Path) -> None:
 def main(o: Options, command: str) -> int:
     from agents.imitation import DEMO_ENV_ID, DRIVER_ENV_IDS, METHOD, DemoSettings, clone, collect_demos
     from agents.ppo import export_policy
-    from agents.ppo_config import PPOConfig
+    from agents.ppo_config import ConfigError, PPOConfig
+    from agents.train_cli import flag_error
 
-    cfg = PPOConfig(braking=o.braking, env_id=o.env_id, scenario="train", init_noise=0.0, seed=o.seed,
-                    net_arch=o.net_arch, log_dir=o.log_dir, run_name=o.run_name or f"bc_{o.braking}_s{o.seed}",
-                    progress_bar=False)
+    try:  # (each field an option of the same name: said as the option, not as PPOConfig.net_arch)
+        cfg = PPOConfig(braking=o.braking, env_id=o.env_id, scenario="train", init_noise=0.0, seed=o.seed,
+                        net_arch=o.net_arch, log_dir=o.log_dir, run_name=o.run_name or f"bc_{o.braking}_s{o.seed}",
+                        progress_bar=False)
+    except ConfigError as exc:
+        raise flag_error(exc) from None
     if o.env_id == DRIVER_ENV_IDS[0] and o.dagger_rounds:
         raise ValueError(f"dagger_rounds must be 0 with env_id {o.env_id}: its braking labels come from the expert's "
                          f"own cycle (where it shifted); {DRIVER_ENV_IDS[1]}'s come from the MPC's plans")
@@ -182,6 +185,6 @@ if __name__ == "__main__":
     argv = sys.argv[1:]
     # (run_script: bad options one line, Ctrl-C or SIGTERM anywhere exit 130 / 143; it was a traceback outside the
     # demonstrations' collection)
-    run_script("train_bc", lambda: sys.exit(main(tyro.cli(Options, args=argv),
+    run_script("train_bc", lambda: sys.exit(main(tyro_options(Options, args=argv),
                                                   "python scripts/train_bc.py " + shlex.join(argv))),
                loggers=(*PACKAGES, "train_bc"))

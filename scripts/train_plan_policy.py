@@ -30,9 +30,8 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import tyro
-
 from agents.policy_files import check_policy_output
+from agents.train_cli import tyro_options
 from wl_env.atomic_io import atomic_path, check_output_file, check_output_folder, write_json_atomic
 from wl_env.logs import cli_logging, run_script
 
@@ -68,7 +67,8 @@ class Options:
 
 def stage_configs(o: Options) -> list:
     """Each stage's PPOConfig (ConfigError naming a field out of its range)."""
-    from agents.ppo_config import PPOConfig
+    from agents.ppo_config import ConfigError, PPOConfig
+    from agents.train_cli import flag_error
 
     n = len(o.cycles)
     if n == 0 or len(o.log_std_init) != n or len(o.log_std_final) != n:
@@ -79,11 +79,14 @@ def stage_configs(o: Options) -> list:
     configs = []
     for k in range(n):
         name = f"plan_{o.braking}_s{o.seed}_stage{k + 1}"
-        configs.append(PPOConfig(
-            **RECIPE, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
-            num_envs=o.num_envs, log_std_init=o.log_std_init[k], log_std_final=o.log_std_final[k],
-            eval_freq=o.eval_freq, eval_episodes=o.eval_episodes, checkpoint_freq=o.checkpoint_freq,
-            time_limit=o.time_limit, score=o.score, init_policy=str(configs[-1].run_dir) if configs else ""))
+        try:  # (each field an option of the same name: said as the option, not as PPOConfig.num_envs)
+            configs.append(PPOConfig(
+                **RECIPE, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
+                num_envs=o.num_envs, log_std_init=o.log_std_init[k], log_std_final=o.log_std_final[k],
+                eval_freq=o.eval_freq, eval_episodes=o.eval_episodes, checkpoint_freq=o.checkpoint_freq,
+                time_limit=o.time_limit, score=o.score, init_policy=str(configs[-1].run_dir) if configs else ""))
+        except ConfigError as exc:
+            raise flag_error(exc) from None
     return configs
 
 
@@ -193,4 +196,4 @@ def main(o: Options) -> dict[int, dict]:
 
 if __name__ == "__main__":
     with cli_logging(names=("agents",)):  # (the stages' evaluation lines, as scripts/train_ppo.py shows them)
-        run_script("train_plan_policy", lambda: main(tyro.cli(Options)))
+        run_script("train_plan_policy", lambda: main(tyro_options(Options)))

@@ -353,7 +353,20 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["train_plan_policy.py", "--cycles", "16"], "--cycles, --log-std-init and --log-std-final must give one value per stage"),
     (["train_plan_policy.py", "--braking", "moon"], "braking must be one of"),
     (["train_plan_policy.py", "--cycles", "0", "0"], "--cycles must be integers in [1, 1000000000]"),
-    (["train_bc.py", "--demo-seed", "-1"], "--demo-seed must be an integer in [0, 1048576]")])
+    (["train_bc.py", "--demo-seed", "-1"], "--demo-seed must be an integer in [0, 1048576]"),
+    # an option given twice with another value: argparse and tyro kept the last without a word
+    (["train_bc.py", "--epochs", "1", "--epochs", "100000"], "argument --epochs: given twice with different values"),
+    (["train_bc.py", "--braking", "tc", "--braking=service"], "argument --braking: given twice with different values"),
+    (["train_plan_policy.py", "--cycles", "16", "16", "--cycles", "8", "8"], "argument --cycles: given twice"),
+    (["train_plan_policy.py", "--score", "--no-score"], "argument --score: given twice with different values"),
+    (["bench_draws.py", "--draws", "1", "--draws", "3"], "argument --draws: given twice with different values"),
+    (["distill_plans.py", "--policy", "a", "--out", "b", "--seed", "1", "--seed", "2"], "argument --seed: given twice"),
+    (["render_cycle.py", "--fps", "5", "--fps", "10"], "argument --fps: given twice with different values"),
+    (["bench_ocp.py", "--repeats", "1", "--repeats", "2"], "argument --repeats: given twice with different values"),
+    (["reproduce_paper.py", "--points", "3", "--points", "4"], "argument --points: given twice with different values"),
+    # a PPOConfig field said as the option typed, not as PPOConfig.num_envs
+    (["train_plan_policy.py", "--num-envs", "0"], "error: --num-envs must be an integer in [1, 16384], got 0"),
+    (["train_bc.py", "--net-arch", "0"], "error: --net-arch must be one or more layer widths")])
 def test_mpc_benchmarks_check_their_options_before_the_work(argv, needle):
     import subprocess
     import sys
@@ -1276,3 +1289,46 @@ def test_a_policy_export_or_curve_file_in_the_way_is_refused_before_the_training
                        ({"export": str(tmp_path / "e")}, "e.safetensors is a folder")):
         with pytest.raises(ValueError, match=needle):
             train_plan_policy.main(train_plan_policy.Options(log_dir=str(tmp_path / "runs"), **kw))
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["bench_draws.py", "--draws", "abc"], "bench_draws: error: Error parsing --draws: invalid literal for int()"),
+    (["train_bc.py", "--epochs"], "train_bc: error: "),
+    (["train_plan_policy.py", "--cycle", "3"], "train_plan_policy: error: Unrecognized options: --cycle, 3"),
+    (["distill_plans.py", "--out", "x"], "distill_plans: error: Missing from"),
+    (["select_policy.py", "--by", "gap", "--by", "fuel"], "select_policy: error: argument --by: given twice")])
+def test_tyro_scripts_say_a_bad_option_in_one_line(argv, needle):
+    """tyro drew its errors as a box of 5-10 lines; each is one line `name: error: ...`, exit 2."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / argv[0]
+    r = subprocess.run([sys.executable, str(script), *argv[1:]], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "COLUMNS": "40"})
+    assert r.returncode == 2 and r.stderr.startswith(needle) and len(r.stderr.splitlines()) == 1, r.stderr
+
+
+@pytest.mark.parametrize("script, out", [("distill_plans.py", "{stem}"), ("distill_plans.py", "{dir}/link"),
+                                         ("select_policy.py", "{stem}.json")])
+def test_a_script_refuses_an_output_that_is_its_input_policy(tmp_path, script, out):
+    """`distill_plans.py --policy P --out P` distilled for minutes, then wrote over the policy it distils (by any path:
+    a link to its metadata too); `select_policy.py --policies P --json P.json` wrote its records over P's metadata."""
+    import shutil
+    import subprocess
+    import sys
+
+    from agents.evaluate import default_policy_path
+
+    shipped = default_policy_path("tc").with_name("plan_target_tc")
+    for f in shipped.parent.glob(f"{shipped.name}*"):
+        shutil.copy(f, tmp_path / f.name)
+    stem = tmp_path / shipped.name
+    (tmp_path / "link.json").symlink_to(f"{stem}.json")
+    before = {f.name: f.read_bytes() for f in tmp_path.glob(f"{shipped.name}*")}
+    out = out.format(stem=stem, dir=tmp_path)
+    argv = (["--policy", f"{stem}.safetensors", "--out", out] if script == "distill_plans.py"
+            else ["--policies", f"{stem}.safetensors", "--json", out, "--draws", "1"])
+    r = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "scripts" / script), *argv],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "is the input file" in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
+    assert {f.name: f.read_bytes() for f in tmp_path.glob(f"{shipped.name}*")} == before

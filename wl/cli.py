@@ -84,26 +84,16 @@ def _out_dir(path: str, option: str = "--out") -> Path:
     return _created_by(lambda: check_output_folder(path, f"{option} {path}"), Path(path))
 
 
+def check_not_an_input(out: Path, inputs: list[Path], option: str) -> None:
+    from wl_env.atomic_io import check_not_an_input as check  # (imported late, as the CLI's other modules)
+
+    check(out, inputs, option)
+
+
 def _scenario_file(args: argparse.Namespace) -> list[Path]:
     """The --scenario's file, if it names one (not JSON text)."""
     text = (getattr(args, "scenario", None) or "").strip()
     return [Path(text)] if text and not text.startswith(("{", "[")) else []
-
-
-def _not_an_input(out: Path, inputs: list[Path], option: str = "--out") -> None:
-    """ValueError if the output file ``out`` is one of the files the command reads (the same file by any path: the
-    result was written over it, e.g. `wl ocp --scenario s.json --out s.json` or the policy's metadata of --model)."""
-    try:
-        written = os.stat(out)
-    except OSError:  # (a new file is no input)
-        return
-    for path in inputs:
-        try:
-            same = os.path.samestat(written, os.stat(path))
-        except OSError:
-            continue
-        if same:
-            raise ValueError(f"{option} {out} is the input file {path}: the result would replace it; give another path")
 
 
 def _remove_empty_created() -> None:
@@ -134,7 +124,7 @@ def _ocp_cmd(args: argparse.Namespace) -> int:
     params = _params_from(args)
     scenario = _scenario_from(args)
     out = _out_file(args.out)
-    _not_an_input(out, _scenario_file(args))
+    check_not_an_input(out, _scenario_file(args), "--out")
     settings = OCPSettings(hessian=args.hessian) if args.hessian else None
     braking = scenario.braking if scenario is not None else args.braking or "service"
     log.info(f"solving the {braking} {objective} OCP ...")
@@ -167,7 +157,7 @@ def _pareto_cmd(args: argparse.Namespace) -> int:
     brakings = (named,) if named is not None and args.braking is None else (
         ("service", "tc") if args.braking in (None, "both") else (args.braking,))
     for b in brakings:  # (each front's file before any solve: a folder in the way failed after both, one written)
-        _not_an_input(_out_file(str(out / f"pareto_{b}.json")), _scenario_file(args))
+        check_not_an_input(_out_file(str(out / f"pareto_{b}.json")), _scenario_file(args), "--out")
     fronts = pareto_fronts(brakings, n_points=args.points, params=params, cache=args.cache,
                            use_cache=not args.no_cache, progress=True)  # in parallel processes
     for b, front in fronts.items():
@@ -240,7 +230,7 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
     if args.params is None:  # (the estimate knows the specification's machine)
         _check_target_reachable(args.target_time, [scenario or Scenario.nominal(braking)])
     out = _out_file(args.out)  # (after the other options: its check may create its folder)
-    _not_an_input(out, _scenario_file(args))
+    check_not_an_input(out, _scenario_file(args), "--out")
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
     result = run_closed_loop(braking, config, params=params, plant_params=plant,
                              score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
@@ -285,7 +275,8 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     # its folder (a bad --cache or --scenario left an empty one behind)
     out = _out_file(args.out)
     targeted = args.target_time is not None or args.target_ratio is not None
-    _not_an_input(out, _scenario_file(args) + controller_files(args.controller, braking, args.model, targeted=targeted))
+    check_not_an_input(out, _scenario_file(args) + controller_files(args.controller, braking, args.model, targeted=targeted),
+                       "--out")
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,

@@ -11,7 +11,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -145,3 +145,20 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"{type(o).__name__} is not JSON serializable")
+
+
+def check_not_an_input(out: str | Path, inputs: Sequence[str | Path], option: str) -> None:
+    """ValueError if the output file ``out`` is one of the files the command reads, by any path (links too): the result
+    was written over its input (``distill_plans.py --policy P --out P`` replaced the policy it distils), as ``wl``
+    refuses it."""
+    try:
+        written = os.stat(out)
+    except OSError:  # (a new file is no input)
+        return
+    for path in inputs:
+        try:
+            same = os.path.samestat(written, os.stat(path))
+        except OSError:
+            continue
+        if same:
+            raise ValueError(f"{option} {out} is the input file {path}: the result would replace it; give another path")
