@@ -75,8 +75,10 @@ def main(argv: list[str] | None = None, description: str | None = None) -> int:
         print(f"reproduce_paper: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        from mpc import interrupt
+
         print("reproduce_paper: interrupted", file=sys.stderr)
-        return 130
+        return interrupt.exit_code() if interrupt.interrupted() else 130  # (SIGTERM: 143, as everywhere else)
     return 0
 
 
