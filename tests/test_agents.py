@@ -322,3 +322,21 @@ def test_a_per_step_policy_is_refused_as_the_plan_controller():
     with pytest.raises(ValueError, match="is a policy of WheelLoader-v1, not of a plan env: --controller ppo runs it"):
         load_controller("plan", "service", "agents/policies/ppo_service")
     assert load_controller("plan", "service", "agents/policies/plan_target_service", targeted=True) is not None
+
+
+def test_a_target_policy_evaluated_without_a_target_records_the_target_its_env_drew():
+    """`wl evaluate --controller plan` (or bc) without a target: the env draws each episode's target in 1-2.5 T_min and
+    the policy drives to it; the record said target_time None, lateness None (T 15.7, 14.0, 11.2 s on the nominal
+    cycle read as untargeted time gaps of +37..+92 %)."""
+    from agents.evaluate import evaluate_controller, load_controller
+
+    c = load_controller("plan", "service")
+    r = evaluate_controller(c, "service", episodes=2, init_noise=0.0, score=False)
+    env = gym.make(c.env_id, braking="service")
+    for i, e in enumerate(r["per_episode"]):
+        env.reset(seed=i)
+        assert e["target_time"] == env.unwrapped.target_time
+        assert e["lateness"] == max(e["T"] - e["target_time"], 0.0) / e["target_time"]
+    assert r["summary"]["lateness_median"] is not None
+    op = evaluate_controller(load_controller("operator", "service"), "service", episodes=1, score=False)
+    assert op["per_episode"][0]["target_time"] is None  # an env without targets records none

@@ -461,10 +461,8 @@ def test_train_bc_checks_its_output_paths_before_the_demonstrations(tmp_path):
         assert not list((tmp_path / "runs").glob("demos_*"))
 
 
-def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkeypatch):
-    """scripts/select_policy.py (the shipping rule of section 7): of the shipped target PPO and the imitation
-    baseline, both within the limits on two `train` draws, it chooses the one with less fuel over the three
-    targets, and writes what it measured."""
+def _select_policy(monkeypatch) -> tuple:
+    """scripts/select_policy.py as a module, and the shipped target PPO's and imitation baseline's paths (service)."""
     import importlib.util
     import sys
 
@@ -474,7 +472,14 @@ def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkey
     spec.loader.exec_module(select)
     from agents.evaluate import default_policy_path
 
-    paths = [str(default_policy_path("service", kind)) for kind in ("ppo-target", "bc")]
+    return select, [str(default_policy_path("service", kind)) for kind in ("ppo-target", "bc")]
+
+
+def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkeypatch):
+    """scripts/select_policy.py (the shipping rule of section 7): of the shipped target PPO and the imitation
+    baseline, both within the limits on two `train` draws, it chooses the one with less fuel over the three
+    targets, and writes what it measured."""
+    select, paths = _select_policy(monkeypatch)
     out = select.run(select.Options(braking="service", policies=paths, draws=2, json=str(tmp_path / "sel.json")))
     recs = out["records"]
     assert [r["policy"] for r in recs] == paths and all(r["episodes"] == 6 and r["over_a_limit"] == 0 for r in recs)
@@ -488,7 +493,12 @@ def test_select_policy_chooses_the_leaner_policy_on_train_draws(tmp_path, monkey
         select.run(select.Options(braking="service", policies=paths, by="grams"))
     with pytest.raises(ValueError, match="--cache keeps the optima of --by gap"):
         select.run(select.Options(braking="service", policies=paths, cache=str(tmp_path / "c")))
-    # --by gap: #14's figures on the draws, each episode against its own optimum (solved, kept in the cache)
+
+
+@pytest.mark.slow  # (80 s: each draw's optima solved)
+def test_select_policy_by_gap_scores_each_draw_against_its_own_optimum(tmp_path, monkeypatch):
+    """--by gap: #14's figures on the draws, each episode against its own optimum (solved, kept in the cache)."""
+    select, paths = _select_policy(monkeypatch)
     out = select.run(select.Options(braking="service", policies=paths, draws=1, by="gap", cache=str(tmp_path / "c")))
     recs = out["records"]
     for r in recs:

@@ -404,3 +404,34 @@ def test_a_fixed_time_optimum_no_start_finds_gives_each_start_s_solver_status(tm
 
     with pytest.raises(OCPError, match=r"no optimum found .* T = 6 s: templates: .*solver status: Infeasible_Problem"):
         fixed_time_optimum("service", 6.0, DEFAULT_PARAMS, tmp_path, None, [])
+
+
+def test_a_fronts_ends_are_refined_as_wl_ocp_refines_them(tmp_path, monkeypatch):
+    """`wl pareto` on a valid TC corner (13 t, legs 10 / 4 m, c_r 0.05, H_T 3.5 m, 800 rpm, H_0 1.2 m) stopped with "the
+    tc minimum-time cycle fails its re-simulation, no end of a front": its ends had one mesh refinement (2.3 % over a
+    limit on (40, 24, 40, 24)), `wl ocp` three (it passes on (80, 48, 80, 48)). The ends get three; a point one."""
+    import mpc.benchmark.pareto as pareto
+
+    asked: list[tuple[str, int]] = []
+
+    def fake_solve(braking: str, objective: str = "time", **kwargs: object) -> OCPResult:
+        asked.append((objective, kwargs["max_refinements"]))
+        raise OCPError("stop here")
+
+    monkeypatch.setattr(pareto, "solve_ocp", fake_solve)
+    with pytest.raises(OCPError, match="stop here"):
+        pareto.pareto_front("tc", 3, DEFAULT_PARAMS, tmp_path)
+    assert asked == [("time", pareto.END_REFINEMENTS)] and pareto.END_REFINEMENTS == 3
+
+
+@pytest.mark.slow
+def test_a_tc_corner_whose_minimum_time_needs_two_refinements_has_a_front(tmp_path):
+    """The corner above end to end (40 s): a front whose T_min is `wl ocp --objective time`'s 8.9645 s."""
+    from mpc.benchmark.pareto import pareto_front
+    from wl_env.scenario import Scenario
+
+    sc = Scenario(payload=13000, reverse_distance=10, forward_distance=4, rolling_resistance=0.05, dump_height=3.5,
+                  start_engine_speed=800, start_bucket_height=1.2, braking="tc")
+    front = pareto_front("tc", 3, sc.params(), tmp_path)
+    assert front.T_min == pytest.approx(8.9645, abs=2e-3)
+    assert all(p["verified"] for p in front.points) and list(front.fuel_g) == sorted(front.fuel_g, reverse=True)

@@ -285,6 +285,11 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
             scenarios or (scenario is not None and scenario != Scenario.nominal(braking))):
         log.warning(f"the shipped ppo_{braking} knows the paper's nominal cycle only; on other scenarios use the "
                     "target-conditioned policy (--target-ratio R or --target-time T) or --controller bc")
+    from agents.ppo_config import TARGETED_ENV_IDS
+
+    if not targeted and getattr(controller, "env_id", None) in TARGETED_ENV_IDS:  # (its env then draws the targets)
+        log.warning(f"{args.controller} drives to a target cycle time: without --target-ratio R or --target-time T "
+                    "each episode's is drawn at random in 1-2.5 T_min (recorded as its target_time)")
     what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{episodes} episode(s)"
     log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
     r = evaluate_controller(controller, braking, episodes=episodes, init_noise=init_noise,
