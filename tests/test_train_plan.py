@@ -65,7 +65,7 @@ def test_a_kept_stage_of_other_settings_is_refused(trained):
 @pytest.mark.parametrize("kw, match", [
     ({"cycles": (16,)}, "one value per stage"),
     ({"cycles": ()}, "one value per stage"),
-    ({"num_envs": 0}, "num_envs must be an integer in"),
+    ({"num_envs": 0}, "--num-envs must be an integer in"),  # (said as the flag, not PPOConfig.num_envs)
     ({"cycles": (16, 0)}, r"--cycles must be integers in \[1, 1000000000\]"),  # (was PPOConfig.total_timesteps's error)
     ({"export": " "}, "--export must name a path"),
     ({"seeds": (1, 2), "export": "p"}, "--export and --curve ship one seed's policy"),
