@@ -108,6 +108,14 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
+    if args.json and args.runs:  # (a run's policy file as --json was written over after the work)
+        from agents.train_cli import policy_input_files
+        from wl_env.atomic_io import check_not_an_input
+
+        try:
+            check_not_an_input(args.json, [f for run in args.runs for f in policy_input_files(run)], "--json")
+        except ValueError as exc:
+            ap.error(str(exc))
     if args.suite:
         return runs_mode(args) if args.runs else suite_mode(args)
     fronts = pareto_fronts(progress=True)

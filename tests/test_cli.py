@@ -330,6 +330,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_grid_min_time.py", "tc", "1000"], "R (reach) must be an integer in [1, 8]"),
     (["select_policy.py", "--policies", "/nonexistent"], "/nonexistent: expected"),  # (a FileNotFoundError's traceback)
     (["bench_agents.py", "--suite", "test", "--runs", "/nonexistent"], "/nonexistent: expected"),
+    (["bench_agents.py", "--suite", "test", "--runs", "agents/policies/plan_target_service", "--json",
+      "agents/policies/plan_target_service.json"], "is the input file"),  # (written over after the work)
     (["distill_plans.py", "--policy", "agents/policies/plan_target_tc", "--out", ""], "--out must name the policy's file stem"),
     (["bench_planning.py", "--target-ratio", "0.5"], "--target-ratio must be 0 (minimum time) or lie in [1, 3]"),
     (["bench_planning.py", "--reference-starts", "0.3", "0"], "--reference-starts must each lie in (0, 1]"),
