@@ -110,16 +110,20 @@ def controller_files(spec: str, braking: str, model: str | os.PathLike | None = 
     """The files :func:`load_controller` may read for these arguments (whether they exist or not): a user's
     ``file.py``, and the policy's files with every companion it looks for (pickle-free, or a stable-baselines3 zip's).
     An output must be none of them: ``wl evaluate --model P --out P.json`` wrote the result over P's metadata."""
-    from agents.policy_files import PolicyFiles
-
     spec = spec.strip() if isinstance(spec, str) else ""
     target = spec.rpartition(":")[0]
     files = [Path(target).expanduser()] if target.endswith(".py") or "/" in target or os.sep in target else []
     if spec in ("ppo", "plan", "bc") and model is None:
         kind = spec if spec in ("plan", "bc") else "ppo-target" if targeted else "ppo"
         model = default_policy_path(braking, kind)
-    if model is None or not str(model).strip():
-        return files
+    return files if model is None or not str(model).strip() else files + policy_input_files(model)
+
+
+def policy_input_files(model: str | os.PathLike) -> list[Path]:
+    """The files loading the policy ``model`` (a pickle-free policy's stem or file, a stable-baselines3 zip, or a
+    run folder) may read, with every companion it looks for, whether they exist or not."""
+    from agents.policy_files import PolicyFiles
+
     def three(stem: Path) -> list[Path]:
         f = PolicyFiles.of(stem)
         return [f.weights, f.normalization, f.metadata]
@@ -127,12 +131,10 @@ def controller_files(spec: str, braking: str, model: str | os.PathLike | None = 
     p = Path(model).expanduser()
     sb3 = ("model.zip", "vecnormalize.pkl", "summary.json", "progress.json")
     if p.is_dir():
-        for base in (p, p / "final"):
-            files += [*three(base / "policy"), *(base / name for name in sb3)]
-        return files
+        return [f for base in (p, p / "final") for f in (*three(base / "policy"), *(base / name for name in sb3))]
     stem = p.with_suffix("") if p.suffix in (".zip", ".pkl") else p
-    return files + [p, *three(p), stem.with_name(stem.name + ".json"), stem.with_name(stem.name + "_vecnormalize.pkl"),
-                    *(p.parent / name for name in sb3)]
+    return [p, *three(p), stem.with_name(stem.name + ".json"), stem.with_name(stem.name + "_vecnormalize.pkl"),
+            *(p.parent / name for name in sb3)]
 
 
 def _load_ppo(braking: str, model: str | None, trust_pickle: bool = False, kind: str = "ppo") -> Controller:

@@ -122,19 +122,6 @@ def refuse_repeated_argv(argv: Sequence[str]) -> None:
             values.append(word)
 
 
-def policy_input_files(spec: str | Path) -> list[Path]:
-    """The files a policy option reads (a pickle-free policy's stem, one of its files or its run folder: its three
-    files; anything else: the path itself), for :func:`check_not_an_input`."""
-    from agents.policy_files import PolicyFiles
-    from agents.ppo import _safe_stem
-
-    stem = _safe_stem(Path(spec).expanduser())
-    if stem is None:
-        return [Path(spec)]
-    files = PolicyFiles.of(stem)
-    return [files.weights, files.normalization, files.metadata]
-
-
 def tyro_options(cls: type[T], args: Sequence[str] | None = None) -> T:
     """``tyro.cli(cls, args=args)`` whose errors are a ``ValueError`` of one line (tyro draws a multi-line box; under
     :func:`wl_env.logs.run_script` it becomes ``name: error: ...``, exit 2), an option given twice with different

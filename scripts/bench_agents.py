@@ -30,7 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.evaluate import default_policy_path, evaluate_controller, load_controller  # noqa: E402
+from agents.evaluate import default_policy_path, evaluate_controller, load_controller, policy_input_files  # noqa: E402
 from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
 from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
 from wl.cli import _float_in, _int_in  # noqa: E402  (the command line's checked option types)
@@ -109,7 +109,6 @@ def main() -> None:
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
     if args.json and args.runs:  # (a run's policy file as --json was written over after the work)
-        from agents.train_cli import policy_input_files
         from wl_env.atomic_io import check_not_an_input
 
         try:

@@ -30,8 +30,9 @@ from typing import Any
 
 import numpy as np
 
+from agents.evaluate import policy_input_files
 from agents.policy_files import METADATA_SUFFIX, NORMALIZATION_SUFFIX, WEIGHTS_SUFFIX, check_policy_output
-from agents.train_cli import policy_input_files, tyro_options
+from agents.train_cli import tyro_options
 from wl_env.atomic_io import atomic_path, check_not_an_input, check_output_file
 from wl_env.logs import run_script
 

@@ -27,7 +27,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
-from agents.train_cli import policy_input_files, tyro_options  # noqa: E402
+from agents.evaluate import policy_input_files  # noqa: E402
+from agents.train_cli import tyro_options  # noqa: E402
 from wl.report import TARGETS  # noqa: E402
 from wl_env.atomic_io import check_not_an_input, check_output_file, write_json_atomic  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
