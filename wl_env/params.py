@@ -362,6 +362,11 @@ def is_real_number(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool) and is_finite(value)
 
 
+def is_integer(value: Any) -> bool:
+    """An integer (numpy's included), not a bool: 2.9 is not cut to 2, nor True taken as 1."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def is_finite(value: Any) -> bool:
     """``math.isfinite`` that says False for an int too large for a float (10**400 from JSON) instead of
     raising OverflowError: a validator then reports the value out of range."""
@@ -427,7 +432,7 @@ def _coerce(name: str, value: Any) -> Any:
     """A field's value checked for type, shape, finiteness and range, as the type the model uses."""
     if name in _INT_RANGES:
         allowed = _INT_RANGES[name]
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        if not is_integer(value):
             raise ValueError(f"LoaderParams.{name} must be an integer in {allowed}, got {shown(value)} "
                              f"({type(value).__name__})")
         if int(value) not in allowed:

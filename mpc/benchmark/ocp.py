@@ -38,6 +38,7 @@ from wl_env.params import (
     ParamsView,
     check_no_overridden,
     is_finite,
+    is_integer,
     is_real_number,
     resolve,
     shown,
@@ -98,25 +99,22 @@ class OCPSettings:
     print_level: int = 0
 
     def __post_init__(self) -> None:
-        def integer(v: Any) -> bool:  # (numpy's too; 2.9 was cut to 2 and True taken as 1)
-            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
-
         if not (isinstance(self.intervals, (tuple, list)) and len(self.intervals) == 4
-                and all(integer(n) and 2 <= n <= MAX_PHASE_INTERVALS for n in self.intervals)):
+                and all(is_integer(n) and 2 <= n <= MAX_PHASE_INTERVALS for n in self.intervals)):
             raise ValueError(f"intervals must be 4 integers in [2, {MAX_PHASE_INTERVALS}] (one per phase), got "
                              f"{shown(self.intervals)}")
         object.__setattr__(self, "intervals", tuple(int(n) for n in self.intervals))
-        if not (integer(self.degree) and 1 <= self.degree <= 9):
+        if not (is_integer(self.degree) and 1 <= self.degree <= 9):
             raise ValueError(f"degree must be an integer in [1, 9], got {shown(self.degree)}")
         if not (isinstance(self.smoothing, (tuple, list)) and 1 <= len(self.smoothing) <= 20
                 and all(is_real_number(k) and k >= 0 for k in self.smoothing) and self.smoothing[-1] == 0.0):
             raise ValueError(f"smoothing must be 1 to 20 numbers k >= 0 ending with 0, got {shown(self.smoothing)}")
         object.__setattr__(self, "smoothing", tuple(float(k) for k in self.smoothing))
-        if not (integer(self.max_iter) and 1 <= self.max_iter <= 100_000):
+        if not (is_integer(self.max_iter) and 1 <= self.max_iter <= 100_000):
             raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
         if not (is_real_number(self.tol) and 0.0 < self.tol < 1.0):
             raise ValueError(f"tol must be a number in (0, 1), got {shown(self.tol)}")
-        if not (integer(self.print_level) and 0 <= self.print_level <= 12):
+        if not (is_integer(self.print_level) and 0 <= self.print_level <= 12):
             raise ValueError(f"print_level must be an integer in [0, 12] (IPOPT's), got {shown(self.print_level)}")
         if self.solver != "ipopt":
             # fatrop was tried: its structure detection needs a stage-wise variable layout, and the free

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import os
 import time
 from collections.abc import Callable
@@ -42,7 +41,7 @@ from mpc.benchmark.ocp import (
     verification_passed,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, is_real_number, resolve, shown
+from wl_env.params import LoaderParams, is_integer, is_real_number, resolve, shown
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -232,6 +231,14 @@ _FRONT_FIELDS = {
     # (each with its cycle time: a shipped suite file's check reads p["T"], before the checksum)
     "points": lambda v: isinstance(v, list) and all(isinstance(p, dict) and is_real_number(p.get("T")) for p in v),
 }
+
+
+def check_n_points(n_points: Any) -> int:
+    """``n_points`` (points per front) as an int (numpy's: its folder's name and the JSON); ValueError unless an
+    integer in [3, 100]."""
+    if not (is_integer(n_points) and 3 <= n_points <= 100):
+        raise ValueError(f"n_points must be an integer in [3, 100], got {shown(n_points)}")
+    return int(n_points)
 
 
 def check_front(d: dict[str, Any]) -> str | None:
@@ -426,9 +433,7 @@ def pareto_front(
     from mpc.benchmark.ocp import machine_key, scenario_fields, scenario_of, with_scenario
 
     braking, p = with_scenario(braking, params, scenario)
-    if not (isinstance(n_points, numbers.Integral) and not isinstance(n_points, bool) and 3 <= n_points <= 100):
-        raise ValueError(f"n_points must be an integer in [3, 100], got {n_points!r}")
-    n_points = int(n_points)  # (numpy's: its folder's name and the JSON)
+    n_points = check_n_points(n_points)
     fingerprint = p.fingerprint()
     say = progress or log.info
     folder = front_folder(braking, n_points, p, cache)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import os
 import tempfile
 import time
@@ -32,11 +31,12 @@ from mpc.benchmark.pareto import (
     ParetoFront,
     cache_dir,
     check_front,
+    check_n_points,
     pareto_front,
 )
 from mpc.benchmark.reference import SUITE_KIND, check_suite_file, shipped_fronts
 from wl_env.cycle import BRAKING_MODES
-from wl_env.params import shown
+from wl_env.params import is_integer, shown
 from wl_env.scenario import Scenario, param_distance
 from wl_env.suites import load_suite
 
@@ -138,18 +138,14 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     ``<cache>/suites/<suite>.json``). ``limit``: only the first scenarios of each braking alternative's chain.
     ``job``: the per-scenario solve as ``module:function(scenario, cache, n_points) -> entry`` (default
     :func:`solve_one`)."""
-    def count(v: Any) -> bool:  # (numpy's integers too; not a bool)
-        return isinstance(v, numbers.Integral) and not isinstance(v, bool)
-
     # (limit 0 or -1 wrote a suite file without the scenarios, 2.5 was a TypeError from a slice; a bad n_points
     # failed in the workers, ray_chunk 0 in range())
-    if not (limit is None or (count(limit) and limit >= 1)):
+    if not (limit is None or (is_integer(limit) and limit >= 1)):
         raise ValueError(f"limit must be None or an integer >= 1 (scenarios per braking alternative), got {shown(limit)}")
-    if not (count(n_points) and 3 <= n_points <= 100):
-        raise ValueError(f"n_points must be an integer in [3, 100], got {shown(n_points)}")
-    if not (count(ray_chunk) and ray_chunk >= 1):
+    n_points = check_n_points(n_points)
+    if not (is_integer(ray_chunk) and ray_chunk >= 1):
         raise ValueError(f"ray_chunk must be an integer >= 1 (scenarios per Ray task), got {shown(ray_chunk)}")
-    limit, n_points, ray_chunk = None if limit is None else int(limit), int(n_points), int(ray_chunk)
+    limit, ray_chunk = None if limit is None else int(limit), int(ray_chunk)
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")

@@ -1750,10 +1750,10 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         if mismatch:
             base = resolve(params)
             model = model.replace(M_load=base.M_load, c_r=base.c_r)
-    moved = [f"{name} {getattr(model, FIELDS[name].param):g} / {getattr(plant, FIELDS[name].param):g}"
-             for name in OBSERVED_MARKS if getattr(model, FIELDS[name].param) != getattr(plant, FIELDS[name].param)]
-    if moved:  # (the plan aimed at the model's marks, the episode judged the plant's: a failed cycle, no error)
-        raise ValueError(f"plant_params moves the cycle's marks off the model's (model / plant: {', '.join(moved)}): "
+    marks_moved = [f"{name} {getattr(model, FIELDS[name].param):g} / {getattr(plant, FIELDS[name].param):g}"
+                   for name in OBSERVED_MARKS if getattr(model, FIELDS[name].param) != getattr(plant, FIELDS[name].param)]
+    if marks_moved:  # (the plan aimed at the model's marks, the episode judged the plant's: a failed cycle, no error)
+        raise ValueError(f"plant_params moves the cycle's marks off the model's (model / plant: {', '.join(marks_moved)}): "
                          "a model-mismatch study varies what the estimator learns (payload, rolling resistance, ...)")
     braking = cycle.check_braking(braking or (controller.braking if controller is not None else "service"))
     if controller is not None and controller.braking != braking:  # (it planned one cycle while the env ran the other)
