@@ -16,15 +16,15 @@ from wl_env.params import MAX_NUM_ENVS, is_real_number
 # built without importing gymnasium
 ENV_IDS = ("WheelLoader-v1", "WheelLoader-v2", "WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2",
            "WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6",
-           "WheelLoaderPlan-v0")
+           "WheelLoaderTarget-v7", "WheelLoaderPlan-v0", "WheelLoaderPlan-v1")
 TARGET_ENV_ID = "WheelLoaderTarget-v0"  # the target task with the injection as action 0 (the MPC's demonstrations)
 # v1: action 0 is the engine-speed governor's request; v2: v1 through the stopping assist (3 actions); v3: v2
 # whose driver may end a leg early and coast (4 actions); v4: v3 with the assist's guards (wl_env.assist); v5: v4
-# with the lift's engine floor; v6: v5 whose TC lift-off loads the engine with a full lift
+# with the lift's engine floor; v6: v5 whose TC lift-off loads the engine with a full lift; v7: v6 braking on the step grid
 TARGET_ENV_IDS = ("WheelLoaderTarget-v0", "WheelLoaderTarget-v1", "WheelLoaderTarget-v2", "WheelLoaderTarget-v3",
-                  "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6")
+                  "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6", "WheelLoaderTarget-v7")
 COAST_ENV_IDS = TARGET_ENV_IDS[3:]  # the drivers with the coasting fraction (4 actions)
-PLAN_ENV_IDS = ("WheelLoaderPlan-v0",)  # the target task with one decision per cycle (wl_env.plan): 14 actions
+PLAN_ENV_IDS = ("WheelLoaderPlan-v0", "WheelLoaderPlan-v1")  # the target task with one decision per cycle (wl_env.plan): 14 actions
 TARGETED_ENV_IDS = TARGET_ENV_IDS + PLAN_ENV_IDS  # the envs with a target cycle time per episode
 SUITE_NAMES = ("nominal", "train", "test", "corners")
 MAX_TORCH_THREADS = 1024  # torch.set_num_threads(100000) segfaults (measured); machines have far fewer cores
@@ -135,7 +135,9 @@ class PPOConfig:
                 "WheelLoaderTarget-v4 (v3 with the assist's guards: creep floor, last lift, TC lift timing) or "
                 "WheelLoaderTarget-v5 (v4 with the lift's engine floor: the request held up while the bucket lifts) or "
                 "WheelLoaderTarget-v6 (v5 whose TC lift-off loads the engine with a full lift) or "
-                "WheelLoaderPlan-v0 (one decision per cycle: a phase-parametric plan driven on v6; each step a cycle)"})
+                "WheelLoaderTarget-v7 (v6 whose assist brakes on the step grid: the first braking step takes up the rest) or "
+                "WheelLoaderPlan-v0 (one decision per cycle: a phase-parametric plan driven on v6; each step a cycle) or "
+                "WheelLoaderPlan-v1 (the same plan driven on v7)"})
     scenario: str = field(default="", metadata={
         "help": "scenario suite the episodes are drawn from, e.g. 'train' (v2 and the target env; '': the paper's cycle)"})
     target: tuple[float, float] = field(default=(1.0, 2.5), metadata={

@@ -1,4 +1,4 @@
-"""How fast can a driver of the stopping assist (``WheelLoaderTarget-v3``) go? A scheduled all-out driver at T_min.
+"""How fast can a driver of the stopping assist (``WheelLoaderTarget-v3`` to ``-v7``) go? A scheduled all-out driver at T_min.
 
     python scripts/bench_assist_floor.py --braking service --scenarios 20 --phases
 
@@ -38,12 +38,14 @@ from wl_env.logs import run_script  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
 
 log = logging.getLogger("bench_assist_floor")
-ENV_ID = "WheelLoaderTarget-v3"
+ENV_IDS = ("WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6",
+           "WheelLoaderTarget-v7")  # the assists with the coasting fraction (this driver's fourth action)
 
 
 @dataclass
 class Options:
     braking: str = "service"
+    env_id: str = "WheelLoaderTarget-v3"  # the assist driven (v3-v6 brake alike under this driver; v7 on the step grid)
     scenarios: int = 20  # spread over the suite
     suite: str = "test"
     engine_fraction: float = 0.97  # of omega_max, where the bucket starts lifting in phases 1 and 3
@@ -70,6 +72,8 @@ class ScheduledDriver:
 def run(o: Options) -> dict[str, Any]:
     if not 1 <= o.scenarios <= 1000:
         raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
+    if o.env_id not in ENV_IDS:
+        raise ValueError(f"--env-id must be one of {', '.join(ENV_IDS)}, got {o.env_id!r}")
     if not 0.0 < o.engine_fraction <= 1.0:
         raise ValueError(f"--engine-fraction must be in (0, 1], got {o.engine_fraction}")
     if o.out is not None:  # (written at the end: checked before the cycles)
@@ -79,7 +83,7 @@ def run(o: Options) -> dict[str, Any]:
             raise ValueError(f"--braking-cap must be in ({assist.BRAKING_FRACTION[0]}, {assist.MAX_BRAKING_FRACTION}], "
                              f"got {o.braking_cap}")
         assist.BRAKING_FRACTION = (assist.BRAKING_FRACTION[0], o.braking_cap)  # (this process only: a measurement)
-    env = gym.make(ENV_ID, braking=o.braking)
+    env = gym.make(o.env_id, braking=o.braking)
     driver = ScheduledDriver(env, o.engine_fraction)
     records = []
     for i, sc in enumerate(load_suite(o.suite).spread(o.braking, o.scenarios)):

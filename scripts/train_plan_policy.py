@@ -1,4 +1,4 @@
-"""Train a plan policy (``agents/policies/plan_target_<braking>``) as shipped: PPO on ``WheelLoaderPlan-v0`` over
+"""Train a plan policy (``agents/policies/plan_target_<braking>``) as shipped: PPO on ``WheelLoaderPlan-v1`` over
 the ``train`` suite's draws, in stages, each from the stage before's policy with less exploration noise.
 
     python scripts/train_plan_policy.py --braking tc --seed 0                       # runs/plan_tc_s0_stage{1,2}
@@ -38,7 +38,7 @@ from wl_env.logs import cli_logging, run_script
 log = logging.getLogger("train_plan_policy")
 
 # PPOConfig fields every stage shares (scripts/train_ppo.py's flags of the same names)
-RECIPE = {"env_id": "WheelLoaderPlan-v0", "scenario": "train", "init_noise": 0.0, "n_steps": 1, "batch_size": 512,
+RECIPE = {"scenario": "train", "init_noise": 0.0, "n_steps": 1, "batch_size": 512,
           "w_fuel": 8.0, "curriculum_fraction": 0.0, "net_arch": (256, 256), "torch_threads": 1, "progress_bar": False,
           "reward": {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0, "violation": 100.0, "late": 50.0}}
 
@@ -46,6 +46,7 @@ RECIPE = {"env_id": "WheelLoaderPlan-v0", "scenario": "train", "init_noise": 0.0
 @dataclass
 class Options:
     braking: str = "service"
+    env_id: str = "WheelLoaderPlan-v1"  # the plan env (v1 on WheelLoaderTarget-v7 since stop 62; v0 on v6 until then)
     seed: int = 0
     seeds: tuple[int, ...] = ()  # these seeds' stages instead of --seed's (not with --export or --curve)
     ray: str | None = None  # --seeds as Ray tasks on this cluster ("local": a Ray instance on this machine)
@@ -67,6 +68,10 @@ class Options:
 
 def stage_configs(o: Options) -> list:
     """Each stage's PPOConfig (ConfigError naming a field out of its range)."""
+    from agents.ppo_config import PLAN_ENV_IDS
+
+    if o.env_id not in PLAN_ENV_IDS:  # (PPOConfig takes any env id: a per-step env under this recipe is not one)
+        raise ValueError(f"--env-id must be a plan env, one of {', '.join(PLAN_ENV_IDS)}, got {o.env_id!r}")
     from agents.ppo_config import ConfigError, PPOConfig
     from agents.train_cli import flag_error
 
@@ -81,7 +86,7 @@ def stage_configs(o: Options) -> list:
         name = f"plan_{o.braking}_s{o.seed}_stage{k + 1}"
         try:  # (each field an option of the same name: said as the option, not as PPOConfig.num_envs)
             configs.append(PPOConfig(
-                **RECIPE, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
+                **RECIPE, env_id=o.env_id, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
                 num_envs=o.num_envs, log_std_init=o.log_std_init[k], log_std_final=o.log_std_final[k],
                 eval_freq=o.eval_freq, eval_episodes=o.eval_episodes, checkpoint_freq=o.checkpoint_freq,
                 time_limit=o.time_limit, score=o.score, init_policy=str(configs[-1].run_dir) if configs else ""))
@@ -131,7 +136,7 @@ def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    title = f"plan policy ({o.braking}): PPO on WheelLoaderPlan-v0, {len(summaries)} stages, seed {o.seed}"
+    title = f"plan policy ({o.braking}): PPO on {o.env_id}, {len(summaries)} stages, seed {o.seed}"
     subprocess.run([sys.executable, str(Path(__file__).with_name("plot_learning_curve.py")), str(csv_path), "--braking",
                     o.braking, "--out", str(png_path), "--title", title, *([] if o.score else ["--no-front"])],
                    check=True, capture_output=True)
@@ -140,13 +145,14 @@ def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
 def export(o: Options, summaries: list[dict]) -> dict:
     """Ship the last stage's policy with every stage in its metadata."""
     from agents.ppo import export_policy
+    from wl_env.plan import driven_on
 
     configs = stage_configs(o)
     stages = [{"run": str(cfg.run_dir), "num_timesteps": int(s["num_timesteps"]), "wall_time_s": round(float(s["wall_time"]), 1),
                "log_std": [cfg.log_std_init, cfg.log_std_final], "commands": list(s.get("commands", []))}
               for cfg, s in zip(configs, summaries, strict=True)]
     path = Path(o.export)
-    method = (f"PPO on WheelLoaderPlan-v0 (one plan of 14 numbers per cycle, driven on WheelLoaderTarget-v6) over the "
+    method = (f"PPO on {o.env_id} (one plan of 14 numbers per cycle, driven on {driven_on(o.env_id)}) over the "
               f"train suite's draws, targets T_min..2.5 T_min, in {len(stages)} stages "
               f"({' + '.join(f'{c:,}' for c in o.cycles)} cycles), each from the stage before's policy with less "
               f"exploration noise; seed {o.seed} (scripts/train_plan_policy.py)")

@@ -1,4 +1,5 @@
-"""WheelLoaderPlan-v0 (wl_env.plan): one decision per cycle, a phase-parametric plan driven on WheelLoaderTarget-v6."""
+"""WheelLoaderPlan-v0 and -v1 (wl_env.plan): one decision per cycle, a phase-parametric plan driven on
+WheelLoaderTarget-v6 (v0) or -v7 (v1)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import wl_env  # noqa: F401  (registers the envs)
-from wl_env.plan import MAX_HOLD_TIME, N_PLAN_ACTIONS, PlanDriver
+from wl_env.plan import MAX_HOLD_TIME, N_PLAN_ACTIONS, PlanDriver, driven_on
 from wl_env.rollout import run_episode
 
 
@@ -33,27 +34,30 @@ def test_the_plan_env_passes_the_gymnasium_checks_and_ends_in_one_step():
         env.step(plan())
 
 
+@pytest.mark.parametrize("plan_id", ["WheelLoaderPlan-v0", "WheelLoaderPlan-v1"])
 @pytest.mark.parametrize("braking", ["service", "tc"])
-def test_the_plan_env_is_the_plan_driver_on_v6_step_for_step(braking):
-    """The env and the same driver run as a controller of v6 (as an evaluation could) drive the same cycle."""
+def test_the_plan_env_is_the_plan_driver_on_its_target_env_step_for_step(braking, plan_id):
+    """The env and the same driver run as a controller of the per-step env it drives (v6 under v0, v7 under v1;
+    as an evaluation could) drive the same cycle."""
     x = np.random.default_rng(3).uniform(-1, 1, N_PLAN_ACTIONS)
-    env = gym.make("WheelLoaderPlan-v0", braking=braking, scenario="test")
+    env = gym.make(plan_id, braking=braking, scenario="test")
     env.reset(seed=2)
     _, reward, *_, info = env.step(x)
-    v6 = gym.make("WheelLoaderTarget-v6", braking=braking, scenario="test")
-    ep = run_episode(v6, PlanDriver(x), seed=2, trajectory=False)
+    target = gym.make(driven_on(plan_id), braking=braking, scenario="test")
+    ep = run_episode(target, PlanDriver(x), seed=2, trajectory=False)
     assert (ep.T, ep.fuel_g, ep.success) == (info["t"], info["fuel_g"], info["is_success"])
     assert ep.episode_return == pytest.approx(reward, rel=1e-12, abs=1e-12)
 
 
-def test_the_vector_env_runs_each_loader_as_the_single_env_does():
+@pytest.mark.parametrize("plan_id", ["WheelLoaderPlan-v0", "WheelLoaderPlan-v1"])
+def test_the_vector_env_runs_each_loader_as_the_single_env_does(plan_id):
     n, rng = 6, np.random.default_rng(11)
     plans = rng.uniform(-1, 1, (n, N_PLAN_ACTIONS))
-    venv = gym.make_vec("WheelLoaderPlan-v0", num_envs=n, vectorization_mode="vector_entry_point", braking="service",
+    venv = gym.make_vec(plan_id, num_envs=n, vectorization_mode="vector_entry_point", braking="service",
                         scenario="train")
     obs, _ = venv.reset(seed=40)
     _, rewards, terminated, truncated, infos = venv.step(plans)
-    env = gym.make("WheelLoaderPlan-v0", braking="service", scenario="train")
+    env = gym.make(plan_id, braking="service", scenario="train")
     for i in range(n):
         o, _ = env.reset(seed=40 + i)
         assert np.array_equal(o, obs[i])
@@ -104,6 +108,10 @@ def test_bad_plans_and_arguments_are_refused_by_name():
         gym.make("WheelLoaderPlan-v0", coast=False)
     with pytest.raises(ValueError, match=r"takes no argument\(s\) \['colour'\]"):
         gym.make("WheelLoaderPlan-v0", colour="red")
+    with pytest.raises(ValueError, match="WheelLoaderPlan-v1 drives WheelLoaderTarget-v7: step_braking cannot be changed"):
+        gym.make("WheelLoaderPlan-v1", step_braking=False)
+    with pytest.raises(ValueError, match="unknown plan env"):
+        driven_on("WheelLoaderPlan-v9")
     venv = gym.make_vec("WheelLoaderPlan-v0", num_envs=2, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)
     with pytest.raises(ValueError, match=r"actions must have shape \(2, 14\)"):

@@ -1,6 +1,7 @@
 """wheel-loader-gym: the wheel loader's short loading cycle as a Gymnasium environment.
 
-``import wl_env`` registers ``WheelLoaderPlan-v0`` (one plan per cycle, driven on v6: :mod:`wl_env.plan`),
+``import wl_env`` registers ``WheelLoaderPlan-v1`` and ``-v0`` (one plan per cycle, driven on v7 and v6:
+:mod:`wl_env.plan`), ``WheelLoaderTarget-v7`` (v6 whose assist brakes on the step grid as the optimum does),
 ``WheelLoaderTarget-v6`` (v5 whose TC lift-off loads the engine with a full lift),
 ``WheelLoaderTarget-v5`` (v4 whose assist keeps an idling engine clear of a stall under the lift), ``WheelLoaderTarget-v4`` (v3 whose assist guards the driver: a machine short of
 its mark moves on, the lift reaches the dump height, and with TC braking the shift into forward gear keeps the
@@ -23,6 +24,10 @@ __version__ = "0.2.0"
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
+    # v6 whose braking ends on the step grid: its first step takes up the rest, the others run at the plan (wl_env.assist)
+    "WheelLoaderTarget-v7": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
+                             "assist": True, "coast": True, "guards": True, "lift_floor": True, "lift_off_load": True,
+                             "step_braking": True},
     # v5 whose TC lift-off loads the engine with a full lift whatever the bucket's speed (wl_env.assist)
     "WheelLoaderTarget-v6": {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
                              "assist": True, "coast": True, "guards": True, "lift_floor": True, "lift_off_load": True},
@@ -54,7 +59,7 @@ for _id, _kwargs in _IDS.items():
             vector_entry_point="wl_env.vector_env:WheelLoaderVectorEnv",
             kwargs=_kwargs,
         )
-# one decision per cycle: a phase-parametric plan driven on WheelLoaderTarget-v6 (wl_env.plan)
-if "WheelLoaderPlan-v0" not in registry:
-    register(id="WheelLoaderPlan-v0", entry_point="wl_env.plan:WheelLoaderPlanEnv",
-             vector_entry_point="wl_env.plan:WheelLoaderPlanVectorEnv")
+# one decision per cycle: a phase-parametric plan driven on WheelLoaderTarget-v6 (v0) or -v7 (v1) (wl_env.plan)
+for _id, _cls in (("WheelLoaderPlan-v0", "WheelLoaderPlan"), ("WheelLoaderPlan-v1", "WheelLoaderPlanV1")):
+    if _id not in registry:
+        register(id=_id, entry_point=f"wl_env.plan:{_cls}Env", vector_entry_point=f"wl_env.plan:{_cls}VectorEnv")

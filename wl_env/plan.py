@@ -60,9 +60,8 @@ from wl_env.episode import check_control_interval
 from wl_env.params import LoaderParams
 from wl_env.vector_env import WheelLoaderVectorEnv
 
-# WheelLoaderTarget-v6's settings, which the plan driver acts through
-V6_SETTINGS = {"observe_scenario": True, "observe_target": True, "w_time": 0.0, "fuel_action": "engine_speed",
-               "assist": True, "coast": True, "guards": True, "lift_floor": True, "lift_off_load": True}
+# the per-step env each plan version drives its cycle on (WheelLoaderTarget-vN's settings: wl_env/__init__.py)
+DRIVEN_ON = {"WheelLoaderPlan-v0": "WheelLoaderTarget-v6", "WheelLoaderPlan-v1": "WheelLoaderTarget-v7"}
 PLAN_NUMBERS = ("drive_request", "coast_fraction", "braking_fraction", "hold_time", "drive_bucket",
                 "stop_request", "stop_bucket")  # per leg, in this order (the module's table)
 N_PLAN_ACTIONS = 2 * len(PLAN_NUMBERS)
@@ -91,19 +90,30 @@ def plan_action(plan: np.ndarray, obs: np.ndarray, time_in_phase: np.ndarray, co
     return actions
 
 
-def v6_arguments(kwargs: dict[str, Any], signature_of: Any) -> dict[str, Any]:
-    """The arguments of the v6 env under a plan env: ``kwargs`` (``signature_of``'s, v6's settings left as
-    they are; ValueError naming any other) with v6's settings."""
+def driven_on(plan_id: str) -> str:
+    """The id of the per-step env a plan env's cycle is driven on (``DRIVEN_ON``), ValueError for another id."""
+    if plan_id not in DRIVEN_ON:
+        raise ValueError(f"unknown plan env {plan_id!r}; known: {', '.join(DRIVEN_ON)}")
+    return DRIVEN_ON[plan_id]
+
+
+def target_arguments(plan_id: str, kwargs: dict[str, Any], signature_of: Any) -> dict[str, Any]:
+    """The arguments of the per-step env under the plan env ``plan_id``: ``kwargs`` (``signature_of``'s, the
+    per-step env's settings left as they are; ValueError naming any other) with those settings."""
     import inspect
 
+    from gymnasium.envs.registration import registry
+
+    target_id = driven_on(plan_id)
+    settings = registry[target_id].kwargs
     known = set(inspect.signature(signature_of).parameters) - {"self", "num_envs"}
     unknown = sorted(set(kwargs) - known)
     if unknown:
-        raise ValueError(f"WheelLoaderPlan-v0 takes no argument(s) {unknown}; known: {sorted(known - set(V6_SETTINGS))}")
-    fixed = sorted(k for k in V6_SETTINGS if k in kwargs and kwargs[k] != V6_SETTINGS[k])
+        raise ValueError(f"{plan_id} takes no argument(s) {unknown}; known: {sorted(known - set(settings))}")
+    fixed = sorted(k for k in settings if k in kwargs and kwargs[k] != settings[k])
     if fixed:
-        raise ValueError(f"WheelLoaderPlan-v0 drives WheelLoaderTarget-v6: {', '.join(fixed)} cannot be changed")
-    return {**kwargs, **V6_SETTINGS}
+        raise ValueError(f"{plan_id} drives {target_id}: {', '.join(fixed)} cannot be changed")
+    return {**kwargs, **settings}
 
 
 def _check_plan(action: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -141,8 +151,10 @@ class PlanDriver:
 
 
 class WheelLoaderPlanEnv(WheelLoaderEnv):
+    plan_id = "WheelLoaderPlan-v0"
+
     def __init__(self, **kwargs: Any) -> None:  # (WheelLoaderEnv's arguments)
-        super().__init__(**v6_arguments(kwargs, WheelLoaderEnv.__init__))
+        super().__init__(**target_arguments(self.plan_id, kwargs, WheelLoaderEnv.__init__))
         self.action_space = spaces.Box(-1.0, 1.0, (N_PLAN_ACTIONS,), np.float32)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
@@ -161,8 +173,10 @@ class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
     """N loaders of ``WheelLoaderPlan-v0`` (the same arguments as the single env), each step one whole cycle
     per loader, stepped together (the next step resets them all, as gymnasium's next-step autoreset)."""
 
+    plan_id = "WheelLoaderPlan-v0"
+
     def __init__(self, num_envs: int = 1, **kwargs: Any) -> None:
-        super().__init__(num_envs, **v6_arguments(kwargs, WheelLoaderVectorEnv.__init__))
+        super().__init__(num_envs, **target_arguments(self.plan_id, kwargs, WheelLoaderVectorEnv.__init__))
         self.single_action_space = spaces.Box(-1.0, 1.0, (N_PLAN_ACTIONS,), np.float32)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.driver_codec = Codec(self.machine, observe_scenario=True)
@@ -212,4 +226,12 @@ class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
         return obs, total, terminated, truncated, {**last, "violation": max_violation, "steps": steps}
 
 
-WheelLoaderPlanEnv.__doc__ = __doc__  # (Gymnasium's convention: the env's docstring holds its tables)
+class WheelLoaderPlanV1Env(WheelLoaderPlanEnv):
+    plan_id = "WheelLoaderPlan-v1"
+
+
+class WheelLoaderPlanV1VectorEnv(WheelLoaderPlanVectorEnv):
+    plan_id = "WheelLoaderPlan-v1"
+
+
+WheelLoaderPlanEnv.__doc__ = WheelLoaderPlanV1Env.__doc__ = __doc__  # (Gymnasium's convention: the env's docstring holds its tables)

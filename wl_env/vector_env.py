@@ -80,6 +80,7 @@ class WheelLoaderVectorEnv(VectorEnv):
         guards: bool = False,
         lift_floor: bool = False,
         lift_off_load: bool = False,
+        step_braking: bool = False,
     ) -> None:
         num_envs = plain(num_envs)
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and 1 <= num_envs <= MAX_NUM_ENVS):
@@ -90,8 +91,9 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
         self.num_envs = num_envs
-        self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor, lift_off_load)
+        self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor, lift_off_load, step_braking)
         self.coast, self.guards, self.lift_floor, self.lift_off_load = coast, guards, lift_floor, lift_off_load
+        self.step_braking = step_braking
         self.observe_target = check_flag("observe_target", observe_target)
         observe_scenario = check_flag("observe_scenario", observe_scenario)
         if self.observe_target and not observe_scenario:
@@ -211,7 +213,7 @@ class WheelLoaderVectorEnv(VectorEnv):
             y, phase = self._y, self._phase
             action = assisted_action(y, phase, self.core.codec.distance_to_go(y[4], phase), a.T, self.params,
                                      self.braking, self.core.dt, self.coast, self.guards,
-                                     self.lift_floor, self.lift_off_load)
+                                     self.lift_floor, self.lift_off_load, self.step_braking)
         else:
             action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
