@@ -435,3 +435,164 @@ def test_a_tc_corner_whose_minimum_time_needs_two_refinements_has_a_front(tmp_pa
     front = pareto_front("tc", 3, sc.params(), tmp_path)
     assert front.T_min == pytest.approx(8.9645, abs=2e-3)
     assert all(p["verified"] for p in front.points) and list(front.fuel_g) == sorted(front.fuel_g, reverse=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Tenth hostile-input round (mpc/benchmark's API): each test fails on the code before its fix.
+# ---------------------------------------------------------------------------------------------------------------------
+from hypothesis import given, settings  # noqa: E402  (this block's own imports)
+from hypothesis import strategies as st  # noqa: E402
+
+from mpc.benchmark.reference import min_time_of  # noqa: E402
+
+
+def test_a_fixed_time_optimum_whose_checked_re_solve_fails_is_no_verified_reference(monkeypatch, tmp_path):
+    """multistart_fixed_time returned its best start, solved without the re-simulation check, when the re-solve with
+    the check failed (a refined mesh IPOPT could not solve): success True and no verification, so direct_fuel_at (the
+    scoring's fuel reference) took it as a verified optimum. It is now no success, its status naming the failure and
+    the solver's status."""
+    from fakes import fake_solve
+
+    from mpc.benchmark import optima, reference
+    from mpc.benchmark.pareto import RESULT_KIND, check_result
+    from mpc.benchmark.store import read_entry
+
+    def solve(*args, verify=True, **kwargs):
+        if verify:
+            raise OCPError("ipopt failed on the service fuel_at_time problem at T = 10.000 s: status Restoration_Failed")
+        r = fake_solve(*args, **kwargs)
+        r.verification = {}
+        return r
+
+    fake_solve.calls = []
+    monkeypatch.setattr(optima, "solve_ocp", solve)
+    monkeypatch.setattr(reference, "solve_ocp", fake_solve)
+    with pytest.raises(OCPError, match="no verified service optimum at T = 10.000 s.*status Restoration_Failed"):
+        reference.direct_fuel_at("service", 10.0, DEFAULT_PARAMS, tmp_path)
+    saved = read_entry(next(tmp_path.rglob("fuel_at_T10.0000.json")), RESULT_KIND, check_result)
+    assert saved["success"] is False and "not re-simulated" in saved["status"]
+    with pytest.raises(OCPError, match="Restoration_Failed"):  # (and so from the cache: never a reference)
+        reference.direct_fuel_at("service", 10.0, DEFAULT_PARAMS, tmp_path)
+
+
+def test_the_optimum_past_the_fuel_optimal_cycle_does_not_depend_on_what_the_cache_saw_first(monkeypatch, tmp_path):
+    """optimal_fuel_at past the front caches each T as T_<T:.3f>.json and took the entry there without its T: after
+    30.0004 s, 30.0 s got 30.0004 s's fuel (73.0380 g, not 73.0357 g), a result that depended on the cache's history."""
+    from fakes import fake_solve
+
+    import mpc.benchmark.pareto as pareto
+
+    fake_solve.calls = []
+    monkeypatch.setattr(pareto, "solve_ocp", fake_solve)
+    front = _front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5])
+    fresh = pareto.optimal_fuel_at(30.0, "service", front=front, cache=tmp_path / "fresh")
+    pareto.optimal_fuel_at(30.0004, "service", front=front, cache=tmp_path / "used")
+    assert pareto.optimal_fuel_at(30.0, "service", front=front, cache=tmp_path / "used") == fresh
+    n = len(fake_solve.calls)
+    assert pareto.optimal_fuel_at(30.0, "service", front=front, cache=tmp_path / "used") == fresh  # (cached now)
+    assert len(fake_solve.calls) == n
+
+
+def test_a_result_file_that_is_no_regular_file_or_holds_a_huge_integer_is_refused_by_name(tmp_path):
+    """OCPResult.load read a FIFO (blocked for good), a folder (an IsADirectoryError) and a 5000-digit integer (a
+    ValueError naming no file) as it found them; each is now a ValueError naming the file."""
+    import os
+    import signal
+
+    fifo, folder, big = tmp_path / "fifo.json", tmp_path / "folder.json", tmp_path / "big.json"
+    os.mkfifo(fifo)
+    folder.mkdir()
+    big.write_text('{"T": ' + "9" * 5000 + "}")
+
+    def hang(*_):
+        raise TimeoutError("OCPResult.load blocked on a FIFO")
+
+    old = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(3)
+    try:
+        for path, needle in ((fifo, "not a regular file"), (folder, "a folder"), (big, "not valid JSON")):
+            with pytest.raises(ValueError, match=needle) as info:
+                OCPResult.load(path)
+            assert str(path) in str(info.value)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_a_warm_start_whose_scenario_fields_hold_no_cycle_is_refused_by_name():
+    """A warm start (or a result file) whose scenario_fields lack a distance was a bare KeyError from transport(), one
+    with H_T = H_0 a ZeroDivisionError, each after the NLP's build."""
+    from dataclasses import replace
+
+    from fakes import fake_solve
+
+    from mpc.benchmark.ocp import transport
+    from wl_env.params import SCENARIO_FIELDS
+
+    good = fake_solve()
+    good.scenario_fields = {f: float(getattr(DEFAULT_PARAMS, f)) for f in SCENARIO_FIELDS}
+    assert transport(good, DEFAULT_PARAMS).position == good.position  # (the same cycle: reshaped onto itself)
+    for fields in ({"M_load": 1.0}, {**good.scenario_fields, "H_T": good.scenario_fields["H_0"]},
+                   {**good.scenario_fields, "reverse_distance": float("nan")}):
+        with pytest.raises(ValueError, match="warm_start is no consistent OCPResult: field 'scenario_fields'"):
+            solve_ocp("service", "fuel_at_time", T=10.0, warm_start=replace(good, scenario_fields=fields), verify=False)
+        with pytest.raises(ValueError, match="scenario_fields"):
+            OCPResult.from_dict(replace(good, scenario_fields=fields).to_dict())
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda p, c: p.pareto_front("service", 5, None, c, max_interval=0), "max_interval must lie in"),  # OverflowError
+    (lambda p, c: p.pareto_front("service", 5, None, c, max_interval=float("nan")), "max_interval must lie in"),
+    (lambda p, c: p.pareto_front("service", 5, None, c, max_interval=-1), "max_interval must lie in"),  # coarsest mesh
+    (lambda p, c: p.pareto_front("service", 5, None, c, progress=5), "progress must be a function"),  # TypeError
+    (lambda p, c: p.pareto_front("service", 5, None, c, use_cache="no"), "use_cache must be True or False"),
+    (lambda p, c: p.pareto_front("service", 5, None, c, neighbour=None), "neighbour must be True or False"),
+    (lambda p, c: p.pareto_fronts("service", 5, None, c), "brakings must be a tuple"),  # "... got 's'"
+    (lambda p, c: p.pareto_fronts(("service",), 5, None, c, workers="x"), "workers must be an integer"),  # TypeError
+    (lambda p, c: p.pareto_fronts(("service", "tc"), 5, None, c, workers=0), "workers must be an integer"),
+    (lambda p, c: p.pareto_fronts(("service",), 5, None, c, use_cache="no"), "use_cache must be True or False"),
+    (lambda p, c: p.front_folder("service", 11.0, None, c), "n_points must be an integer"),  # "n11.0": no cache
+    (lambda p, c: p.front_folder("service", "../../x", None, c), "n_points must be an integer"),
+    (lambda p, c: score_run(10.0, 60.0, "service", cache=c, solve="no"), "solve must be True or False"),  # solved
+    (lambda p, c: min_time_of("service", {"M_load": 11000.0}, c, solve="no"), "solve must be True or False"),
+    (lambda p, c: solve_ocp("service", "time", verify="no"), "verify must be True or False"),
+    (lambda p, c: solve_ocp("service", "time", refine=1), "refine must be True or False"),
+])
+def test_the_sweeps_and_lookups_refuse_their_arguments_by_name_before_any_solve(call, needle, monkeypatch, tmp_path):
+    """Each was a traceback after the front's two ends were solved, a solve where none was asked for, or was taken
+    without a word."""
+    import mpc.benchmark.ocp as ocp
+    import mpc.benchmark.pareto as pareto
+    from mpc.benchmark import optima, reference
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("solved before the arguments were checked")
+
+    for module in (pareto, reference, optima):
+        monkeypatch.setattr(module, "solve_ocp", no_solve)
+    monkeypatch.setattr(ocp, "_solve_on_mesh", no_solve)
+    with pytest.raises(ValueError, match=needle):
+        call(pareto, tmp_path)
+
+
+_cell = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**30, 10**30), st.booleans(),
+                  st.text(max_size=3), st.none(), st.complex_numbers(max_magnitude=10), st.just({}))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.lists(st.lists(_cell, min_size=0, max_size=4), max_size=5), _cell,
+                 st.lists(st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3), min_size=1, max_size=5)))
+def test_total_variation_takes_rows_of_real_numbers_or_refuses_them_by_name(controls):
+    """total_variation (smoothness()'s first step) read strings as numbers ("1" rows scored), bools as 0 and 1, and
+    failed on a dict or a complex number with a bare TypeError: any input is now rows of real numbers with a finite
+    result, or a ValueError naming controls."""
+    from mpc.benchmark.scoring import total_variation
+
+    try:
+        tv = total_variation(controls)
+    except ValueError as exc:
+        assert "controls must be" in str(exc)
+        return
+    rows = controls if isinstance(controls, list) else []
+    assert rows and all(isinstance(v, (int, float)) and not isinstance(v, bool) for r in rows for v in r)
+    assert all(math.isfinite(v) and v >= 0 for v in tv)

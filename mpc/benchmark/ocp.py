@@ -196,12 +196,17 @@ class OCPResult:
         """A result :meth:`save` (or :func:`mpc.benchmark.pareto.save_result`, then its checksum too) wrote;
         ValueError naming the file if it is not a consistent one (a string T or states of another shape
         were taken as they were)."""
+        from mpc.benchmark.store import _float_sized_int, read_regular_file
+
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no OCP result at {path}")
+        # (checked as a cache entry is before it is read: a FIFO blocked this for good, /dev/zero filled the memory,
+        # a folder was an IsADirectoryError; an integer of 5000 digits was a ValueError naming no file)
+        raw = read_regular_file(path)  # BadEntry (a ValueError) naming the file
         try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+            data = json.loads(raw.decode("utf-8"), parse_int=_float_sized_int)
+        except (ValueError, UnicodeDecodeError, RecursionError) as exc:  # (JSONDecodeError is a ValueError)
             raise ValueError(f"{path} is not valid JSON: {exc}") from None
         if isinstance(data, dict) and "schema" in data:  # an entry: its schema and checksum checked too
             from mpc.benchmark.pareto import RESULT_KIND, check_result
@@ -705,6 +710,9 @@ def solve_ocp(
     """
     braking, p = with_scenario(braking, params, scenario)
     check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements, w_fuel)
+    for name, flag in (("verify", verify), ("refine", refine)):  # (verify="no" verified, as any string would)
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ValueError(f"{name} must be True or False, got {shown(flag)}")
     w_fuel = None if w_fuel is None else float(w_fuel)
     settings = settings or OCPSettings()
     try:

@@ -125,7 +125,8 @@ def multistart_fixed_time(braking: str, T: float, params: LoaderParams, settings
     Starts: each of ``warm_starts`` and (``templates``) the OCP's template multi-start. Continuation
     from a neighbouring optimum alone can stay in a worse local optimum, which the templates often leave.
     Returns None if every start fails; ``failures`` (if given) then holds each start's error, with its
-    solver status.
+    solver status. If the re-solve with the check fails, the best start comes back unverified, with ``success``
+    False and that failure in its status.
     """
     cands: list[tuple[str, OCPResult]] = []
     starts = [(f"warm start T = {ws.T:.3f} s", {"warm_start": ws}) for ws in warm_starts]
@@ -143,7 +144,12 @@ def multistart_fixed_time(braking: str, T: float, params: LoaderParams, settings
              + f"; best: {name}")
     try:  # re-solve from the best start with the re-simulation check
         final = solve_ocp(braking, "fuel_at_time", T=T, params=params, settings=settings, warm_start=best)
-    except OCPError:
+    except OCPError as exc:
+        # The best start was solved without the re-simulation check: it went back as a verified optimum (success True,
+        # no verification), and direct_fuel_at scored cycles against it. It goes back as what it is: no success, its
+        # status naming the re-solve's failure (with the solver's status). (passed() was False for it already.)
+        best.success = False
+        best.status = f"{best.status} (not re-simulated: the re-solve with the re-simulation check failed: {exc})"
         return best
     final.starts = [{"start": n, "fuel_g": r.fuel_g} for n, r in cands] + final.starts
     return final

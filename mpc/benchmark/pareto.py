@@ -219,6 +219,21 @@ def check_result(d: dict[str, Any]) -> str | None:
         return f"states, controls, position and phase do not match the {n} sample times"
     if any(b < a for a, b in pairwise(d["t"])) or any(b < a for a, b in pairwise(d["phase"])):
         return "the sample times or phases decrease"
+    return _scenario_fields_problem(d.get("scenario_fields", {}))
+
+
+def _scenario_fields_problem(sf: Any) -> str | None:
+    """What is wrong with a result's ``scenario_fields`` (none, ``{}``, or every scenario field of a cycle), or None:
+    a warm start is reshaped by them (:func:`mpc.benchmark.ocp.transport`), and one without a distance was a bare
+    KeyError there, one with H_T = H_0 a ZeroDivisionError."""
+    from wl_env.params import SCENARIO_FIELDS
+
+    if sf is None or sf == {}:
+        return None
+    if not (isinstance(sf, dict) and set(sf) == set(SCENARIO_FIELDS) and all(map(is_real_number, sf.values()))):
+        return f"field 'scenario_fields' must be {{}} or a number for each of {SCENARIO_FIELDS}, got {_short(sf)}"
+    if not (sf["reverse_distance"] > 0 and sf["forward_distance"] > 0 and sf["H_T"] > sf["H_0"]):
+        return f"field 'scenario_fields' holds no cycle (distances > 0 and H_T > H_0 needed): {_short(sf)}"
     return None
 
 
@@ -342,7 +357,8 @@ def front_folder(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderPar
                  cache: str | os.PathLike | None = None) -> Path:
     """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
     and one ``T_<cycle time>.json`` per point (each an :class:`mpc.benchmark.ocp.OCPResult`)."""
-    return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), n_points)
+    # (n_points checked: 11.0 named another folder, "n11.0", and missed the cache without a word; "../x" another path)
+    return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), check_n_points(n_points))
 
 
 def min_time_result(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderParams | dict | None = None,
@@ -409,6 +425,26 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
     return best
 
 
+def check_flag(value: Any, name: str) -> bool:
+    """``value`` if it is a bool (numpy's too), else ValueError naming ``name`` (``"no"`` was taken as True)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {shown(value)}")
+    return bool(value)
+
+
+def check_sweep_arguments(max_interval: Any = 0.15, progress: Any = None, **flags: Any) -> None:
+    """:func:`pareto_front`'s arguments, each refused by name before any solve (``max_interval`` 0 was an
+    OverflowError after the front's two ends were solved, NaN a bare ValueError, -1 the coarsest mesh without a
+    word; a ``progress`` that is no function a TypeError)."""
+    if not (is_real_number(max_interval) and 0.001 <= max_interval <= 10.0):
+        raise ValueError(f"max_interval must lie in [0.001, 10] s (the longest mesh interval of a driving phase), "
+                         f"got {shown(max_interval)}")
+    if progress is not None and not callable(progress):
+        raise ValueError(f"progress must be a function taking a message, or None, got {shown(progress)}")
+    for name, value in flags.items():
+        check_flag(value, name)
+
+
 def pareto_front(
     braking: str | None = None,
     n_points: int = DEFAULT_POINTS,
@@ -434,6 +470,7 @@ def pareto_front(
 
     braking, p = with_scenario(braking, params, scenario)
     n_points = check_n_points(n_points)
+    check_sweep_arguments(max_interval=max_interval, progress=progress, use_cache=use_cache, neighbour=neighbour)
     fingerprint = p.fingerprint()
     say = progress or log.info
     folder = front_folder(braking, n_points, p, cache)
@@ -614,8 +651,18 @@ def pareto_fronts(
     the usual ``if __name__ == "__main__":`` guard (``wl`` and pytest have it). Ctrl-C or an error in one
     front stops all of them within about a second (:mod:`mpc.workers`); the points solved so far stay cached.
     """
+    # (each checked before a worker starts: a string was taken letter by letter, "braking ... got 's'", workers "x"
+    # was a TypeError, 0 or -1 the default or one worker without a word)
+    if not isinstance(brakings, (tuple, list)):
+        raise ValueError(f"brakings must be a tuple of braking alternatives {cycle.BRAKING_MODES}, got {shown(brakings)}")
     for b in brakings:
         cycle.check_braking(b)
+    n_points = check_n_points(n_points)
+    check_flag(use_cache, "use_cache"), check_flag(progress, "progress")
+    if workers is not None:
+        from mpc.workers import check_workers
+
+        check_workers(workers)
     p = resolve(params)
     workers = min(len(brakings), workers or os.cpu_count() or 1)
     if workers <= 1:
@@ -665,7 +712,10 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
     p = resolve(params)
     path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}" / f"T_{T:.3f}.json"
     cached = cached_result(path, objective="fuel_at_time", braking=braking, params=p)
-    if cached is not None and cached.success:  # (a failed one, cached before it was refused, is solved again)
+    # (a failed one, cached before it was refused, is solved again; so is one of another T under the same file name:
+    # T_30.000.json held 30.0004 s's optimum after that call, and 30.0 s then got its fuel, the result depending on
+    # what the cache saw first)
+    if cached is not None and cached.success and abs(cached.T - T) <= 1e-6 * max(1.0, T):
         return cached.fuel_g
     r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,
                   settings=replace(OCPSettings(), intervals=tuple(front.mesh)))

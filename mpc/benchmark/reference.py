@@ -32,6 +32,7 @@ from mpc.benchmark.pareto import (
     FRONT_KIND,
     ParetoFront,
     cached_result,
+    check_flag,
     check_front,
     front_folder,
     nearest_front,
@@ -175,6 +176,7 @@ def min_time_of(braking: str, params: LoaderParams, cache: str | os.PathLike | N
     """A cycle's minimum time T_min (s): the known front's, else solved directly (unless ``solve`` is
     False: then LookupError)."""
     params = resolve(params)
+    check_flag(solve, "solve")  # (solve="no" solved)
     known = known_front(braking, params, cache)
     if known is not None:
         return float(known[0].T_min)
@@ -187,6 +189,7 @@ def reference_at(T: float, braking: str, params: LoaderParams, cache: str | os.P
                  front: ParetoFront | None = None, solve: bool = True) -> dict[str, Any]:
     """``{"T_min", "fuel_opt_g", "reference"}`` of a cycle of time T (s): the known front's (``front``,
     shipped or cached), else solved directly (unless ``solve`` is False: then LookupError)."""
+    check_flag(solve, "solve")
     source = "given"
     if front is None:
         known = known_front(braking, params, cache)

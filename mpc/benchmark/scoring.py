@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 
 from mpc.benchmark.ocp import MAX_CYCLE_TIME, as_plain
-from mpc.benchmark.pareto import ParetoFront, check_front_of
+from mpc.benchmark.pareto import ParetoFront, check_flag, check_front_of
 from mpc.benchmark.reference import reference_at
 from wl_env.cycle import check_braking
-from wl_env.params import LoaderParams, is_real_number, resolve
+from wl_env.params import LoaderParams, is_real_number, resolve, shown
 
 
 @dataclass(frozen=True)
@@ -74,6 +74,7 @@ def score_run(
                          f"got {T!r}")
     T, fuel_g = float(T), float(fuel_g)
     check_braking(braking)
+    check_flag(solve, "solve")  # (solve="no" solved)
     p = resolve(params)
     if front is not None:
         check_front_of(front, braking, p)
@@ -102,7 +103,18 @@ class Smoothness:
 
 def total_variation(controls: Any) -> tuple[float, float]:
     """Total variation of U_mf (mg) and U_ab (m/s^2) over a sequence of held controls (rows [U_mf, U_ab, ...])."""
-    u = np.asarray(controls, dtype=float)
+    # (numbers only: strings were read as numbers, bools as 0 and 1, a dict or a complex number was a bare TypeError,
+    # ragged rows numpy's "inhomogeneous shape")
+    if isinstance(controls, np.ndarray) and controls.dtype.kind in "iuf":
+        raw = controls
+    else:  # each entry checked: numpy turned [[0.0, False]] into floats, [["1", "2"]] into strings it then converted
+        try:
+            raw = np.asarray(controls, dtype=object)
+        except ValueError:  # (ragged rows)
+            raw = np.asarray(None, dtype=object)
+        if not (raw.ndim == 2 and all(map(is_real_number, raw.ravel()))):
+            raise ValueError(f"controls must be finite rows [U_mf, U_ab, ...] of real numbers, got {shown(controls)}")
+    u = raw.astype(float)
     if u.ndim != 2 or u.shape[1] < 2 or len(u) < 1 or not np.isfinite(u[:, :2]).all():
         raise ValueError(f"controls must be finite rows [U_mf, U_ab, ...], got shape {u.shape}")
     tv = np.abs(np.diff(u[:, :2], axis=0)).sum(axis=0)

@@ -93,12 +93,10 @@ def _float_sized_int(text: str) -> int:
 MAX_ENTRY_BYTES = 256 * 2**20  # (the largest entries, a suite's fronts, are a few MB)
 
 
-def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,
-               expect: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The payload of the entry at ``path`` (without schema and checksum); BadEntry if it is not a good
-    entry of ``kind`` (solved for ``fingerprint``, and holding the field values of ``expect``, if given:
-    e.g. its braking alternative and objective, which the file's name alone does not vouch for).
-    FileNotFoundError if there is none."""
+def read_regular_file(path: str | os.PathLike, limit: int = MAX_ENTRY_BYTES) -> bytes:
+    """The bytes of the regular file at ``path`` (a symbolic link is followed); BadEntry naming it if it is a
+    folder, no regular file (a FIFO would block the read for good, /dev/zero never end it), larger than ``limit``
+    bytes or unreadable. FileNotFoundError if there is none."""
     path = Path(path)
     try:
         info = path.stat()
@@ -106,13 +104,23 @@ def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
             raise BadEntry(path, "a folder, not a file")
         if not stat.S_ISREG(info.st_mode):  # (a FIFO or a device would block or never end)
             raise BadEntry(path, "not a regular file")
-        if info.st_size > MAX_ENTRY_BYTES:
-            raise BadEntry(path, f"{info.st_size} bytes, more than an entry holds ({MAX_ENTRY_BYTES})")
-        raw = path.read_bytes()
+        if info.st_size > limit:
+            raise BadEntry(path, f"{info.st_size} bytes, more than an entry holds ({limit})")
+        return path.read_bytes()
     except FileNotFoundError:
         raise
     except OSError as exc:  # a symlink loop, no permission, ...
         raise BadEntry(path, f"unreadable ({exc.strerror or exc})") from None
+
+
+def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,
+               expect: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The payload of the entry at ``path`` (without schema and checksum); BadEntry if it is not a good
+    entry of ``kind`` (solved for ``fingerprint``, and holding the field values of ``expect``, if given:
+    e.g. its braking alternative and objective, which the file's name alone does not vouch for).
+    FileNotFoundError if there is none."""
+    path = Path(path)
+    raw = read_regular_file(path)
     try:
         data = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float,
                           parse_int=_float_sized_int)
@@ -166,8 +174,14 @@ def load_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
         return read_entry(path, kind, check, fingerprint, expect)
     except (FileNotFoundError, NotADirectoryError):  # (a file where a folder above it belongs: no entry there)
         return None
+    except PermissionError as exc:  # (the lstat: a folder on the way that may not be searched)
+        log.warning(f"bad cache entry {path}: unreadable ({exc.strerror or exc}); recomputing it")
+        return None
     except BadEntry as exc:
-        moved = set_aside(path, seen)
-        where = f"moved to {moved.name}" if moved else "already replaced"
+        try:
+            moved = set_aside(path, seen)
+            where = f"moved to {moved.name}" if moved else "already replaced"
+        except OSError as err:  # (a read-only cache: the rename's PermissionError or EROFS was a traceback)
+            where = f"left in place, it cannot be moved aside ({err.strerror or err})"
         log.warning(f"bad cache entry {exc} -- {where}; recomputing it")
         return None
