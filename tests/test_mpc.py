@@ -855,3 +855,137 @@ def test_act_takes_one_observation_per_step_and_applied_checks_the_action():
 def test_run_closed_loop_names_score_and_plant_params(kwargs, match):
     with pytest.raises(ValueError, match=match):
         run_closed_loop("service", **kwargs)
+
+
+# ------------------------------------------------------------------ hostile inputs (the controller's failure modes, stop 62)
+def test_a_solver_that_says_ok_of_a_non_finite_plan_is_a_fallback_with_its_status():
+    """Any GridSolver may be injected: one that said ok of a NaN iterate made a NaN plan, whose control the codec
+    encoded as [-1, -1, -1, -1] (no fuel, bucket down, no brake), flagged as no fallback, status "Solve_Succeeded"."""
+    import dataclasses
+
+    class NaNSolver(IpoptSolver):
+        armed = False
+
+        def solve(self, nlp, args, x0, lam_x0=None, lam_g0=None):
+            r = super().solve(nlp, args, x0, lam_x0, lam_g0)
+            return dataclasses.replace(r, z=np.full_like(r.z, np.nan)) if self.armed else r
+
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    solver = NaNSolver()
+    ctrl = MPCController("service", config=MPCConfig(parallel_search=False, horizon_steps=None), solver=solver)
+    a = ctrl.act(obs)
+    planned = ctrl.planned_steps()["controls"][1]
+    solver.armed = True
+    obs, *_ = env.step(a)
+    a = ctrl.act(obs)
+    info = ctrl.last_info
+    assert info["fallback"] and "non-finite iterate" in info["status"] and ctrl.fallbacks == 1
+    assert np.isfinite(a).all() and a[0] > -1.0  # (the previous plan's next step: fuel, not the encoded NaN)
+    assert np.allclose(ctrl.planned_steps()["controls"][0], planned)
+
+
+def test_act_refuses_an_observation_of_an_earlier_phase_and_changes_nothing():
+    """A phase-2 observation after a phase-3 one was planned from on the phase-3 schedule (a cold solve from a NaN
+    start, "Invalid_Number_Detected") and applied as a fallback, without an error: the phases only go forward."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service", config=MPCConfig(parallel_search=False))
+    x, _, _ = ctrl.state_from_obs(obs)
+    ctrl._last, ctrl._last_t, ctrl._obs_phase = (x, 2, np.zeros(3)), 0.0, 2  # (as after a step in phase 2 at t = 0)
+    later = obs.copy()
+    later[6] = obs[6] + 0.1 / 40.0  # (one step later; the observation's time is scaled by 40 s)
+    assert ctrl.state_from_obs(later)[1] == pytest.approx(0.1, abs=1e-6)
+    with pytest.raises(ValueError, match="the observation is in phase 1, the last step's was in phase 2"):
+        ctrl.act(later)
+    assert ctrl._last_t == 0.0 and ctrl._counts is None and ctrl.estimator.theta.tolist() == [1.0, 0.0]
+
+
+def test_a_damaged_codegen_cache_is_built_again_never_a_traceback_or_a_hang(tmp_path, caplog):
+    """The compiled libraries' folder: a record that parses as no JSON object ([], 5, null) was an AttributeError's
+    traceback; a FIFO as the record hung the first plan in its read; a dangling link as a library was a
+    FileNotFoundError in the folder's privacy check; another library of other input shapes under the key, its record
+    matching, was CasADi's "mismatching shape" RuntimeError. Each is now a library built again (or, in a FIFO's
+    place, interpreted functions), with a warning."""
+    import logging
+    import os
+    import threading
+
+    from mpc.controller import codegen
+
+    if codegen.compiler() is None:
+        pytest.skip("no C compiler")
+    x, p = ca.SX.sym("x", 3), ca.SX.sym("p", 2)
+    f = ca.Function("tiny_f", [x, p], [ca.sin(x[0]) * p[0] + x[1] * x[2] / p[1]])
+    group = {"f": f, "grad": ca.Function("tiny_grad", [x, p], [ca.gradient(f(x, p), x)])}
+
+    def values(fns):
+        return [float(v) for fn in fns.values() for v in np.array(fn([0.3, -0.7, 1.1], [2.0, 0.5])).ravel()]
+
+    def compiled(cache):
+        done = []
+        worker = threading.Thread(target=lambda: done.append(codegen.compiled([group], [f], cache=cache)[0]), daemon=True)
+        worker.start()
+        worker.join(30)
+        assert done, "codegen.compiled hung"
+        return done[0]
+
+    os.chmod(tmp_path, 0o700)
+    assert values(compiled(tmp_path)) == values(group)
+    (lib,) = (tmp_path / "codegen").glob("*.so")
+    record = lib.with_suffix(".json")
+    good = record.read_text()
+    with caplog.at_level(logging.WARNING, logger="mpc.controller.codegen"):
+        for text in ("[]", "5", "null"):
+            record.unlink()
+            record.write_text(text)
+            assert values(compiled(tmp_path)) == values(group)
+        assert "the record is no JSON object (list)" in caplog.text
+        (tmp_path / "codegen" / "gone.so").symlink_to(tmp_path / "nowhere")
+        assert values(compiled(tmp_path)) == values(group)
+        record.unlink()
+        os.mkfifo(record)
+        assert compiled(tmp_path) is None  # (a pipe in the record's place is not replaced: interpreted)
+        assert "is no regular file" in caplog.text
+        # another library of other input shapes under the key, its record made to match it
+        x4 = ca.SX.sym("x", 4)
+        other = {"f": ca.Function("tiny_f", [x4, p], [ca.cos(x4[0]) * p[0]]),
+                 "grad": ca.Function("tiny_grad", [x4, p], [ca.vertcat(x4, p)])}
+        codegen.compiled([other], [other["f"]], cache=tmp_path / "other")
+        (lib_other,) = (tmp_path / "other" / "codegen").glob("*.so")
+        fresh = tmp_path / "fresh" / "codegen"
+        fresh.mkdir(parents=True)
+        (fresh / lib.name).write_bytes(lib_other.read_bytes())
+        (fresh / record.name).write_text(json.dumps({**json.loads(good), "sha256": codegen._sha256(lib_other)}))
+        caplog.clear()
+        assert values(compiled(tmp_path / "fresh")) == values(group)
+        assert "does not give its functions' values" in caplog.text
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: IpoptSolver(time_budget=0.0), r"time_budget must be > 0 s or None, got 0.0"),  # (IPOPT's "Invalid options")
+    (lambda: IpoptSolver(time_budget=math.nan), r"time_budget must be > 0 s or None, got nan"),  # (no budget at all)
+    (lambda: IpoptSolver(max_iter=2.5), r"max_iter must be an integer in \[1, 100000\], got 2.5"),  # (taken as 2)
+    (lambda: IpoptSolver(max_iter=True), r"max_iter must be an integer in \[1, 100000\], got True"),
+    (lambda: solver_module.SqpRtiSolver("hpipm", extra_steps=True), r"extra_steps must be an integer >= 0, got True"),
+    (lambda: solver_module.SqpRtiSolver("nope"), r"qpsol must name a QP solver of CasADi's"),  # (failed at the first plan)
+])
+def test_the_injectable_solvers_refuse_their_settings_by_name(make, match):
+    """IpoptSolver(time_budget=0) failed at the first plan with IPOPT's "Invalid options were detected" (a CasADi
+    traceback); nan ran without a budget and 2.5 iterations as 2; the RTI took extra_steps=True as 1 and an unknown QP
+    solver until its first solve."""
+    with pytest.raises(ValueError, match=match):
+        make()
+    IpoptSolver(np.int64(50), np.float32(0.05))  # (numpy's numbers are numbers)
+
+
+def test_act_never_returns_a_non_finite_control_as_an_action(monkeypatch):
+    """A NaN control was encoded as the action [-1, -1, -1, -1] (no fuel, bucket down, no brake) without a word: it is
+    an error naming the step's status."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service", config=MPCConfig(safety_filter=False))
+    info = {"solve_time": 0.0, "status": "a solver of NaN", "fallback": False}
+    monkeypatch.setattr(ctrl, "control", lambda x, t, phase: (np.array([np.nan, 0.0, 0.0]), False, dict(info)))
+    with pytest.raises(RuntimeError, match="no finite control at t = 0.00 s .*'a solver of NaN'"):
+        ctrl.act(obs)

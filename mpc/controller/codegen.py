@@ -185,7 +185,10 @@ def _writable_by_others(folder: Path) -> str:
     me = os.getuid() if hasattr(os, "getuid") else None
     paths = [*folder.glob("*.so"), folder, *folder.parents] if folder.exists() else []
     for path in paths:
-        st = path.stat()
+        try:
+            st = path.stat()
+        except OSError:  # (a dangling link as a library, or one removed since the glob: nothing loads from it)
+            continue
         if path.is_dir() and st.st_mode & stat.S_ISVTX:  # (/tmp: others cannot replace what is not theirs below it)
             break
         if me is not None and st.st_uid not in (me, 0):
@@ -220,6 +223,19 @@ def _key(origin: ca.Function, group: dict[str, ca.Function], cc: str) -> str:
     return h.hexdigest()[:32]
 
 
+MAX_RECORD_BYTES = 1 << 16  # a library's record is ~300 bytes
+
+
+def _check_regular(path: Path, most: int | None = None) -> None:
+    """``path`` is a regular file (of at most ``most`` bytes), else a ValueError; FileNotFoundError if it is absent
+    (a dangling symbolic link too)."""
+    info = path.stat()
+    if not stat.S_ISREG(info.st_mode):
+        raise ValueError(f"{path.name} is no regular file")
+    if most is not None and info.st_size > most:
+        raise ValueError(f"{path.name} holds {info.st_size} bytes, more than a record's {most}")
+
+
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -231,7 +247,13 @@ def _load(folder: Path, key: str, group: dict[str, ca.Function], quiet: bool = F
     logged unless ``quiet``)."""
     lib, record = folder / f"{key}.so", folder / f"{key}.json"
     try:
+        # (regular files only, the record small: a FIFO in a library's or record's place hung the first plan in its
+        # read, and a record that parsed as a list, a number or null was an AttributeError's traceback)
+        for path, most in ((record, MAX_RECORD_BYTES), (lib, None)):
+            _check_regular(path, most)
         meta = json.loads(record.read_text())
+        if not isinstance(meta, dict):
+            raise ValueError(f"the record is no JSON object ({type(meta).__name__})")
         if meta.get("version") != RECORD_VERSION or meta.get("sha256") != _sha256(lib):
             raise ValueError("the library is not the one its record describes")
         fns = {name: ca.external(f.name(), str(lib)) for name, f in group.items()}
@@ -252,9 +274,16 @@ def _same_values(interpreted: ca.Function, compiled_fn: ca.Function) -> bool:
     """Both functions at one seeded point (the same inputs and outputs, values to 1e-12 relative)."""
     if (interpreted.n_in(), interpreted.n_out()) != (compiled_fn.n_in(), compiled_fn.n_out()):
         return False
+    # (a library of functions of other input shapes under the key: CasADi's "mismatching shape" RuntimeError was a
+    # traceback at the first plan, where it is a library to build again)
+    if any(interpreted.sparsity_in(i) != compiled_fn.sparsity_in(i) for i in range(interpreted.n_in())):
+        return False
     rng = np.random.default_rng(0)
     args = [rng.uniform(0.2, 1.0, interpreted.sparsity_in(i).shape) for i in range(interpreted.n_in())]
-    a, b = interpreted.call(args), compiled_fn.call(args)
+    try:
+        a, b = interpreted.call(args), compiled_fn.call(args)
+    except RuntimeError:
+        return False
     for x, y in zip(a, b, strict=True):
         if x.sparsity() != y.sparsity():
             return False
@@ -304,7 +333,8 @@ def _link(cc: str, folder: Path, key: str, objects: list[str], compiles: list[co
                                                    "casadi": ca.__version__, "compiler": _compiler_id(cc),
                                                    "flags": list(CFLAGS)})
         return True
-    except (OSError, subprocess.SubprocessError) as exc:
+    # (ValueError: a FIFO or a device in the library's or record's place, which atomic_io refuses to replace)
+    except (OSError, ValueError, subprocess.SubprocessError) as exc:
         if strict:
             raise CodegenError(f"building {key}.so with {cc} failed: {exc}") from exc
         log.warning("building %s.so with %s failed (%s): those functions stay interpreted", key, cc, exc)

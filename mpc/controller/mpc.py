@@ -496,6 +496,7 @@ class MPCController:
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._last_t = 0.0  # s: the time of the previous step's observation
+        self._obs_phase = 1  # the previous step's observed phase
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self._step_start: float | None = None  # deadline and real time: when the step began (time.perf_counter() s)
         self.estimator.reset()
@@ -547,6 +548,12 @@ class MPCController:
             raise ValueError(f"act() takes one observation per control step of {self.dt:g} s: the last step's was at "
                              f"{self._last_t:.4g} s, this one is at {t:.4g} s (a repeated or skipped observation, or an "
                              "environment of another dt)")
+        # (the phases only go forward: a phase-2 observation after a phase-3 one was planned from with the phase-3 plan's
+        # schedule, a cold solve from a NaN start, and applied as a fallback without an error)
+        if self._last is not None and phase < self._obs_phase:
+            raise ValueError(f"the observation is in phase {phase}, the last step's was in phase {self._obs_phase}: a "
+                             "cycle's phases only go forward (an observation of another episode? a new cycle starts with "
+                             "the controller's reset())")
         self._last_t = t
         if self._last is not None:
             if self._ahead is not None:  # (the worker's to learn from, before its next solve)
@@ -569,6 +576,9 @@ class MPCController:
             info["solve_time"] += spent
             if info["status"] != "terminal":
                 self.solve_times[-1] += spent
+        if not np.isfinite(u).all():  # (the codec's encoding would make a NaN "no fuel, no brake" without a word)
+            raise RuntimeError(f"MPC: no finite control at t = {t:.2f} s (phase {phase}): {u.tolist()}, from "
+                               f"{info.get('status')!r}")
         self._last = (x, phase + 1 if shift else phase, u)
         self._obs_phase = phase
         theta = self.estimator.theta

@@ -27,7 +27,7 @@ import numpy as np
 from mpc import interrupt
 from mpc.controller.grid import N_XR, GridNLP, StepModel, model_structure, slot_function
 from wl_env.episode import DISTANCE_TOL, HEIGHT_TOL
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, is_integer, is_real_number, plain, shown
 
 log = logging.getLogger(__name__)
 
@@ -304,6 +304,13 @@ class IpoptSolver:
     COLD_MAX_ITER = 500
 
     def __init__(self, max_iter: int = 100, time_budget: float | None = None) -> None:
+        # (checked as MPCConfig checks them: time_budget 0 was IPOPT's "Invalid options" traceback at the first plan,
+        # nan no budget at all, max_iter 2.5 or True taken as 2 or 1)
+        max_iter, time_budget = plain(max_iter), plain(time_budget)
+        if not (is_integer(max_iter) and 1 <= max_iter <= 100_000):
+            raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(max_iter)}")
+        if time_budget is not None and not (is_real_number(time_budget) and time_budget > 0):
+            raise ValueError(f"time_budget must be > 0 s or None, got {shown(time_budget)}")
         self.max_iter, self.time_budget = max_iter, time_budget
 
     def _function(self, nlp: GridNLP, warm: bool, far: bool = False) -> ca.Function:
@@ -410,8 +417,11 @@ class SqpRtiSolver:
     FEAS_TOL = DEADLINE_FEASIBLE_TOL
 
     def __init__(self, qpsol: str = "hpipm", extra_steps: int = 2) -> None:
-        if not (isinstance(extra_steps, int) and extra_steps >= 0):
-            raise ValueError(f"extra_steps must be an integer >= 0, got {extra_steps!r}")
+        extra_steps = plain(extra_steps)  # (True was taken as 1 step; a QP solver CasADi lacks failed at the first plan)
+        if not (is_integer(extra_steps) and extra_steps >= 0):
+            raise ValueError(f"extra_steps must be an integer >= 0, got {shown(extra_steps)}")
+        if not (isinstance(qpsol, str) and ca.has_conic(qpsol)):
+            raise ValueError(f"qpsol must name a QP solver of CasADi's (hpipm, osqp, ...), got {shown(qpsol)}")
         self.qpsol, self.extra_steps = qpsol, extra_steps
 
     def prepare(self, nlp: GridNLP) -> None:
@@ -522,6 +532,10 @@ def timed_solve(solver: GridSolver, nlp: GridNLP, counts: dict[int, int], first_
     try:
         r = solver.solve(nlp, args, x0, *((warm.lam_x, warm.lam_g) if warm is not None else ()))
         out.ok, out.status, out.iterations = r.ok, r.status, r.iterations
+        # (any GridSolver: one that said ok of a non-finite iterate made a NaN plan, whose controls the codec's
+        # encoding turned into "no fuel, no brake, bucket down" without a word, the step flagged as no fallback)
+        if r.ok and (r.z is None or not np.isfinite(r.z).all()):
+            out.ok, out.status = False, f"{r.status} (non-finite iterate)" if r.z is not None else f"{r.status} (no iterate)"
         if r.z is not None:
             out.z, out.lam_x, out.lam_g, out.lam_p_source, out.J = r.z, r.lam_x, r.lam_g, r.lam_p_source, r.f
             out.fuel_g = float(nlp.fuel_g(r.z, args["p"]))
