@@ -81,18 +81,26 @@ def demo_path(out: str | Path, index: int) -> Path:
     return Path(out) / f"episode_{index:05d}.npz"
 
 
-def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
-    """Episode ``index`` of a collection: its scenario, target, the expert's observations and actions."""
-    import gymnasium as gym
-
-    import wl_env  # noqa: F401
-    from mpc.controller.mpc import MPCController
+def demo_draw(settings: DemoSettings, index: int) -> tuple[np.random.Generator, Any, bool, float]:
+    """What episode ``index`` of a collection draws before it runs: (its generator, drawn on later by a DAgger
+    learner's episode; the scenario; whether it runs as fast as possible; its target ratio to T_min)."""
     from wl_env.suites import TRAIN_STREAM, draw, stream
 
     rng = stream(TRAIN_STREAM, DEMO_STREAM_SEED + 10_000 * settings.seed + index)
     scenario = draw(rng, settings.braking)
     fast = bool(rng.uniform() < settings.fast_share)
     ratio = 1.0 if fast else float(rng.uniform(*settings.target))
+    return rng, scenario, fast, ratio
+
+
+def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
+    """Episode ``index`` of a collection: its scenario, target, the expert's observations and actions."""
+    import gymnasium as gym
+
+    import wl_env  # noqa: F401
+    from mpc.controller.mpc import MPCController
+
+    rng, scenario, fast, ratio = demo_draw(settings, index)
     env = gym.make(settings.env_id, braking=settings.braking)
     governed = env.unwrapped.core.fuel_action == "engine_speed"
     obs, info = env.reset(seed=index, options={"scenario": scenario, "target_ratio": ratio})
@@ -110,7 +118,7 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
 
         learner = load_policy(settings.learner)
     if settings.env_id in COAST_ENV_IDS:
-        return _driver_dagger_episode(settings, env, expert, learner, rng, obs, scenario, target_time, fast)
+        return _driver_dagger_episode(settings, env, expert, learner, rng, obs, scenario, target_time, fast, ratio)
     observations, actions = [], []
     done = False
     core = env.unwrapped
@@ -131,20 +139,23 @@ def demo_episode(settings: DemoSettings, index: int) -> dict[str, Any]:
         done = term or trunc
     env.close()
     return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
-            **_episode_record(settings, info, scenario, target_time, fast)}
+            **_episode_record(settings, info, scenario, target_time, fast, ratio)}
 
 
 def _episode_record(settings: DemoSettings, info: dict[str, Any], scenario: Any, target_time: float,
-                    fast: bool) -> dict[str, Any]:
-    """What a demonstration file records of its episode besides its steps: the draw and the outcome."""
+                    fast: bool, ratio: float) -> dict[str, Any]:
+    """What a demonstration file records of its episode besides its steps: the draw (and the settings that drew it,
+    checked when a collection resumes: :func:`check_drawn`) and the outcome."""
     return {"scenario": scenario.to_dict(), "target_time": target_time, "fast": fast, "T": float(info["t"]),
             "fuel_g": float(info["fuel_g"]), "success": bool(info["is_success"]),
             "lateness": float(info["lateness"]), "max_violation": float(info["violations"]["max_excess"]),
-            "learner": settings.learner, "env_id": settings.env_id}
+            "learner": settings.learner, "env_id": settings.env_id, "target_ratio": ratio, "expert": settings.expert,
+            "beta": float(settings.beta)}
 
 
 def _driver_dagger_episode(settings: DemoSettings, env: Any, expert: Any, learner: Any, rng: np.random.Generator,
-                           obs: np.ndarray, scenario: Any, target_time: float, fast: bool) -> dict[str, Any]:
+                           obs: np.ndarray, scenario: Any, target_time: float, fast: bool,
+                           ratio: float) -> dict[str, Any]:
     """A DAgger episode of a WheelLoaderTarget-v3 driver: the learner drives (the label's action with
     probability ``beta``), the MPC plans from every state it visits and its plan labels it
     (:func:`plan_labels`); the MPC is told what the assist applied. Stored with its labels and weights."""
@@ -168,7 +179,8 @@ def _driver_dagger_episode(settings: DemoSettings, env: Any, expert: Any, learne
         done = term or trunc
     env.close()
     return {"obs": np.asarray(observations, np.float32), "actions": np.asarray(labelled, np.float32),
-            "weights": np.asarray(weights, np.float32), **_episode_record(settings, info, scenario, target_time, fast)}
+            "weights": np.asarray(weights, np.float32),
+            **_episode_record(settings, info, scenario, target_time, fast, ratio)}
 
 
 def plan_labels(plan: dict[str, np.ndarray] | None, phase: int, request: float, bucket: float, p: Any, braking: str,
@@ -220,7 +232,8 @@ def _write_demo(path: Path, demo: dict[str, Any]) -> None:
 # a demonstration's meta fields the readers use, by type (bool before int: isinstance(True, int))
 _DEMO_META: dict[str, type | tuple[type, ...]] = {
     "env_id": str, "success": bool, "learner": (str, type(None)), "fast": bool, "max_violation": (int, float), "T": (int, float),
-    "target_time": (int, float), "fuel_g": (int, float), "scenario": dict}
+    "target_time": (int, float), "fuel_g": (int, float), "scenario": dict, "target_ratio": (int, float), "expert": str,
+    "beta": (int, float)}
 
 
 def read_demo(path: str | Path) -> dict[str, Any]:
@@ -300,7 +313,34 @@ def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, worker
         if d.get("env_id", TARGET_ENV_IDS[0]) != settings.env_id:
             raise ValueError(f"{demo_path(out, i)} is a {d.get('env_id', TARGET_ENV_IDS[0])} episode; this collection "
                              f"is of {settings.env_id} (use another folder)")
+        check_drawn(demo_path(out, i), d, settings, i)
     return demos
+
+
+def check_drawn(path: str | Path, demo: dict[str, Any], settings: DemoSettings, index: int) -> None:
+    """ValueError naming ``path`` unless the episode on disk is episode ``index`` of ``settings``' collection: its
+    scenario, speed and target as they draw it, its expert, learner and beta. (A folder resumed with another braking,
+    seed, --target or --fast-share was taken as it was: a TC clone was fitted to service cycles, and the policy's
+    metadata named the settings given, not those of its demonstrations.) Files written before the target ratio
+    and the expert were recorded are checked on their scenario and speed."""
+    from wl_env.scenario import Scenario
+
+    _, scenario, fast, ratio = demo_draw(settings, index)
+    differ = []
+    if Scenario.from_dict(demo["scenario"]).to_dict() != scenario.to_dict():
+        differ.append("its scenario (braking, seed)")
+    if demo.get("fast", fast) != fast:
+        differ.append("its speed (fast_share)")
+    if demo.get("target_ratio", ratio) != ratio:
+        differ.append("its target (target)")
+    for name in ("expert", "beta"):
+        if demo.get(name, getattr(settings, name)) != getattr(settings, name):
+            differ.append(name)
+    if bool(demo.get("learner")) != bool(settings.learner):
+        differ.append("learner")
+    if differ:
+        raise ValueError(f"{path} is an episode of another collection ({', '.join(differ)} differ from this one's "
+                         f"settings): use another folder, or the settings it was collected with")
 
 
 def usable(demo: dict[str, Any]) -> bool:
@@ -479,6 +519,7 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     from agents.ppo import build_model, make_env
 
     check_demo_env(demos, cfg.env_id)
+    check_run_folder(cfg)
     if not cfg.norm_obs:
         raise ValueError("behaviour cloning normalizes the observations by the demos' statistics: norm_obs must be true")
     good = [d for d in demos if usable(d)]
@@ -549,6 +590,23 @@ def clone(demos: list[dict[str, Any]], cfg: PPOConfig, epochs: int = 200, learni
     return result
 
 
+def check_run_folder(cfg: PPOConfig) -> None:
+    """ValueError naming ``cfg.run_dir`` unless it is new or holds a clone or graft (which a rerun fits again): the
+    clone's ``final/`` and ``config.json`` replaced a PPO run's of the same name (``train_bc.py --run-name``)."""
+    run_dir = cfg.run_dir
+    checkpoints, summary = run_dir / "checkpoints", run_dir / "final" / "summary.json"
+    method = None
+    if summary.is_file():
+        try:
+            method = json.loads(summary.read_text()).get("method")
+        except (OSError, ValueError, AttributeError, RecursionError):
+            pass
+    if (checkpoints.is_dir() and any(checkpoints.iterdir())) or ((run_dir / "final").exists()
+                                                                 and method not in (METHOD, GRAFT_METHOD)):
+        raise ValueError(f"{run_dir} holds a training run, not a clone: its policy would be replaced; give another "
+                         f"--run-name or --log-dir")
+
+
 def _start_from(policy: Any, network: Any, base: str | Path, cfg: PPOConfig, one_more_action: bool = False) -> None:
     """``policy`` (a fresh ``cfg`` network) loaded with the trained ``network``'s weights, actor and critic; with
     ``one_more_action`` the action head has a row more than the base's, left as it is (the graft fits it)."""
@@ -590,8 +648,9 @@ def _save_run(model: Any, env: Any, norm: Any, count: float, cfg: PPOConfig, met
             "seed": cfg.seed, "config": cfg.to_dict(), "commands": [], "last_eval": None,
             "stopped_by_time_limit": False, **meta}
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    final = save_model_files(model, env, cfg.run_dir / "final", meta, export=True)
-    write_json_atomic(final / "summary.json", meta)
+    # (summary.json staged with the folder: written after it, a kill between left a final/ without it, which a rerun
+    # takes for a training run's and refuses: check_run_folder)
+    save_model_files(model, env, cfg.run_dir / "final", meta, export=True, summary=True)
     write_json_atomic(cfg.run_dir / "config.json", {"config": cfg.to_dict(), "commands": meta["commands"]})
     env.close()
 
@@ -623,6 +682,7 @@ def graft_early_shift(base: str | Path, demos: list[dict[str, Any]], cfg: PPOCon
 
     if cfg.env_id != DRIVER_ENV_IDS[1]:
         raise ValueError(f"graft_early_shift makes a {DRIVER_ENV_IDS[1]} policy; the config's env is {cfg.env_id}")
+    check_run_folder(cfg)
     network, norm, meta = read_base(base, cfg, DRIVER_ENV_IDS[0])
     good = [d for d in demos if usable(d) and d.get("env_id") == DEMO_ENV_ID[cfg.env_id]]
     if len(good) < 2:

@@ -635,10 +635,29 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
     class RunCheckpoint(BaseCallback):
         # Not SB3's CheckpointCallback: its checkpoints are zips of pickles, written in place. These are
         # pickle-free (save_checkpoint), staged and renamed at once, with progress.json for resume (wall time,
-        # last evaluation), and only the newest keep_checkpoints are kept.
+        # last evaluation), and only the newest keep_checkpoints are kept. A checkpoint falls due at a step and is
+        # written once the rollout's update is done (the next rollout's start, or the training's end): written at the
+        # step, it held the weights before the update of the rollout its step count included, so a resumed run never
+        # learned from that rollout, and a finished run's last one was not its final policy.
+        def __init__(self) -> None:
+            super().__init__()
+            self.due = False
+
         def _on_step(self) -> bool:
-            if self.n_calls % max(cfg.checkpoint_freq // cfg.num_envs, 1) != 0:
-                return True
+            if self.n_calls % max(cfg.checkpoint_freq // cfg.num_envs, 1) == 0:
+                self.due = True
+            return True
+
+        def _on_rollout_start(self) -> None:  # (first in the list: before the curriculum and the BC steps act on it)
+            if self.due:
+                self._save()
+
+        def _on_training_end(self) -> None:
+            if self.due:
+                self._save()
+
+        def _save(self) -> None:
+            self.due = False
             step = self.num_timesteps
             root = run_dir / "checkpoints"
             folder = save_checkpoint(self.model, _vecnorm_of(self.model.get_env()), root / f"step_{step:010d}", {
@@ -652,7 +671,6 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
                 shutil.rmtree(old, ignore_errors=True)  # older ones, and what a killed save left
             for part in root.glob(".latest.json.*.tmp"):  # ... and a killed write of the pointer
                 part.unlink(missing_ok=True)
-            return True
 
     class WallTimeLimit(BaseCallback):
         # Kept: SB3 stops on reward, episodes or no improvement, not on wall time (summed over resumes).
@@ -703,10 +721,11 @@ def _callbacks(cfg: PPOConfig, run_dir: Path, state: dict[str, Any],
     evaluation = ScoredEvaluation()
     every = EveryNTimesteps(n_steps=cfg.eval_freq, callback=evaluation)
     every.last_time_trigger = state["last_eval"] or 0  # on resume: the schedule goes on from the checkpoint's
-    # The evaluation runs before the checkpoint of the same step, so that its progress.json records it.
-    run = [Curriculum(), every, RunCheckpoint(), WallTimeLimit()]
+    # The evaluation runs before the checkpoint of the same step (written at the next rollout's start), so that its
+    # progress.json records it.
+    run = [RunCheckpoint(), Curriculum(), every, WallTimeLimit()]
     if demos is not None:
-        run.insert(1, BehaviourCloningRegularizer())  # (after the curriculum's std cap, before the rollout)
+        run.insert(2, BehaviourCloningRegularizer())  # (after the curriculum's std cap, before the rollout)
     return CallbackList(run), evaluation
 
 
@@ -943,6 +962,11 @@ def train(cfg: PPOConfig, resume: bool = False, command: str | None = None, call
             raise FileExistsError(f"{run_dir} holds a finished run with no checkpoint to resume from (it ended before "
                                   f"its first --checkpoint-freq steps): its policy is {run_dir / 'final'}; train "
                                   "another run name to train again")
+        if (run_dir / "final" / "summary.json").exists():
+            # (it restored the last checkpoint, taken before the last rollout's update, and wrote it as final/: the
+            # finished policy replaced by an older one, its last evaluation dropped from summary.json, exit 0)
+            raise FileExistsError(f"{run_dir} holds a finished run: its policy is {run_dir / 'final'}, nothing is left "
+                                  "to resume; train another run name to train again")
         if ckpt is None:
             log.info("resume: no checkpoint in %s, starting from step 0", run_dir)
     elif ((run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir())) or (run_dir / "final").exists():

@@ -28,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
 
 from agents.evaluate import policy_input_files  # noqa: E402
+from agents.ppo_config import TARGETED_ENV_IDS  # noqa: E402
 from agents.train_cli import tyro_options  # noqa: E402
 from wl.report import TARGETS  # noqa: E402
 from wl_env.atomic_io import check_not_an_input, check_output_file, write_json_atomic  # noqa: E402
@@ -53,6 +54,8 @@ def check(o: Options) -> None:
     check_braking(o.braking)
     if not o.policies:
         raise ValueError("--policies needs at least one policy file")
+    if len(set(o.policies)) != len(o.policies):  # (one record for the two: the others' counts stood beside it)
+        raise ValueError(f"--policies names a policy twice: {', '.join(sorted({p for p in o.policies if o.policies.count(p) > 1}))}")
     if not 1 <= o.draws <= 10_000:
         raise ValueError(f"--draws must be an integer in [1, 10000], got {o.draws}")
     if not 0 <= o.seed <= 2**32 - 1:
@@ -77,6 +80,11 @@ def run(o: Options) -> dict[str, Any]:
     records = []
     # every policy read and checked before any episode runs (a bad second one surfaced after the first's 300 episodes)
     controllers = {path: load_controller("ppo", o.braking, model=path) for path in o.policies}
+    for path, controller in controllers.items():  # (a v1 policy failed "PPOPolicy.reset takes no target_time" after
+        # the policies before it had driven every draw at every target)
+        if controller.env_id not in TARGETED_ENV_IDS:
+            raise ValueError(f"--policies {path} is a policy of {controller.env_id}, which is given no target cycle "
+                             f"time: the policies compared drive to targets ({', '.join(TARGETED_ENV_IDS)})")
     for path, controller in controllers.items():
         fuel, successes, over, per_target = 0.0, 0, 0, {}
         for ratio in RATIOS:

@@ -125,6 +125,9 @@ def main(o: Options, command: str) -> int:
         from agents.policy_files import check_policy_output
 
         check_policy_output(o.export, "--export")
+    from agents.imitation import check_run_folder
+
+    check_run_folder(cfg)  # (a PPO run of the same name: its policy was replaced after the demonstrations)
     if o.clone_base or o.graft_base:  # (read and checked now, not after an hour of demonstrations)
         from agents.imitation import read_base
 

@@ -340,3 +340,36 @@ def test_a_target_policy_evaluated_without_a_target_records_the_target_its_env_d
     assert r["summary"]["lateness_median"] is not None
     op = evaluate_controller(load_controller("operator", "service"), "service", episodes=1, score=False)
     assert op["per_episode"][0]["target_time"] is None  # an env without targets records none
+
+
+# ---------------------------------------------------------------------------------------------- hostile-input review
+# (agents/ and scripts/: each test fails on the code before its fix)
+def test_resuming_a_finished_run_is_refused_and_keeps_its_policy(tmp_path):
+    """`wl train --resume` of a finished run restored its last checkpoint (taken before the last rollout's update)
+    and wrote it as final/: the finished policy replaced by an older one, summary.json's last evaluation dropped,
+    exit 0."""
+    cfg = _tiny(tmp_path, total_timesteps=3000)  # (ends at 3072, a checkpoint step: its checkpoint is on disk)
+    summary = train(cfg, command="first")
+    assert latest_checkpoint(cfg.run_dir) is not None and summary["last_eval"] is not None
+    final = cfg.run_dir / "final"
+    before = {p.name: p.read_bytes() for p in final.iterdir()}
+    with pytest.raises(FileExistsError, match="holds a finished run: its policy is"):
+        train(PPOConfig(log_dir=cfg.log_dir, run_name="tiny", progress_bar=False), resume=True, command="again")
+    assert {p.name: p.read_bytes() for p in final.iterdir()} == before
+    assert json.loads((cfg.run_dir / "config.json").read_text())["commands"] == ["first"]
+
+
+def test_a_checkpoint_holds_the_policy_updated_on_the_rollouts_its_step_count_includes(tmp_path):
+    """A checkpoint was written during the last step of a rollout, before PPO's update on that rollout: its step count
+    included the rollout, its weights did not, so a resumed run never learned from it (one update lost per resume).
+    The checkpoint of a run's last step is its final policy; its update count is every rollout's."""
+    from safetensors.numpy import load_file
+
+    cfg = _tiny(tmp_path, total_timesteps=3000)  # (6 rollouts of 512 steps; checkpoints due at 1024, 2048, 3072)
+    summary = train(cfg)
+    ckpt = latest_checkpoint(cfg.run_dir)
+    assert ckpt.name == f"step_{summary['num_timesteps']:010d}"
+    ours, final = load_file(ckpt / "policy.safetensors"), load_file(cfg.run_dir / "final" / "policy.safetensors")
+    assert ours.keys() == final.keys() and all(np.array_equal(ours[k], final[k]) for k in ours)
+    updates = json.loads((ckpt / "training.json").read_text())["n_updates"]
+    assert updates == 6 * cfg.n_epochs  # (6 rollouts, n_epochs each: was 5 rollouts' worth)

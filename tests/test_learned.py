@@ -508,3 +508,62 @@ def test_select_policy_by_gap_scores_each_draw_against_its_own_optimum(tmp_path,
         late = [t["lateness_median"] for t in r["per_target"].values()]
         assert r["gap_score_pct"] == pytest.approx(100 * (sum(gaps) + sum(late)))
     assert out["by"] == "gap" and out["chosen"] == min(recs, key=lambda r: r["gap_score_pct"])["policy"]
+
+
+# ---------------------------------------------------------------------------------------------- hostile-input review
+# (agents/ and scripts/: each test fails on the code before its fix)
+def test_a_demonstration_folder_of_other_settings_is_refused_when_resumed(tmp_path):
+    """A collection resumed in a folder of another braking, seed, --target or --fast-share took its episodes as they
+    were: a TC clone was fitted to service cycles, and the metadata named the settings given (train_bc.py's default
+    folder names neither --target nor --fast-share)."""
+    s = DemoSettings("service", seed=3, expert="operator")
+    collect_demos(s, 2, tmp_path)
+    assert len(collect_demos(s, 2, tmp_path)) == 2  # the same settings: read back
+    d = read_demo(tmp_path / "episode_00000.npz")
+    assert d["target_ratio"] > 0 and d["expert"] == "operator" and d["beta"] == 0.0
+    for other, what in ((dict(braking="tc"), "scenario"), (dict(seed=4), "scenario"),
+                        (dict(target=(2.0, 2.5)), "target"), (dict(fast_share=1.0), "speed")):
+        stamp = (tmp_path / "episode_00000.npz").stat().st_mtime_ns
+        with pytest.raises(ValueError, match=f"episode_0000.\\.npz is an episode of another collection .*{what}"):
+            collect_demos(DemoSettings(**{"braking": "service", "seed": 3, "expert": "operator", **other}), 2, tmp_path)
+        assert (tmp_path / "episode_00000.npz").stat().st_mtime_ns == stamp
+
+
+def test_select_policy_refuses_a_policy_without_targets_before_any_episode(monkeypatch):
+    """A policy of WheelLoader-v1 among --policies failed ("PPOPolicy.reset takes no target_time") only after the
+    policies before it had driven every draw at the three targets; a policy named twice was one record."""
+    import agents.evaluate
+
+    select, paths = _select_policy(monkeypatch)
+
+    def no_episode(*args, **kwargs):
+        raise AssertionError("an episode ran before the policies were checked")
+
+    monkeypatch.setattr(agents.evaluate, "evaluate_controller", no_episode)
+    v1 = str(POLICIES / "ppo_service.safetensors")
+    with pytest.raises(ValueError, match=f"--policies {v1} is a policy of WheelLoader-v1, which is given no target"):
+        select.run(select.Options(braking="service", policies=[paths[0], v1], draws=1))
+    with pytest.raises(ValueError, match="--policies names a policy twice"):
+        select.run(select.Options(braking="service", policies=[paths[0], paths[0]], draws=1))
+
+
+def test_a_clone_never_replaces_a_training_run_of_its_name(tmp_path):
+    """`train_bc.py --run-name R` with R a PPO run: the clone's final/ and config.json replaced the run's (its trained
+    policy lost, its checkpoints left under a config of another env), exit 0. A clone's own folder is fitted again."""
+    demos = collect_demos(DemoSettings("service", seed=5, expert="operator", env_id=TARGET_ENV_ID), 3, tmp_path / "demos")
+    ppo = _tiny(tmp_path, run_name="ppo")
+    for folder in ("checkpoints/step_0000001024", "final"):
+        (ppo.run_dir / folder).mkdir(parents=True)
+    (ppo.run_dir / "final" / "summary.json").write_text(json.dumps({"num_timesteps": 1024}))
+    (ppo.run_dir / "config.json").write_text("{}")
+    with pytest.raises(ValueError, match=f"{ppo.run_dir} holds a training run, not a clone"):
+        clone(demos, ppo, epochs=1)
+    assert (ppo.run_dir / "config.json").read_text() == "{}" and sorted(p.name for p in (ppo.run_dir / "final").iterdir()) == ["summary.json"]
+    import shutil
+
+    shutil.rmtree(ppo.run_dir / "checkpoints")  # a finished run without checkpoints: refused as well
+    with pytest.raises(ValueError, match="holds a training run, not a clone"):
+        clone(demos, ppo, epochs=1)
+    cfg = _tiny(tmp_path, run_name="bc")
+    clone(demos, cfg, epochs=1)
+    clone(demos, cfg, epochs=1)  # (a rerun fits its clone again)
