@@ -1334,3 +1334,161 @@ def test_a_script_refuses_an_output_that_is_its_input_policy(tmp_path, script, o
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "is the input file" in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
     assert {f.name: f.read_bytes() for f in tmp_path.glob(f"{shipped.name}*")} == before
+
+
+# ------------------------------------------------------------------------------------------ hostile-input round (wl, report)
+def _run_report_results(tmp_path: Path, cache: Path, capsys) -> Path:
+    """A results.json of `wl run` (one braking, the operator only), in tmp_path/results."""
+    out = tmp_path / "results"
+    wl.report.collect(out, cache=str(cache), brakings=("service",), suite_controllers=None,
+                      controllers=lambda b: [("operator", lambda: OperatorPolicy(b))])
+    capsys.readouterr()
+    return out
+
+
+def test_a_report_file_that_is_the_results_json_by_a_link_is_refused(tmp_path, cache, capsys):
+    """`wl report` wrote its leaderboard over results.json through a link named leaderboard.md (exit 0: the run's
+    results were gone), and with --out over another folder's results.json through a link named pareto.png."""
+    out = _run_report_results(tmp_path, cache, capsys)
+    before = (out / "results.json").read_bytes()
+    (out / "leaderboard.md").symlink_to("results.json")
+    code, _, err = _run(capsys, "report", "--results", out)
+    assert code == 2 and "leaderboard.md is the input file" in err and len(err.strip().splitlines()) == 1
+    assert (out / "results.json").read_bytes() == before
+    (out / "leaderboard.md").unlink()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "pareto.png").symlink_to(out / "results.json")
+    code, _, err = _run(capsys, "report", "--results", out, "--out", elsewhere)
+    assert code == 2 and "pareto.png is the input file" in err
+    assert (out / "results.json").read_bytes() == before and not (elsewhere / "leaderboard.md").exists()
+    (elsewhere / "pareto.png").unlink()
+    (elsewhere / "results.json").write_text("another run's")  # (--out's own results.json is no report file either)
+    (elsewhere / "trajectories_service.png").symlink_to("results.json")
+    code, _, err = _run(capsys, "report", "--results", out, "--out", elsewhere)
+    assert code == 2 and (elsewhere / "results.json").read_text() == "another run's"
+
+
+def test_a_huge_or_irregular_results_json_is_refused_before_it_is_read(tmp_path, capsys):
+    """A 2 GB results.json was read whole (4 GB, 10 s) before "not valid JSON"; a pipe there was "no results.json"."""
+    folder = tmp_path / "r"
+    folder.mkdir()
+    with open(folder / "results.json", "wb") as fh:  # (sparse: no disk, no time)
+        fh.truncate(wl.report.MAX_RESULTS_BYTES + 1 if hasattr(wl.report, "MAX_RESULTS_BYTES") else 64 * 2**20 + 1)
+    t0 = time.perf_counter()
+    code, _, err = _run(capsys, "report", "--results", folder)
+    assert code == 2 and "bytes, more than a results.json" in err and time.perf_counter() - t0 < 1.0
+    (folder / "results.json").unlink()
+    os.mkfifo(folder / "results.json")
+    code, _, err = _run(capsys, "report", "--results", folder)
+    assert code == 2 and "results.json is not a regular file" in err
+
+
+def test_an_interrupt_while_the_report_is_put_in_place_leaves_it_whole(tmp_path, cache, capsys, monkeypatch):
+    """Ctrl-C between two of the report's files as they were moved into --out left the new leaderboard beside the old
+    figures: the interrupt is taken once every file is in place (exit 130)."""
+    import signal
+
+    out = _run_report_results(tmp_path, cache, capsys)
+    names = ["leaderboard.md", "pareto.png", "trajectories_service.png"]
+    for name in names:
+        (out / name).write_text("old")
+    real = os.path.realpath
+    seen = []
+
+    def realpath(path, *args, **kwargs):  # the second look at pareto.png: where it is put in place
+        if str(path) == str(out / "pareto.png"):
+            seen.append(path)
+            if len(seen) == 2:
+                os.kill(os.getpid(), signal.SIGINT)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os.path, "realpath", realpath)
+    code, _, err = _run(capsys, "report", "--results", out)
+    monkeypatch.undo()
+    assert code == 130 and len(seen) >= 2
+    old = [name for name in names if (out / name).read_bytes() == b"old"]
+    assert old in ([], names), old  # all new or all old, never a mix
+    assert [f.name for f in out.iterdir() if f.name.startswith(".")] == []
+
+
+def test_a_scenario_file_larger_than_any_scenario_is_refused_by_its_size(tmp_path, capsys, no_work):
+    """A 3 GB --scenario file was read whole (6 GB, 20 s); 2 MiB of spaces around {} was taken as the nominal cycle."""
+    big = tmp_path / "big.json"
+    big.write_text(" " * (2 * 2**20) + "{}")
+    for argv in (["ocp"], ["mpc"], ["evaluate", "--controller", "operator"], ["pareto"]):
+        code, err = _attempt(capsys, [*argv, "--scenario", str(big), "--out", str(tmp_path / "o")])
+        assert code == 2 and "--scenario file" in err and "bytes, more than a scenario" in err, (argv, err)
+    small = tmp_path / "small.json"
+    small.write_text(' {"payload": 12000} ')
+    code, _ = _attempt(capsys, ["ocp", "--scenario", str(small), "--out", str(tmp_path / "o.json")])
+    assert code is None
+
+
+def test_a_sampler_suite_without_sample_names_the_option(tmp_path, capsys, no_work):
+    """`wl evaluate --suite train` said "suite 'train' is a sampler: say how many scenarios to draw", naming no option."""
+    code, err = _attempt(capsys, ["evaluate", "--controller", "operator", "--suite", "train", "--out",
+                                  str(tmp_path / "e.json")])
+    assert code == 2 and "--sample N" in err and "--suite train" in err
+    code, _ = _attempt(capsys, ["evaluate", "--controller", "operator", "--suite", "train", "--sample", "2",
+                                "--out", str(tmp_path / "e.json")])
+    assert code is None
+
+
+def test_no_solve_with_perturbed_episodes_is_refused_before_any_episode(tmp_path, capsys, no_work):
+    """--no-solve with perturbed starts (the default --episodes 10 --init-noise 1) ran episode 0 and then failed on
+    episode 1's optimum, which no shipped or cached front holds."""
+    base = ["evaluate", "--controller", "operator", "--no-solve", "--out", str(tmp_path / "e.json")]
+    for extra in ([], ["--episodes", "3"]):
+        code, err = _attempt(capsys, base + extra)
+        assert code == 2 and "--no-solve" in err and "--init-noise" in err, err
+    for extra in (["--episodes", "1"], ["--episodes", "3", "--init-noise", "0"], ["--episodes", "3", "--no-score"],
+                  ["--suite", "test", "--sample", "2"]):
+        code, err = _attempt(capsys, base + extra)
+        assert code is None, (extra, err)
+
+
+TARGET_CONTROLLER = '''
+from agents.operator import OperatorPolicy
+
+
+class Targeted(OperatorPolicy):
+    def reset(self, scenario=None, target_time=None):
+        super().reset(scenario)
+'''
+
+
+def test_the_evaluation_file_records_its_sample_and_target(tmp_path, capsys):
+    """A file of `wl evaluate --target-ratio 1.2` did not say it was run at a target ratio (nor --sample, nor
+    --target-time): only each episode's target time in seconds."""
+    module = tmp_path / "targeted.py"
+    module.write_text(TARGET_CONTROLLER)
+    out = tmp_path / "e.json"
+    code, _, err = _run(capsys, "evaluate", "--controller", f"{module}:Targeted", "--episodes", "1", "--no-score",
+                        "--target-ratio", "1.2", "--out", out)
+    assert code == 0, err
+    r = json.loads(out.read_text())
+    assert (r["target_ratio"], r["target_time"], r["sample"]) == (1.2, None, None)
+    assert r["per_episode"][0]["target_time"] > 1.2 * 7  # (1.2 times the nominal cycle's T_min, 8.17 s)
+    code, _, err = _run(capsys, "evaluate", "--controller", "operator", "--suite", "test", "--sample", "1",
+                        "--no-score", "--out", out)
+    assert code == 0, err
+    r = json.loads(out.read_text())
+    assert (r["suite"], r["sample"], r["target_ratio"], r["target_time"]) == ("test", 1, None, None)
+
+
+@pytest.mark.parametrize("in_the_way", ["results.json", "pareto.png", "suite_gaps.png", "link"])
+def test_wl_run_checks_every_file_it_writes_before_the_work(tmp_path, capsys, no_work, in_the_way):
+    """`wl run --out R` with a folder at R/results.json or R/pareto.png ran every controller (5-10 min), then failed;
+    a link R/leaderboard.md -> results.json had the leaderboard written over the results."""
+    out = tmp_path / "R"
+    out.mkdir()
+    if in_the_way == "link":
+        (out / "leaderboard.md").symlink_to("results.json")
+    else:
+        (out / in_the_way).mkdir()
+    code, err = _attempt(capsys, ["run", "--out", str(out)])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert ("leaderboard.md is the input file" if in_the_way == "link" else f"{in_the_way} is a folder") in err
+    code, _ = _attempt(capsys, ["run", "--out", str(tmp_path / "fresh")])
+    assert code is None

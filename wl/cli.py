@@ -254,7 +254,7 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import aggregate, controller_files, evaluate_controller, load_controller, summary_line
     from wl_env.atomic_io import write_json_atomic
     from wl_env.scenario import Scenario
-    from wl_env.suites import load_suite
+    from wl_env.suites import MAX_SAMPLE, load_suite
 
     if args.cache is not None:
         _out_dir(args.cache, "--cache")
@@ -269,6 +269,14 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
                          "runs once from its own start: leave them out (--sample N takes N scenarios)")
     episodes = 10 if args.episodes is None else args.episodes
     init_noise = 1.0 if args.init_noise is None else args.init_noise
+    if args.no_solve and not args.suite and episodes > 1 and init_noise > 0 and (
+            not args.no_score or args.target_ratio is not None):  # (it failed after episode 0, naming no option)
+        raise ValueError(f"no shipped or cached optimum holds the perturbed starts of episodes 1..{episodes - 1} "
+                         f"(--init-noise {init_noise:g}), and --no-solve solves none: give --init-noise 0 or "
+                         "--episodes 1, or leave --no-solve out")
+    if args.suite and args.sample is None and load_suite(args.suite).sampler:  # (the error named no option)
+        raise ValueError(f"--suite {args.suite} draws its scenarios: give --sample N, the number of draws, in "
+                         f"[1, {MAX_SAMPLE}]")
     scenarios = list(load_suite(args.suite).spread(braking, args.sample)) if args.suite else None
     _check_target_reachable(args.target_time, scenarios or [scenario or Scenario.nominal(braking)])
     # an unwritable --out fails now, not after the episodes; and after the other options, as its check may create
@@ -297,7 +305,9 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
                             name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
                             scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
                             target_ratio=args.target_ratio)
-    r = {"controller": args.controller, "model": args.model, "suite": args.suite, "aggregate": aggregate(r), **r}
+    # (the options that chose the episodes and their targets, recorded: a file of --target-ratio 1.15 did not say so)
+    r = {"controller": args.controller, "model": args.model, "suite": args.suite, "sample": args.sample,
+         "target_time": args.target_time, "target_ratio": args.target_ratio, "aggregate": aggregate(r), **r}
     write_json_atomic(out, r)
     print(f"{summary_line(r, args.controller)} -> {args.out}")
     return 0
@@ -314,7 +324,13 @@ def _run_cmd(args: argparse.Namespace) -> int:
 
     if args.cache is not None:  # (before --out, whose check creates its folder)
         _out_dir(args.cache, "--cache")
-    _out_dir(args.out)
+    out = _out_dir(args.out)
+    # every file it writes, checked now: a folder at results.json or pareto.png failed after 5-10 min of work
+    from wl.report import BRAKINGS, RESULTS_FILE, check_report_files, report_files
+    from wl_env.atomic_io import check_output_file
+
+    check_output_file(out / RESULTS_FILE, "--out's results file")
+    check_report_files(out, report_files(BRAKINGS, True), (out / RESULTS_FILE,))
     run_all(args.out, cache=args.cache, full_suite=args.full_suite)
     print((Path(args.out) / "leaderboard.md").read_text())
     return 0
@@ -329,7 +345,7 @@ def _report_cmd(args: argparse.Namespace) -> int:
     if args.out is not None and not args.out.strip():  # (an empty --out wrote into --results without a word)
         raise ValueError("--out must name a folder, got an empty string (leave it out to write into --results)")
     out = _out_dir(args.out or args.results, "--out" if args.out else "--results")
-    written = render(results, out)
+    written = render(results, out, inputs=(Path(args.results) / "results.json",))
     print(f"report rebuilt from {Path(args.results) / 'results.json'}: {', '.join(str(p) for p in written)}")
     return 0
 
@@ -453,6 +469,7 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         return None
     if not args.scenario.strip():
         raise ValueError("--scenario is empty: give a JSON object or a JSON file")
+    _check_scenario_file_size(args.scenario.strip())
     try:
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
@@ -467,6 +484,22 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
             raise ValueError(f"--braking {args.braking} contradicts the --scenario's braking {named!r}")
         s = s.replace(braking=args.braking)
     return s
+
+
+MAX_SCENARIO_BYTES = 2**20  # (a scenario is a JSON object of 8 fields: a 3 GB file was read whole, 6 GB and 20 s)
+
+
+def _check_scenario_file_size(text: str) -> None:
+    """A --scenario file larger than any scenario, refused by its size before it is read."""
+    if text.startswith(("{", "[")):
+        return
+    try:
+        size = os.stat(text).st_size if os.path.isfile(text) else 0
+    except (OSError, ValueError):  # (a name too long, a NUL: Scenario.parse says what it is)
+        return
+    if size > MAX_SCENARIO_BYTES:
+        raise ValueError(f"--scenario file {text} is {size} bytes, more than a scenario's JSON holds "
+                         f"({MAX_SCENARIO_BYTES // 2**20} MiB)")
 
 
 def _scenario_braking(args: argparse.Namespace) -> str | None:

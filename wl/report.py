@@ -299,11 +299,20 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
     return results
 
 
+MAX_RESULTS_BYTES = 64 * 2**20  # (a full-suite results.json is a few MB; a 2 GB file was read whole: 4 GB, 10 s)
+
+
 def load_results(folder: str | Path) -> dict[str, Any]:
     """``results.json`` of a ``wl run`` folder, checked to hold everything :func:`render` draws."""
     path = Path(folder) / RESULTS_FILE
     if not path.is_file():
+        if os.path.lexists(path):  # (a pipe, a device, a folder or a dangling link was "no results.json")
+            raise ValueError(f"{path} is not a regular file (`wl run --out {folder}` writes one)")
         raise FileNotFoundError(f"no {RESULTS_FILE} in {folder} (write one with `wl run --out {folder}`)")
+    size = path.stat().st_size
+    if size > MAX_RESULTS_BYTES:  # (refused by its size before it is read)
+        raise ValueError(f"{path} is {size} bytes, more than a results.json of `wl run` holds "
+                         f"({MAX_RESULTS_BYTES // 2**20} MiB)")
     try:
         results = json.loads(path.read_text())
     except (ValueError, OSError) as exc:  # (JSONDecodeError, UnicodeDecodeError, an int of too many digits)
@@ -401,23 +410,61 @@ def _gap(v: float | None) -> str:
     return "n/a" if v is None or v != v else f"{100 * v:+.1f} %"
 
 
-def render(results: dict[str, Any], out_dir: str | Path = "results") -> list[Path]:
+def render(results: dict[str, Any], out_dir: str | Path = "results",
+           inputs: tuple[str | Path, ...] = ()) -> list[Path]:
     """Leaderboard, Pareto figure and trajectory figures from :func:`collect`'s results; returns the files.
     They are drawn in a staging folder inside ``out_dir`` and moved into it together at the end: an interrupt or
-    a failure part-way leaves the report there as it was (it left 4 of 5 new files beside the old fifth)."""
+    a failure part-way leaves the report there as it was (it left 4 of 5 new files beside the old fifth). No file
+    of the report may be ``out_dir``'s results.json or one of ``inputs`` (by any path, links too)."""
+    from mpc import interrupt
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".report-", dir=out))
     try:
-        drawn = _draw(results, out, staging)
-        # (a symbolic link in the folder is written through, as --out's are; a rename on the same file system)
-        return [Path(shutil.move(f, os.path.realpath(out / f.name))) for f in drawn]
+        drawn = _draw(results, out, staging, (out / RESULTS_FILE, *map(Path, inputs)))
+        # (a symbolic link in the folder is written through, as --out's are, each file atomically: a copy across file
+        # systems was written in place. An interrupt between two files left a report of old and new ones: it is
+        # taken once they are all in place)
+        with interrupt.deferred():
+            return [_place(f, out / f.name) for f in drawn]
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _draw(results: dict[str, Any], out: Path, staging: Path) -> list[Path]:
-    """:func:`render`'s files, written in ``staging`` (the names checked against ``out``)."""
+def _place(drawn: Path, path: Path) -> Path:
+    """The staged file ``drawn`` as ``path``, atomically (a symbolic link written through)."""
+    from wl_env.atomic_io import atomic_path
+
+    with atomic_path(path) as tmp:  # (beside the target: a link's may lie on another file system)
+        shutil.copyfile(drawn, tmp)
+    return Path(os.path.realpath(path))
+
+
+def report_files(brakings: Any, suite: bool) -> list[str]:
+    """The names of the files :func:`render` writes for these braking alternatives (and the suite's figure)."""
+    return ["leaderboard.md", "pareto.png", *(f"trajectories_{b}.png" for b in brakings)] + (
+        ["suite_gaps.png"] if suite else [])
+
+
+def check_report_files(out: Path, names: list[str], inputs: tuple[Path, ...] = ()) -> None:
+    """ValueError naming the file if one of the report's files ``names`` in ``out`` cannot be written (a folder, a
+    pipe, ...) or is one of ``inputs`` by any path, links too, also a link to an input not written yet (`wl report`
+    wrote its leaderboard over results.json through a link named leaderboard.md)."""
+    from wl_env.atomic_io import check_not_an_input
+
+    protected = {os.path.realpath(p) for p in inputs}
+    for name in names:
+        check_output_file(out / name, "the report's file")
+        if os.path.realpath(out / name) in protected:
+            raise ValueError(f"the report's file {out / name} is the input file {os.path.realpath(out / name)}: the "
+                             "report would replace it; give another path")
+        check_not_an_input(out / name, list(inputs), "the report's file")
+
+
+def _draw(results: dict[str, Any], out: Path, staging: Path, inputs: tuple[Path, ...] = ()) -> list[Path]:
+    """:func:`render`'s files, written in ``staging`` (the names checked against ``out``, and to be none of
+    ``inputs``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -426,9 +473,8 @@ def _draw(results: dict[str, Any], out: Path, staging: Path) -> list[Path]:
     from mpc.benchmark.pareto import ParetoFront
 
     brakings, rows, fronts = results["brakings"], results["rows"], results["fronts"]
-    names = ["leaderboard.md", "pareto.png", *(f"trajectories_{b}.png" for b in brakings)]
-    for name in names + (["suite_gaps.png"] if results.get("suite") else []):  # (before any is written: a folder at
-        check_output_file(out / name, "the report's file")                  # pareto.png left half a report)
+    # (each checked before any is written: a folder at pareto.png left half a report)
+    check_report_files(out, report_files(brakings, bool(results.get("suite"))), inputs)
     written = []
     # ---- leaderboard
     lines = ["# Leaderboard", "", "Cycle time and fuel of each controller in `WheelLoader-v1`, scored against the "
