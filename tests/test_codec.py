@@ -112,3 +112,39 @@ def test_an_observation_of_no_real_numbers_is_refused_by_name():
         with pytest.raises(ValueError, match=r"obs must be WheelLoader observations \(arrays of real numbers\)"):
             codec.decode_observation(bad)
     assert codec.decode_observation(obs.astype(np.float16)).phase == 1
+
+
+# ------------------------------------------------------------------ hostile inputs (eleventh round, wl_env's API)
+def test_the_codec_refuses_a_layout_shift_or_control_that_is_no_bool_or_number_by_name():
+    """Codec(observe_scenario="no") chose v2's layout; encode_action's shift NaN or "no" was a shift request, a string
+    control numpy's TypeError."""
+    for bad in ("no", 1, None, np.nan):
+        with pytest.raises(ValueError, match="observe_scenario must be True or False"):
+            Codec(observe_scenario=bad)
+    assert Codec(observe_scenario=np.bool_(True)).n_obs == 19
+    codec = Codec()
+    for bad in (math.nan, "no", 1.0, None):
+        with pytest.raises(ValueError, match="shift must be True or False"):
+            codec.encode_action(100.0, 0.0, 0.0, bad)
+    for bad in ("1", None, [1.0, 2.0], np.array([1.0, 2.0]), True):
+        with pytest.raises(ValueError, match="u_mf must be a number"):
+            codec.encode_action(bad, 0.0, 0.0, False)
+    same = codec.encode_action(np.float64(130.0), np.array(0.0), 0, np.bool_(True))
+    assert np.array_equal(same, codec.encode_action(130.0, 0.0, 0.0, True))
+    assert codec.encode_action(math.nan, 0.0, 0.0, False)[0] == -1.0  # (a NaN control: the range's low end, as before)
+
+
+def test_the_plan_driver_refuses_what_is_no_single_observation_by_name():
+    """PlanDriver.act on a dict or a string was an IndexError, on a batch "attempt to get argmax of an empty
+    sequence"; a single observation drives as before."""
+    from wl_env.plan import N_PLAN_ACTIONS, PlanDriver, plan_action
+
+    obs, _ = gym.make("WheelLoaderTarget-v7").reset(seed=0)
+    driver = PlanDriver(np.zeros(N_PLAN_ACTIONS))
+    for bad in ({"a": 1}, "abc", None):
+        with pytest.raises(ValueError, match=r"obs must be WheelLoader observations"):
+            driver.act(bad)
+    with pytest.raises(ValueError, match=r"PlanDriver.act takes one observation \(shape \(21,\)\), got a batch"):
+        driver.act(np.stack([obs, obs]))
+    expected = plan_action(np.zeros((1, N_PLAN_ACTIONS)), obs[None], np.zeros(1), Codec(observe_scenario=True), 0.1)[0]
+    assert np.array_equal(driver.act(list(obs)), expected.astype(np.float32))

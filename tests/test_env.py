@@ -458,3 +458,55 @@ def test_a_braking_given_as_a_str_subclass_is_kept_as_the_plain_str():
     assert type(env.unwrapped.braking) is str and env.unwrapped.braking == "tc"
     with pytest.raises(ValueError, match="braking must be one of"):
         gym.make("WheelLoader-v2", braking=Anything("brakes"))
+
+
+# ------------------------------------------------------------------ hostile inputs (eleventh round, wl_env's API)
+def test_an_integer_too_long_to_print_is_named_in_a_short_error():
+    """init_noise, substeps, render_mode, fuel_action or braking of 10**5000 was Python's "Exceeds the limit (4300
+    digits) for integer string conversion", naming no argument."""
+    from wl_env.vector_env import WheelLoaderVectorEnv
+
+    huge = 10**5000
+    for name in ("init_noise", "substeps", "render_mode", "fuel_action", "braking"):
+        for make in (WheelLoaderEnv, lambda **kw: WheelLoaderVectorEnv(2, **kw)):
+            if make is not WheelLoaderEnv and name == "render_mode":
+                continue
+            with pytest.raises(ValueError, match=rf"^{name} must .* got <int of more digits than Python prints>$"):
+                make(**{name: huge})
+
+
+def test_a_masked_action_is_refused_not_read_as_its_filler():
+    """A masked array's masked entry was driven with the value under the mask."""
+    env = gym.make("WheelLoader-v2").unwrapped
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action must be finite numbers in \\[-1, 1\\], got a masked array with 1 masked"):
+        env.step(np.ma.masked_array(np.zeros(4), mask=[1, 0, 0, 0]))
+    env.step(np.ma.masked_array(np.zeros(4), mask=[0, 0, 0, 0]))  # (nothing masked: its values)
+
+
+def test_the_vector_envs_reset_info_has_the_single_envs_keys_but_the_scenario():
+    """The vector env's reset gave {}: a target env's targets were in the observation only."""
+    for env_id in ("WheelLoader-v2", "WheelLoaderTarget-v7", "WheelLoaderPlan-v1"):
+        single = gym.make(env_id, scenario="train")
+        vector = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point", scenario="train")
+        _, info = single.reset(seed=4)
+        _, infos = vector.reset(seed=4)
+        assert set(infos) == set(info) - {"scenario"}
+        for key in infos:
+            assert infos[key].shape == (3,) and infos[key][0] == info[key]
+
+
+def test_an_atomic_write_reads_the_umask_without_changing_it(tmp_path, monkeypatch):
+    """atomic_path set the umask to 0 and back to read it: a file another thread created meanwhile was world-writable."""
+    import os
+
+    from wl_env import atomic_io
+
+    old = os.umask(0o027)
+    try:
+        monkeypatch.setattr(os, "umask", lambda mask: pytest.fail(f"os.umask({mask:o}) called"))
+        path = atomic_io.write_atomic(tmp_path / "a.txt", "x")
+    finally:
+        monkeypatch.undo()
+        os.umask(old)
+    assert path.read_text() == "x" and (path.stat().st_mode & 0o777) == 0o640

@@ -362,3 +362,86 @@ def test_scenario_text_replace_and_braking_are_read_or_refused_by_name(tmp_path)
         Scenario().replace(colour=1)
     s = Scenario(braking=np.str_("tc"))
     assert type(s.braking) is str and s == Scenario(braking="tc") and repr(s) == repr(Scenario(braking="tc"))
+
+
+# ------------------------------------------------------------------ hostile inputs (eleventh round, wl_env's API)
+def test_a_scenario_file_larger_than_any_scenario_or_no_regular_file_is_refused_by_name(tmp_path, monkeypatch):
+    """A sparse 3 GB file was read whole (20 s, 6 GB); a FIFO that appeared after the check was waited on forever.
+    Both are refused by name, on the file opened, before it is read; a byte order mark is read as JSON's UTF-8."""
+    import os
+    import threading
+    import time
+
+    import wl_env.scenario as scenario_module
+
+    big = tmp_path / "big.json"
+    with open(big, "wb") as fh:
+        fh.truncate(3 * 2**30)
+    start = time.monotonic()
+    with pytest.raises(ValueError, match=rf"scenario file {big} is 3221225472 bytes, more than a scenario's JSON"):
+        Scenario.parse(str(big), "scenario")
+    with pytest.raises(ValueError, match="3221225472 bytes"):
+        gym.make("WheelLoader-v2", scenario=str(big))
+    assert time.monotonic() - start < 2.0
+    fifo = tmp_path / "fifo.json"
+    os.mkfifo(fifo)
+    monkeypatch.setattr(scenario_module, "is_file", lambda path: True)  # (a regular file swapped for a FIFO after the check)
+    result: list = []
+
+    def parse() -> None:
+        try:
+            Scenario.parse(str(fifo), "scenario")
+        except ValueError as exc:
+            result.append(str(exc))
+
+    thread = threading.Thread(target=parse, daemon=True)
+    thread.start()
+    thread.join(5.0)
+    if thread.is_alive():  # (unblock the old code's read, then fail)
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        pytest.fail("Scenario.parse waited on a FIFO")
+    assert result and f"scenario file {fifo} is not a regular file" in result[0]
+    monkeypatch.undo()
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b'\xef\xbb\xbf{"payload": 7000}')
+    assert Scenario.parse(str(bom)).payload == 7000.0
+
+
+def test_a_scenarios_machine_is_a_loader_params_or_an_error_naming_it():
+    """Scenario.params(None), .fingerprint({}) and Scenario.from_params(None) were AttributeErrors."""
+    from wl_env.params import LoaderParams
+
+    for call, name in ((lambda b: Scenario().params(b), "base"), (lambda b: Scenario().fingerprint(b), "base"),
+                       (lambda b: Scenario.from_params(b), "params")):
+        for bad in (None, {}, {"M_veh": 30000.0}, 5):
+            with pytest.raises(ValueError, match=rf"{name} must be a LoaderParams"):
+                call(bad)
+    assert Scenario.from_params(LoaderParams()) == Scenario() and Scenario().params(LoaderParams()) == LoaderParams()
+
+
+def test_a_suite_draws_only_from_a_generator():
+    """Suite.sample(5, ...) was an AttributeError; a legacy RandomState drew from the sampler without a word."""
+    for name in ("train", "test"):
+        for bad in (5, None, np.random.RandomState(0)):
+            with pytest.raises(ValueError, match="rng must be a numpy Generator"):
+                load_suite(name).sample(bad, "service")
+    assert load_suite("train").sample(np.random.default_rng(0), "tc").braking == "tc"
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Eleventh review round (mpc/benchmark/suite.py): each test fails on the code before its fix.
+# ---------------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("job, needle", [
+    ("nope:solve", r"job 'nope:solve' names no function: ModuleNotFoundError"),
+    ("fakes:nothing", r"job 'fakes:nothing' names no function: AttributeError"),
+    ("fakes", r"job must name a function as 'module:function', got 'fakes'"),
+    (5, r"job must name a function as 'module:function', got 5"),
+    ("fakes:np", r"job 'fakes:np' is no function")])
+def test_a_suite_solves_job_is_resolved_before_any_work(tmp_path, job, needle):
+    """solve_suite(job=...) resolved the name only inside the workers (a ModuleNotFoundError, an AttributeError or a
+    TypeError, after the cache's folder was made): a ValueError naming it, nothing made."""
+    from mpc.benchmark.suite import solve_suite
+
+    with pytest.raises(ValueError, match=needle):
+        solve_suite("nominal", cache=tmp_path, workers=2, job=job)
+    assert not any(tmp_path.iterdir())

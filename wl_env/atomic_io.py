@@ -29,9 +29,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
     os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # as an ordinary file, not mkstemp's 0600
+    os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
     try:
         yield Path(tmp)
         with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
@@ -45,6 +43,22 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system says it (Linux: /proc/self/status). Setting it
+    to 0 and back to read it left a window in which a file or folder another thread created (the MPC's worker, a
+    logger, a Ray client) got mode 0666 or 0777, writable by anyone."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    umask = os.umask(0o077)  # (elsewhere: read it by setting it, to a mask that opens nothing up meanwhile)
+    os.umask(umask)
+    return umask
 
 
 def _regular_file(path: Path, what: str) -> Path:

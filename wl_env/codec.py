@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.params import LoaderParams, resolve, shown
+from wl_env.params import LoaderParams, plain, resolve, shown
 from wl_env.physics.backend import ops_for
 from wl_env.scenario import FIELDS, Scenario, param_features
 
@@ -77,6 +77,15 @@ def check_within(o: np.ndarray, low: np.ndarray, high: np.ndarray, names: Sequen
                          f"got {worst:g}")
 
 
+def _scalar_kind(value: Any) -> str:
+    """numpy's dtype kind of a single value (a Python or numpy scalar, or a 0-d array); "" for anything else."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return ""
+    return a.dtype.kind if a.ndim == 0 else ""
+
+
 def encode_speed_request(speed_request: Any, p: Any) -> Any:
     """The governor's engine-speed request (rad/s) -> action 0 in [-1, 1] (``fuel_action="engine_speed"``),
     clipped; ``p`` a parameter set or a vector env's view of many (arrays)."""
@@ -110,7 +119,10 @@ class Codec:
 
     def __init__(self, params: LoaderParams | dict | None = None, observe_scenario: bool = False) -> None:
         self.params = p = resolve(params)
-        self.observe_scenario = bool(observe_scenario)
+        observe_scenario = plain(observe_scenario)
+        if not isinstance(observe_scenario, bool):  # (bool(): "no" or a layout's name chose v2's layout without a word)
+            raise ValueError(f"observe_scenario must be True or False, got {shown(observe_scenario)}")
+        self.observe_scenario = observe_scenario
         lo, hi = p.U_ab_bounds
         self._ab_mid, self._ab_half = 0.5 * (hi + lo), 0.5 * (hi - lo)
         low, high = (SCENARIO_OBS_LOW, SCENARIO_OBS_HIGH) if observe_scenario else (OBS_LOW, OBS_HIGH)
@@ -148,6 +160,12 @@ class Codec:
         """Commanded (U_mf mg, U_ab m/s^2, U_b N m) and a shift request -> the action vector, clipped to
         [-1, 1] (a NaN control becomes the range's low end: no fuel, no brake)."""
         p = self.params
+        # (checked by name: a NaN or "no" as the shift was a shift request, a string control numpy's TypeError)
+        for name, u in (("u_mf", u_mf), ("u_ab", u_ab), ("u_b", u_b)):
+            if _scalar_kind(u) not in ("i", "u", "f"):
+                raise ValueError(f"encode_action's {name} must be a number (NaN: the range's low end), got {shown(u)}")
+        if _scalar_kind(shift) != "b":
+            raise ValueError(f"encode_action's shift must be True or False, got {shown(shift)}")
         a = np.array([2.0 * u_mf / p.U_mf_max - 1.0, (u_ab - self._ab_mid) / self._ab_half,
                       2.0 * u_b / p.U_b_max - 1.0, 1.0 if shift else -1.0])
         return np.clip(np.nan_to_num(a, nan=-1.0), -1.0, 1.0).astype(np.float32)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wl_env.params import LoaderParams
+from wl_env.params import LoaderParams, shown
 
 BRAKING_MODES = ("service", "tc")
 PHASES = (1, 2, 3, 4)
@@ -28,7 +28,7 @@ def check_braking(braking: str) -> str:
     if isinstance(braking, str):  # (a str subclass, np.str_ say, as the str it holds: its == may say yes to anything)
         braking = str.__str__(braking)
     if braking not in BRAKING_MODES:
-        raise ValueError(f"braking must be one of {BRAKING_MODES} ('service' brakes or 'tc' braking), got {braking!r}")
+        raise ValueError(f"braking must be one of {BRAKING_MODES} ('service' brakes or 'tc' braking), got {shown(braking)}")
     return braking
 
 

@@ -51,6 +51,8 @@ def action_array(action: Any, name: str) -> np.ndarray:
     otherwise (strings, complex numbers, objects, ints too large for a float: no silent casts)."""
     if type(action) is np.ndarray and action.dtype.kind == "f":  # (the common case, first: a step's hot path)
         return np.asarray(action, dtype=np.float64)
+    if isinstance(action, np.ma.MaskedArray) and np.ma.is_masked(action):  # (asarray read a masked entry's filler)
+        raise ValueError(f"{name} must be finite numbers in [-1, 1], got a masked array with {np.ma.count_masked(action)} masked entries")
     try:
         a = np.asarray(action)
     except (ValueError, TypeError):  # ragged nesting
@@ -413,9 +415,9 @@ class WheelLoaderEnv(gym.Env):
         check_target_cycle(self.observe_target, self._source, self.machine, self.braking)
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
-            raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+            raise ValueError(f"init_noise must lie in [0, 1], got {shown(init_noise)}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {shown(render_mode)}")
         self.render_mode = render_mode
         self.init_noise = float(init_noise)
         self.observe_scenario = check_flag("observe_scenario", observe_scenario)

@@ -74,7 +74,7 @@ class RewardConfig:
                 raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {shown(v)}")
             lo = MIN_REWARD_REF if f.name in ("fuel_ref_g", "time_ref") else 0
             if not lo <= v <= MAX_REWARD_WEIGHT:  # (1e308 passed as finite and made the first reward -inf)
-                raise ValueError(f"RewardConfig.{f.name} must lie in [{lo:g}, {MAX_REWARD_WEIGHT:g}], got {v!r}")
+                raise ValueError(f"RewardConfig.{f.name} must lie in [{lo:g}, {MAX_REWARD_WEIGHT:g}], got {shown(v)}")
 
 
 MAX_EPISODE_TIME = 3600.0  # s: a cycle takes 8-25 s; an hour bounds an episode's work (and its arrays)
@@ -123,10 +123,10 @@ class CycleStepper(Flattened):
         fuel_action: str = "injection",
     ) -> None:
         if fuel_action not in FUEL_ACTIONS:
-            raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {fuel_action!r}")
+            raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {shown(fuel_action)}")
         dt, substeps, max_time = check_control_interval(dt), plain(substeps), plain(max_time)
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
-            raise ValueError(f"substeps must be an integer in [1, 1000], got {substeps!r}")
+            raise ValueError(f"substeps must be an integer in [1, 1000], got {shown(substeps)}")
         if isinstance(max_time, bool) or not (isinstance(max_time, (int, float)) and is_finite(max_time)
                                               and 5 * dt <= max_time <= MAX_EPISODE_TIME):
             raise ValueError(f"max_time must be a number of seconds in [5 dt, {MAX_EPISODE_TIME:g}], got {shown(max_time)}")
@@ -228,7 +228,7 @@ class CycleStepper(Flattened):
         driving the governed env), ``to="injection"`` the injection the governor makes of a request.
         Clipped to [-1, 1]. ``action`` is the 4-vector (its shift request and U_ab count)."""
         if to not in FUEL_ACTIONS:
-            raise ValueError(f"to must be one of {FUEL_ACTIONS}, got {to!r}")
+            raise ValueError(f"to must be one of {FUEL_ACTIONS}, got {shown(to)}")
         c = self.codec
         a = [min(max(float(v), -1.0), 1.0) for v in action]
         y = [float(v) for v in y[:4]]

@@ -142,10 +142,14 @@ class PlanDriver:
         self._phase, self._time_in_phase = 0, 0.0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        phase = int(np.argmax(np.asarray(obs)[8:12])) + 1
+        # (checked first, by name: a dict or a string was an IndexError, a batch "argmax of an empty sequence")
+        o = self.codec._checked(obs)
+        if o.ndim != 1:
+            raise ValueError(f"PlanDriver.act takes one observation (shape ({o.shape[-1]},)), got a batch of shape {o.shape}")
+        phase = int(np.argmax(o[8:12])) + 1
         if phase != self._phase:
             self._phase, self._time_in_phase = phase, 0.0
-        action = plan_action(self.plan, np.asarray(obs)[None], np.array([self._time_in_phase]), self.codec, self.dt)[0]
+        action = plan_action(self.plan, o[None], np.array([self._time_in_phase]), self.codec, self.dt)[0]
         self._time_in_phase += self.dt
         return action.astype(np.float32)
 

@@ -24,6 +24,8 @@ import hashlib
 import json
 import math
 import numbers
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -128,10 +130,7 @@ class Scenario:
                 raise ValueError(f"{name} takes JSON text or a JSON file; "
                                  + (f"{shown(text)} {what_is}" if what_is else f"no file {shown(text)}"))
             what = f"{name} file {text}"
-            try:
-                text = path.read_text()
-            except (OSError, UnicodeDecodeError) as exc:
-                raise ValueError(f"{what}: cannot read it as text ({exc})") from None
+            text = read_scenario_file(path, what)
         try:
             data = json.loads(text, object_pairs_hook=no_duplicate_keys)
         except ValueError as exc:  # (JSONDecodeError, and an integer of more digits than Python converts)
@@ -152,6 +151,8 @@ class Scenario:
     @classmethod
     def from_params(cls, params: LoaderParams, braking: str = "service") -> Scenario:
         """The scenario a parameter set drives (raises if one of its scenario fields is out of range)."""
+        if not isinstance(params, LoaderParams):  # (None or a dict was an AttributeError)
+            raise ValueError(f"params must be a LoaderParams, got {shown(params)} ({type(params).__name__})")
         # (rounded to 9 decimals: rpm from rad/s is not exact in floats)
         return cls(braking=braking, **{name: round(getattr(params, s.param) / s.to_param, 9) for name, s in FIELDS.items()})
 
@@ -168,6 +169,8 @@ class Scenario:
         """The machine ``base`` driving this cycle (``Scenario.nominal().params()`` is DEFAULT_PARAMS); a
         ValueError naming the scenario's field if the machine cannot take it (a start engine speed above its
         omega_max, say)."""
+        if not isinstance(base, LoaderParams):  # (None or a dict was an AttributeError; a ParamsView has no replace())
+            raise ValueError(f"base must be a LoaderParams (the machine), got {shown(base)} ({type(base).__name__})")
         try:
             return base.replace(**{s.param: getattr(self, name) * s.to_param for name, s in FIELDS.items()})
         except ValueError as exc:  # (LoaderParams names its own field, in its units: say which of ours set it)
@@ -193,6 +196,39 @@ class Scenario:
         return (f"{self.braking} {self.payload / 1000:g} t, {self.reverse_distance:g}/{self.forward_distance:g} m, "
                 f"c_r {self.rolling_resistance:g}, H_T {self.dump_height:g} m, {self.start_engine_speed:.0f} rpm, "
                 f"H_0 {self.start_bucket_height:g} m")
+
+
+# bytes a scenario file may hold: a scenario is a JSON object of 8 fields (~250 bytes); a 3 GB file was read whole
+# (20 s, 6 GB), as the command line's --scenario refuses it (wl.cli.MAX_SCENARIO_BYTES)
+MAX_SCENARIO_FILE_BYTES = 2**20
+
+
+def read_scenario_file(path: Path, what: str) -> str:
+    """The text of the scenario file ``path`` (``what`` names it in errors): a regular file of at most
+    MAX_SCENARIO_FILE_BYTES, checked on the file opened (a FIFO, a device or a file swapped in after a check is
+    refused, never read or waited on) and read no further than that."""
+    limit = MAX_SCENARIO_FILE_BYTES
+    try:  # (O_NONBLOCK: opening a FIFO with no writer waited forever)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{what}: cannot read it ({exc})") from None
+    with os.fdopen(fd, "rb") as f:
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise ValueError(f"{what} is not a regular file")
+            if st.st_size > limit:
+                raise ValueError(f"{what} is {st.st_size} bytes, more than a scenario's JSON holds "
+                                 f"({limit // 2**20} MiB)")
+            data = f.read(limit + 1)  # (a file that grows, or says it is empty as /proc's do, is read no further)
+        except OSError as exc:
+            raise ValueError(f"{what}: cannot read it ({exc})") from None
+    if len(data) > limit:
+        raise ValueError(f"{what} holds more than a scenario's JSON holds ({limit // 2**20} MiB)")
+    try:
+        return data.decode("utf-8-sig")  # (a byte order mark, as some editors write, was "not valid JSON")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{what}: cannot read it as text ({exc})") from None
 
 
 def is_file(path: str | Path) -> bool:

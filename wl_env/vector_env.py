@@ -89,7 +89,7 @@ class WheelLoaderVectorEnv(VectorEnv):
             raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
-            raise ValueError(f"init_noise must lie in [0, 1], got {init_noise!r}")
+            raise ValueError(f"init_noise must lie in [0, 1], got {shown(init_noise)}")
         self.num_envs = num_envs
         self.assist = check_assist(assist, fuel_action, coast, guards, lift_floor, lift_off_load, step_braking)
         self.coast, self.guards, self.lift_floor, self.lift_off_load = coast, guards, lift_floor, lift_off_load
@@ -150,7 +150,9 @@ class WheelLoaderVectorEnv(VectorEnv):
             self._rngs = [np.random.default_rng(s) for s in seeds]  # as gymnasium's np_random(seed)
         self._reset_where(np.ones(self.num_envs, dtype=bool))
         self._started = True
-        return self._obs(), {}
+        # (the single env's reset info, per loader, but its scenario: they were {}, a target env's targets unsaid)
+        return self._obs(), {"t": self._t.copy(), "fuel_g": self._y[5] * 1000.0, "phase": self._phase.copy(),
+                             **({"target_time": self.target_time.copy()} if self.observe_target else {})}
 
     def _reset_where(self, mask: np.ndarray) -> None:
         p = self.params

@@ -105,6 +105,9 @@ class Suite:
 
     def sample(self, rng: np.random.Generator, braking: str) -> Scenario:
         """One scenario of the braking alternative: a fresh draw (sampler) or one of the list, uniformly."""
+        if not isinstance(rng, np.random.Generator):  # (a seed was an AttributeError; a RandomState drew from a sampler)
+            raise ValueError(f"rng must be a numpy Generator (np.random.default_rng(seed)), got {shown(rng)} "
+                             f"({type(rng).__name__})")
         if self.sampler:
             return draw(rng, braking)
         options = self.of(braking)
