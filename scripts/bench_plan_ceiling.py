@@ -1,4 +1,4 @@
-"""How close the plan driver of ``WheelLoaderPlan-v0`` can come to the optimum: its 14 numbers searched per
+"""How close the plan driver of ``WheelLoaderPlan-v1`` (or ``-v0``, ``--env-id``) can come to the optimum: its 14 numbers searched per
 scenario and target by CMA-ES (pycma), nothing learned. A policy over the scenarios can only approach this.
 
     python scripts/bench_plan_ceiling.py --braking service --scenarios 0 1 2 3 --ratios 1.0 1.15 1.5 [--json PATH]
@@ -26,6 +26,7 @@ from wl_env.logs import run_script
 @dataclass
 class Options:
     braking: str = "service"
+    env_id: str = "WheelLoaderPlan-v1"  # the plan env searched (v0: on WheelLoaderTarget-v6, stops 53-55's ceilings)
     scenarios: tuple[int, ...] = (0, 1, 2, 3)  # indices among the test suite's scenarios of the braking
     ratios: tuple[float, ...] = (1.0, 1.15, 1.5)  # target / T_min
     generations: int = 150
@@ -61,7 +62,7 @@ def search(o: Options, index: int, ratio: float) -> Ceiling:
     from wl_env.suites import load_suite
 
     scenario = load_suite("test").of(o.braking)[index]
-    env = gym.make_vec("WheelLoaderPlan-v0", num_envs=o.population, vectorization_mode="vector_entry_point",
+    env = gym.make_vec(o.env_id, num_envs=o.population, vectorization_mode="vector_entry_point",
                        braking=o.braking, scenario=scenario)
     native = env.unwrapped
     params = scenario.params(native.machine)
@@ -100,6 +101,10 @@ def check(o: Options) -> None:
     n = len(load_suite("test").of(o.braking))
     if not o.scenarios or not all(0 <= i < n for i in o.scenarios):
         raise ValueError(f"--scenarios must be indices in [0, {n - 1}] (the test suite's {o.braking} cycles), got {o.scenarios}")
+    from agents.ppo_config import PLAN_ENV_IDS
+
+    if o.env_id not in PLAN_ENV_IDS:
+        raise ValueError(f"--env-id must be a plan env, one of {', '.join(PLAN_ENV_IDS)}, got {o.env_id!r}")
     if not o.ratios or not all(1.0 <= r <= 3.0 for r in o.ratios):
         raise ValueError(f"--ratios must be target ratios to T_min in [1, 3], got {o.ratios}")
     for name, lo, hi in (("generations", 1, 10_000), ("population", 2, 4096)):

@@ -1,9 +1,9 @@
-"""Throughput of ``WheelLoaderPlan-v0`` as PPO sees it (the stable-baselines3 vector env) against the number of loaders
+"""Throughput of ``WheelLoaderPlan-v1`` as PPO sees it (the stable-baselines3 vector env) against the number of loaders
 stepped together, with Gymnasium's Pendulum-v1 measured in the same run as the reference.
 
     python scripts/bench_plan_env.py [--num-envs 256 1024 2048 4096] [--rounds 3] [--json PATH]
 
-One plan env step drives a whole cycle per loader, ~80-400 WheelLoaderTarget-v6 steps, all loaders together
+One plan env step drives a whole cycle per loader, ~80-400 WheelLoaderTarget-v7 steps, all loaders together
 until the slowest has ended; each v6 step is a handful of numpy operations on arrays of N loaders, so its cost
 barely grows with N. The plans are fixed uniform random numbers (seeded); each configuration is timed once per
 round, the rounds interleaved, and the table gives the medians: cycles/s, v6 steps/s (the cycles' own steps) and
@@ -69,7 +69,7 @@ def main(o: Options) -> list[Row]:
     from wl_env.plan import N_PLAN_ACTIONS
 
     rng = np.random.default_rng(o.seed)
-    envs = {n: make_sb3_vec_env(n, braking=o.braking, seed=o.seed, env_id="WheelLoaderPlan-v0", scenario="train")
+    envs = {n: make_sb3_vec_env(n, braking=o.braking, seed=o.seed, env_id="WheelLoaderPlan-v1", scenario="train")
             for n in o.num_envs}
     plans = {n: rng.uniform(-1, 1, (o.calls, n, N_PLAN_ACTIONS)).astype(np.float32) for n in o.num_envs}
     pendulum = gym.make("Pendulum-v1")

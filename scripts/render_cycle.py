@@ -5,7 +5,7 @@
     python scripts/render_cycle.py --braking tc --out cycle_tc.mp4 --fps 20   # needs imageio-ffmpeg
 
 Runs a controller (default: the rule-based operator; any ``wl evaluate --controller``) in its own env (a learned
-policy's ``env_id``, else ``WheelLoader-v2``; a plan policy's plan driven on ``WheelLoaderTarget-v6``, a frame per
+policy's ``env_id``, else ``WheelLoader-v2``; a plan policy's plan driven on the per-step env under its plan env (``WheelLoaderTarget-v6`` or ``-v7``), a frame per
 step) with ``render_mode="rgb_array"``, one frame at the reset and one per control step (dt = 0.1 s, so the default
 10 fps plays in real time),
 and writes the animation atomically (a temporary file in the same directory, then ``os.replace``).
@@ -70,13 +70,13 @@ def run(args: argparse.Namespace) -> dict:
 
     import wl_env  # noqa: F401  (registers the envs)
     from agents.evaluate import load_controller
-    from wl_env.plan import PlanDriver
+    from wl_env.plan import DRIVEN_ON, PlanDriver
 
     policy = load_controller(args.controller, args.braking, args.model)
     # (the env the controller was made for: a 12-number policy in the 19-number default env failed to broadcast)
     env_id = getattr(policy, "env_id", None) or "WheelLoader-v2"
-    plan = env_id.startswith("WheelLoaderPlan")  # (one env step per cycle: its plan is driven step by step on v6)
-    env = gym.make("WheelLoaderTarget-v6" if plan else env_id, braking=args.braking, render_mode="rgb_array")
+    plan = env_id in DRIVEN_ON  # (one env step per cycle: its plan is driven step by step on the env under it)
+    env = gym.make(DRIVEN_ON[env_id] if plan else env_id, braking=args.braking, render_mode="rgb_array")
     t0 = time.perf_counter()
     obs, info = env.reset(seed=args.seed)
     if hasattr(policy, "reset"):
