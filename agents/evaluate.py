@@ -225,6 +225,8 @@ def _cwd_on_path() -> None:
 
 def _import_file(target: str, spec: str) -> ModuleType:
     path = Path(target).expanduser()
+    if path.is_dir():  # (it said "no controller file /tmp", for a folder that is there)
+        raise IsADirectoryError(f"controller file {path} is a folder, not a Python file (from --controller {spec})")
     if not path.is_file():
         raise FileNotFoundError(f"no controller file {path} (from --controller {spec})")
     path = path.resolve()
@@ -499,8 +501,13 @@ def evaluate_controller(
     import gymnasium as gym
 
     import wl_env  # noqa: F401  (registers WheelLoader-v1/v2)
+    from mpc.benchmark.pareto import check_flag
     from wl_env.rollout import run_episode
 
+    # (switches as True or False, before any episode: solve="no" failed at the first score, after the episode had
+    # run, and score="no" scored)
+    score, solve, trajectories, deferred = (check_flag(v, n) for v, n in (
+        (score, "score"), (solve, "solve"), (trajectories, "trajectories"), (deferred, "deferred")))
     # (dicts, JSON text and files too, as the env takes them; anything else is a ValueError naming it)
     if scenarios is not None:
         if isinstance(scenarios, (str, bytes, dict)) or not hasattr(scenarios, "__iter__"):

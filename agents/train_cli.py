@@ -314,6 +314,11 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
 
     check_workers(ns.workers, "--workers")
     cfgs = expand(cfg, ns.seeds or [cfg.seed], parse_sweep(ns.sweep or []))
+    if ns.export:  # (each run's export files, checked before the training: a folder in the way failed after all of it)
+        from agents.policy_files import check_policy_output
+
+        for c in cfgs:
+            check_policy_output(run_export(ns.export, c), "--export")
     try:
         results = train_runs(cfgs, command=command, workers=ns.workers, ray_address=ns.ray)
     except KeyboardInterrupt:
@@ -323,8 +328,13 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
                      indent=2))
     log.info("spread over the seeds: %s", Path(cfg.log_dir) / SUMMARY_FILE)
     if ns.export:
-        export = Path(ns.export)
         for c in cfgs:
-            export_policy(c.run_dir, export.parent, f"{export.name}_{c.name}", n_episodes=ns.export_episodes,
-                          score=c.score)
+            path = run_export(ns.export, c)
+            export_policy(c.run_dir, path.parent, path.name, n_episodes=ns.export_episodes, score=c.score)
     return 0
+
+
+def run_export(export: str, cfg: PPOConfig) -> Path:
+    """The stem one of several runs is exported to: ``<--export>_<run name>``."""
+    path = Path(export)
+    return path.parent / f"{path.name}_{cfg.name}"

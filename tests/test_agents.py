@@ -373,3 +373,28 @@ def test_a_checkpoint_holds_the_policy_updated_on_the_rollouts_its_step_count_in
     assert ours.keys() == final.keys() and all(np.array_equal(ours[k], final[k]) for k in ours)
     updates = json.loads((ckpt / "training.json").read_text())["n_updates"]
     assert updates == 6 * cfg.n_epochs  # (6 rollouts, n_epochs each: was 5 rollouts' worth)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Eleventh review round (agents/evaluate.py): each test fails on the code before its fix.
+# ---------------------------------------------------------------------------------------------------------------------
+def test_evaluate_controller_refuses_switches_that_are_no_bools_before_any_episode():
+    """`solve="no"` failed at the first score, after the episode had run; `score="no"` scored (a non-empty string is
+    true). Each switch is True or False (numpy's too), else a ValueError naming it before any episode."""
+    from agents.evaluate import evaluate_controller
+
+    class Counting(OperatorPolicy):
+        acts = 0
+
+        def act(self, obs):
+            Counting.acts += 1
+            return super().act(obs)
+
+    for kw in ({"solve": "no"}, {"score": "no"}, {"score": False, "solve": 0}, {"trajectories": 1},
+               {"deferred": None}):
+        name = next(k for k, v in kw.items() if not isinstance(v, bool))
+        with pytest.raises(ValueError, match=f"^{name} must be True or False"):
+            evaluate_controller(Counting("service"), "service", episodes=1, **kw)
+    assert Counting.acts == 0
+    r = evaluate_controller(Counting("service"), "service", episodes=1, score=np.bool_(False), solve=np.bool_(False))
+    assert Counting.acts > 0 and r["per_episode"][0]["time_gap"] is None

@@ -1492,3 +1492,35 @@ def test_wl_run_checks_every_file_it_writes_before_the_work(tmp_path, capsys, no
     assert ("leaderboard.md is the input file" if in_the_way == "link" else f"{in_the_way} is a folder") in err
     code, _ = _attempt(capsys, ["run", "--out", str(tmp_path / "fresh")])
     assert code is None
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Eleventh review round (`wl train --seeds/--sweep --export`): each test fails on the code before its fix.
+# ---------------------------------------------------------------------------------------------------------------------
+def test_the_export_files_of_several_runs_are_checked_before_the_training(tmp_path, capsys, no_work):
+    """`wl train --seeds 0 1 --export P` writes P_<run name>.* per run, but only P.* was checked: a folder in the way
+    of P_ppo_service_s1.safetensors failed after every run had trained. Each run's files are checked first."""
+    (tmp_path / "P_ppo_service_s1.safetensors").mkdir()
+    (tmp_path / "Q_ppo_tc_n_epochs3_s0.json").mkdir()
+    runs = str(tmp_path / "runs")
+    code, err = _attempt(capsys, ["train", "--seeds", "0", "1", "--log-dir", runs, "--export", str(tmp_path / "P")])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"--export {tmp_path / 'P_ppo_service_s1'}: {tmp_path / 'P_ppo_service_s1.safetensors'} is a folder" in err
+    code, err = _attempt(capsys, ["train", "--braking", "tc", "--sweep", "n_epochs=2,3", "--log-dir", runs,
+                                  "--export", str(tmp_path / "Q")])
+    assert code == 2 and "Q_ppo_tc_n_epochs3_s0.json is a folder" in err, err
+    assert not no_work
+    code, _ = _attempt(capsys, ["train", "--seeds", "0", "1", "--log-dir", runs, "--export", str(tmp_path / "R")])
+    assert code is None and [c[0] for c in no_work] == ["train"]  # (the rest reaches the training)
+
+
+def test_a_controller_file_that_is_a_folder_is_named_a_folder(tmp_path, capsys, no_work):
+    """`wl evaluate --controller /tmp:X` said "no controller file /tmp" of a folder that is there: it says it is a
+    folder (one line, exit 2); a missing file is still "no controller file"."""
+    out = str(tmp_path / "x.json")
+    code, err = _attempt(capsys, ["evaluate", "--controller", f"{tmp_path}:X", "--out", out])
+    assert code == 2 and err.strip() == (f"wl: error: controller file {tmp_path} is a folder, not a Python file (from "
+                                         f"--controller {tmp_path}:X)"), err
+    code, err = _attempt(capsys, ["evaluate", "--controller", f"{tmp_path}/c.py:X", "--out", out])
+    assert code == 2 and f"no controller file {tmp_path}/c.py" in err
+    assert not no_work

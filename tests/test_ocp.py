@@ -596,3 +596,117 @@ def test_total_variation_takes_rows_of_real_numbers_or_refuses_them_by_name(cont
     rows = controls if isinstance(controls, list) else []
     assert rows and all(isinstance(v, (int, float)) and not isinstance(v, bool) for r in rows for v in r)
     assert all(math.isfinite(v) and v >= 0 for v in tv)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Eleventh review round (mpc/benchmark's API): each test fails on the code before its fix.
+# ---------------------------------------------------------------------------------------------------------------------
+def test_a_score_read_back_is_checked_by_name():
+    """Score.from_dict took a negative T or fuel, a numeric reference and gaps that were not T / T_min - 1 and
+    fuel_g / fuel_opt_g - 1; each is a ValueError naming the field. A score as score_run gave it reads back equal."""
+    from mpc.benchmark.scoring import Score
+
+    s = score_run(10.0, 66.0, "service", front=_front([8.0, 9.0, 11.0, 15.0, 21.0], [95.0, 70.0, 55.0, 49.0, 47.5]))
+    good = json.loads(json.dumps(s.to_dict()))
+    assert Score.from_dict(good) == s and Score.from_dict({k: v for k, v in good.items() if k != "reference"})
+    for change, needle in (({"T": -10.0}, "'T' must be > 0 and at most 60 s"), ({"T": 100.0}, "'T' must be > 0"),
+                           ({"fuel_g": -66.0}, "'fuel_g' must be > 0"), ({"T_min": 0.0}, "'T_min' must be > 0"),
+                           ({"fuel_opt_g": -1.0}, "'fuel_opt_g' must be > 0"),
+                           ({"reference": 5}, "'reference' must be a string, got 5"),
+                           ({"time_gap": 0.0}, "'time_gap' 0.0 is not T / T_min - 1"),
+                           ({"fuel_gap": good["fuel_gap"] + 1e-6}, "'fuel_gap' .* is not fuel_g / fuel_opt_g - 1"),
+                           ({"T_min": good["T_min"] * 1.01}, "'time_gap' .* is not T / T_min - 1")):
+        with pytest.raises(ValueError, match=f"score field {needle}"):
+            Score.from_dict({**good, **change})
+
+
+def test_a_results_verification_record_is_checked_when_read(tmp_path):
+    """check_result did not look inside `verification`: "passed": "no" counted as passed (optima.passed said True),
+    and a reversing error written as null (a NaN, as a cache entry writes it) was a TypeError in optima.passed. The
+    record's fields are checked by type; null reads as the NaN it was, a failed check."""
+    from dataclasses import replace as dc_replace
+
+    from fakes import fake_solve
+
+    from mpc.benchmark import optima, store
+    from mpc.benchmark.ocp import verification_passed
+    from mpc.benchmark.pareto import RESULT_KIND, check_result, load_result, save_result
+    from mpc.benchmark.store import BadEntry
+
+    r = fake_solve("service", "time")
+    full = {"passed": False, "reversing_error_m": float("nan"), "final_position_error_m": 0.01,
+            "final_height_error_m": 0.0, "max_violation": 0.0, "check_version": 2, "lift_gains": [1.0, 2.0],
+            "violations_ocp": {"decel": 0.0}, "open_loop": {"reversing_error_m": 0.1},
+            "mesh_history": [{"mesh": [20, 12, 20, 12], "T": 7.0, "fuel_g": 110.0, "verified": False}]}
+    back = load_result(save_result(dc_replace(r, verification=full), tmp_path / "nan.json"))
+    assert back.verification["reversing_error_m"] is None and optima.passed(back) is False  # (was a TypeError)
+    assert verification_passed(back.verification) is False
+    assert optima.passed(dc_replace(back, verification={k: v for k, v in full.items() if k != "passed"})) is False
+    for change, needle in (({"passed": "no"}, "verification field 'passed' must be true or false, got 'no'"),
+                           ({"passed": 1}, "'passed' must be true or false"),
+                           ({"reversing_error_m": "0.01"}, "'reversing_error_m' must be a number or null"),
+                           ({"max_violation": True}, "'max_violation' must be a number or null"),
+                           ({"mesh_history": [{"verified": "yes"}]}, "'mesh_history' must be a list of records"),
+                           ({"violations_sim": {"decel": "x"}}, "'violations_sim' must be a mapping of numbers"),
+                           ({"fine_mesh_failed": "no"}, "'fine_mesh_failed' must be true or false")):
+        data = {**r.to_dict(), "verification": {**full, "reversing_error_m": None, **change}}
+        assert needle.split(" must")[0] in (check_result(data) or "")
+        with pytest.raises(ValueError, match=needle):
+            OCPResult.from_dict(data)
+        entry, schema = tmp_path / "bad.json", {"kind": RESULT_KIND, "version": store.SCHEMA_VERSION}
+        entry.write_text(json.dumps({**data, "schema": schema,  # (a hand-written entry, its checksum made to match)
+                                     "checksum": store.checksum({**data, "schema": schema})}))
+        with pytest.raises(BadEntry, match=needle):
+            load_result(entry)
+
+
+def test_saving_a_result_refuses_what_loading_it_would_refuse(tmp_path):
+    """OCPResult.save wrote a NaN fuel (or a string T, a "passed": "no") that OCPResult.load then refused: it refuses
+    them by name and writes nothing. A valid result's file is as before (and a NaN in its verification is kept)."""
+    from dataclasses import replace as dc_replace
+
+    from fakes import fake_solve
+
+    from wl_env.atomic_io import write_json_atomic
+
+    r = dc_replace(fake_solve("service", "time"), verification={"passed": True, "reversing_error_m": float("nan")})
+    for change, needle in (({"fuel_g": float("nan")}, "field 'fuel_g'"), ({"T": "7"}, "field 'T'"),
+                           ({"verification": {"passed": "no"}}, "verification field 'passed'"),
+                           ({"states": [[0.0] * 4]}, "do not match"), ({"iterations": 10 ** 400}, "too large")):
+        out = tmp_path / "r.json"
+        with pytest.raises(ValueError, match=f"refusing to write {out}: .*{needle}"):
+            dc_replace(r, **change).save(out)
+        assert not out.exists() and not list(tmp_path.iterdir())
+    r.save(tmp_path / "r.json")
+    write_json_atomic(tmp_path / "before.json", r.to_dict())  # (what save wrote before)
+    assert (tmp_path / "r.json").read_bytes() == (tmp_path / "before.json").read_bytes()
+    assert math.isnan(OCPResult.load(tmp_path / "r.json").verification["reversing_error_m"])
+
+
+def test_solve_ocp_takes_numpy_integers_for_max_refinements(monkeypatch):
+    """max_refinements=np.int64(3) was refused ("must be an integer in [0, 20]") where the project takes numpy's
+    integers elsewhere; it refines as the int does. A bool or 2.5 is still refused."""
+    from dataclasses import replace as dc_replace
+
+    from fakes import fake_solve
+
+    import mpc.benchmark.ocp as ocp
+
+    calls = []
+
+    def unverified(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify):
+        calls.append(settings.intervals)
+        return dc_replace(fake_solve(braking, objective, settings=settings), verification={"passed": False})
+
+    fake_solve.calls = []
+    monkeypatch.setattr(ocp, "_solve_on_mesh", unverified)
+    counts = []
+    for n in (2, np.int64(2), np.uint8(2)):
+        calls.clear()
+        r = solve_ocp("service", "time", max_refinements=n)
+        counts.append(len(calls))
+        assert not r.success and len(r.verification["mesh_history"]) == 3
+    assert counts == [3, 3, 3]
+    for bad in (True, 2.5, np.float64(2.0), -1, 21):
+        with pytest.raises(ValueError, match="max_refinements must be an integer in"):
+            solve_ocp("service", "time", max_refinements=bad)

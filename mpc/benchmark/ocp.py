@@ -29,7 +29,7 @@ import numpy as np
 
 from mpc import interrupt
 from wl_env import cycle, limits
-from wl_env.atomic_io import write_json_atomic  # noqa: F401  (re-exported: results are saved with it)
+from wl_env.atomic_io import _json_default, write_json_atomic  # (write_json_atomic: re-exported too)
 from wl_env.model import derivatives
 from wl_env.params import (
     DEFAULT_PARAMS,
@@ -172,8 +172,19 @@ class OCPResult:
         return as_plain(asdict(self))
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write as JSON, atomically (a temporary file renamed over the target)."""
-        return write_json_atomic(path, self.to_dict())
+        """Write as JSON, atomically (a temporary file renamed over the target); ValueError naming the file, and
+        nothing written, if :meth:`load` would refuse what it wrote (a NaN fuel was written, then refused when
+        read back)."""
+        from mpc.benchmark.store import _float_sized_int
+
+        data = self.to_dict()
+        text = json.dumps(data, indent=1, default=_json_default)  # (as write_json_atomic writes it)
+        try:
+            type(self).from_dict(json.loads(text, parse_int=_float_sized_int))  # (as load reads it)
+        except ValueError as exc:
+            raise ValueError(f"refusing to write {path}: it is {exc}" if str(exc).startswith("not") else
+                             f"refusing to write {path}: {exc}") from None
+        return write_json_atomic(path, data)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> OCPResult:
@@ -639,12 +650,16 @@ VERIFY_TOL = {"distance": 0.05, "height": 0.02, "violation": 0.01}
 
 
 def verification_passed(v: dict[str, Any]) -> bool:
-    """True if a re-simulation meets the end targets and holds the constraints (VERIFY_TOL)."""
+    """True if a re-simulation meets the end targets and holds the constraints (VERIFY_TOL). A value read back as
+    null (a NaN, as a cache entry writes it) fails, as the NaN did (it was a TypeError)."""
+    def value(key: str) -> Any:
+        return math.nan if v[key] is None else v[key]
+
     return (
-        abs(v["reversing_error_m"]) <= VERIFY_TOL["distance"]
-        and abs(v["final_position_error_m"]) <= VERIFY_TOL["distance"]
-        and abs(v["final_height_error_m"]) <= VERIFY_TOL["height"]
-        and v["max_violation"] <= VERIFY_TOL["violation"]
+        abs(value("reversing_error_m")) <= VERIFY_TOL["distance"]
+        and abs(value("final_position_error_m")) <= VERIFY_TOL["distance"]
+        and abs(value("final_height_error_m")) <= VERIFY_TOL["height"]
+        and value("max_violation") <= VERIFY_TOL["violation"]
     )
 
 
@@ -713,7 +728,7 @@ def solve_ocp(
     for name, flag in (("verify", verify), ("refine", refine)):  # (verify="no" verified, as any string would)
         if not isinstance(flag, (bool, np.bool_)):
             raise ValueError(f"{name} must be True or False, got {shown(flag)}")
-    w_fuel = None if w_fuel is None else float(w_fuel)
+    w_fuel, max_refinements = None if w_fuel is None else float(w_fuel), int(max_refinements)
     settings = settings or OCPSettings()
     try:
         result = _solve_on_mesh(braking, objective, T, w_fuel, p, settings, warm_start, starts, verify)
@@ -788,7 +803,7 @@ def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any
                              f"{shown(starts)}")
     if not (is_real_number(max_interval) and 0.001 <= max_interval <= 10.0):
         raise ValueError(f"max_interval must lie in [0.001, 10] s, got {shown(max_interval)}")
-    if isinstance(max_refinements, bool) or not isinstance(max_refinements, int) or not 0 <= max_refinements <= 20:
+    if not (is_integer(max_refinements) and 0 <= max_refinements <= 20):  # (numpy's integers too: np.int64(3) was refused)
         raise ValueError(f"max_refinements must be an integer in [0, 20], got {shown(max_refinements)}")
 
 

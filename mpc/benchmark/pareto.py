@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
 import time
 from collections.abc import Callable
@@ -208,6 +209,48 @@ _RESULT_FIELDS = {
 }
 
 
+def _number_or_null(v: Any) -> bool:
+    """A real number (NaN too: a re-simulation that never reversed) or null (a NaN as a cache entry writes it)."""
+    return v is None or (isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)))
+
+
+def _numbers_or_null(v: Any) -> bool:
+    return isinstance(v, list) and all(map(_number_or_null, v))
+
+
+def _named_numbers_or_null(v: Any) -> bool:
+    return isinstance(v, dict) and all(map(_number_or_null, v.values()))
+
+
+# The re-simulation's record (mpc.benchmark.verify.verify_result, with passed, mesh_history and fine_mesh_failed beside
+# it): each field's type where it is present ({}: not re-simulated). "passed": "no" counted as passed, and a null
+# reversing error was a TypeError in optima.passed.
+_VERIFICATION_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    **{name: (_number_or_null, "a number or null") for name in (
+        "reversing_error_m", "final_position_error_m", "final_height_error_m", "final_speed_mps",
+        "final_bucket_speed_mps", "fuel_g_simulated", "fuel_rel_error", "max_violation", "max_substep_s",
+        "engine_speed_gain")},
+    "passed": (lambda v: isinstance(v, (bool, np.bool_)), "true or false"),
+    "fine_mesh_failed": (lambda v: isinstance(v, (bool, np.bool_)), "true or false"),
+    "check_version": (_int, "an integer"),
+    "max_state_error": (_numbers_or_null, "a list of numbers"), "lift_gains": (_numbers_or_null, "a list of numbers"),
+    "violations_ocp": (_named_numbers_or_null, "a mapping of numbers"),
+    "violations_sim": (_named_numbers_or_null, "a mapping of numbers"),
+    "open_loop": (_named_numbers_or_null, "a mapping of numbers"),
+    "mesh_history": (lambda v: isinstance(v, list) and all(
+        isinstance(h, dict) and isinstance(h.get("verified", False), (bool, np.bool_)) for h in v),
+        "a list of records, each verified true or false"),
+}
+
+
+def _verification_problem(v: dict[str, Any]) -> str | None:
+    """What is wrong with a result's ``verification`` record's fields (:data:`_VERIFICATION_FIELDS`), or None."""
+    for name, (ok, what) in _VERIFICATION_FIELDS.items():
+        if name in v and not ok(v[name]):
+            return f"verification field {name!r} must be {what}, got {_short(v[name])}"
+    return None
+
+
 def check_result(d: dict[str, Any]) -> str | None:
     """What is wrong with an OCP result entry's fields (as :class:`OCPResult`), or None."""
     problem = _fields(d, _RESULT_FIELDS)
@@ -219,7 +262,7 @@ def check_result(d: dict[str, Any]) -> str | None:
         return f"states, controls, position and phase do not match the {n} sample times"
     if any(b < a for a, b in pairwise(d["t"])) or any(b < a for a, b in pairwise(d["phase"])):
         return "the sample times or phases decrease"
-    return _scenario_fields_problem(d.get("scenario_fields", {}))
+    return _verification_problem(d["verification"]) or _scenario_fields_problem(d.get("scenario_fields", {}))
 
 
 def _scenario_fields_problem(sf: Any) -> str | None:

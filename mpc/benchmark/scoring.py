@@ -41,7 +41,9 @@ class Score:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Score:
-        """The score :meth:`to_dict` gave; ValueError naming the field that is missing or no number."""
+        """The score :meth:`to_dict` gave; ValueError naming the field that is missing, no number, out of its range
+        (T, fuel_g, T_min and fuel_opt_g > 0, T and T_min at most MAX_CYCLE_TIME s), or a gap that is not its T or
+        fuel against T_min or fuel_opt_g (a negative T, a numeric ``reference`` and made-up gaps were taken)."""
         if not isinstance(data, dict):
             raise ValueError(f"a score is a mapping, got {type(data).__name__}")
         for name in cls.__dataclass_fields__:
@@ -50,6 +52,16 @@ class Score:
             if name not in ("braking", "reference") and not is_real_number(data[name]):
                 raise ValueError(f"score field {name!r} must be a finite number, got {data[name]!r}")
         check_braking(data["braking"])
+        if not isinstance(data.get("reference", ""), str):
+            raise ValueError(f"score field 'reference' must be a string, got {shown(data['reference'])}")
+        for name in ("T", "fuel_g", "T_min", "fuel_opt_g"):
+            if not data[name] > 0 or (name in ("T", "T_min") and data[name] > MAX_CYCLE_TIME):
+                most = f" and at most {MAX_CYCLE_TIME:g} s" if name in ("T", "T_min") else ""
+                raise ValueError(f"score field {name!r} must be > 0{most}, got {data[name]!r}")
+        for gap, of, against in (("time_gap", "T", "T_min"), ("fuel_gap", "fuel_g", "fuel_opt_g")):
+            ratio = data[of] / data[against]  # (score_run's gap is ratio - 1: equal to the last bit, read back)
+            if abs(data[gap] - (ratio - 1.0)) > 1e-9 * max(1.0, ratio):
+                raise ValueError(f"score field {gap!r} {data[gap]!r} is not {of} / {against} - 1 = {ratio - 1.0!r}")
         return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
 
 

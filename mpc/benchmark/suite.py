@@ -92,10 +92,20 @@ def solve_one(scenario: Scenario, cache: str | os.PathLike | None, n_points: int
     return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": time.perf_counter() - t0}
 
 
-def _job(job: str) -> Any:
+def _job(job: Any) -> Any:
+    """The function ``job`` (``module:function``) names; ValueError naming it if it names none (a bad name was a
+    ModuleNotFoundError, AttributeError or TypeError inside the workers, after the cache's folder was made)."""
     import pkgutil
 
-    return pkgutil.resolve_name(job)
+    if not (isinstance(job, str) and job.count(":") == 1 and all(job.split(":"))):
+        raise ValueError(f"job must name a function as 'module:function', got {shown(job)}")
+    try:
+        fn = pkgutil.resolve_name(job)
+    except (Exception, SystemExit) as exc:  # (an import runs the module's code: whatever it raises, named)
+        raise ValueError(f"job {job!r} names no function: {type(exc).__name__}: {exc}") from None
+    if not callable(fn):
+        raise ValueError(f"job {job!r} is no function (a {type(fn).__name__})")
+    return fn
 
 
 def _solve_chain(scenarios: list[dict[str, Any]], folder: str, cache: str | None, n_points: int,
@@ -146,6 +156,7 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     if not (is_integer(ray_chunk) and ray_chunk >= 1):
         raise ValueError(f"ray_chunk must be an integer >= 1 (scenarios per Ray task), got {shown(ray_chunk)}")
     limit, ray_chunk = None if limit is None else int(limit), int(ray_chunk)
+    _job(job)  # (resolved here too: a bad name failed only inside the workers)
     s = load_suite(suite)
     if s.sampler:
         raise ValueError(f"suite {suite!r} is a sampler, not a list: it has no fixed optima to solve")
