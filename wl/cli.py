@@ -469,8 +469,7 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
         return None
     if not args.scenario.strip():
         raise ValueError("--scenario is empty: give a JSON object or a JSON file")
-    _check_scenario_file_size(args.scenario.strip())
-    try:
+    try:  # (it reads a file of at most wl_env.scenario.MAX_SCENARIO_FILE_BYTES, a regular one)
         s = Scenario.parse(args.scenario)
     except ValueError as exc:
         raise ValueError(str(exc) if str(exc).startswith("--scenario") else f"--scenario: {exc}") from None
@@ -486,26 +485,12 @@ def _scenario_from(args: argparse.Namespace, braking_given: bool | None = None):
     return s
 
 
-MAX_SCENARIO_BYTES = 2**20  # (a scenario is a JSON object of 8 fields: a 3 GB file was read whole, 6 GB and 20 s)
-
-
-def _check_scenario_file_size(text: str) -> None:
-    """A --scenario file larger than any scenario, refused by its size before it is read."""
-    if text.startswith(("{", "[")):
-        return
-    try:
-        size = os.stat(text).st_size if os.path.isfile(text) else 0
-    except (OSError, ValueError):  # (a name too long, a NUL: Scenario.parse says what it is)
-        return
-    if size > MAX_SCENARIO_BYTES:
-        raise ValueError(f"--scenario file {text} is {size} bytes, more than a scenario's JSON holds "
-                         f"({MAX_SCENARIO_BYTES // 2**20} MiB)")
-
-
 def _scenario_braking(args: argparse.Namespace) -> str | None:
     """The braking the --scenario names itself (None: it names none; its braking is then --braking's or the default)."""
-    text = args.scenario.strip()
-    data = json.loads(text if text.startswith("{") else Path(text).read_text())  # (Scenario.parse read it: it is valid)
+    from wl_env.scenario import read_scenario_file
+
+    text = args.scenario.strip()  # (Scenario.parse read it: it is valid)
+    data = json.loads(text if text.startswith("{") else read_scenario_file(Path(text), "--scenario"))
     return data.get("braking")
 
 
