@@ -989,3 +989,86 @@ def test_act_never_returns_a_non_finite_control_as_an_action(monkeypatch):
     monkeypatch.setattr(ctrl, "control", lambda x, t, phase: (np.array([np.nan, 0.0, 0.0]), False, dict(info)))
     with pytest.raises(RuntimeError, match="no finite control at t = 0.00 s .*'a solver of NaN'"):
         ctrl.act(obs)
+
+
+# ------------------------------------------------------------------ the controller's review (stop 63): cold starts, mixed loaders,
+# solver names and settings
+def test_a_plant_back_in_phase_2_after_the_reversing_point_is_planned_from_the_reference():
+    """A phase-2 observation standing at the reversing point (under 1 mm/s) is planned from phase 3; the next one, still
+    in phase 2 and moving back at 2 cm/s, has no warm start of phase 2. That solve started from the middle of the
+    bounds, NaN for every variable without bounds: "Invalid_Number_Detected" every time, a fallback. It starts from the
+    continuous reference's guess; with none, it fails with a status that says so, without a solve."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service", config=MPCConfig(horizon_steps=None, parallel_search=False))
+    v_max = ctrl.params.V_max
+    while not (obs[9] == 1.0 and obs[1] * v_max > -0.15):  # (the last phase-2 step before the stop)
+        obs, *_ = env.step(ctrl.act(obs))
+    standing = obs.copy()
+    standing[1] = -0.0005 / v_max
+    ctrl.act(standing)
+    assert ctrl._iterate.first_phase == 3
+    back = standing.copy()
+    back[1], back[6] = -0.02 / v_max, standing[6] + ctrl.dt / 40.0  # (one step later, still in phase 2)
+    a = ctrl.act(back)
+    info = ctrl.last_info
+    assert not info["fallback"] and "Invalid_Number" not in info["status"], info["status"]
+    assert ctrl._sol.first_phase == 2 and np.isfinite(a).all() and a[2] > -1.0  # (it brakes to the stop)
+    x = ctrl.project_state(ctrl.state_from_obs(back)[0], 2)
+    ctrl._plan_reference = None  # (no reference: a clear status, no NaN start)
+    sol = ctrl._solve(2, dict(ctrl._counts), x, warm=None)
+    assert not sol.ok and sol.status.startswith("no start for a solve from phase 2") and sol.z is None
+
+
+def test_act_refuses_an_observation_whose_episode_features_change_within_the_episode():
+    """Observations of two loaders on the same marks, interleaved, passed: a payload, rolling resistance or start that
+    changed between two steps was taken as the plant's and fed to the estimator. The features fixed for an episode
+    (the scenario's, and a target env's target) must stay as first observed; a refused observation changes nothing;
+    the next episode (reset()) may have others."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    obs, _ = env.reset(seed=0)
+    ctrl = MPCController("service", config=MPCConfig(parallel_search=False))
+    obs1, *_ = env.step(ctrl.act(obs))
+    other = gym.make("WheelLoader-v2", braking="service", scenario=Scenario(payload=12000.0, rolling_resistance=0.04))
+    obs_other, _ = other.reset(seed=0)
+    mixed = obs1.copy()
+    mixed[12:] = obs_other[12:]  # (the same marks, another loader's payload and rolling resistance)
+    start = obs1.copy()
+    start[12 + 5] = 0.5  # (scenario.start_engine_speed)
+    before = (ctrl._last_t, dict(ctrl._counts), ctrl.estimator.theta.tolist(), ctrl._obs_phase)
+    for bad, match in ((mixed, r"scenario\.payload .*scenario\.rolling_resistance"), (start, r"scenario\.start_engine_speed"),
+                       (np.concatenate([obs1, [0.3, 0.2]]).astype(np.float32), r"the observation has 21 entries, the episode's first had 19"),
+                       (obs1[:12], r"the observation has 12 entries, the episode's first had 19")):
+        with pytest.raises(ValueError, match=match):
+            ctrl.act(bad)
+        assert (ctrl._last_t, dict(ctrl._counts), ctrl.estimator.theta.tolist(), ctrl._obs_phase) == before
+    ctrl.act(obs1)  # (this loader's next step)
+    ctrl.reset()
+    ctrl.act(obs_other)  # (a new episode: another loader on the same marks)
+    assert ctrl._features is not None and np.allclose(ctrl._features, obs_other[12:])
+
+
+def test_a_first_plan_that_fails_names_the_solver_it_ran():
+    """The first plan's failure said "IPOPT status ..." whatever solver was injected."""
+
+    class Refusing:
+        def prepare(self, nlp):
+            pass
+
+        def solve(self, nlp, args, x0, lam_x0=None, lam_g0=None):
+            return SolverResult(ok=False, status="refused (injected)", iterations=0)
+
+    obs, _ = gym.make("WheelLoader-v2", braking="service").reset(seed=0)
+    with pytest.raises(RuntimeError, match=r"from the start state: Refusing status refused \(injected\)"):
+        MPCController("service", config=MPCConfig(parallel_search=False), solver=Refusing()).act(obs)
+    fatrop = solver_module.FallbackSolver(solver_module.FatropSolver(), IpoptSolver())
+    assert solver_module.solver_name(fatrop) == "fatrop, then IPOPT"
+    assert solver_module.solver_name(IpoptSolver()) == "IPOPT"
+
+
+@pytest.mark.parametrize("max_iter", [2.5, True, 0, 100_001, "50", None, math.nan])
+def test_fatrop_refuses_its_settings_as_ipopt_does(max_iter):
+    """FatropSolver(max_iter=...) took anything (2.5, True, "50") until fatrop's build at the first plan."""
+    with pytest.raises(ValueError, match=r"max_iter must be an integer in \[1, 100000\]"):
+        solver_module.FatropSolver(max_iter)
+    assert solver_module.FatropSolver(np.int64(50)).max_iter == 50

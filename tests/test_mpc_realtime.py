@@ -245,3 +245,52 @@ def test_time_budget_overrun_falls_back_without_crashing():
         assert np.isfinite(a).all()
         obs, *_ = env.step(a)
     assert ctrl.fallbacks == 14 and ctrl.last_info["over_budget"] and ctrl.last_info["fallback"]
+
+
+# ------------------------------------------------------------------ the controller's review (stop 63): a worker's error at reset
+class WorkerBug(Exception):
+    """An error no solver failure is (timed_solve turns RuntimeError and ValueError into failed solves)."""
+
+
+class LateFailingSolver(IpoptSolver):
+    """IPOPT, except that the first solve that starts at step ``at`` or later takes 0.3 s (longer than any wait of a
+    100 ms step), then raises WorkerBug; ``started`` is set as it begins."""
+
+    def __init__(self, at: int) -> None:
+        import threading
+
+        super().__init__()
+        self.at, self.step, self.started = at, -1, threading.Event()
+
+    def solve(self, *args, **kwargs):
+        if self.step >= self.at and not self.started.is_set():
+            self.started.set()
+            time.sleep(0.3)
+            raise WorkerBug("a bug in the solve on the worker")
+        return super().solve(*args, **kwargs)
+
+
+def test_a_worker_error_raised_at_reset_leaves_the_controller_reset():
+    """With deadline_ms a late solve runs on the worker; one that raised re-raised in reset() (end_episode) part-way:
+    the new target taken, the old episode's plan, schedule and model kept, the new scenario not. The reset now ends
+    first, then raises the worker's error (with a note); the next reset raises nothing."""
+    env = gym.make("WheelLoader-v2", braking="service")
+    solver = LateFailingSolver(at=3)
+    ctrl = MPCController("service", config=MPCConfig(mode="target_time", target_time=11.0, deadline_ms=100.0),
+                         solver=solver)
+    obs, _ = env.reset(seed=0)
+    for k in range(40):  # (on a loaded machine step 3 may still wait for step 2's solve: the first one from step 3 on)
+        solver.step = k
+        obs, *_ = env.step(ctrl.act(obs))
+        if solver.started.is_set():
+            break
+    assert ctrl._pending is not None  # (the failing solve runs on)
+    with pytest.raises(WorkerBug) as raised:
+        ctrl.reset(scenario={"payload": 9000.0}, target_time=12.0)
+    assert ctrl.config.target_time == 12.0 and ctrl.params.M_load == pytest.approx(9000.0)
+    assert ctrl.codec.params is ctrl.params and ctrl.model.params == ctrl.params
+    assert ctrl._counts is None and ctrl._sol is None and ctrl._plan is None and ctrl._last is None
+    assert ctrl._pending is None and ctrl.solve_times == [] and ctrl.deadline_misses == 0 and ctrl.last_info == {}
+    assert "the controller was reset" in "".join(getattr(raised.value, "__notes__", []))
+    ctrl.reset()  # (the error was raised once)
+    assert ctrl.config.target_time == 11.0

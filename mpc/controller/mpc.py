@@ -58,12 +58,13 @@ from mpc.controller.solver import (
     release_solvers,
     rti_on_short_horizons,
     solve_until,
+    solver_name,
     step_model,
     timed_solve,
 )
 from mpc.controller.terminal import terminal_control
 from wl_env import cycle
-from wl_env.codec import N_OBS, N_SCENARIO_OBS, Codec
+from wl_env.codec import N_OBS, N_SCENARIO_OBS, OBS_LAYOUTS, Codec
 from wl_env.env import action_array, check_target_time
 from wl_env.episode import check_control_interval
 from wl_env.params import (
@@ -468,9 +469,11 @@ class MPCController:
                 scenario = resolve_scenario(scenario, self.braking)
             if scenario.braking != self.braking:
                 raise ValueError(f"this MPC plans {self.braking} braking; the scenario has {scenario.braking!r}")
+        # (the last episode's worker ends first; its error is raised once this reset is done: raised here, it left the
+        # new config with the old episode's plan, schedule and model)
+        worker_error = self._end_jobs()
         self.config = config
         self.schedule = ScheduleSearch(self.config.mode, self.dt, self.config.w_fuel)
-        self.end_episode()
         if scenario is not None:
             params = scenario.params(self.params)
             if params != self.params:
@@ -491,12 +494,14 @@ class MPCController:
         self._iterate: Solve | None = None  # the last solve's iterate, converged or not: the next warm start
         self._counts: dict[int, int] | None = None  # full steps left per phase after the last applied step
         self._plan: dict[str, Any] | None = None  # the last good plan's steps, and the step it was made at
+        self._plan_reference: Any = None  # the first plan's continuous reference (the start of a solve with no warm one)
         self._plan_index: int | None = None  # the plan's step the last control came from
         self._reference: HorizonReference | None = None  # horizon_steps: the last full plan, the horizons' value
         self._horizon_last: tuple[GridNLP, Solve] | None = None  # ... and the last horizon's solve
         self._last: tuple | None = None  # (state, phase, control) of the previous step
         self._last_t = 0.0  # s: the time of the previous step's observation
         self._obs_phase = 1  # the previous step's observed phase
+        self._features: np.ndarray | None = None  # the episode's scenario (and target) features, as first observed
         self._transitions: list[tuple] = []  # realtime: steps the estimator has yet to learn from (on the worker)
         self._step_start: float | None = None  # deadline and real time: when the step began (time.perf_counter() s)
         self.estimator.reset()
@@ -525,16 +530,34 @@ class MPCController:
         # "neighbour" (real time: another target's or start's) or "reference" (the continuous optimum)
         self.first_plan_from = ""
         self.last_info: dict[str, Any] = {}
+        if worker_error is not None:
+            worker_error.add_note("(raised by the last episode's solve on the worker; the controller was reset)")
+            raise worker_error
 
     def end_episode(self) -> None:
         """The cycle is over: wait for the worker's solve, if one still runs (a late one, or a real-time
         step's). No CasADi call may outlive the episode: the caller's next ones (a score, another
         controller's plan) would run beside it, and CasADi's objects are not safe to create from two
-        threads at once (seen: heap corruption)."""
+        threads at once (seen: heap corruption). A worker's job that raised raises here, once every job has ended."""
+        error = self._end_jobs()
+        if error is not None:
+            raise error
+
+    def _end_jobs(self) -> BaseException | None:
+        """Wait for every job on the worker and drop it; the first one's error, if one raised (every job waited for
+        all the same: the first error left the others running beside the caller's next CasADi calls). An interrupt
+        of the wait itself is raised at once."""
         futures = [job.future for job in (self._pending, self._ahead, self._replan) if job is not None]
         self._pending = self._ahead = self._replan = None
+        first = None
         for future in futures:
-            future.result()
+            try:
+                future.result()
+            except BaseException as exc:
+                if not future.done():  # (the wait was interrupted, not the job)
+                    raise
+                first = first or exc
+        return first
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
@@ -554,6 +577,7 @@ class MPCController:
             raise ValueError(f"the observation is in phase {phase}, the last step's was in phase {self._obs_phase}: a "
                              "cycle's phases only go forward (an observation of another episode? a new cycle starts with "
                              "the controller's reset())")
+        features = self._episode_features_of(obs)
         self._last_t = t
         if self._last is not None:
             if self._ahead is not None:  # (the worker's to learn from, before its next solve)
@@ -581,11 +605,36 @@ class MPCController:
                                f"{info.get('status')!r}")
         self._last = (x, phase + 1 if shift else phase, u)
         self._obs_phase = phase
+        if self._features is None:
+            self._features = features
         theta = self.estimator.theta
         info["accel_gain"], info["accel_offset"] = float(theta[0]), float(theta[1])
         info["lift_gain"] = float(self.estimator.lift_gain)
         self.last_info = info
         return self.action(u, shift)
+
+    def _episode_features_of(self, obs: np.ndarray) -> np.ndarray:
+        """The observation's entries fixed for an episode (a v2 or target env's scenario features and target; none in
+        v1's), checked against the episode's first observation's: a ValueError naming those that changed."""
+        o = np.asarray(obs, dtype=float)
+        features = o[N_OBS:]
+        seen = self._features
+        if self._last is None or seen is None:
+            return features
+        # (observations of two loaders interleaved: a payload, rolling resistance or start of another loader was taken
+        # as this one's, and its steps fed to the estimator)
+        if features.shape != seen.shape:
+            raise ValueError(f"the observation has {o.shape[-1]} entries, the episode's first had {N_OBS + seen.size}: "
+                             "one episode's observations come from one environment (a new cycle starts with the "
+                             "controller's reset())")
+        names = OBS_LAYOUTS[o.shape[-1]][2]
+        changed = [f"{names[N_OBS + i]} {seen[i]:.6g} -> {features[i]:.6g}"
+                   for i in np.flatnonzero(np.abs(features - seen) > MARK_FEATURE_TOL)]
+        if changed:
+            raise ValueError(f"the observation's episode features changed within the episode ({', '.join(changed)}): they "
+                             "are fixed for an episode (observations of another loader? a new cycle starts with the "
+                             "controller's reset())")
+        return features
 
     def _filter_deadline(self) -> float | None:
         """When the safety filter must be done (``time.perf_counter()`` s): a step with a deadline
@@ -1084,7 +1133,7 @@ class MPCController:
             self._prepare_nlps(phase)
             sol = self._solve(phase, last.counts, x, warm=last)
             if sol.ok:
-                self._take_first_plan(sol, "stored")
+                self._take_first_plan(sol, "stored", reference=_FIRST_PLANS[key].reference)
                 return
         if cfg.realtime:
             planned = self._plan_from_neighbour(key, x, phase, k)
@@ -1130,7 +1179,8 @@ class MPCController:
         parts["layout"], parts["search"] = parts["layout"] + self._later_build_s, parts["search"] - self._later_build_s
         self.planning_parts = parts
         if not sol.ok:
-            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: IPOPT status {sol.status}")
+            raise RuntimeError(f"MPC: no plan for the {self.braking} cycle from the start state: "
+                               f"{solver_name(self.solver, self._nlp(phase))} status {sol.status}")
         self._take_first_plan(sol, "reference", key, ref)
 
     def _search_move(self, sol: Solve, phase: int, k: int, failed: set) -> tuple | None:
@@ -1238,6 +1288,7 @@ class MPCController:
         if a key is given."""
         self._sol, self._iterate, self._counts = sol, sol, dict(sol.counts)
         self.first_plan_from = source
+        self._plan_reference = reference
         if key is not None:
             _FIRST_PLANS.pop(key, None)
             sol.keep_lam_p()  # (its source holds the NLP: a stored plan must not keep released solvers alive)
@@ -1603,6 +1654,14 @@ class MPCController:
             return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=f"error: {exc}")
         if warm is not None and warm.first_phase == first_phase and warm.z is not None:
             return timed_solve(self.solver, nlp, counts, first_phase, args, warm.z, warm)
+        if guess is None:
+            # No warm start of this phase: a plant observed in phase 2 again after a plan from phase 3 at the reversing
+            # point (it stood still there, then moved back). The middle of the bounds was NaN for the 499 of 1189
+            # variables with infinite bounds ("Invalid_Number_Detected", every time), and a finite middle or zero ran
+            # IPOPT's 500 iterations and failed after 9 s: the continuous reference's guess, as a first plan's.
+            guess = self._reference_guess(first_phase, counts, x)
+            if isinstance(guess, str):
+                return Solve(counts=dict(counts), first_phase=first_phase, ok=False, status=guess)
         if guess is not None:
             # the first solve of a cycle: the layout's warm solver, built for the cycle anyway, from the
             # guess with no multipliers (measured, six cycles: 0.45-0.96 s against 1.2-1.9 s cold on the MX
@@ -1614,8 +1673,21 @@ class MPCController:
                 return sol
         # a cold solve: on the MX twin (the same variables and rows, a solver of its own; since stop 45 it builds
         # about as fast as the SX NLP, both on the slot functions' derivatives)
-        z0 = guess if guess is not None else (nlp.lbw + nlp.ubw) / 2
-        return timed_solve(self.solver, self._nlp(first_phase, "MX"), counts, first_phase, args, z0)
+        return timed_solve(self.solver, self._nlp(first_phase, "MX"), counts, first_phase, args, guess)
+
+    def _reference_guess(self, first_phase: int, counts: dict[int, int], x: np.ndarray) -> np.ndarray | str:
+        """A start for a solve from ``first_phase`` with no warm start of that phase: the first plan's continuous
+        reference's guess (:meth:`_guess`); else why there is none (a failed solve's status)."""
+        if self._plan_reference is None:
+            return (f"no start for a solve from phase {first_phase}: no warm start of that phase and no continuous "
+                    "reference to start from")
+        try:
+            guess = self._guess(first_phase, counts, self._plan_reference, x)
+        except (ValueError, IndexError, AttributeError, TypeError) as exc:
+            return f"no start for a solve from phase {first_phase}: the continuous reference gives none ({exc})"
+        if not np.isfinite(guess).all():
+            return f"no start for a solve from phase {first_phase}: the continuous reference's guess is not finite"
+        return guess
 
     def _track_prediction_error(self, x: np.ndarray, t: float) -> None:
         """How far the last plan's next state was off the measurement in engine speed."""

@@ -296,6 +296,15 @@ _ipopt = functools.lru_cache(maxsize=NLP_CACHE)(_build_ipopt)
 _ipopt_horizon = functools.lru_cache(maxsize=HORIZON_CACHE)(_build_ipopt)
 
 
+def checked_max_iter(max_iter: Any) -> int:
+    """A solver's iteration limit: an integer in [1, 100000] (MPCConfig.max_iter's range; numpy's integers as the
+    ints they hold), else a ValueError naming ``max_iter``."""
+    max_iter = plain(max_iter)
+    if not (is_integer(max_iter) and 1 <= max_iter <= 100_000):
+        raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(max_iter)}")
+    return max_iter
+
+
 class IpoptSolver:
     """IPOPT on a grid NLP: warm-started solves at ``max_iter`` iterations and ``time_budget`` seconds of
     wall time at most (pushed off their bounds as :func:`far_starts` says); a cold solve (no multipliers
@@ -306,12 +315,10 @@ class IpoptSolver:
     def __init__(self, max_iter: int = 100, time_budget: float | None = None) -> None:
         # (checked as MPCConfig checks them: time_budget 0 was IPOPT's "Invalid options" traceback at the first plan,
         # nan no budget at all, max_iter 2.5 or True taken as 2 or 1)
-        max_iter, time_budget = plain(max_iter), plain(time_budget)
-        if not (is_integer(max_iter) and 1 <= max_iter <= 100_000):
-            raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(max_iter)}")
+        self.max_iter, time_budget = checked_max_iter(max_iter), plain(time_budget)
         if time_budget is not None and not (is_real_number(time_budget) and time_budget > 0):
             raise ValueError(f"time_budget must be > 0 s or None, got {shown(time_budget)}")
-        self.max_iter, self.time_budget = max_iter, time_budget
+        self.time_budget = time_budget
 
     def _function(self, nlp: GridNLP, warm: bool, far: bool = False) -> ca.Function:
         build = _ipopt_horizon if nlp.short else _ipopt
@@ -371,7 +378,8 @@ class FatropSolver:
     each solve runs the barrier down from its default."""
 
     def __init__(self, max_iter: int = 300) -> None:
-        self.max_iter = max_iter
+        # (checked as IpoptSolver's: 2.5 or True reached fatrop's options, "0" its solver's build at the first plan)
+        self.max_iter = checked_max_iter(max_iter)
 
     def prepare(self, nlp: GridNLP) -> None:
         _fatrop(nlp, self.max_iter)
@@ -487,6 +495,22 @@ class FallbackSolver:
         self.handed_over += 1
         r = self.fallback.solve(nlp, args, x0, lam_x0, lam_g0)
         return dataclasses.replace(r, status=f"{first.status}, then {r.status}", iterations=first.iterations + r.iterations)
+
+
+def solver_name(solver: Any, nlp: GridNLP | None = None) -> str:
+    """What solves ``nlp`` (any NLP if None) with ``solver``, for a message: "IPOPT", "fatrop", "SQP-RTI (hpipm)" (a
+    subclass's name after it), a FallbackSolver's "<first>, then <fallback>" (its fallback alone where the first takes
+    no such NLP), else the solver's class name."""
+    if isinstance(solver, FallbackSolver):
+        if nlp is not None and not solver.primary_takes(nlp):
+            return solver_name(solver.fallback, nlp)
+        return f"{solver_name(solver.primary, nlp)}, then {solver_name(solver.fallback, nlp)}"
+    for kind, name in ((IpoptSolver, "IPOPT"), (FatropSolver, "fatrop"), (SqpRtiSolver, "SQP-RTI")):
+        if isinstance(solver, kind):
+            name += f" ({solver.qpsol})" if kind is SqpRtiSolver else ""
+            # (an injected subclass by its own name too: it may change what the solver does)
+            return name if type(solver) is kind else f"{name} ({type(solver).__name__})"
+    return type(solver).__name__
 
 
 def rti_on_short_horizons(ipopt: GridSolver) -> FallbackSolver:
