@@ -40,7 +40,7 @@ log = logging.getLogger("train_plan_policy")
 # PPOConfig fields every stage shares (scripts/train_ppo.py's flags of the same names)
 RECIPE = {"scenario": "train", "init_noise": 0.0, "n_steps": 1, "batch_size": 512,
           "w_fuel": 8.0, "curriculum_fraction": 0.0, "net_arch": (256, 256), "torch_threads": 1, "progress_bar": False,
-          "reward": {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0, "violation": 100.0, "late": 50.0}}
+          "reward": {"target_distance": 60.0, "target_height": 60.0, "failure": 100.0, "violation": 100.0}}
 
 
 @dataclass
@@ -53,6 +53,7 @@ class Options:
     log_dir: str = "runs"
     # per stage (since stop 56; 500 000 + 500 000 until then: 1.15 T_min 11.9 / 10.5 % over 3 seeds against 9.7 / 8.7 %)
     cycles: tuple[int, ...] = (1_000_000, 1_000_000)
+    late: float = 50.0  # the lateness charge per unit of relative lateness (the reward's ``late``)
     log_std_init: tuple[float, ...] = (-1.0, -3.0)  # per stage: the Gaussian's log std at the stage's start
     log_std_final: tuple[float, ...] = (-3.5, -4.0)  # per stage: its cap at the stage's end (annealed)
     num_envs: int = 2048  # loaders per rollout (one cycle each)
@@ -86,7 +87,7 @@ def stage_configs(o: Options) -> list:
         name = f"plan_{o.braking}_s{o.seed}_stage{k + 1}"
         try:  # (each field an option of the same name: said as the option, not as PPOConfig.num_envs)
             configs.append(PPOConfig(
-                **RECIPE, env_id=o.env_id, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
+                **{**RECIPE, "reward": {**RECIPE["reward"], "late": o.late}}, env_id=o.env_id, braking=o.braking, seed=o.seed, log_dir=o.log_dir, run_name=name, total_timesteps=o.cycles[k],
                 num_envs=o.num_envs, log_std_init=o.log_std_init[k], log_std_final=o.log_std_final[k],
                 eval_freq=o.eval_freq, eval_episodes=o.eval_episodes, checkpoint_freq=o.checkpoint_freq,
                 time_limit=o.time_limit, score=o.score, init_policy=str(configs[-1].run_dir) if configs else ""))
