@@ -34,7 +34,7 @@ from mpc import interrupt
 from wl_env import cycle
 from wl_env.atomic_io import check_output_folder
 from wl_env.controller import Controller
-from wl_env.params import LoaderParams, plain, shown
+from wl_env.params import LoaderParams, check_flag, plain, shown
 from wl_env.scenario import Scenario, resolve_scenario
 
 log = logging.getLogger(__name__)
@@ -501,13 +501,12 @@ def evaluate_controller(
     import gymnasium as gym
 
     import wl_env  # noqa: F401  (registers WheelLoader-v1/v2)
-    from mpc.benchmark.pareto import check_flag
     from wl_env.rollout import run_episode
 
     # (switches as True or False, before any episode: solve="no" failed at the first score, after the episode had
     # run, and score="no" scored)
-    score, solve, trajectories, deferred = (check_flag(v, n) for v, n in (
-        (score, "score"), (solve, "solve"), (trajectories, "trajectories"), (deferred, "deferred")))
+    score, solve, trajectories, deferred = (check_flag(n, v) for n, v in (
+        ("score", score), ("solve", solve), ("trajectories", trajectories), ("deferred", deferred)))
     # (dicts, JSON text and files too, as the env takes them; anything else is a ValueError naming it)
     if scenarios is not None:
         if isinstance(scenarios, (str, bytes, dict)) or not hasattr(scenarios, "__iter__"):

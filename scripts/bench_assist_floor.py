@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's
 
 import wl_env  # noqa: E402, F401  (registers the envs)
 import wl_env.assist as assist  # noqa: E402
+from agents.ppo_config import COAST_ENV_IDS  # noqa: E402  (the assists with the coasting fraction, its 4th action)
 from agents.train_cli import tyro_options  # noqa: E402
 from mpc.benchmark.reference import min_time_of  # noqa: E402
 from wl_env.atomic_io import check_output_file, write_json_atomic  # noqa: E402
@@ -38,8 +39,6 @@ from wl_env.logs import run_script  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
 
 log = logging.getLogger("bench_assist_floor")
-ENV_IDS = ("WheelLoaderTarget-v3", "WheelLoaderTarget-v4", "WheelLoaderTarget-v5", "WheelLoaderTarget-v6",
-           "WheelLoaderTarget-v7")  # the assists with the coasting fraction (this driver's fourth action)
 
 
 @dataclass
@@ -72,8 +71,8 @@ class ScheduledDriver:
 def run(o: Options) -> dict[str, Any]:
     if not 1 <= o.scenarios <= 1000:
         raise ValueError(f"--scenarios must be an integer in [1, 1000], got {o.scenarios}")
-    if o.env_id not in ENV_IDS:
-        raise ValueError(f"--env-id must be one of {', '.join(ENV_IDS)}, got {o.env_id!r}")
+    if o.env_id not in COAST_ENV_IDS:
+        raise ValueError(f"--env-id must be one of {', '.join(COAST_ENV_IDS)}, got {o.env_id!r}")
     if not 0.0 < o.engine_fraction <= 1.0:
         raise ValueError(f"--engine-fraction must be in (0, 1], got {o.engine_fraction}")
     if o.out is not None:  # (written at the end: checked before the cycles)

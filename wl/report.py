@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.atomic_io import check_output_file, save_figure, write_atomic
+from wl_env.atomic_io import check_output_file, read_regular_file, save_figure, write_atomic
 from wl_env.params import is_real_number
 
 log = logging.getLogger(__name__)
@@ -305,16 +305,16 @@ MAX_RESULTS_BYTES = 64 * 2**20  # (a full-suite results.json is a few MB; a 2 GB
 def load_results(folder: str | Path) -> dict[str, Any]:
     """``results.json`` of a ``wl run`` folder, checked to hold everything :func:`render` draws."""
     path = Path(folder) / RESULTS_FILE
-    if not path.is_file():
-        if os.path.lexists(path):  # (a pipe, a device, a folder or a dangling link was "no results.json")
-            raise ValueError(f"{path} is not a regular file (`wl run --out {folder}` writes one)")
-        raise FileNotFoundError(f"no {RESULTS_FILE} in {folder} (write one with `wl run --out {folder}`)")
-    size = path.stat().st_size
-    if size > MAX_RESULTS_BYTES:  # (refused by its size before it is read)
-        raise ValueError(f"{path} is {size} bytes, more than a results.json of `wl run` holds "
-                         f"({MAX_RESULTS_BYTES // 2**20} MiB)")
     try:
-        results = json.loads(path.read_text())
+        raw = read_regular_file(path, MAX_RESULTS_BYTES, "a results.json of `wl run` holds")
+    except FileNotFoundError:
+        if os.path.lexists(path):  # (a dangling link was "no results.json")
+            raise ValueError(f"{path} is not a regular file (`wl run --out {folder}` writes one)") from None
+        raise FileNotFoundError(f"no {RESULTS_FILE} in {folder} (write one with `wl run --out {folder}`)") from None
+    except ValueError as exc:  # (a pipe, a device or a folder was "no results.json"; a 2 GB file was read whole)
+        raise ValueError(f"{path} is {exc} (`wl run --out {folder}` writes one)") from None
+    try:
+        results = json.loads(raw.decode("utf-8"))
     except (ValueError, OSError) as exc:  # (JSONDecodeError, UnicodeDecodeError, an int of too many digits)
         raise ValueError(f"{path} is not valid JSON: {' '.join(str(exc).split())[:200]}") from None
     except RecursionError:  # (a RuntimeError)

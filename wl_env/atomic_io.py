@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -59,6 +60,37 @@ def current_umask() -> int:
     umask = os.umask(0o077)  # (elsewhere: read it by setting it, to a mask that opens nothing up meanwhile)
     os.umask(umask)
     return umask
+
+
+def read_regular_file(path: str | os.PathLike, limit: int | None, holds: str = "") -> bytes:
+    """The bytes of the regular file ``path`` (a symbolic link followed), checked on the file opened and read no
+    further than ``limit`` bytes (None: no limit): a FIFO blocked a read for good, /dev/zero never ended one, and a
+    file swapped in after a check was read. FileNotFoundError if there is none; else a ValueError saying what is
+    wrong, to follow the file's name ("not a regular file", "N bytes, more than <holds> (<limit>)", ...)."""
+    if limit is not None:
+        most = f"{holds} ({limit // 2**20} MiB)" if limit % 2**20 == 0 else f"{holds} ({limit} bytes)"
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))  # (a FIFO with no writer: no wait)
+        try:
+            info = os.fstat(fd)
+            if stat.S_ISDIR(info.st_mode):
+                raise ValueError("a folder, not a file")
+            if not stat.S_ISREG(info.st_mode):
+                raise ValueError("not a regular file")
+            if limit is not None and info.st_size > limit:
+                raise ValueError(f"{info.st_size} bytes, more than {most}")
+            with os.fdopen(fd, "rb", closefd=False) as f:
+                # (a file that grows, or says it is empty as /proc's do, is read no further)
+                data = f.read() if limit is None else f.read(limit + 1)
+        finally:
+            os.close(fd)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:  # a symbolic link loop, no permission, ...
+        raise ValueError(f"unreadable ({exc.strerror or exc})") from None
+    if limit is not None and len(data) > limit:
+        raise ValueError(f"larger than {most}")
+    return data
 
 
 def _regular_file(path: Path, what: str) -> Path:

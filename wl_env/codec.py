@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wl_env.params import LoaderParams, plain, resolve, shown
+from wl_env.params import LoaderParams, check_flag, resolve, shown
 from wl_env.physics.backend import ops_for
 from wl_env.scenario import FIELDS, Scenario, param_features
 
@@ -119,10 +119,8 @@ class Codec:
 
     def __init__(self, params: LoaderParams | dict | None = None, observe_scenario: bool = False) -> None:
         self.params = p = resolve(params)
-        observe_scenario = plain(observe_scenario)
-        if not isinstance(observe_scenario, bool):  # (bool(): "no" or a layout's name chose v2's layout without a word)
-            raise ValueError(f"observe_scenario must be True or False, got {shown(observe_scenario)}")
-        self.observe_scenario = observe_scenario
+        # (not bool(): "no" or a layout's name chose v2's layout without a word)
+        self.observe_scenario = observe_scenario = check_flag("observe_scenario", observe_scenario)
         lo, hi = p.U_ab_bounds
         self._ab_mid, self._ab_half = 0.5 * (hi + lo), 0.5 * (hi - lo)
         low, high = (SCENARIO_OBS_LOW, SCENARIO_OBS_HIGH) if observe_scenario else (OBS_LOW, OBS_HIGH)

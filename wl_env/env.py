@@ -13,7 +13,7 @@ from wl_env import cycle
 from wl_env.assist import N_ASSIST_ACTIONS, N_COAST_ACTIONS, assisted_action
 from wl_env.codec import TARGET_OBS_HIGH, TARGET_OBS_LOW, TIME_SCALE
 from wl_env.episode import CycleStepper, RewardConfig
-from wl_env.params import LoaderParams, check_no_overridden, is_finite, plain, resolve_machine, shown
+from wl_env.params import LoaderParams, check_flag, check_no_overridden, is_finite, plain, resolve_machine, shown
 from wl_env.scenario import Scenario, is_file, resolve_scenario
 from wl_env.suites import SUITES, Suite, load_suite
 
@@ -95,13 +95,6 @@ def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any 
         raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
                          f"got fuel_action={fuel_action!r}")
     return assist
-
-
-def check_flag(name: str, value: Any) -> bool:
-    """A switch given as True or False (not ``bool(value)``: "no" would switch it on)."""
-    if not isinstance(value, bool):
-        raise ValueError(f"{name} must be True or False, got {shown(value)}")
-    return value
 
 
 def n_actions(assist: bool, coast: bool) -> int:

@@ -367,6 +367,15 @@ def is_integer(value: Any) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
+def check_flag(name: str, value: Any) -> bool:
+    """A switch given as True or False (numpy's bool too), else ValueError naming ``name``: ``bool(value)`` took
+    "no" as True."""
+    flag = plain(value)
+    if not isinstance(flag, bool):
+        raise ValueError(f"{name} must be True or False, got {shown(value)}")
+    return flag
+
+
 def is_finite(value: Any) -> bool:
     """``math.isfinite`` that says False for an int too large for a float (10**400 from JSON) instead of
     raising OverflowError: a validator then reports the value out of range."""

@@ -24,14 +24,13 @@ import hashlib
 import json
 import math
 import numbers
-import os
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from wl_env.atomic_io import read_regular_file
 from wl_env.cycle import BRAKING_MODES
 from wl_env.params import DEFAULT_PARAMS, LoaderParams, is_finite, plain, shown
 
@@ -199,32 +198,19 @@ class Scenario:
 
 
 # bytes a scenario file may hold: a scenario is a JSON object of 8 fields (~250 bytes); a 3 GB file was read whole
-# (20 s, 6 GB), as the command line's --scenario refuses it (wl.cli.MAX_SCENARIO_BYTES)
+# (20 s, 6 GB)
 MAX_SCENARIO_FILE_BYTES = 2**20
 
 
 def read_scenario_file(path: Path, what: str) -> str:
     """The text of the scenario file ``path`` (``what`` names it in errors): a regular file of at most
-    MAX_SCENARIO_FILE_BYTES, checked on the file opened (a FIFO, a device or a file swapped in after a check is
-    refused, never read or waited on) and read no further than that."""
-    limit = MAX_SCENARIO_FILE_BYTES
-    try:  # (O_NONBLOCK: opening a FIFO with no writer waited forever)
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
-    except (OSError, ValueError) as exc:
+    MAX_SCENARIO_FILE_BYTES (:func:`wl_env.atomic_io.read_regular_file`)."""
+    try:
+        data = read_regular_file(path, MAX_SCENARIO_FILE_BYTES, "a scenario's JSON holds")
+    except OSError as exc:  # (gone since the caller saw it)
         raise ValueError(f"{what}: cannot read it ({exc})") from None
-    with os.fdopen(fd, "rb") as f:
-        try:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode):
-                raise ValueError(f"{what} is not a regular file")
-            if st.st_size > limit:
-                raise ValueError(f"{what} is {st.st_size} bytes, more than a scenario's JSON holds "
-                                 f"({limit // 2**20} MiB)")
-            data = f.read(limit + 1)  # (a file that grows, or says it is empty as /proc's do, is read no further)
-        except OSError as exc:
-            raise ValueError(f"{what}: cannot read it ({exc})") from None
-    if len(data) > limit:
-        raise ValueError(f"{what} holds more than a scenario's JSON holds ({limit // 2**20} MiB)")
+    except ValueError as exc:
+        raise ValueError(f"{what} is {exc}") from None
     try:
         return data.decode("utf-8-sig")  # (a byte order mark, as some editors write, was "not valid JSON")
     except UnicodeDecodeError as exc:

@@ -36,6 +36,7 @@ from wl_env.params import (
     SCENARIO_FIELDS,
     LoaderParams,
     ParamsView,
+    check_flag,
     check_no_overridden,
     is_finite,
     is_integer,
@@ -725,9 +726,7 @@ def solve_ocp(
     """
     braking, p = with_scenario(braking, params, scenario)
     check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements, w_fuel)
-    for name, flag in (("verify", verify), ("refine", refine)):  # (verify="no" verified, as any string would)
-        if not isinstance(flag, (bool, np.bool_)):
-            raise ValueError(f"{name} must be True or False, got {shown(flag)}")
+    check_flag("verify", verify), check_flag("refine", refine)  # (verify="no" verified, as any string would)
     w_fuel, max_refinements = None if w_fuel is None else float(w_fuel), int(max_refinements)
     settings = settings or OCPSettings()
     try:

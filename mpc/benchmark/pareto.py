@@ -42,7 +42,7 @@ from mpc.benchmark.ocp import (
     verification_passed,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, is_integer, is_real_number, resolve, shown
+from wl_env.params import LoaderParams, check_flag, is_integer, is_real_number, resolve, shown
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -468,13 +468,6 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
     return best
 
 
-def check_flag(value: Any, name: str) -> bool:
-    """``value`` if it is a bool (numpy's too), else ValueError naming ``name`` (``"no"`` was taken as True)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be True or False, got {shown(value)}")
-    return bool(value)
-
-
 def check_sweep_arguments(max_interval: Any = 0.15, progress: Any = None, **flags: Any) -> None:
     """:func:`pareto_front`'s arguments, each refused by name before any solve (``max_interval`` 0 was an
     OverflowError after the front's two ends were solved, NaN a bare ValueError, -1 the coarsest mesh without a
@@ -485,7 +478,7 @@ def check_sweep_arguments(max_interval: Any = 0.15, progress: Any = None, **flag
     if progress is not None and not callable(progress):
         raise ValueError(f"progress must be a function taking a message, or None, got {shown(progress)}")
     for name, value in flags.items():
-        check_flag(value, name)
+        check_flag(name, value)
 
 
 def pareto_front(
@@ -701,7 +694,7 @@ def pareto_fronts(
     for b in brakings:
         cycle.check_braking(b)
     n_points = check_n_points(n_points)
-    check_flag(use_cache, "use_cache"), check_flag(progress, "progress")
+    check_flag("use_cache", use_cache), check_flag("progress", progress)
     if workers is not None:
         from mpc.workers import check_workers
 

@@ -32,14 +32,13 @@ from mpc.benchmark.pareto import (
     FRONT_KIND,
     ParetoFront,
     cached_result,
-    check_flag,
     check_front,
     front_folder,
     nearest_front,
     save_result,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import LoaderParams, check_flag, resolve
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +175,7 @@ def min_time_of(braking: str, params: LoaderParams, cache: str | os.PathLike | N
     """A cycle's minimum time T_min (s): the known front's, else solved directly (unless ``solve`` is
     False: then LookupError)."""
     params = resolve(params)
-    check_flag(solve, "solve")  # (solve="no" solved)
+    check_flag("solve", solve)  # (solve="no" solved)
     known = known_front(braking, params, cache)
     if known is not None:
         return float(known[0].T_min)
@@ -189,7 +188,7 @@ def reference_at(T: float, braking: str, params: LoaderParams, cache: str | os.P
                  front: ParetoFront | None = None, solve: bool = True) -> dict[str, Any]:
     """``{"T_min", "fuel_opt_g", "reference"}`` of a cycle of time T (s): the known front's (``front``,
     shipped or cached), else solved directly (unless ``solve`` is False: then LookupError)."""
-    check_flag(solve, "solve")
+    check_flag("solve", solve)
     source = "given"
     if front is None:
         known = known_front(braking, params, cache)

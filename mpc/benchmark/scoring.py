@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 
 from mpc.benchmark.ocp import MAX_CYCLE_TIME, as_plain
-from mpc.benchmark.pareto import ParetoFront, check_flag, check_front_of
+from mpc.benchmark.pareto import ParetoFront, check_front_of
 from mpc.benchmark.reference import reference_at
 from wl_env.cycle import check_braking
-from wl_env.params import LoaderParams, is_real_number, resolve, shown
+from wl_env.params import LoaderParams, check_flag, is_real_number, resolve, shown
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ def score_run(
                          f"got {T!r}")
     T, fuel_g = float(T), float(fuel_g)
     check_braking(braking)
-    check_flag(solve, "solve")  # (solve="no" solved)
+    check_flag("solve", solve)  # (solve="no" solved)
     p = resolve(params)
     if front is not None:
         check_front_of(front, braking, p)

@@ -19,12 +19,12 @@ import json
 import logging
 import math
 import os
-import stat
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from wl_env import atomic_io
 from wl_env.atomic_io import _finite, _json_default, write_atomic  # the converters atomic_io writes JSON with
 
 log = logging.getLogger(__name__)
@@ -94,23 +94,12 @@ MAX_ENTRY_BYTES = 256 * 2**20  # (the largest entries, a suite's fronts, are a f
 
 
 def read_regular_file(path: str | os.PathLike, limit: int = MAX_ENTRY_BYTES) -> bytes:
-    """The bytes of the regular file at ``path`` (a symbolic link is followed); BadEntry naming it if it is a
-    folder, no regular file (a FIFO would block the read for good, /dev/zero never end it), larger than ``limit``
-    bytes or unreadable. FileNotFoundError if there is none."""
-    path = Path(path)
+    """:func:`wl_env.atomic_io.read_regular_file` with its errors as a BadEntry naming the file (FileNotFoundError
+    if there is none)."""
     try:
-        info = path.stat()
-        if stat.S_ISDIR(info.st_mode):
-            raise BadEntry(path, "a folder, not a file")
-        if not stat.S_ISREG(info.st_mode):  # (a FIFO or a device would block or never end)
-            raise BadEntry(path, "not a regular file")
-        if info.st_size > limit:
-            raise BadEntry(path, f"{info.st_size} bytes, more than an entry holds ({limit})")
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise
-    except OSError as exc:  # a symlink loop, no permission, ...
-        raise BadEntry(path, f"unreadable ({exc.strerror or exc})") from None
+        return atomic_io.read_regular_file(path, limit, "an entry holds")
+    except ValueError as exc:
+        raise BadEntry(path, str(exc)) from None
 
 
 def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,

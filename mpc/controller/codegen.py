@@ -38,7 +38,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from wl_env.atomic_io import atomic_path, write_json_atomic
+from wl_env.atomic_io import atomic_path, read_regular_file, write_json_atomic
 
 try:
     import fcntl
@@ -226,14 +226,12 @@ def _key(origin: ca.Function, group: dict[str, ca.Function], cc: str) -> str:
 MAX_RECORD_BYTES = 1 << 16  # a library's record is ~300 bytes
 
 
-def _check_regular(path: Path, most: int | None = None) -> None:
-    """``path`` is a regular file (of at most ``most`` bytes), else a ValueError; FileNotFoundError if it is absent
-    (a dangling symbolic link too)."""
-    info = path.stat()
-    if not stat.S_ISREG(info.st_mode):
-        raise ValueError(f"{path.name} is no regular file")
-    if most is not None and info.st_size > most:
-        raise ValueError(f"{path.name} holds {info.st_size} bytes, more than a record's {most}")
+def _read_regular(path: Path, limit: int | None = None) -> bytes:
+    """:func:`wl_env.atomic_io.read_regular_file`, its ValueError naming the file."""
+    try:
+        return read_regular_file(path, limit, "a record holds")
+    except ValueError as exc:
+        raise ValueError(f"{path.name} is {exc}") from None
 
 
 def _sha256(path: Path) -> str:
@@ -249,12 +247,11 @@ def _load(folder: Path, key: str, group: dict[str, ca.Function], quiet: bool = F
     try:
         # (regular files only, the record small: a FIFO in a library's or record's place hung the first plan in its
         # read, and a record that parsed as a list, a number or null was an AttributeError's traceback)
-        for path, most in ((record, MAX_RECORD_BYTES), (lib, None)):
-            _check_regular(path, most)
-        meta = json.loads(record.read_text())
+        text, library = _read_regular(record, MAX_RECORD_BYTES), _read_regular(lib)
+        meta = json.loads(text.decode())
         if not isinstance(meta, dict):
             raise ValueError(f"the record is no JSON object ({type(meta).__name__})")
-        if meta.get("version") != RECORD_VERSION or meta.get("sha256") != _sha256(lib):
+        if meta.get("version") != RECORD_VERSION or meta.get("sha256") != hashlib.sha256(library).hexdigest():
             raise ValueError("the library is not the one its record describes")
         fns = {name: ca.external(f.name(), str(lib)) for name, f in group.items()}
     except FileNotFoundError:

@@ -52,6 +52,8 @@ from mpc.controller.solver import (
     GridSolver,
     IpoptSolver,
     Solve,
+    checked_max_iter,
+    checked_time_budget,
     far_starts,
     grid_nlp,
     horizon_nlp,
@@ -70,6 +72,7 @@ from wl_env.episode import check_control_interval
 from wl_env.params import (
     SCENARIO_FIELDS,
     LoaderParams,
+    check_flag,
     check_no_overridden,
     is_real_number,
     plain,
@@ -341,14 +344,10 @@ class MPCConfig:
         if self.deadline_ms is not None and not (is_real_number(self.deadline_ms) and self.deadline_ms >= MIN_DEADLINE_MS):
             raise ValueError(f"deadline_ms must be >= {MIN_DEADLINE_MS:g} ms (1 µs) or None, got {shown(self.deadline_ms)}")
         for name in ("realtime", "safety_filter", "parallel_search"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be True or False, got {shown(getattr(self, name))}")
+            check_flag(name, getattr(self, name))
         if self.realtime and self.deadline_ms is not None:
             raise ValueError("realtime and deadline_ms exclude each other: a real-time step's deadline is its interval")
-        if self.time_budget is not None and not (is_real_number(self.time_budget) and self.time_budget > 0):
-            raise ValueError(f"time_budget must be > 0 s or None, got {shown(self.time_budget)}")
-        if not count(self.max_iter, 1, 100_000):
-            raise ValueError(f"max_iter must be an integer in [1, 100000], got {shown(self.max_iter)}")
+        checked_time_budget(self.time_budget), checked_max_iter(self.max_iter)
         if not count(self.spare_steps, 1, 100):
             raise ValueError(f"spare_steps must be an integer in [1, 100], got {shown(self.spare_steps)}")
         # (1e308 made the first plan's gradient inf: "no plan ... Invalid_Number_Detected" after 2 s; `wl mpc
@@ -1804,10 +1803,7 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
     if scenario is not None and not isinstance(scenario, Scenario):
         raise ValueError(f"scenario must be a wl_env.scenario.Scenario or None, got {type(scenario).__name__} "
                          "(Scenario.parse reads one from JSON)")
-    mismatch, score = plain(mismatch), plain(score)  # (np.bool_ as the bool it holds, as MPCConfig takes it)
-    for name, flag in (("mismatch", mismatch), ("score", score)):  # (score="no" scored the run)
-        if not isinstance(flag, bool):
-            raise ValueError(f"{name} must be True or False, got {shown(flag)}")
+    mismatch, score = check_flag("mismatch", mismatch), check_flag("score", score)  # (score="no" scored the run)
     if mismatch and scenario is None:  # (it was ignored without a word)
         raise ValueError("mismatch plans a scenario's cycle with the nominal payload and rolling resistance: "
                          "give a scenario")

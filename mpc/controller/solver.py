@@ -305,6 +305,15 @@ def checked_max_iter(max_iter: Any) -> int:
     return max_iter
 
 
+def checked_time_budget(time_budget: Any) -> float | None:
+    """A solve's wall-time budget: > 0 s or None (MPCConfig.time_budget's range), else a ValueError naming
+    ``time_budget`` (0 was IPOPT's "Invalid options" at the first plan, NaN no budget at all)."""
+    time_budget = plain(time_budget)
+    if time_budget is not None and not (is_real_number(time_budget) and time_budget > 0):
+        raise ValueError(f"time_budget must be > 0 s or None, got {shown(time_budget)}")
+    return time_budget
+
+
 class IpoptSolver:
     """IPOPT on a grid NLP: warm-started solves at ``max_iter`` iterations and ``time_budget`` seconds of
     wall time at most (pushed off their bounds as :func:`far_starts` says); a cold solve (no multipliers
@@ -313,12 +322,8 @@ class IpoptSolver:
     COLD_MAX_ITER = 500
 
     def __init__(self, max_iter: int = 100, time_budget: float | None = None) -> None:
-        # (checked as MPCConfig checks them: time_budget 0 was IPOPT's "Invalid options" traceback at the first plan,
-        # nan no budget at all, max_iter 2.5 or True taken as 2 or 1)
-        self.max_iter, time_budget = checked_max_iter(max_iter), plain(time_budget)
-        if time_budget is not None and not (is_real_number(time_budget) and time_budget > 0):
-            raise ValueError(f"time_budget must be > 0 s or None, got {shown(time_budget)}")
-        self.time_budget = time_budget
+        # (checked as MPCConfig checks them: max_iter 2.5 or True was taken as 2 or 1)
+        self.max_iter, self.time_budget = checked_max_iter(max_iter), checked_time_budget(time_budget)
 
     def _function(self, nlp: GridNLP, warm: bool, far: bool = False) -> ca.Function:
         build = _ipopt_horizon if nlp.short else _ipopt
