@@ -85,8 +85,8 @@ stops on the mark from there runs below that fraction, by up to a step's travel 
 (:func:`step_braking_deceleration`) asks in each step the deceleration after which braking at the driver's
 fraction stops on the mark: the first braking step takes up what the step grid leaves over, the rest run at the
 fraction. An all-out driver that reads the plant ended 2.09 % over T_min (median of 20 `test` cycles, service
-braking) against v6's 2.73 %: half the cycles a step shorter, none longer; CMA-ES searches of the plan family at
-T_min found plans 12.0-17.1 % over the optimum's fuel (v6: 20.7-24.0 %) at 1.3-2.3 % lateness (measured, stop 62).
+braking) against v6's 2.73 %: 9 of the 20 cycles a step shorter, none longer; CMA-ES searches of the plan family at
+T_min found plans 11.5-21.7 % over the optimum's fuel (v6: 20.7-24.0 %) at 1.3-2.3 % lateness (measured, stop 62).
 
 Written for floats and numpy arrays of loaders (the vector env's :class:`~wl_env.params.ParamsView`).
 """

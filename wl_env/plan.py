@@ -46,8 +46,9 @@ at its last step, ``info["steps"]`` the number of v6 steps.
 
 * v1: the same plan on WheelLoaderTarget-v7, whose assist brakes on the step grid (the first braking step takes up
   what the grid leaves over, the rest at the plan's braking fraction). CMA-ES searches of the 14 numbers on `test`
-  cycles 0-3 (service) found plans 12.0-17.1 % over the optimum's fuel at T_min (v0: 20.7-24.0 %), 4.9-7.9 % at
-  1.15 T_min (5.8-8.1 %) (``scripts/bench_plan_ceiling.py``, stop 62).
+  cycles 0-3 (service; ``scripts/bench_plan_ceiling.py``, stop 62) found plans 11.5-21.7 % over the optimum's fuel at
+  T_min (v0: 20.7-24.0 %) at 1.3-2.3 % lateness, 5.1-6.7 % at 1.15 T_min (v0: 5.8-8.1 %), 3.5-5.2 % at 1.5 T_min
+  (v0: 4.2-8.2 %).
 * v0: the 14 numbers above on WheelLoaderTarget-v6.
 """
 
