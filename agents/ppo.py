@@ -435,7 +435,7 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
 
 def _check_spaces(network: Any, path: Path) -> None:
     """The policy must take the observations of one of the envs (:data:`ENV_OF_OBS`) and give its actions: (4,),
-    (3,) for WheelLoaderTarget-v2's driver or (14,) for WheelLoaderPlan-v0's plan (the target env's observations)."""
+    (3,) for WheelLoaderTarget-v2's driver or (14,) for WheelLoaderPlan-v0/-v1's plan (the target env's observations)."""
     obs, act = network.observation_space.shape, network.action_space.shape
     if len(obs) != 1 or obs[0] not in ENV_OF_OBS or act not in ((4,), (N_ASSIST_ACTIONS,), (N_PLAN_ACTIONS,)) or (
             act in ((N_ASSIST_ACTIONS,), (N_PLAN_ACTIONS,)) and obs[0] != N_TARGET_OBS):

@@ -1,4 +1,4 @@
-"""Expert iteration for a plan policy (``WheelLoaderPlan-v0``): improve it by search, then learn the search.
+"""Expert iteration for a plan policy (``WheelLoaderPlan-v0`` or ``-v1``): improve it by search, then learn the search.
 
     python scripts/distill_plans.py --policy agents/policies/plan_target_service --out runs/distilled_service \
         [--cycles 1024 --population 16 --generations 20 --sigma 0.15 --seed 0]

@@ -623,7 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "same cycle time.")
     p.add_argument("--controller", required=True, metavar="{ppo,plan,bc,operator,mpc,module:Class}",
                    help="a built-in controller (ppo: with a target, the target-conditioned policy; plan: the "
-                   "target-conditioned policy of one plan per cycle, WheelLoaderPlan-v0; bc: the behaviour-cloned MPC), or your class as module:Class or path/to/file.py:Class "
+                   "target-conditioned policy of one plan per cycle, WheelLoaderPlan-v1/-v0; bc: the behaviour-cloned MPC), or your class as module:Class or path/to/file.py:Class "
                    "(called with braking= if it takes it; needs act(obs) -> action, optionally reset())")
     p.add_argument("--braking", choices=["service", "tc"], help="default: the scenario's, else service")
     p.add_argument("--scenario", metavar="JSON|FILE", help=scenario_help)
