@@ -195,14 +195,15 @@ def test_driver_labels_replay_the_experts_cycle_through_the_assist(tmp_path, bra
 # the shipped target-conditioned policies (agents.evaluate.SHIPPED_POLICIES): PPO, and the imitation baseline (a clone
 # of the MPC fine-tuned by PPO, docs/benchmarks.md section 7)
 SHIPPED = [(k, b) for k in ("ppo-target", "plan", "bc") for b in ("service", "tc")]
-SHIPPED_ENV = {"ppo-target": "WheelLoaderTarget-v6", "plan": "WheelLoaderPlan-v0", "bc": "WheelLoaderTarget-v5"}
+SHIPPED_ENV = {"ppo-target": "WheelLoaderTarget-v6", "bc": "WheelLoaderTarget-v5",
+               "plan": {"service": "WheelLoaderPlan-v1", "tc": "WheelLoaderPlan-v0"}}  # (v1 for TC: within v0's spread)
 
 
 @pytest.mark.parametrize("kind,braking", SHIPPED)
 def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, braking):
     """Each shipped target-conditioned policy loads pickle-free, drives its env (WheelLoaderTarget-v5: the coasting
     assist with its guards and the lift's engine floor; PPO v6: and with TC braking the lift-off's full load; the
-    plan policy: WheelLoaderPlan-v0, one plan per cycle driven on v6)
+    plan policy: WheelLoaderPlan-v1 (service) or -v0 (TC), one plan per cycle driven on v7 or v6)
     through a held-out cycle at a 1.5 T_min target with its marks met and no violation; its metadata records how it
     was made, stage by stage, the last stage's command the policy's own (PPO: one run from scratch on v6; the plan policy: PPO
     from scratch, then on from it; the imitation baseline: the MPC episodes, the clone, the v3, v4 and v5 fine-tunings)."""
@@ -210,7 +211,8 @@ def test_the_shipped_target_policies_load_and_complete_a_test_scenario(kind, bra
     from wl_env.suites import load_suite
 
     policy = load_policy(default_policy_path(braking, kind))
-    assert policy.env_id == SHIPPED_ENV[kind] and policy.braking == braking  # (its config says; the assist)
+    env_id = SHIPPED_ENV[kind] if isinstance(SHIPPED_ENV[kind], str) else SHIPPED_ENV[kind][braking]
+    assert policy.env_id == env_id and policy.braking == braking  # (its config says; the assist)
     assert policy.meta["commands"] and policy.meta["seed"] is not None
     stages = policy.meta["stages"]
     if kind == "plan":  # (scripts/train_plan_policy.py: every stage with its commands, the last the policy's own)
