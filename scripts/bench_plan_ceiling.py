@@ -101,10 +101,9 @@ def check(o: Options) -> None:
     n = len(load_suite("test").of(o.braking))
     if not o.scenarios or not all(0 <= i < n for i in o.scenarios):
         raise ValueError(f"--scenarios must be indices in [0, {n - 1}] (the test suite's {o.braking} cycles), got {o.scenarios}")
-    from agents.ppo_config import PLAN_ENV_IDS
+    from wl_env.plan import driven_on
 
-    if o.env_id not in PLAN_ENV_IDS:
-        raise ValueError(f"--env-id must be a plan env, one of {', '.join(PLAN_ENV_IDS)}, got {o.env_id!r}")
+    driven_on(o.env_id, "--env-id")
     if not o.ratios or not all(1.0 <= r <= 3.0 for r in o.ratios):
         raise ValueError(f"--ratios must be target ratios to T_min in [1, 3], got {o.ratios}")
     for name, lo, hi in (("generations", 1, 10_000), ("population", 2, 4096)):

@@ -69,10 +69,9 @@ class Options:
 
 def stage_configs(o: Options) -> list:
     """Each stage's PPOConfig (ConfigError naming a field out of its range)."""
-    from agents.ppo_config import PLAN_ENV_IDS
+    from wl_env.plan import driven_on
 
-    if o.env_id not in PLAN_ENV_IDS:  # (PPOConfig takes any env id: a per-step env under this recipe is not one)
-        raise ValueError(f"--env-id must be a plan env, one of {', '.join(PLAN_ENV_IDS)}, got {o.env_id!r}")
+    driven_on(o.env_id, "--env-id")  # (PPOConfig takes any env id: a per-step env under this recipe is not one)
     from agents.ppo_config import ConfigError, PPOConfig
     from agents.train_cli import flag_error
 

@@ -110,7 +110,7 @@ def test_bad_plans_and_arguments_are_refused_by_name():
         gym.make("WheelLoaderPlan-v0", colour="red")
     with pytest.raises(ValueError, match="WheelLoaderPlan-v1 drives WheelLoaderTarget-v7: step_braking cannot be changed"):
         gym.make("WheelLoaderPlan-v1", step_braking=False)
-    with pytest.raises(ValueError, match="unknown plan env"):
+    with pytest.raises(ValueError, match="plan_id must be a plan env, one of WheelLoaderPlan-v0, WheelLoaderPlan-v1"):
         driven_on("WheelLoaderPlan-v9")
     venv = gym.make_vec("WheelLoaderPlan-v0", num_envs=2, vectorization_mode="vector_entry_point")
     venv.reset(seed=0)

@@ -96,10 +96,11 @@ def plan_action(plan: np.ndarray, obs: np.ndarray, time_in_phase: np.ndarray, co
     return actions
 
 
-def driven_on(plan_id: str) -> str:
-    """The id of the per-step env a plan env's cycle is driven on (``DRIVEN_ON``), ValueError for another id."""
+def driven_on(plan_id: str, name: str = "plan_id") -> str:
+    """The id of the per-step env a plan env's cycle is driven on (``DRIVEN_ON``), ValueError naming ``name`` for
+    another id."""
     if plan_id not in DRIVEN_ON:
-        raise ValueError(f"unknown plan env {plan_id!r}; known: {', '.join(DRIVEN_ON)}")
+        raise ValueError(f"{name} must be a plan env, one of {', '.join(DRIVEN_ON)}, got {plan_id!r}")
     return DRIVEN_ON[plan_id]
 
 
