@@ -712,6 +712,6 @@ def test_the_last_lift_of_v7_reaches_the_dump_height_where_v6s_clock_would_stop_
 
     assert run()["is_success"]
     with mock.patch.object(assist, "bucket_travel_time", lambda omega, H, V_b, p: assist.lift_time(omega, H, p)), \
-         mock.patch.object(assist, "stopping_time", lambda speed, to_go, a, planned, step: speed / np.maximum(a, 1e-3)):
+         mock.patch.object(assist, "stopping_time", lambda speed, to_go, planned: 2.0 * to_go / np.maximum(speed, 1e-3)):
         info = run()
     assert not info["is_success"] and 0.02 < sc.dump_height - info["state"][2] < 0.05, info["state"]

@@ -178,13 +178,11 @@ def step_braking_deceleration(speed: Any, distance_to_go: Any, deceleration: Any
     return np.where(speed > 1e-3, a, 0.0)
 
 
-def stopping_time(speed: Any, distance_to_go: Any, deceleration: Any, planned: Any, step_braking: bool) -> Any:
-    """s until the machine stands on the mark, for the last lift: braking at ``deceleration`` (m/s^2) from now
-    (v2-v6's constant deceleration); with ``step_braking`` at ``planned`` from its braking point on (v7), or
-    at the deceleration that stops on the mark where that point is passed. (v6's clock under v7's braking
-    counts up to twice the time left: buckets stopped short of the dump height, 4 of 2048 random plans.)"""
-    if not step_braking:
-        return speed / np.maximum(deceleration, 1e-3)
+def stopping_time(speed: Any, distance_to_go: Any, planned: Any) -> Any:
+    """s until the machine stands on the mark under v7's braking, for its last lift: at ``planned`` (m/s^2) from its
+    braking point on, or at the deceleration that stops on the mark where that point is passed. (v2-v6's clock,
+    speed over their constant deceleration, counts up to twice the time left under v7's braking: buckets stopped
+    short of the dump height, 4 of 2048 random plans.)"""
     v = np.maximum(speed, 1e-3)
     d = np.maximum(distance_to_go, 0.0)
     return np.where(d >= stopping_distance(v, planned), d / v + v / (2.0 * planned), 2.0 * d / v)
@@ -373,9 +371,9 @@ def assisted_action(y: Any, phase: Any, distance_to_go: Any, driver: Any, p: Loa
             asked = np.where(hold, -V_b / dt, asked)
 
     if guards:  # the lift finished at the stop: lift on through the last braking where the lift left would outlast it
-        late = ((braking_phase == 4) & (p.H_T - H > HEIGHT_TOL)
-                & ((bucket_travel_time(y[0], H, V_b, p) if step_braking else lift_time(y[0], H, p))
-                   > stopping_time(speed, distance_to_go, a_req, a_plan, step_braking)))
+        outlasts = (bucket_travel_time(y[0], H, V_b, p) > stopping_time(speed, distance_to_go, a_plan) if step_braking
+                    else lift_time(y[0], H, p) > speed / np.maximum(a_req, 1e-3))
+        late = (braking_phase == 4) & (p.H_T - H > HEIGHT_TOL) & outlasts
         asked = np.where(late, ab_hi, asked)
 
     u_ab = bucket_command(H, V_b, asked, p, dt)
