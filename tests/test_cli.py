@@ -171,6 +171,21 @@ class NoBraking:
 '''
 
 
+@pytest.mark.parametrize("out", [[], ["--out", "-"]])
+def test_evaluate_without_out_writes_only_the_json_to_stdout(tmp_path, cache, capfd, out):
+    """Issue #14's command names no --out: the JSON is then all of stdout (file descriptor 1, where C code prints
+    too), the summary line on stderr, and no file is written."""
+    code = wl.cli.main(["evaluate", "--controller", "operator", "--episodes", "1", "--cache", str(cache), *out])
+    stdout, stderr = capfd.readouterr()
+    assert code == 0, stderr
+    r = json.loads(stdout)
+    assert set(r["aggregate"]) == {"success_rate", "time_gap_median", "fuel_gap_median", "fuel_gap_p90",
+                                   "lateness_median"}
+    assert r["controller"] == "operator" and r["per_episode"][0]["success"]
+    assert "operator, service braking, 1 episode" in stderr and "->" not in stderr
+    assert not list(Path.cwd().glob("-"))
+
+
 def test_evaluate_user_controller_from_a_file(tmp_path, cache, capsys):
     log = tmp_path / "calls.log"
     module = tmp_path / "my_controllers.py"

@@ -44,6 +44,13 @@ def test_invalid_values_name_the_field(change, field):
         DEFAULT_PARAMS.replace(**change)
 
 
+@pytest.mark.parametrize("leg", ["reverse_distance", "forward_distance"])
+def test_distance_sets_both_legs_and_is_refused_beside_a_leg(leg):
+    assert DEFAULT_PARAMS.replace(distance=5.0).reverse_distance == DEFAULT_PARAMS.replace(distance=5.0).forward_distance == 5.0
+    with pytest.raises(ValueError, match=f"distance or {leg}"):
+        DEFAULT_PARAMS.replace(distance=5.0, **{leg: 6.0})
+
+
 def test_unknown_field_is_rejected():
     with pytest.raises(ValueError, match="unknown LoaderParams field"):
         DEFAULT_PARAMS.replace(payload=3)

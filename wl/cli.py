@@ -10,13 +10,14 @@ about a second with exit code 130 (SIGTERM: 143) and writes no result (:mod:`mpc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
 import os
 import shlex
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +76,47 @@ def _out_file(path: str, option: str = "--out") -> Path:
     from wl_env.atomic_io import check_output_file
 
     return _created_by(lambda: check_output_file(path, option), Path(path).parent)
+
+
+def _result_file(args: argparse.Namespace) -> Path | None:
+    """``--out``'s file, checked before the work, or None: no ``--out`` (or ``-``) writes the JSON to stdout."""
+    if args.out is None or args.out == "-":
+        return None
+    out = _out_file(args.out)
+    check_not_an_input(out, _scenario_file(args), "--out")
+    return out
+
+
+@contextlib.contextmanager
+def _stdout_for_the_result(out: Path | None) -> Iterator[None]:
+    """Without ``--out``, file descriptor 1 goes to stderr while the work runs, so that the JSON is all stdout
+    holds (IPOPT's banner and other C code write to fd 1 directly)."""
+    if out is not None:
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _put_result(result: dict[str, Any], out: Path | None, line: str) -> None:
+    """The result to ``out`` (atomically) with its summary line on stdout, or, without ``--out``, the JSON to
+    stdout and the line to stderr."""
+    from wl_env.atomic_io import json_text, write_json_atomic
+
+    if out is None:
+        print(line, file=sys.stderr)
+        sys.stdout.write(json_text(result))
+        sys.stdout.flush()
+    else:
+        write_json_atomic(out, result)
+        print(f"{line} -> {out}")
 
 
 def _out_dir(path: str, option: str = "--out") -> Path:
@@ -182,7 +224,6 @@ def _check_target_reachable(target_time: float | None, scenarios: list[Any]) -> 
 
 def _mpc_cmd(args: argparse.Namespace) -> int:
     from mpc.controller.mpc import AUTO, MPCConfig, run_closed_loop
-    from wl_env.atomic_io import write_json_atomic
     from wl_env.scenario import Scenario
 
     if args.cache is not None:  # (before --out, whose folder its check may create)
@@ -229,13 +270,12 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
                          "give --scenario")
     if args.params is None:  # (the estimate knows the specification's machine)
         _check_target_reachable(args.target_time, [scenario or Scenario.nominal(braking)])
-    out = _out_file(args.out)  # (after the other options: its check may create its folder)
-    check_not_an_input(out, _scenario_file(args), "--out")
+    out = _result_file(args)  # (after the other options: its check may create its folder)
     log.info(f"MPC ({config.mode}) driving the {braking} cycle ...")
-    result = run_closed_loop(braking, config, params=params, plant_params=plant,
-                             score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
+    with _stdout_for_the_result(out):
+        result = run_closed_loop(braking, config, params=params, plant_params=plant,
+                                 score=not args.no_score, cache=args.cache, scenario=scenario, mismatch=args.mismatch)
     r = result.to_dict()
-    write_json_atomic(out, r)
     st = r["solve_time"]
     line = (f"{braking} MPC ({config.mode}): T = {r['T']:.2f} s, fuel = {r['fuel_g']:.2f} g, success = {r['success']}, "
             f"solve time median {1e3 * st['median_s']:.1f} ms, p99 {1e3 * st['p99_s']:.1f} ms, max {1e3 * st['max_s']:.1f} ms, "
@@ -246,13 +286,12 @@ def _mpc_cmd(args: argparse.Namespace) -> int:
             + (f", {st['safety_eased']} controls eased by the safety filter" if config.safety_filter else ""))
     if r["score"] is not None:
         line += f"; time gap {100 * r['score']['time_gap']:+.2f} %, fuel gap {100 * r['score']['fuel_gap']:+.2f} %"
-    print(line + f" -> {args.out}")
+    _put_result(r, out, line)
     return 0 if r["completed"] else 1
 
 
 def _evaluate_cmd(args: argparse.Namespace) -> int:
     from agents.evaluate import aggregate, controller_files, evaluate_controller, load_controller, summary_line
-    from wl_env.atomic_io import write_json_atomic
     from wl_env.scenario import Scenario
     from wl_env.suites import MAX_SAMPLE, load_suite
 
@@ -281,10 +320,10 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
     _check_target_reachable(args.target_time, scenarios or [scenario or Scenario.nominal(braking)])
     # an unwritable --out fails now, not after the episodes; and after the other options, as its check may create
     # its folder (a bad --cache or --scenario left an empty one behind)
-    out = _out_file(args.out)
+    out = _result_file(args)
     targeted = args.target_time is not None or args.target_ratio is not None
-    check_not_an_input(out, _scenario_file(args) + controller_files(args.controller, braking, args.model, targeted=targeted),
-                       "--out")
+    if out is not None:
+        check_not_an_input(out, controller_files(args.controller, braking, args.model, targeted=targeted), "--out")
     if scenarios and args.sample and args.sample > len(scenarios):
         log.warning(f"--sample {args.sample}: the {args.suite} suite has {len(scenarios)} {braking} scenarios; all of them run")
     controller = load_controller(args.controller, braking, args.model, trust_pickle=args.trust_pickle,
@@ -300,16 +339,16 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
                     "each episode's is drawn at random in 1-2.5 T_min (recorded as its target_time)")
     what = f"{len(scenarios)} scenario(s) of the {args.suite} suite" if scenarios else f"{episodes} episode(s)"
     log.info(f"evaluating {args.controller} with {braking} braking: {what} ...")
-    r = evaluate_controller(controller, braking, episodes=episodes, init_noise=init_noise,
-                            seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
-                            name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
-                            scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
-                            target_ratio=args.target_ratio)
+    with _stdout_for_the_result(out):
+        r = evaluate_controller(controller, braking, episodes=episodes, init_noise=init_noise,
+                                seed=args.seed, score=not args.no_score, cache=args.cache, progress=log.info,
+                                name=args.controller, act_timeout=args.act_timeout, scenario=scenario,
+                                scenarios=scenarios, solve=not args.no_solve, target_time=args.target_time,
+                                target_ratio=args.target_ratio)
     # (the options that chose the episodes and their targets, recorded: a file of --target-ratio 1.15 did not say so)
     r = {"controller": args.controller, "model": args.model, "suite": args.suite, "sample": args.sample,
          "target_time": args.target_time, "target_ratio": args.target_ratio, "aggregate": aggregate(r), **r}
-    write_json_atomic(out, r)
-    print(f"{summary_line(r, args.controller)} -> {args.out}")
+    _put_result(r, out, summary_line(r, args.controller))
     return 0
 
 
@@ -611,7 +650,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", metavar="DIR", help="cache folder of the Pareto fronts the score reads (default "
                    "$WL_CACHE_DIR or ~/.cache/wheel-loader-gym); a front not cached there is solved first")
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
-    p.add_argument("--out", required=True, metavar="FILE.json")
+    p.add_argument("--out", metavar="FILE.json", help="where to write the result (default, or -: the JSON to "
+                   "stdout, the summary line to stderr)")
     p.set_defaults(func=_mpc_cmd)
 
     p = sub.add_parser("evaluate", help="run a controller for some episodes and score it against the optimum",
@@ -653,7 +693,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-score", action="store_true", help="skip the score against the OCP (no Pareto front needed)")
     p.add_argument("--act-timeout", type=_act_timeout, metavar="SECONDS", help="fail if one act() call takes longer, "
                    "in (0, 86400] (default: off, no limit; a SIGALRM timer: it interrupts Python code, not a hung C call)")
-    p.add_argument("--out", required=True, metavar="FILE.json", help="where to write the evaluation")
+    p.add_argument("--out", metavar="FILE.json", help="where to write the evaluation (default, or -: the JSON to "
+                   "stdout, the summary line to stderr)")
     p.set_defaults(func=_evaluate_cmd)
 
     from agents.train_cli import add_train_args, ray_address, refuse_repeated_options

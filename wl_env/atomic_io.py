@@ -160,13 +160,17 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     return Path(path)
 
 
+def json_text(obj: Any, indent: int = 1, nan_as_null: bool = False) -> str:
+    """``obj`` as JSON text ending in a newline. numpy scalars and arrays, tuples and paths are converted;
+    non-finite floats are written as NaN/Infinity (Python's json reads them back) or, with ``nan_as_null``, as
+    null (strict JSON)."""
+    return json.dumps(_finite(obj) if nan_as_null else obj, indent=indent, default=_json_default,
+                      allow_nan=not nan_as_null) + "\n"
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 1, nan_as_null: bool = False) -> Path:
-    """``obj`` as JSON, atomically. numpy scalars and arrays, tuples and paths are converted; non-finite
-    floats are written as NaN/Infinity (Python's json reads them back) or, with ``nan_as_null``, as null
-    (strict JSON)."""
-    text = json.dumps(_finite(obj) if nan_as_null else obj, indent=indent, default=_json_default,
-                      allow_nan=not nan_as_null)
-    return write_atomic(path, text + "\n")
+    """``obj`` as JSON (:func:`json_text`), atomically."""
+    return write_atomic(path, json_text(obj, indent, nan_as_null))
 
 
 def _finite(o: Any) -> Any:

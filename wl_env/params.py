@@ -316,11 +316,14 @@ class LoaderParams:
     # ---- variants and serialization ----
     def replace(self, **changes: Any) -> LoaderParams:
         """A copy with some fields changed (validated). Unknown names raise ``ValueError``. ``distance`` sets
-        both legs (``reverse_distance`` and ``forward_distance``), as the paper's 6.6 m each way."""
+        both legs (``reverse_distance`` and ``forward_distance``), as the paper's 6.6 m each way; it cannot be given
+        with either leg."""
         if "distance" in changes:
             both = changes.pop("distance")
-            changes.setdefault("reverse_distance", both)
-            changes.setdefault("forward_distance", both)
+            legs = sorted({"reverse_distance", "forward_distance"} & set(changes))
+            if legs:  # which one wins would be a guess
+                raise ValueError(f"give either distance or {' and '.join(legs)}, not both")
+            changes["reverse_distance"] = changes["forward_distance"] = both
         known = {f.name for f in dataclasses.fields(self) if f.init}
         unknown = set(changes) - known
         if unknown:
