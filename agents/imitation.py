@@ -242,8 +242,10 @@ def read_demo(path: str | Path) -> dict[str, Any]:
         with np.load(path, allow_pickle=False) as f:
             obs, actions, meta = f["obs"], f["actions"], json.loads(str(f["meta"]))
             extra = {"weights": f["weights"]} if "weights" in f.files else {}
-    except (OSError, ValueError, KeyError, json.JSONDecodeError, RecursionError, EOFError, zipfile.BadZipFile) as exc:
-        # (a truncated file: BadZipFile; an empty one: EOFError, neither an OSError)
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, RecursionError, EOFError, zipfile.BadZipFile,
+            MemoryError) as exc:
+        # (a truncated file: BadZipFile; an empty one: EOFError, neither an OSError; an .npy header that claims 2^45
+        # values: numpy's MemoryError, a traceback)
         raise ValueError(f"{path} is not a demonstration file: {exc}") from None
     if not isinstance(meta, dict):
         raise ValueError(f"{path}: its meta must be a JSON object, got {type(meta).__name__}")

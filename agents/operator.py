@@ -25,7 +25,7 @@ from wl_env.assist import (
     stopping_distance,
     tc_braking_speed,
 )
-from wl_env.codec import Codec
+from wl_env.codec import Codec, real_observations
 from wl_env.model import derivatives
 from wl_env.params import LoaderParams, Range, is_real_number, resolve
 from wl_env.scenario import Scenario, resolve_scenario
@@ -73,7 +73,9 @@ class OperatorPolicy:
             self.codec = Codec(self.params)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float64)
+        # (real numbers only, checked before any cast: a bool, digit-string or complex observation was read as numbers
+        # without a word, a dict was float()'s TypeError)
+        obs = real_observations(obs)
         if obs.ndim == 2:
             if len(obs) == 0:
                 raise ValueError("obs: a batch of no observation (shape (0, n))")

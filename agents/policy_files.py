@@ -378,9 +378,11 @@ def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
                               f"{mean.shape} and {var.shape}")
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
         raise PolicyFileError(f"normalization file {path}: mean and var must be finite, var >= 0")
-    if not (math.isfinite(clip_obs) and clip_obs > 0 and 1e-12 <= eps <= 1.0):
-        raise PolicyFileError(f"normalization file {path}: clip_obs must be a finite number > 0 and epsilon in "
-                              f"[1e-12, 1], got {clip_obs}, {eps}")
+    # (clip_obs within float32's range: 1e308 let a mean of 1e308 over a var of 0 reach the network as -inf)
+    if not (math.isfinite(clip_obs) and 0 < clip_obs <= FLOAT32_MAX and 1e-12 <= eps <= 1.0):
+        raise PolicyFileError(f"normalization file {path}: clip_obs must be a finite number > 0, at most "
+                              f"{FLOAT32_MAX:.4g} (the normalized observations are float32), and epsilon in [1e-12, 1], "
+                              f"got {clip_obs}, {eps}")
     return ObsNormalization(mean.astype(np.float64), var.astype(np.float64), clip_obs, eps)
 
 

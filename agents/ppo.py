@@ -63,12 +63,19 @@ from agents.policy_files import (
     read_policy,
     write_policy,
 )
-from agents.ppo_config import COAST_ENV_IDS, PLAN_ENV_IDS, TARGET_ENV_IDS, TARGETED_ENV_IDS, PPOConfig
+from agents.ppo_config import (
+    COAST_ENV_IDS,
+    MAX_RUN_JSON_BYTES,
+    PLAN_ENV_IDS,
+    TARGET_ENV_IDS,
+    TARGETED_ENV_IDS,
+    PPOConfig,
+)
 from agents.sb3_vec import ENV_ID, make_sb3_vec_env
 from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
 from wl_env.atomic_io import write_atomic
-from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS, check_within
+from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS, check_within, real_observations
 from wl_env.plan import N_PLAN_ACTIONS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
@@ -314,7 +321,9 @@ class PPOPolicy:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         space = self.network.observation_space
-        o = np.asarray(obs, dtype=np.float64) if isinstance(obs, (np.ndarray, list, tuple)) else None
+        # (real numbers only, checked before any cast: a complex observation lost its imaginary part with a warning, a
+        # bool one was read as numbers, a masked entry as the value under its mask, strings were numpy's bare error)
+        o = real_observations(obs) if isinstance(obs, (np.ndarray, list, tuple)) else None
         # (each refused by name: a 1-number obs was given an action, NaN was torch's error)
         shaped = o is not None and o.ndim in (1, 2) and o.shape[-1:] == space.shape  # (one, or a batch (N, n))
         if not shaped or not np.isfinite(o).all():
@@ -794,7 +803,7 @@ def _eval_csv_up_to(path: Path, step: int) -> str | None:
 def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
     """A run's config.json, checked: its PPOConfig and the commands recorded (ValueError naming the file)."""
     try:
-        meta = json.loads(Path(path).read_text())
+        meta = json.loads(atomic_io.read_regular_file(path, MAX_RUN_JSON_BYTES, "a run config holds"))  # (a FIFO: a hang)
         if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
             raise ValueError('it holds no "config" object')
         commands = meta.get("commands", [])
@@ -838,7 +847,8 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
         return all((folder / f).is_file() for f in CHECKPOINT_FILES)
 
     try:  # (the pointer is a shortcut: a pointer that is unreadable or names no checkpoint folder is passed over)
-        name = json.loads((root / "latest.json").read_text())["checkpoint"]
+        # (a regular file, bounded: a FIFO in its place hung every resume for good)
+        name = json.loads(atomic_io.read_regular_file(root / "latest.json", MAX_RUN_JSON_BYTES, "a pointer holds"))["checkpoint"]
         if isinstance(name, str) and CHECKPOINT_NAME.fullmatch(name) and complete(root / name):
             return root / name
     except (OSError, ValueError, KeyError, TypeError, RecursionError):  # (RecursionError: a deeply nested pointer)

@@ -36,6 +36,9 @@ MAX_ROLLOUT = 2**24
 # nominal start, at most agents.evaluate.MAX_EPISODES episodes; a target env's drew 10**9 scenarios (a hang) after
 # the training, a v1 evaluation failed there by the evaluation's name
 MAX_EVAL_EPISODES = 99_999
+# bytes of a run folder's JSON files (config.json, summary.json, checkpoints/latest.json) read back: a few kB each; read
+# as regular files of at most this (wl_env.atomic_io.read_regular_file: a FIFO in their place hung a resume for good)
+MAX_RUN_JSON_BYTES = 2**24
 
 
 class ConfigError(ValueError):

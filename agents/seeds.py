@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.ppo_config import PPOConfig
+from agents.ppo_config import MAX_RUN_JSON_BYTES, PPOConfig
+from wl_env.atomic_io import read_regular_file
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,8 @@ def read_summary(path: Path) -> dict[str, Any]:
     """A finished run's summary.json, checked for what :func:`spread` reads (ValueError naming the file): a
     corrupt or tampered one was returned as it was, and failed later without a name or counted a wrong number."""
     try:
-        summary = json.loads(Path(path).read_text())
+        # (a regular file, bounded: a FIFO in its place hung the read-back of a finished run for good)
+        summary = json.loads(read_regular_file(path, MAX_RUN_JSON_BYTES, "a run summary holds"))
         if not isinstance(summary, dict):
             raise ValueError(f"a JSON {type(summary).__name__}, not an object")
         step, wall, last = summary.get("num_timesteps"), summary.get("wall_time"), summary.get("last_eval")

@@ -86,6 +86,23 @@ def _scalar_kind(value: Any) -> str:
     return a.dtype.kind if a.ndim == 0 else ""
 
 
+def real_observations(obs: Any) -> np.ndarray:
+    """``obs`` as a float64 array if it holds real numbers (ints or floats), else ValueError naming ``obs``: a dict was
+    a bare TypeError, and booleans, complex numbers or digit strings were cast without a word (a bool array read as
+    the engine at omega_max), a masked entry read as the value under its mask. Every reader of observations takes
+    them through here (the codec's decoders, the learned policies' act)."""
+    if isinstance(obs, np.ma.MaskedArray) and np.ma.is_masked(obs):
+        raise ValueError(f"obs must be WheelLoader observations (arrays of real numbers), got a masked array with "
+                         f"{np.ma.count_masked(obs)} masked entries")
+    try:
+        kind = np.asarray(obs).dtype.kind
+    except (TypeError, ValueError):  # (ragged nesting)
+        kind = "O"
+    if kind not in "iuf":
+        raise ValueError(f"obs must be WheelLoader observations (arrays of real numbers), got {shown(obs)}")
+    return np.asarray(obs, dtype=np.float64)
+
+
 def encode_speed_request(speed_request: Any, p: Any) -> Any:
     """The governor's engine-speed request (rad/s) -> action 0 in [-1, 1] (``fuel_action="engine_speed"``),
     clipped; ``p`` a parameter set or a vector env's view of many (arrays)."""
@@ -199,15 +216,7 @@ class Codec:
         return tuple(ops.clip(f, lo, hi) for f, lo, hi in zip(features, self._low, self._high, strict=True))
 
     def _checked(self, obs: Any) -> np.ndarray:
-        # (real numbers only: a dict was a bare TypeError, and booleans, complex numbers or digit strings were cast
-        # without a word, a bool array read as the engine at omega_max)
-        try:
-            kind = np.asarray(obs).dtype.kind
-        except (TypeError, ValueError):
-            kind = "O"
-        if kind not in "iuf":
-            raise ValueError(f"obs must be WheelLoader observations (arrays of real numbers), got {shown(obs)}")
-        o = np.asarray(obs, dtype=np.float64)
+        o = real_observations(obs)
         if o.shape[-1:] not in ((N_OBS,), (N_SCENARIO_OBS,), (N_TARGET_OBS,)) or o.ndim > 2 or not np.isfinite(o).all():
             raise ValueError(f"obs must be finite WheelLoader observations of shape ({N_TARGET_OBS},) (WheelLoaderTarget), "
                              f"({N_SCENARIO_OBS},) (v2) or ({N_OBS},) (v1), or a batch (N, ...) of them, got shape {o.shape}"

@@ -185,8 +185,8 @@ def make_reward_config(reward: RewardConfig | dict | None, w_fuel: float | None,
     elif isinstance(reward, dict):
         known = set(RewardConfig.__dataclass_fields__)
         unknown = set(reward) - known
-        if unknown:
-            raise ValueError(f"unknown reward field(s) {sorted(unknown)}; known: {sorted(known)}")
+        if unknown:  # (as text: a key that is no string, beside one that is, failed in sorted() with a TypeError)
+            raise ValueError(f"unknown reward field(s) {shown(sorted(unknown, key=repr), 200)}; known: {sorted(known)}")
         reward = RewardConfig(**reward)
     elif not isinstance(reward, RewardConfig):
         raise ValueError(f"reward must be a RewardConfig, a dict or None, got {type(reward).__name__}")
