@@ -100,6 +100,17 @@ def test_bad_scenario_inputs_are_named(tmp_path):
             call()
 
 
+def test_a_scenario_file_is_taken_as_a_path_too(tmp_path):
+    """resolve_scenario (and so reset's options) took a file's path as text but refused it as a pathlib.Path."""
+    f = tmp_path / "heavy.json"
+    f.write_text('{"payload": 12000, "braking": "tc"}')
+    assert resolve_scenario(f) == resolve_scenario(str(f)) == Scenario.from_dict({"payload": 12000, "braking": "tc"})
+    _, info = gym.make("WheelLoader-v2", braking="tc").reset(seed=0, options={"scenario": f})
+    assert info["scenario"] == resolve_scenario(f)
+    with pytest.raises(ValueError, match="contradicts"):
+        resolve_scenario(f, "service")
+
+
 # ---------------------------------------------------------------------------------------------- suites
 def test_suite_files_are_their_definitions_and_load():
     for name, data in suite_files().items():

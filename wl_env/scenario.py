@@ -256,17 +256,18 @@ def no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def resolve_scenario(scenario: Scenario | dict | str | None, braking: str | None = None) -> Scenario:
-    """A Scenario from a Scenario, a dict of fields, JSON text or a file path; ``None`` is the nominal
-    cycle. ``braking``, if given, must agree with the scenario's (a dict without one takes it)."""
+def resolve_scenario(scenario: Scenario | dict | str | Path | None, braking: str | None = None) -> Scenario:
+    """A Scenario from a Scenario, a dict of fields, JSON text or a file path (text or a Path); ``None`` is the
+    nominal cycle. ``braking``, if given, must agree with the scenario's (a dict without one takes it)."""
     if scenario is None:
         return Scenario.nominal(braking or "service")
     if isinstance(scenario, dict):
         scenario = Scenario.from_dict({"braking": braking, **scenario} if braking and "braking" not in scenario else scenario)
-    elif isinstance(scenario, str):  # (as a dict: JSON without a braking takes this one)
+    elif isinstance(scenario, (str, Path)):  # (as a dict: JSON without a braking takes this one; a Path was refused)
         scenario = Scenario.parse(scenario, "scenario", braking)
     elif not isinstance(scenario, Scenario):
-        raise ValueError(f"scenario must be a Scenario, a dict of its fields or JSON, got {type(scenario).__name__}")
+        raise ValueError(f"scenario must be a Scenario, a dict of its fields, JSON or a JSON file's path, got "
+                         f"{type(scenario).__name__}")
     if braking is not None and braking != scenario.braking:
         raise ValueError(f"braking={braking!r} contradicts the scenario's braking {scenario.braking!r}")
     return scenario
