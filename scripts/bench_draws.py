@@ -71,6 +71,11 @@ def check(o: Options) -> None:
         raise ValueError("--modes must name at least one mode")
     for mode in o.modes:
         target_ratio(mode)
+    # (a mode given twice, also as another spelling of one ratio, 1.15 and 1.150: every draw run twice, its records
+    # and the summary's counts doubled)
+    keys = [target_ratio(m) if m not in ("time", "mismatch") else m for m in o.modes]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"--modes names a mode twice: {' '.join(o.modes)}")
     if o.out is not None:
         check_output_file(o.out, "--out")
 

@@ -40,6 +40,8 @@ def run(o: Options) -> dict[str, Any]:
         raise ValueError("--brakings needs at least one of service, tc")
     for b in o.brakings:
         check_braking(b)
+    if len(set(o.brakings)) != len(o.brakings):  # (each run twice, and counted twice in the summary)
+        raise ValueError(f"--brakings names a braking alternative twice: {' '.join(o.brakings)}")
     if o.out is not None:
         check_output_file(o.out, "--out")
     from bench_mpc import MISMATCH, summary_line, write_with_speed

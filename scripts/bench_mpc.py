@@ -59,7 +59,7 @@ from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
 from mpc.controller import codegen  # noqa: E402
-from mpc.controller.mpc import AUTO, MAX_WEIGHT, MPCConfig, forget_plans, run_closed_loop  # noqa: E402
+from mpc.controller.mpc import AUTO, MAX_WEIGHT, MIN_DEADLINE_MS, MPCConfig, forget_plans, run_closed_loop  # noqa: E402
 from mpc.controller.solver import SOLVERS, release_solvers  # noqa: E402
 from wl_env.params import DEFAULT_PARAMS  # noqa: E402
 from wl_env.suites import load_suite  # noqa: E402
@@ -117,15 +117,22 @@ def runs(braking: str, targets: list[float], mismatch: bool, suite_sample: int, 
         yield f"corners[{i}] mismatch", MPCConfig(mode="time", **base), {"scenario": sc, "mismatch": True}
 
 
-def rate_sweep(weights: list[float]) -> None:
-    """The control-rate penalty's trade: total variation against fuel, one cycle per weight."""
+def rate_sweep(weights: list[float]) -> list[dict[str, Any]]:
+    """The control-rate penalty's trade: total variation against fuel, one cycle per weight; the rows."""
     print("| rate weight | T (s) | fuel (g) | fuel gap | TV U_mf vs optimum | TV U_ab vs optimum | max violation |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
+    rows = []
     for w in weights:
         r = closed_loop("tc", MPCConfig(mode="target_time", target_time=11.0, rate_weight=(w, w)), "default", f"w {w:g}")
-        s = r["smoothness"]
-        print(f"| {w:g} | {r['T']:.2f} | {r['fuel_g']:.3f} | {pct(r['fuel_gap'])} | {s['ratio_fuel_injection']:.2f}x "
-              f"| {s['ratio_bucket_acceleration']:.2f}x | {100 * r['max_violation']:.2f} % |")
+        rows.append({**r, "rate_weight": w})
+        # (a cycle not completed has no score, one without a verified optimum at its T no smoothness: a KeyError's
+        # traceback after the sweep's cycles)
+        s = r.get("smoothness")
+        tv = (f"{s['ratio_fuel_injection']:.2f}x | {s['ratio_bucket_acceleration']:.2f}x" if s
+              else "n/a | n/a")
+        print(f"| {w:g} | {r['T']:.2f} | {r['fuel_g']:.3f} | {pct(r.get('fuel_gap'))} | {tv} "
+              f"| {100 * r['max_violation']:.2f} % |")
+    return rows
 
 
 def worker(row: dict[str, Any]) -> str:
@@ -155,14 +162,35 @@ def check_options(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None
             check_target_time(t, "--targets")
     except ValueError as exc:
         ap.error(str(exc))
+    if not (args.min_time_only or args.rate_sweep):
+        # (a target under the nominal cycle's minimum time failed after the minimum-time runs, naming
+        # MPCConfig.target_time: checked against its estimate, 2 % allowed, as `wl mpc --target-time` is)
+        from wl_env.scenario import Scenario
+        from wl_env.suites.min_time import estimate_min_time
+
+        for b in args.braking:
+            t_min = estimate_min_time(Scenario.nominal(b))
+            short = [t for t in (args.targets[:1] if args.quick else args.targets) if t < 0.98 * t_min]
+            if short:
+                ap.error(f"--targets {' '.join(f'{t:g}' for t in short)} s lie below the nominal cycle's minimum cycle "
+                         f"time with {b} braking (about {t_min:.2f} s)")
+    # (a value given twice ran its cycles twice, each row counted twice in the candidates' summaries)
+    for option, values in (("--targets", args.targets), ("--braking", args.braking), ("--solvers", args.solvers),
+                           ("--horizons", args.horizons), ("--rate-sweep", args.rate_sweep or [])):
+        if len(set(values)) != len(values):
+            ap.error(f"{option} names a value twice: {' '.join(map(str, values))}")
     if not 0 <= args.suite_sample <= MAX_SAMPLE:
         ap.error(f"--suite-sample must be an integer in [0, {MAX_SAMPLE}], got {args.suite_sample}")
-    if args.deadline_ms is not None and not (math.isfinite(args.deadline_ms) and args.deadline_ms > 0):
-        ap.error(f"--deadline-ms must be a number > 0, got {args.deadline_ms:g}")
+    # (MPCConfig's and the controller's range: 500 or 1e-9 failed as deadline_ms, naming no option)
+    if args.deadline_ms is not None and not (math.isfinite(args.deadline_ms) and MIN_DEADLINE_MS <= args.deadline_ms <= 100):
+        ap.error(f"--deadline-ms must be a number > 0, in [{MIN_DEADLINE_MS:g}, 100] ms (at most the control interval), "
+                 f"got {args.deadline_ms:g}")
     if not (math.isfinite(args.terminal_weight) and 0 <= args.terminal_weight <= MAX_WEIGHT):
         ap.error(f"--terminal-weight must be a number in [0, {MAX_WEIGHT:g}], got {args.terminal_weight:g}")
-    if args.rate_sweep and not all(math.isfinite(w) and w >= 0 for w in args.rate_sweep):
-        ap.error(f"--rate-sweep weights must each be a number >= 0, got {' '.join(f'{w:g}' for w in args.rate_sweep)}")
+    # (MPCConfig.rate_weight's range: a weight over 1e6 failed after the sweep's cycles before it, naming rate_weight)
+    if args.rate_sweep and not all(math.isfinite(w) and 0 <= w <= MAX_WEIGHT for w in args.rate_sweep):
+        ap.error(f"--rate-sweep weights must each be a number >= 0, at most {MAX_WEIGHT:g}, got "
+                 f"{' '.join(f'{w:g}' for w in args.rate_sweep)}")
 
 
 def main() -> None:
@@ -204,8 +232,12 @@ def main() -> None:
 
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     check_options(ap, args)
-    if args.rate_sweep:
-        return rate_sweep(args.rate_sweep)
+    if args.rate_sweep:  # (its --json was checked, then never written: exit 0, no file)
+        rows = rate_sweep(args.rate_sweep)
+        if args.json:
+            write_json_atomic(args.json, {"rate_sweep": rows, "cpu_count": os.cpu_count(),
+                                          "python": platform.python_version()})
+        return None
     targets = args.targets[:1] if args.quick else args.targets
     rows: list[dict[str, Any]] = []
     realtime = {"off": [False], "on": [True], "both": [False, True]}[args.realtime]

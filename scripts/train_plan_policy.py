@@ -162,6 +162,11 @@ def export(o: Options, summaries: list[dict]) -> dict:
         "stages": stages, "method": method})
 
 
+def stages_file(o: Options, seed: int) -> Path:
+    """Where a seed's stages are recorded: ``<log-dir>/plan_<braking>_s<seed>_stages.json``."""
+    return Path(o.log_dir) / f"plan_{o.braking}_s{seed}_stages.json"
+
+
 def main(o: Options) -> dict[int, dict]:
     """Each seed's stages trained (and the one seed's policy shipped, its curve written, if asked); per seed the
     stages' steps and wall time, also written to ``<log-dir>/plan_<braking>_s<seed>_stages.json``."""
@@ -186,6 +191,8 @@ def main(o: Options) -> dict[int, dict]:
     if o.curve is not None:
         for suffix in (".csv", ".png"):
             check_output_file(Path(o.curve).with_name(Path(o.curve).name + suffix), f"--curve {o.curve}")
+    for seed in o.seeds or (o.seed,):  # (each seed's record of its stages: a folder there failed after the training)
+        check_output_file(stages_file(o, seed), "--log-dir's stages record")
     results = {}
     for seed, summaries in train_stages(o).items():
         out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],
@@ -194,7 +201,7 @@ def main(o: Options) -> dict[int, dict]:
             write_curve(o, summaries, Path(o.curve))
         if o.export:
             out["export"] = export(o, summaries)["files"]
-        write_json_atomic(Path(o.log_dir) / f"plan_{o.braking}_s{seed}_stages.json", out)
+        write_json_atomic(stages_file(o, seed), out)
         results[seed] = out
     print(json.dumps(results, indent=2, default=str))
     return results

@@ -438,6 +438,18 @@ def _mpc_fuel_weight(text: str) -> float:
     return value
 
 
+def _deadline_ms(text: str) -> float:
+    """The MPC's deadline per step: in (0, 100] ms (the control interval), at least MIN_DEADLINE_MS (1e-4 was
+    refused as MPCConfig's deadline_ms, naming no option)."""
+    from mpc.controller.mpc import MIN_DEADLINE_MS
+
+    value = _float_in(0, 100, open_lo=True, unit=" ms")(text)
+    if value < MIN_DEADLINE_MS:
+        raise argparse.ArgumentTypeError(f"must be a finite number in (0, 100] ms, at least {MIN_DEADLINE_MS:g} ms "
+                                         f"(1 µs), got {text}")
+    return value
+
+
 def _unit_float(text: str) -> float:
     value = _number(text, float)
     if not 0.0 <= value <= 1.0:  # false for NaN too
@@ -619,7 +631,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="minimum fuel, finishing by T seconds, in [1, 40) (the episode ends at 40 s)")
     g.add_argument("--w-fuel", type=_mpc_fuel_weight, metavar="W",
                    help="weighted fuel/time objective, fuel weight W: 0 (minimum time) or in [1e-06, 1]")
-    p.add_argument("--deadline-ms", type=_float_in(0, 100, open_lo=True, unit=" ms"), metavar="MS",
+    p.add_argument("--deadline-ms", type=_deadline_ms, metavar="MS",
                    help="hard deadline per step in (0, 100] ms: a later solve gives way to the shifted previous plan")
     p.add_argument("--realtime", action="store_true", help="real-time MPC: each step applies the plan solved while "
                    "the steps before ran and hands its own solve to a worker thread (a control in about 0.1 ms)")

@@ -164,6 +164,13 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
         from mpc.workers import check_workers
 
         check_workers(workers)
+    # the suite's file, checked before any solve (a folder or device there, or an `out` that is no path, failed only
+    # once every scenario was solved: hours of work, then a ValueError or a TypeError)
+    from wl_env.atomic_io import check_output_file
+
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise ValueError(f"out must be a file path or None, got {shown(out)}")
+    path = check_output_file(out if out is not None else cache_dir(cache) / "suites" / f"{suite}.json", "out")
     folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
     folder.mkdir(parents=True, exist_ok=True)
     chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
@@ -199,7 +206,6 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
             e.pop(k, None)
     data = {"suite": suite, "suite_version": s.version, "cache_version": CACHE_VERSION, "n_points": n_points,
             "entries": entries}
-    path = Path(out) if out is not None else cache_dir(cache) / "suites" / f"{suite}.json"
     store.write_entry(path, SUITE_KIND, data, check_suite_file)
     solved_now = [e["solve_s"] for k, e in entries.items() if k not in have]
     return SuiteSolve(suite=suite, entries=entries, solved=n_todo - len(failed), wall_time=wall,
@@ -271,4 +277,7 @@ def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int
                      if new.T[0] <= T < new.T_fuel_opt), default=0.0)
         rows.append({"key": key, "T_min_rel": dT, "fuel_rel_max": dfuel,
                      "ok": abs(dT) <= CHECK_TOL["T_min"] and dfuel <= CHECK_TOL["fuel"]})
+    # a scenario no fresh solve could do is no agreement: it was left out, and `wl suite solve --check` said "3 of 3
+    # shipped optima agree" of a 4-scenario check with exit 0
+    rows += [{"key": key, "ok": False, "problem": f"no fresh optimum: {why}"} for key, why in fresh.failed.items()]
     return rows

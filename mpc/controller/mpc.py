@@ -1809,6 +1809,17 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
                          "give a scenario")
     if controller is not None and not isinstance(controller, MPCController):
         raise ValueError(f"controller must be an MPCController or None, got {type(controller).__name__}")
+    if controller is not None:
+        # (a given controller drives with its own config and solver: the result recorded MPCConfig() beside a
+        # controller of another (mode "time", target_time None for a target-time run), and a config or solver given
+        # beside it was dropped without a word)
+        if config is not None and config != controller._made_with:
+            raise ValueError(f"config {config!r} is not the given controller's ({controller._made_with!r}): the "
+                             "controller drives with its own; pass one of them, or the same")
+        if solver is not None:
+            raise ValueError("solver is the given controller's own (MPCController(solver=...)): pass no solver "
+                             "beside a controller")
+        config = controller._made_with
     if cache is not None and not isinstance(cache, (str, os.PathLike)):  # (not after the cycle, at the score)
         raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")
     config = config or MPCConfig()
