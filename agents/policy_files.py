@@ -24,6 +24,8 @@ import hashlib
 import io
 import json
 import math
+import os
+import stat
 import sys
 import zipfile
 from dataclasses import dataclass
@@ -88,7 +90,9 @@ class PolicyFiles:
                    stem.with_name(stem.name + METADATA_SUFFIX))
 
     def missing(self) -> list[Path]:
-        return [p for p in (self.weights, self.normalization, self.metadata) if not p.is_file()]
+        """The files that do not exist (one that is there but no regular file, a FIFO say, is refused by name when
+        read: it was called missing)."""
+        return [p for p in (self.weights, self.normalization, self.metadata) if not p.exists()]
 
 
 @dataclass(frozen=True)
@@ -198,19 +202,38 @@ MAX_METADATA_BYTES, MAX_WEIGHTS_BYTES = 2**20, 2**30
 MAX_TENSORS = 4 * MAX_LAYERS + 16  # (a million empty tensors in a 75 MB file took 22 s and 1.7 GB before any check)
 
 
-def _check_size(path: Path, most: int, what: str) -> None:
-    size = path.stat().st_size
-    if size > most:
-        raise PolicyFileError(f"{what} {path} is {size} bytes; a policy's is at most {most}")
+def _read_file(path: Path, most: int, what: str) -> bytes:
+    """The bytes of one of a policy's files, read once by :func:`wl_env.atomic_io.read_regular_file` (a regular file of
+    at most ``most`` bytes, checked on the file opened): PolicyFileError naming it otherwise. (A FIFO was called
+    missing, or blocked the hash of the weights for good; the size was checked, then the file read separately.)"""
+    from wl_env.atomic_io import read_regular_file
+
+    try:
+        info = os.stat(path)
+        if stat.S_ISREG(info.st_mode) and info.st_size > most:  # (said before any byte is read, as it always was)
+            raise PolicyFileError(f"{what} {path} is {info.st_size} bytes; a policy's is at most {most}")
+        return read_regular_file(path, most, f"a policy's {what}")
+    except PolicyFileError:
+        raise
+    except FileNotFoundError:
+        raise PolicyFileError(f"{what} {path} is missing") from None
+    except (OSError, ValueError) as exc:  # not a regular file, a folder, no permission, a file that grew
+        raise PolicyFileError(f"{what} {path} is unreadable: {' '.join(str(exc).split())}") from None
 
 
 def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     """The metadata, checked: format, network description, checksums of the weights and normalization."""
+    return _read_checked(files)[0]
+
+
+def _read_checked(files: PolicyFiles) -> tuple[dict[str, Any], bytes, bytes]:
+    """(metadata, weights, normalization): the metadata checked, and the bytes of the other two, each read once and
+    checked against its checksum there (what is loaded is what was checked)."""
     path = files.metadata
+    raw = _read_file(path, MAX_METADATA_BYTES, "policy metadata")
     try:
-        _check_size(path, MAX_METADATA_BYTES, "policy metadata")
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as exc:  # (nested too deeply; an integer of 5000 digits)
+        meta = json.loads(raw.decode("utf-8"))
+    except (ValueError, RecursionError) as exc:  # (nested too deeply; an integer of 5000 digits; not UTF-8)
         raise PolicyFileError(f"policy metadata {path} is unreadable: {brief(exc)}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not policy metadata (no \"format\": \"{FORMAT}\"); a pickle-free policy is "
@@ -227,20 +250,19 @@ def read_metadata(files: PolicyFiles) -> dict[str, Any]:
     if env_id is not None and not isinstance(env_id, str):
         raise PolicyFileError(f"{path}: config.env_id must be an env id string, got {env_id!r}")
     recorded = meta.get("files")
+    contents = []
     for key, file, most in (("weights", files.weights, MAX_WEIGHTS_BYTES),
                             ("normalization", files.normalization, MAX_NORMALIZATION_BYTES)):
         entry = recorded.get(key) if isinstance(recorded, dict) else None
         if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
             raise PolicyFileError(f"{path}: files.{key}.sha256 is missing")
-        try:  # (the size before the hash: a 1.2 GB file took 5 s and 1.4 GB of memory to be refused)
-            _check_size(file, most, f"{key} file")
-            digest = sha256(file)
-        except OSError as exc:
-            raise PolicyFileError(f"{key} file {file} is unreadable: {brief(exc)}") from None
-        if digest != entry["sha256"]:
+        # (the size before the hash: a 1.2 GB file took 5 s and 1.4 GB of memory to be refused)
+        data = _read_file(file, most, f"{key} file")
+        if hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise PolicyFileError(f"{file} does not match its metadata {path.name} (sha256 differs): a corrupt or "
                                   f"mixed-up file")
-    return meta
+        contents.append(data)
+    return meta, contents[0], contents[1]
 
 
 def _check_network(net: Any, path: Path) -> None:
@@ -330,10 +352,11 @@ MAX_NORMALIZATION_VALUES = 4096  # per entry: the statistics are a few floats pe
 MAX_NORMALIZATION_BYTES = 5 * (8 * MAX_NORMALIZATION_VALUES + 1024)
 
 
-def _check_entry_sizes(path: Path) -> None:
+def _check_entry_sizes(path: Path, data: bytes | None = None) -> None:
     """Each entry's shape, from its .npy header, before any array is read: a crafted header would have numpy
-    allocate what it claims (2^45 floats: a MemoryError), a crafted entry be inflated whole."""
-    with zipfile.ZipFile(path) as z:
+    allocate what it claims (2^45 floats: a MemoryError), a crafted entry be inflated whole. (``data``: the file's
+    bytes, read already.)"""
+    with zipfile.ZipFile(path if data is None else io.BytesIO(data)) as z:
         for info in z.infolist():
             with z.open(info) as f:
                 version = np.lib.format.read_magic(f)
@@ -348,11 +371,15 @@ def _check_entry_sizes(path: Path) -> None:
                                       f"{MAX_NORMALIZATION_VALUES} values each")
 
 
-def read_normalization(path: Path, obs_dim: int) -> ObsNormalization | None:
-    """The statistics of a ``_vecnormalize.npz`` (no pickle), checked; None if the policy does not normalize."""
+def read_normalization(path: Path, obs_dim: int, raw: bytes | None = None) -> ObsNormalization | None:
+    """The statistics of a ``_vecnormalize.npz`` (no pickle), checked; None if the policy does not normalize.
+    ``raw``: the file's bytes, read (and checked against the metadata's checksum) already; else the file is read
+    (a regular file, bounded)."""
     try:
-        _check_entry_sizes(path)
-        with np.load(path, allow_pickle=False, max_header_size=1000) as f:
+        if raw is None:
+            raw = _read_file(path, MAX_NORMALIZATION_BYTES, "normalization file")
+        _check_entry_sizes(path, raw)
+        with np.load(io.BytesIO(raw), allow_pickle=False, max_header_size=1000) as f:
             absent = [k for k in NORMALIZATION_ENTRIES if k not in f.files]
             if absent:
                 raise PolicyFileError(f"normalization file {path} has no entry {', '.join(map(repr, absent))} "
@@ -398,12 +425,11 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
         raise PolicyFileError(f"policy {files.weights.with_suffix('')} is incomplete: missing "
                               f"{', '.join(str(p) for p in missing)} (a policy needs its weights, its normalization "
                               f"and its metadata; without the normalization it acts on wrongly scaled observations)")
-    meta = read_metadata(files)
+    meta, weights, normalization_bytes = _read_checked(files)
     net = meta["network"]
     try:
-        _check_size(files.weights, MAX_WEIGHTS_BYTES, "weights file")
-        _check_tensor_header(files.weights)
-        state = load_tensors(files.weights.read_bytes())
+        _check_tensor_header(weights)
+        state = load_tensors(weights)
     except (SafetensorError, OSError, ValueError, MemoryError, RecursionError) as exc:  # (a header nested 100 000 deep)
         raise PolicyFileError(f"weights file {files.weights} is unreadable: {brief(exc)}") from None
     if not all(t.dtype == torch.float32 and bool(t.isfinite().all()) for t in state.values()):
@@ -422,18 +448,17 @@ def read_policy(stem: str | Path) -> tuple[Any, ObsNormalization | None, dict[st
     except RuntimeError as exc:  # missing or unexpected tensors, wrong shapes
         raise PolicyFileError(f"weights file {files.weights} does not fit the network of {files.metadata.name}: "
                               f"{' '.join(str(exc).split())}") from None
-    normalization = read_normalization(files.normalization, net["observation_space"]["shape"][0])
+    normalization = read_normalization(files.normalization, net["observation_space"]["shape"][0], normalization_bytes)
     return network, normalization, meta
 
 
-def _check_tensor_header(path: Path) -> None:
+def _check_tensor_header(data: bytes) -> None:
     """The safetensors header alone (its length, then JSON): at most MAX_TENSORS tensors, each float32, before the
-    tensors are read."""
-    with open(path, "rb") as f:
-        n = int.from_bytes(f.read(8), "little")
-        if not 2 <= n <= 2**20:
-            raise ValueError(f"a header of {n} bytes")
-        header = json.loads(f.read(n))
+    tensors are parsed."""
+    n = int.from_bytes(data[:8], "little")
+    if not 2 <= n <= 2**20 or len(data) < 8 + n:
+        raise ValueError(f"a header of {n} bytes" + (f" in a file of {len(data)}" if 2 <= n <= 2**20 else ""))
+    header = json.loads(data[8:8 + n])
     if not isinstance(header, dict):
         raise ValueError("its header is no JSON object")
     tensors = {k: v for k, v in header.items() if k != "__metadata__"}

@@ -83,6 +83,10 @@ N_OBS_OF_ENV = {**{v: k for k, v in ENV_OF_OBS.items()}, **dict.fromkeys(TARGETE
 
 log = logging.getLogger(__name__)
 
+# a checkpoint's optimizer.safetensors at most (bytes): Adam's two moments of each weight, of a policy's at most
+# agents.policy_files.MAX_WEIGHTS_BYTES, and their headers
+MAX_OPTIMIZER_BYTES = 2 * 2**30 + 2**20
+MAX_EVAL_CSV_BYTES = 2**26  # a run's eval.csv read back on resume (a row of ~300 bytes per evaluation)
 MAX_STEPS = 10**15  # a checkpoint's step count at most (10^23 failed as a seed: "Seed must be between 0 and 2**32 - 1")
 EVAL_TARGET_RATIOS = (1.0, 1.15, 1.5)  # the targets of the leaderboard (#14): fastest, 1.15 and 1.5 T_min
 EVAL_FIELDS = (
@@ -186,7 +190,11 @@ def restore_checkpoint(model: Any, vecnorm: Any, folder: Path) -> None:
     try:
         network, _, _ = read_policy(folder / "policy")
         model.policy.load_state_dict(network.state_dict(), strict=True)
-        training = json.loads((folder / "training.json").read_text())
+        # (regular files, bounded: a FIFO in their place hung the resume for good, a huge file was read whole)
+        training = json.loads(atomic_io.read_regular_file(folder / "training.json", MAX_RUN_JSON_BYTES,
+                                                          "a checkpoint's training.json holds"))
+        if not isinstance(training, dict):
+            raise ValueError("training.json holds no JSON object")
         opt = training["optimizer"]
         groups, scalars = opt["param_groups"], opt["scalars"]
         if not (isinstance(groups, list) and all(isinstance(g, dict) and all(_plain_setting(v) for v in g.values())
@@ -194,7 +202,9 @@ def restore_checkpoint(model: Any, vecnorm: Any, folder: Path) -> None:
                 and all(_plain_setting(v) for v in scalars.values())):
             raise ValueError("training.json: optimizer settings must be plain numbers, flags or lists of numbers")
         state: dict[int, dict[str, Any]] = {}
-        entries = [*load_tensors((folder / "optimizer.safetensors").read_bytes()).items(), *scalars.items()]
+        optimizer = atomic_io.read_regular_file(folder / "optimizer.safetensors", MAX_OPTIMIZER_BYTES,
+                                                "a checkpoint's optimizer state holds")
+        entries = [*load_tensors(optimizer).items(), *scalars.items()]
         for key, value in entries:
             index, name = key.split("/", 1)
             state.setdefault(int(index), {})[name] = value
@@ -274,13 +284,20 @@ def reward_config(cfg: PPOConfig, step: int | None = None):
 
 # ---------------------------------------------------------------------------------------------- policy
 @functools.cache
-def _n_env_actions(env_id: str) -> int:
-    """The size of a registered env's action (built once per id)."""
+def _env_spaces(env_id: str) -> tuple[int, np.ndarray, np.ndarray]:
+    """A registered env's action size and observation bounds (low, high; float32, read-only), as the registry's env
+    has them (built once per id)."""
+    import warnings
+
     import gymnasium as gym
 
-    env = gym.make(env_id)
+    with warnings.catch_warnings():  # (an older env's deprecation: said where an env of it is run)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        env = gym.make(env_id)
     try:
-        return int(env.action_space.shape[0])
+        low, high = (np.array(b, dtype=np.float32) for b in (env.observation_space.low, env.observation_space.high))
+        low.flags.writeable = high.flags.writeable = False
+        return int(env.action_space.shape[0]), low, high
     finally:
         env.close()
 
@@ -307,9 +324,21 @@ class PPOPolicy:
             known = N_OBS_OF_ENV.get(self.env_id)
             raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} "
                                   + (f"has {known}" if known is not None else f"is none of {sorted(N_OBS_OF_ENV)}"))
-        n_act, wanted = network.action_space.shape[0], _n_env_actions(self.env_id)
+        wanted, low, high = _env_spaces(self.env_id)
+        n_act = network.action_space.shape[0]
         if n_act != wanted:  # (it failed at the first step, naming the controller: a 4-number policy on WheelLoaderPlan-v0)
             raise PolicyFileError(f"the policy gives {n_act} numbers per action; its env {self.env_id!r} takes {wanted}")
+        # (the bounds its observations were checked against in training: other ones, narrower say, were accepted and
+        # refused the env's own observations at the first act())
+        space = network.observation_space
+        differ = np.flatnonzero((np.asarray(space.low, np.float32) != low) | (np.asarray(space.high, np.float32) != high))
+        if differ.size:
+            i = int(differ[0])
+            raise PolicyFileError(
+                f"the policy's observation space differs from its env {self.env_id!r}'s at {differ.size} entr"
+                f"{'y' if differ.size == 1 else 'ies'} {differ[:8].tolist()}{' ...' if differ.size > 8 else ''} (entry {i}: "
+                f"[{float(space.low[i]):.6g}, {float(space.high[i]):.6g}], the env's [{float(low[i]):.6g}, "
+                f"{float(high[i]):.6g}]): it was made for other observations")
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:
@@ -352,8 +381,9 @@ def load_policy(path: str | os.PathLike, device: str = "cpu", *, trust_pickle: b
     stem = _safe_stem(p)
     if stem is not None:
         network, normalization, meta = read_policy(stem)
-        _check_spaces(network, PolicyFiles.of(stem).metadata)
-        return PPOPolicy(network, normalization, meta)
+        metadata = PolicyFiles.of(stem).metadata
+        _check_spaces(network, metadata)
+        return _policy(network, normalization, meta, metadata)
     zip_path = _sb3_zip(p)
     if not trust_pickle:
         raise PolicyFileError(
@@ -362,6 +392,15 @@ def load_policy(path: str | os.PathLike, device: str = "cpu", *, trust_pickle: b
             f"the pickle-free export: `wl train --export PATH` or `python -m agents.policy_files {zip_path} OUT "
             f"--trust-pickle`")
     return _load_sb3(zip_path, device)
+
+
+def _policy(network: Any, normalization: ObsNormalization | None, meta: dict[str, Any], path: Path) -> PPOPolicy:
+    """:class:`PPOPolicy`, its refusal (the env its metadata names takes other observations or actions) naming the
+    file ``path`` the policy was read from."""
+    try:
+        return PPOPolicy(network, normalization, meta)
+    except PolicyFileError as exc:
+        raise PolicyFileError(f"policy {path}: {exc}") from None
 
 
 def _safe_stem(p: Path) -> Path | None:
@@ -409,9 +448,9 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
     meta_path = next((c for c in meta_files if c.exists()), None)
     if meta_path is None:
         raise PolicyFileError(f"policy {p} has no metadata: expected one of {', '.join(str(c) for c in meta_files)}")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    try:  # (a regular file, bounded: a FIFO in its place hung the load for good)
+        meta = json.loads(atomic_io.read_regular_file(meta_path, MAX_RUN_JSON_BYTES, "policy metadata holds"))
+    except (OSError, ValueError, RecursionError) as exc:
         raise PolicyFileError(f"policy metadata {meta_path} is unreadable: {brief(exc)}") from None
     if not isinstance(meta, dict):
         raise PolicyFileError(f"policy metadata {meta_path} is not a JSON object")
@@ -439,7 +478,7 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
     if "braking" not in meta and "braking" in config:
         meta["braking"] = config["braking"]
     _check_spaces(model.policy, p)
-    return PPOPolicy(model.policy, normalization, meta)
+    return _policy(model.policy, normalization, meta, p)
 
 
 def _check_spaces(network: Any, path: Path) -> None:
@@ -784,7 +823,9 @@ def _eval_csv_up_to(path: Path, step: int) -> str | None:
     if not path.exists():
         return None
     try:  # (a step that is no number, or a file that is no text: ValueError naming it, not a bare one)
-        lines = path.read_text().splitlines(keepends=True)
+        # (a regular file, bounded: a FIFO in its place hung the resume for good; its newlines read as read_text does)
+        text = atomic_io.read_regular_file(path, MAX_EVAL_CSV_BYTES, "an evaluation log holds").decode()
+        lines = text.replace("\r\n", "\n").replace("\r", "\n").splitlines(keepends=True)
         if not lines:
             return None
         n_cols = len(next(csv.reader(lines[:1])))
@@ -817,7 +858,10 @@ def read_run_config(path: Path) -> tuple[PPOConfig, list[str]]:
 def read_progress(folder: Path) -> tuple[dict[str, Any], int]:
     """A checkpoint's progress.json, checked, and its step count (CheckpointError naming the folder)."""
     try:
-        progress = json.loads((Path(folder) / "progress.json").read_text())
+        progress = json.loads(atomic_io.read_regular_file(Path(folder) / "progress.json", MAX_RUN_JSON_BYTES,
+                                                          "a checkpoint's progress.json holds"))  # (a FIFO: a hang)
+        if not isinstance(progress, dict):
+            raise ValueError("it holds no JSON object")
         step, wall = progress["num_timesteps"], progress["wall_time"]
         if type(step) is not int or not 0 <= step <= MAX_STEPS:  # (it may pass total_timesteps by the last rollout)
             raise ValueError(f"num_timesteps must be an integer in [0, {MAX_STEPS}], got {str(step)[:40]}")

@@ -23,7 +23,7 @@ import shlex
 import sys
 import types
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -84,6 +84,21 @@ def _once(cls: type[argparse.Action]) -> type[argparse.Action]:
             given[self.dest] = value
 
     return Once
+
+
+def refuse_repeated_values(option: str, values: Iterable[Any] | None, what: str = "a value",
+                           key: Callable[[Any], Any] | None = None) -> None:
+    """A ``ValueError`` naming ``option`` if its list names one value twice (``key``: what makes two values the same,
+    e.g. another spelling of one number or one path): the scripts ran each value's work twice and counted its rows
+    twice in their summaries."""
+    values = list(values or ())
+    seen: dict[Any, list[Any]] = {}
+    for v in values:
+        seen.setdefault(v if key is None else key(v), []).append(v)
+    repeated = [given for given in seen.values() if len(given) > 1]
+    if repeated:
+        shown = "; ".join(" and ".join(map(str, given)) for given in repeated)
+        raise ValueError(f"{option} names {what} twice: {shown} (give each once)")
 
 
 def refuse_repeated_options(parser: argparse.ArgumentParser) -> None:

@@ -23,14 +23,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.evaluate import default_policy_path, evaluate_controller, load_controller, policy_input_files  # noqa: E402
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from mpc.benchmark.ocp import write_json_atomic  # noqa: E402
 from mpc.benchmark.pareto import pareto_fronts  # noqa: E402
 from wl.cli import _float_in, _int_in  # noqa: E402  (the command line's checked option types)
@@ -108,6 +109,10 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
+    try:  # (one run by two spellings, runs/a and runs/a/: evaluated twice, counted twice in the spread)
+        refuse_repeated_values("--runs", args.runs, "a run", key=os.path.realpath)
+    except ValueError as exc:
+        ap.error(str(exc))
     if args.json and args.runs:  # (a run's policy file as --json was written over after the work)
         from wl_env.atomic_io import check_not_an_input
 

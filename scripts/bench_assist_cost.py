@@ -21,6 +21,8 @@ import numpy as np  # noqa: E402
 import wl_env  # noqa: E402,F401  (registers the envs)
 from wl_env.atomic_io import write_json_atomic  # noqa: E402
 
+MAX_ENV_STEPS = 10**7  # --steps x --num-envs: a round's actions, drawn at once (float64, then float32: 48 bytes each)
+
 
 def steps_per_second(venv: gym.vector.VectorEnv, actions: np.ndarray, repeats: int) -> float:
     """Median env-steps per second over ``repeats`` rounds of ``actions`` (steps, num_envs, n)."""
@@ -52,6 +54,10 @@ def main() -> None:
     for name, lo, hi in (("num_envs", 1, MAX_NUM_ENVS), ("steps", 1, 10**6), ("repeats", 1, 1000)):
         if not lo <= getattr(args, name) <= hi:  # (--num-envs -1 failed with an IndexError, --repeats 0 likewise)
             ap.error(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {getattr(args, name)}")
+    if args.steps * args.num_envs > MAX_ENV_STEPS:  # (each round's actions are drawn at once: 10^6 x 16384 asked numpy
+        # for 131 GB, a MemoryError's traceback)
+        ap.error(f"--steps x --num-envs must be at most {MAX_ENV_STEPS:,} env-steps per round (its actions are drawn "
+                 f"beforehand, 48 bytes each), got {args.steps} x {args.num_envs} = {args.steps * args.num_envs:,}")
     rng = np.random.default_rng(0)
     n, steps = args.num_envs, args.steps
     pendulum = gym.make_vec("Pendulum-v1", num_envs=n, vectorization_mode="sync")

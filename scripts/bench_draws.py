@@ -28,8 +28,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -73,9 +72,7 @@ def check(o: Options) -> None:
         target_ratio(mode)
     # (a mode given twice, also as another spelling of one ratio, 1.15 and 1.150: every draw run twice, its records
     # and the summary's counts doubled)
-    keys = [target_ratio(m) if m not in ("time", "mismatch") else m for m in o.modes]
-    if len(set(keys)) != len(keys):
-        raise ValueError(f"--modes names a mode twice: {' '.join(o.modes)}")
+    refuse_repeated_values("--modes", o.modes, "a mode", key=lambda m: m if m in ("time", "mismatch") else target_ratio(m))
     if o.out is not None:
         check_output_file(o.out, "--out")
 

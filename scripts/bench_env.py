@@ -36,8 +36,8 @@ import gymnasium as gym
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
 import wl_env  # noqa: E402, F401  (registers WheelLoader-v1)
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 
 TARGET_SINGLE_RATIO = 0.5  # single WheelLoader-v1 >= 0.5 x Pendulum-v1's step rate
 TARGET_VECTOR_RATE = 500_000.0  # env-steps/s of the vector env at N = 1024
@@ -108,6 +108,10 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"{flag} must be an integer in [1, {hi}], got {value}")
     if min(args.num_envs) < 1:
         ap.error("--num-envs must be >= 1")
+    try:  # (a size given twice: its vector env built twice, one of them timed)
+        refuse_repeated_values("--num-envs", args.num_envs, "a size")
+    except ValueError as exc:
+        ap.error(str(exc))
     if args.quick:  # (after the checks: a bad --repeats was not refused with --quick)
         args.repeats, args.single_steps, args.vector_env_steps = 3, 1_000, 10_000
     from wl_env.params import MAX_NUM_ENVS

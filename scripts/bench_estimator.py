@@ -15,9 +15,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from bench_mpc import MISMATCH  # noqa: E402  (its mismatch corners: (payload, rolling resistance) scales)
 
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop  # noqa: E402
 from wl_env.atomic_io import check_output_option, write_json_atomic  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -47,6 +47,10 @@ def main() -> None:
     refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
     check_output_option(ap, args.json, "--json")
+    try:  # (each corner run twice)
+        refuse_repeated_values("--braking", args.braking, "a braking alternative")
+    except ValueError as exc:
+        ap.error(str(exc))
     rows = []
     for braking in args.braking:
         for payload, rolling in MISMATCH:

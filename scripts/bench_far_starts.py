@@ -20,8 +20,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -40,8 +39,7 @@ def run(o: Options) -> dict[str, Any]:
         raise ValueError("--brakings needs at least one of service, tc")
     for b in o.brakings:
         check_braking(b)
-    if len(set(o.brakings)) != len(o.brakings):  # (each run twice, and counted twice in the summary)
-        raise ValueError(f"--brakings names a braking alternative twice: {' '.join(o.brakings)}")
+    refuse_repeated_values("--brakings", o.brakings, "a braking alternative")  # (each run twice, counted twice)
     if o.out is not None:
         check_output_file(o.out, "--out")
     from bench_mpc import MISMATCH, summary_line, write_with_speed

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from mpc.benchmark.ocp import OCPError, write_json_atomic  # noqa: E402
 from mpc.benchmark.reference import reference_at  # noqa: E402
 from mpc.benchmark.scoring import smoothness  # noqa: E402
@@ -175,10 +175,12 @@ def check_options(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None
                 ap.error(f"--targets {' '.join(f'{t:g}' for t in short)} s lie below the nominal cycle's minimum cycle "
                          f"time with {b} braking (about {t_min:.2f} s)")
     # (a value given twice ran its cycles twice, each row counted twice in the candidates' summaries)
-    for option, values in (("--targets", args.targets), ("--braking", args.braking), ("--solvers", args.solvers),
-                           ("--horizons", args.horizons), ("--rate-sweep", args.rate_sweep or [])):
-        if len(set(values)) != len(values):
-            ap.error(f"{option} names a value twice: {' '.join(map(str, values))}")
+    try:
+        for option, values in (("--targets", args.targets), ("--braking", args.braking), ("--solvers", args.solvers),
+                               ("--horizons", args.horizons), ("--rate-sweep", args.rate_sweep)):
+            refuse_repeated_values(option, values)
+    except ValueError as exc:
+        ap.error(str(exc))
     if not 0 <= args.suite_sample <= MAX_SAMPLE:
         ap.error(f"--suite-sample must be an integer in [0, {MAX_SAMPLE}], got {args.suite_sample}")
     # (MPCConfig's and the controller's range: 500 or 1e-9 failed as deadline_ms, naming no option)

@@ -23,9 +23,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import numpy as np  # noqa: E402
 
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from mpc.controller import codegen, solver  # noqa: E402
 from mpc.controller.grid import GridNLP  # noqa: E402
 from mpc.controller.mpc import MPCConfig, run_closed_loop  # noqa: E402
@@ -65,10 +65,11 @@ def main() -> None:
     if not 1 <= args.rounds <= 20:
         raise ValueError(f"--rounds must be an integer in [1, 20], got {args.rounds}")
     check_output_option(ap, args.json, "--json")
+    refuse_repeated_values("--variants", args.variants, "a variant")  # (as every script's lists; was dropped silently)
     configs = [MPCConfig(mode="target_time", target_time=11.0, horizon_steps=None), MPCConfig(mode="time", horizon_steps=None)]
     if args.rti:
         configs += [dataclasses.replace(c, horizon_steps=10, horizon_solver="sqp-rti") for c in configs]
-    variants = list(dict.fromkeys(args.variants))
+    variants = list(args.variants)
     steps: dict[str, list[float]] = {f"{v} {label(c)}": [] for v in variants for c in configs}
     rows = []
     if "compiled" in variants:  # the libraries built before the rounds time anything

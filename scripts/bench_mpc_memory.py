@@ -23,6 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from wl_env.atomic_io import write_json_atomic  # noqa: E402
 
 
@@ -70,6 +71,7 @@ def main() -> None:
             check_target_time(args.target_time, "--target-time")
         if not 2 <= args.horizon_steps <= 1000 and not (args.one and args.horizon_steps == 0):
             raise ValueError(f"--horizon-steps must be an integer in [2, 1000], got {args.horizon_steps}")
+        refuse_repeated_values("--braking", args.braking, "a braking alternative")  # (each cycle's process run twice)
     except ValueError as exc:
         ap.error(str(exc))
     if args.one:
@@ -83,10 +85,17 @@ def main() -> None:
                    "--horizon-solver", args.horizon_solver]
             if args.target_time:
                 cmd += ["--target-time", str(args.target_time)]
-            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-            row = json.loads(out.strip().splitlines()[-1])
-            rows.append(row)
+            done = subprocess.run(cmd, capture_output=True, text=True)
             name = "full horizon" if not h else f"h{h} {args.horizon_solver}"
+            try:
+                if done.returncode:  # (was a CalledProcessError's traceback, the child's own error unsaid)
+                    said = [line for line in done.stderr.splitlines() if line.strip()]
+                    raise ValueError(f"exit {done.returncode}: {' '.join(said[-1].split())[:300] if said else 'no message'}")
+                row = json.loads(done.stdout.strip().splitlines()[-1])
+            except (ValueError, IndexError) as exc:  # (its exit, or no JSON row: a JSONDecodeError, an IndexError)
+                raise ValueError(f"the {braking} cycle's process ({name}) failed (nothing written): "
+                                 f"{' '.join(str(exc).split())[:400]}") from None
+            rows.append(row)
             print(f"{braking} {name}: T {row['T']:.1f} s, fuel {row['fuel_g']:.2f} g, planning {row['planning_s']:.1f} s, "
                   f"step median / p99 / max {row['step_median_ms']:.1f} / {row['step_p99_ms']:.0f} / "
                   f"{row['step_max_ms']:.0f} ms, peak RSS {row['peak_rss_mb']:.0f} MB", flush=True)

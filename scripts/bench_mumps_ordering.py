@@ -24,8 +24,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -50,6 +49,7 @@ class Options:
 def check(o: Options) -> None:
     for b in o.brakings:
         check_braking(b)
+    refuse_repeated_values("--brakings", o.brakings, "a braking alternative")  # (each run twice, counted twice)
     if not 0 <= o.scenarios <= 1000:
         raise ValueError(f"--scenarios must be an integer in [0, 1000], got {o.scenarios}")
     if o.target_ratio != 0 and not 1.0 <= o.target_ratio <= 3.0:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.train_cli import tyro_options
+from agents.train_cli import refuse_repeated_values, tyro_options
 from wl_env.atomic_io import check_output_file, write_json_atomic
 from wl_env.logs import run_script
 
@@ -106,6 +106,8 @@ def check(o: Options) -> None:
     driven_on(o.env_id, "--env-id")
     if not o.ratios or not all(1.0 <= r <= 3.0 for r in o.ratios):
         raise ValueError(f"--ratios must be target ratios to T_min in [1, 3], got {o.ratios}")
+    refuse_repeated_values("--scenarios", o.scenarios, "a scenario")  # (each searched twice, its rows twice)
+    refuse_repeated_values("--ratios", o.ratios, "a ratio")
     for name, lo, hi in (("generations", 1, 10_000), ("population", 2, 4096)):
         if not lo <= getattr(o, name) <= hi:
             raise ValueError(f"--{name} must be an integer in [{lo}, {hi}], got {getattr(o, name)}")

@@ -23,8 +23,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -50,6 +49,7 @@ def check(o: Options) -> None:
         raise ValueError(f"--target-ratio must be 0 (minimum time) or lie in [1, 3], got {o.target_ratio}")
     if not all(0.0 < a <= 1.0 for a in o.reference_starts):
         raise ValueError(f"--reference-starts must each lie in (0, 1], got {list(o.reference_starts)}")
+    refuse_repeated_values("--reference-starts", o.reference_starts, "a start")  # (one start solved twice per plan)
     if o.out is not None:
         check_output_file(o.out, "--out")
 

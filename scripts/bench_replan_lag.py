@@ -23,8 +23,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl_env.atomic_io import check_output_file  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
@@ -42,6 +41,7 @@ class Options:
 def check(o: Options) -> None:
     for b in o.brakings:
         check_braking(b)
+    refuse_repeated_values("--brakings", o.brakings, "a braking alternative")  # (each run twice, counted twice)
     if not o.lags or not all(1 <= lag <= 100 for lag in o.lags) or len(set(o.lags)) != len(o.lags):
         raise ValueError(f"--lags must be distinct integers in [1, 100], got {list(o.lags)}")
     if o.out is not None:

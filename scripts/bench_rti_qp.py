@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 
 
 def capture(braking: str, target: float, n: int) -> list[tuple[Any, dict[str, Any], np.ndarray, np.ndarray]]:
@@ -55,6 +56,10 @@ def main() -> None:
 
     refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
     args = ap.parse_args()
+    try:  # (each QP solver timed twice)
+        refuse_repeated_values("--solvers", args.solvers, "a QP solver")
+    except ValueError as exc:
+        ap.error(str(exc))
     if not 1 <= args.solves <= 1000:  # (0 ran the whole cycle, then "no warm-started solve captured", exit 1)
         ap.error(f"--solves must be an integer in [1, 1000], got {args.solves}")
     from wl_env.env import check_target_time

@@ -18,10 +18,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import gymnasium as gym  # noqa: E402
 
 import wl_env  # noqa: E402,F401  (registers the envs)
+from agents.train_cli import refuse_repeated_values  # noqa: E402
 from mpc.controller.mpc import MPCConfig, MPCController  # noqa: E402
 from mpc.controller.solver import IpoptSolver, SolverResult  # noqa: E402
 from wl_env.atomic_io import check_output_option, write_json_atomic  # noqa: E402
@@ -78,6 +78,11 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")
     if not all(1 <= n <= 100 for n in args.every):
         ap.error(f"--every must be integers in [1, 100], got {args.every}")
+    try:  # (each run twice, and counted twice in the summaries)
+        refuse_repeated_values("--every", args.every)
+        refuse_repeated_values("--braking", args.braking, "a braking alternative")
+    except ValueError as exc:
+        ap.error(str(exc))
     filters = {"on": [True], "off": [False], "both": [True, False]}[args.safety_filter]
     rows = []
     for braking in args.braking:

@@ -32,6 +32,7 @@ from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp  # noqa: E402
 from mpc.benchmark.reference import REFERENCE_DIR, SUITE_KIND, check_suite_file  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 from wl_env.scenario import Scenario  # noqa: E402
+from wl_env.suites import SUITES  # noqa: E402
 
 log = logging.getLogger("resolve_unverified_points")
 
@@ -52,12 +53,20 @@ def splice(entry: dict[str, Any], point: dict[str, Any]) -> dict[str, Any]:
             "fuel_g": np.minimum.accumulate([p["fuel_g"] for p in good]).tolist()}
 
 
+def shipped_suite_file(suite: str) -> Path:
+    """The shipped file of the suite so named, ``mpc/benchmark/references/<suite>.json``; ValueError naming --suite
+    unless it is a suite's name with a shipped file (``--suite ../../x --write`` read and rewrote ``x.json`` outside
+    the references, any file that passed the suite file's check)."""
+    shipped = sorted(p.stem for p in REFERENCE_DIR.glob("*.json") if p.stem in SUITES)
+    if suite not in shipped:
+        raise ValueError(f"--suite must name a suite with a shipped file ({', '.join(shipped)}), got {suite!r}")
+    return REFERENCE_DIR / f"{suite}.json"
+
+
 def run(o: Options) -> list[dict[str, Any]]:
     if not 0.0 < o.fuel_tol <= 0.1:
         raise ValueError(f"--fuel-tol must lie in (0, 0.1], got {o.fuel_tol}")
-    path = REFERENCE_DIR / f"{o.suite}.json"
-    if not path.exists():
-        raise ValueError(f"no shipped suite file {path} (--suite {o.suite!r})")
+    path = shipped_suite_file(o.suite)
     data = store.read_entry(path, SUITE_KIND, check_suite_file)
     entries, outcomes = data["entries"], []
     for key, e in sorted(entries.items()):

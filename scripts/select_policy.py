@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,10 +27,9 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's packages, not an installed copy)
-
 from agents.evaluate import policy_input_files  # noqa: E402
 from agents.ppo_config import TARGETED_ENV_IDS  # noqa: E402
-from agents.train_cli import tyro_options  # noqa: E402
+from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl.report import TARGETS  # noqa: E402
 from wl_env.atomic_io import check_not_an_input, check_output_file, write_json_atomic  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
@@ -54,8 +54,8 @@ def check(o: Options) -> None:
     check_braking(o.braking)
     if not o.policies:
         raise ValueError("--policies needs at least one policy file")
-    if len(set(o.policies)) != len(o.policies):  # (one record for the two: the others' counts stood beside it)
-        raise ValueError(f"--policies names a policy twice: {', '.join(sorted({p for p in o.policies if o.policies.count(p) > 1}))}")
+    # (one record for the two: the others' counts stood beside it; also one file by two spellings, ./P and P)
+    refuse_repeated_values("--policies", o.policies, "a policy", key=os.path.realpath)
     if not 1 <= o.draws <= 10_000:
         raise ValueError(f"--draws must be an integer in [1, 10000], got {o.draws}")
     if not 0 <= o.seed <= 2**32 - 1:

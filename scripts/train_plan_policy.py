@@ -137,9 +137,16 @@ def write_curve(o: Options, summaries: list[dict], path: Path) -> None:
         writer.writeheader()
         writer.writerows(rows)
     title = f"plan policy ({o.braking}): PPO on {o.env_id}, {len(summaries)} stages, seed {o.seed}"
-    subprocess.run([sys.executable, str(Path(__file__).with_name("plot_learning_curve.py")), str(csv_path), "--braking",
-                    o.braking, "--out", str(png_path), "--title", title, *([] if o.score else ["--no-front"])],
-                   check=True, capture_output=True)
+    done = subprocess.run([sys.executable, str(Path(__file__).with_name("plot_learning_curve.py")), str(csv_path),
+                           "--braking", o.braking, "--out", str(png_path), "--title", title,
+                           *([] if o.score else ["--no-front"])], capture_output=True)
+    if done.returncode:  # (was a CalledProcessError's traceback after hours of training, naming neither run nor csv)
+        said = [line for line in done.stderr.decode("utf-8", "replace").splitlines() if line.strip()]
+        why = " ".join(said[-1].split())[:300] if said else "no message"
+        raise ValueError(f"--curve {o.curve}: plotting the learning curve failed (plot_learning_curve.py exit "
+                         f"{done.returncode}: {why}); the trained stages are kept in "
+                         f"{', '.join(str(cfg.run_dir) for cfg in stage_configs(o))}, the curve's rows in {csv_path} "
+                         f"(run the same command again to read them back and draw it)")
 
 
 def export(o: Options, summaries: list[dict]) -> dict:

@@ -332,6 +332,14 @@ def _plain_text(text: str) -> str:
     return text.replace("$", r"\$")
 
 
+def _cell(text: Any) -> str:
+    """``text`` as one markdown table cell shows it literally: a newline (or another control character) in a
+    controller's name ended the row, and a ``|`` split the cell, shifting every column after it (each kept in
+    results.json as given, as ``$`` is for the figures, :func:`_plain_text`). Valid names are unchanged."""
+    text = "".join(c if c.isprintable() else " " for c in str(text))
+    return text.replace("\\", "\\\\").replace("|", "\\|")
+
+
 def _problem(results: Any) -> str | None:
     """What keeps :func:`render` from drawing ``results``, or None."""
     from mpc.benchmark.pareto import check_front
@@ -485,7 +493,7 @@ def _draw(results: dict[str, Any], out: Path, staging: Path, inputs: tuple[Path,
              "| controller | braking | cycle time (s) | fuel (g) | time gap | fuel gap | violation | success |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['controller']} | {r['braking']} | {r['T']:.2f} | {r['fuel_g']:.1f} | {_gap(r['time_gap'])} | "
+        lines.append(f"| {_cell(r['controller'])} | {r['braking']} | {r['T']:.2f} | {r['fuel_g']:.1f} | {_gap(r['time_gap'])} | "
                      f"{_gap(r['fuel_gap'])} | {100 * r['max_violation']:.1f} % | {'yes' if r['success'] else 'no'} |")
     front_text = ", ".join(f"{b}: {len(fronts[b]['T'])} points, T {fronts[b]['T_min']:.2f}-{fronts[b]['T_fuel_opt']:.2f} s"
                            for b in brakings)
@@ -548,7 +556,8 @@ def suite_table(suite: dict[str, Any]) -> list[str]:
     which = (f"all {suite['scenarios_per_braking']} scenarios" if suite["full"] else
              f"a fixed sample of {suite['sample']} of its {suite['scenarios_per_braking']} scenarios (`wl run "
              f"--full-suite` runs all)")
-    lines = ["", f"## The `{suite['suite']}` suite (v{suite['version']}): {which} per braking alternative", "",
+    name = "".join(c if c.isprintable() else " " for c in suite["suite"])  # (a newline ended the title)
+    lines = ["", f"## The `{name}` suite (v{suite['version']}): {which} per braking alternative", "",
              "Each episode from its scenario's own start, scored against that scenario's own optimum (shipped with "
              "the package). Gaps over the successful episodes (median, p90); the success rate beside them.", "",
              "The target-conditioned controllers run at three targets per scenario (fastest: T_min itself; 1.15 "
@@ -558,7 +567,7 @@ def suite_table(suite: dict[str, Any]) -> list[str]:
              "fuel gap median | fuel gap p90 | lateness median | max violation |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in suite["rows"]:
-        lines.append(f"| {r['controller']} | {r['braking']} | {r.get('target') or '-'} | {r['scenarios']} | "
+        lines.append(f"| {_cell(r['controller'])} | {r['braking']} | {_cell(r.get('target') or '-')} | {r['scenarios']} | "
                      f"{100 * r['success_rate']:.0f} % | {_gap(r['time_gap_median'])} | {_gap(r['time_gap_p90'])} | "
                      f"{_gap(r['fuel_gap_median'])} | {_gap(r['fuel_gap_p90'])} | "
                      f"{_share(r.get('lateness_median'))} | "

@@ -27,7 +27,7 @@ def check_braking(braking: str) -> str:
     """``braking`` as the plain str of one of BRAKING_MODES; ValueError naming the allowed ones otherwise."""
     if isinstance(braking, str):  # (a str subclass, np.str_ say, as the str it holds: its == may say yes to anything)
         braking = str.__str__(braking)
-    if braking not in BRAKING_MODES:
+    if not isinstance(braking, str) or braking not in BRAKING_MODES:  # (an array: numpy's "truth value ... ambiguous")
         raise ValueError(f"braking must be one of {BRAKING_MODES} ('service' brakes or 'tc' braking), got {shown(braking)}")
     return braking
 

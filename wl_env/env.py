@@ -91,9 +91,9 @@ def check_assist(assist: Any, fuel_action: str, coast: Any = False, guards: Any 
             raise ValueError(f"{name}=True needs assist=True (it is a variant of the stopping assist)")
     if lift_off_load and not guards:
         raise ValueError("lift_off_load=True needs guards=True (it widens the guards' TC lift)")
-    if assist and fuel_action != "engine_speed":
+    if assist and not (isinstance(fuel_action, str) and fuel_action == "engine_speed"):  # (an array: "ambiguous")
         raise ValueError(f"assist=True needs fuel_action='engine_speed' (its first action is a speed request), "
-                         f"got fuel_action={fuel_action!r}")
+                         f"got fuel_action={shown(fuel_action)}")
     return assist
 
 
@@ -409,7 +409,7 @@ class WheelLoaderEnv(gym.Env):
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {shown(init_noise)}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+        if render_mode is not None and not (isinstance(render_mode, str) and render_mode in self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {shown(render_mode)}")
         self.render_mode = render_mode
         self.init_noise = float(init_noise)

@@ -122,7 +122,7 @@ class CycleStepper(Flattened):
         observe_scenario: bool = False,
         fuel_action: str = "injection",
     ) -> None:
-        if fuel_action not in FUEL_ACTIONS:
+        if not isinstance(fuel_action, str) or fuel_action not in FUEL_ACTIONS:  # (an array: "ambiguous")
             raise ValueError(f"fuel_action must be one of {FUEL_ACTIONS}, got {shown(fuel_action)}")
         dt, substeps, max_time = check_control_interval(dt), plain(substeps), plain(max_time)
         if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):

@@ -117,10 +117,20 @@ def target_arguments(plan_id: str, kwargs: dict[str, Any], signature_of: Any) ->
     unknown = sorted(set(kwargs) - known)
     if unknown:
         raise ValueError(f"{plan_id} takes no argument(s) {unknown}; known: {sorted(known - set(settings))}")
-    fixed = sorted(k for k in settings if k in kwargs and kwargs[k] != settings[k])
+    fixed = sorted(k for k in settings if k in kwargs and not _same_setting(kwargs[k], settings[k]))
     if fixed:
         raise ValueError(f"{plan_id} drives {target_id}: {', '.join(fixed)} cannot be changed")
     return {**kwargs, **settings}
+
+
+def _same_setting(given: Any, setting: Any) -> bool:
+    """Whether an argument given to a plan env is the per-step env's setting itself (a number or a flag of the same
+    value): an array compared with ``!=`` was numpy's "truth value of an array is ambiguous", naming no argument."""
+    if isinstance(given, np.generic):
+        given = given.item()
+    if type(given) not in (bool, int, float, str) or isinstance(given, bool) != isinstance(setting, bool):
+        return False
+    return bool(given == setting)
 
 
 def _check_plan(action: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -213,7 +223,10 @@ class WheelLoaderPlanVectorEnv(WheelLoaderVectorEnv):
         obs = self._obs()
         while not done.all():
             kept = (self._y, self._phase, self._t, self._rev_err, self._violation)
-            _, reward, term, trunc, info = self._advance(plan_action(plan, obs, time_in_phase, self.driver_codec, dt))
+            # (the loaders that have ended are stepped along from their end, as the vector env steps all; that step is
+            # discarded, and so is its divergence: a stalled engine's step diverged where the single env had stopped)
+            _, reward, term, trunc, info = self._advance(plan_action(plan, obs, time_in_phase, self.driver_codec, dt),
+                                                         ignore=done)
             if done.any():  # (the loaders that have ended stay as they ended: their steps are not kept)
                 self._y = tuple(np.where(done, a, b) for a, b in zip(kept[0], self._y, strict=True))
                 self._phase, self._t, self._rev_err, self._violation = (

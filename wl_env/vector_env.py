@@ -86,7 +86,8 @@ class WheelLoaderVectorEnv(VectorEnv):
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and 1 <= num_envs <= MAX_NUM_ENVS):
             raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}], got {shown(num_envs)}")
         if render_mode is not None:
-            raise ValueError("the vector WheelLoader-v1 does not render; use the single environment")
+            raise ValueError(f"the vector env does not render (render_mode must be None, got {shown(render_mode)}); "
+                             f"use the single environment")
         init_noise = plain(init_noise)
         if isinstance(init_noise, bool) or not (isinstance(init_noise, (int, float)) and 0.0 <= init_noise <= 1.0):
             raise ValueError(f"init_noise must lie in [0, 1], got {shown(init_noise)}")
@@ -207,8 +208,10 @@ class WheelLoaderVectorEnv(VectorEnv):
             raise ValueError(f"actions must be finite numbers in [-1, 1]; non-finite in envs {bad[:10]}")
         return self._advance(a)
 
-    def _advance(self, a: np.ndarray):
-        """One step under the checked actions ``a`` (N, this env's actions; the plan env's driver acts here)."""
+    def _advance(self, a: np.ndarray, ignore: np.ndarray | None = None):
+        """One step under the checked actions ``a`` (N, this env's actions; the plan env's driver acts here).
+        ``ignore``: a mask of loaders whose step the caller discards (the plan env's loaders that have ended), not
+        checked for divergence."""
         resetting = self._needs_reset.copy()
         t0 = self._t.copy()
         if self.assist:
@@ -219,8 +222,10 @@ class WheelLoaderVectorEnv(VectorEnv):
         else:
             action = (a[:, 0], a[:, 1], a[:, 2], a[:, 3])
         r = self.core.step(self._y, self._phase, self._t, self._rev_err, self._violation, action)
-        if self.core.diverged(r["y"], ignore=resetting):  # (a finished loader's step is discarded: it starts anew)
-            raise self.core.divergence(r["y"], self._t)
+        skip = resetting if ignore is None else resetting | ignore
+        if self.core.diverged(r["y"], ignore=skip):  # (a finished loader's step is discarded: it starts anew)
+            kept = ~skip  # (the message says what the loaders that diverged reached, not a discarded step's numbers)
+            raise self.core.divergence(tuple(np.asarray(c)[kept] for c in r["y"][:2]), self._t[kept])
         self._y, self._phase, self._t = r["y"], r["phase"], r["t"]
         self._rev_err, self._violation = r["rev_err"], r["violation"]
         reward = np.asarray(r["reward"], dtype=np.float64)

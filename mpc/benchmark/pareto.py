@@ -305,6 +305,8 @@ def check_front(d: dict[str, Any]) -> str | None:
     problem = _fields(d, _FRONT_FIELDS)
     if problem:
         return problem
+    if not d["params_fingerprint"]:  # (such a file scored any scenario's cycle: check_front_of matched it to every one)
+        return "field 'params_fingerprint' is empty: a front kept in a file names the parameters it was solved for"
     T, fuel = d["T"], d["fuel_g"]
     if len(T) != len(fuel):
         return f"{len(T)} cycle times but {len(fuel)} fuels"
@@ -716,11 +718,13 @@ def pareto_fronts(
 
 def check_front_of(front: ParetoFront, braking: str, params: LoaderParams | None) -> None:
     """A front given to score a cycle must be that cycle's: the same braking and parameters (ValueError; ``params``
-    None: the braking only, the caller matching the parameters per cycle)."""
+    None: the braking only, the caller matching the parameters per cycle). A front built in memory with an empty
+    ``params_fingerprint`` is matched by its braking only; no front read from a file has one (:func:`check_front`)."""
     if not isinstance(front, ParetoFront):
         raise ValueError(f"front must be a mpc.benchmark.pareto.ParetoFront or None, got {type(front).__name__}")
     try:  # (as a cached front is checked: unsorted, repeated or NaN points scored any number, NaN included)
-        problem = check_front(store.as_read(front.__dict__))
+        d = store.as_read(front.__dict__)
+        problem = check_front({**d, "params_fingerprint": d.get("params_fingerprint") or "built in memory"})
     except (TypeError, ValueError) as exc:
         problem = f"not JSON-like ({exc})"
     if problem:
