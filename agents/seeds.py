@@ -11,6 +11,7 @@ checkpoint, so a killed sweep rerun with the same command loses at most a checkp
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -163,18 +164,25 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
         raise ValueError(f"two runs share a name: {names}")
     for c in cfgs:
         log.info("%s: %s", c.name, run_state(c))
-    if ray_address is not None:
-        results = on_ray({c.name: (train_one, (c.to_dict(), command)) for c in cfgs}, ray_address)
-    elif workers > 1:
-        from mpc.workers import run_in_workers
+    fresh = [c.run_dir for c in cfgs if not c.run_dir.exists()]
+    try:
+        if ray_address is not None:
+            results = on_ray({c.name: (train_one, (c.to_dict(), command)) for c in cfgs}, ray_address)
+        elif workers > 1:
+            from mpc.workers import run_in_workers
 
-        results = {}
-        for i in range(0, len(cfgs), workers):  # ``workers`` runs at a time, each in its own process
-            batch = cfgs[i:i + workers]
-            results.update(run_in_workers({c.name: ("agents.seeds:train_one", (c.to_dict(), command)) for c in batch},
-                                          log_level=logging.INFO))
-    else:
-        results = {c.name: train_one(c.to_dict(), command) for c in cfgs}
+            results = {}
+            for i in range(0, len(cfgs), workers):  # ``workers`` runs at a time, each in its own process
+                batch = cfgs[i:i + workers]
+                results.update(run_in_workers({c.name: ("agents.seeds:train_one", (c.to_dict(), command))
+                                               for c in batch}, log_level=logging.INFO))
+        else:
+            results = {c.name: train_one(c.to_dict(), command) for c in cfgs}
+    except KeyboardInterrupt:  # (a run stopped before its config.json left its new folder empty: `--ray` at 35 s)
+        for folder in fresh:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
     from wl_env.atomic_io import write_json_atomic
 
     for d in {c.log_dir for c in cfgs}:

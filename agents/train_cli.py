@@ -302,9 +302,16 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
     try:
         if many:
             return _run_many(cfg, ns, command, prog)
+        fresh = not cfg.run_dir.exists()
         try:
             summary = train(cfg, resume=ns.resume, command=command)
         except KeyboardInterrupt:
+            if fresh:  # (an interrupt before its config.json left the new run's folder empty)
+                with contextlib.suppress(OSError):
+                    cfg.run_dir.rmdir()
+            if not (cfg.run_dir / "config.json").exists():  # (--resume said "nothing to resume", exit 2)
+                log.info("\ninterrupted before the run was recorded; the same command starts it again")
+                return interrupt.exit_code()
             log.info("\ninterrupted; continue with: %s --run-name %s --log-dir %s --resume", prog,
                      shlex.quote(cfg.name), shlex.quote(cfg.log_dir))
             return interrupt.exit_code()  # (130, or 143 for SIGTERM)

@@ -353,8 +353,12 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
 
 
 def _train_cmd(args: argparse.Namespace) -> int:
+    from agents.ppo_config import PPOConfig
     from agents.train_cli import run_train
 
+    for folder in (args.log_dir or PPOConfig.log_dir, args.cache):  # (created by run_train's checks, if missing)
+        if folder and str(folder).strip():
+            _CREATED.extend(reversed([p for p in (Path(folder), *Path(folder).parents) if not p.exists()]))
     return run_train(args, command="wl " + shlex.join(args.argv), prog="wl train")
 
 
@@ -768,41 +772,63 @@ def main(argv: list[str] | None = None) -> int:
     """
     as_program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    from mpc import interrupt  # (signal and threading only: in place before the packages' imports)
+
+    # The flag-setting handler from the start: Ctrl-C inside numpy's import came out as an ImportError with no
+    # KeyboardInterrupt in its chain (a traceback, exit 1), which only the flag tells from a broken install; and
+    # Ctrl-C between the parse and the command's own handler was a KeyboardInterrupt's traceback.
+    with interrupt.handling():
+        try:
+            code, command = _main(argv)
+        except KeyboardInterrupt:  # (between the steps: nothing written yet)
+            _remove_empty_created()
+            print("wl: interrupted", file=sys.stderr)
+            code, command = interrupt.exit_code(), None
+    if code in (130, 143) and as_program and command != "train":
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _main(argv: list[str]) -> tuple[int, str | None]:
+    """:func:`main`'s work under the interrupt handler: the exit code and the subcommand."""
+    from mpc import interrupt
+
     try:
         parser = build_parser()  # (it imports the packages: 0.3-1 s in which Ctrl-C printed a traceback)
         args = parser.parse_args(argv)
+        interrupt.check()  # (one that a C extension's import swallowed: the flag says it came)
     except (KeyboardInterrupt, ImportError) as exc:  # (ImportError: Ctrl-C inside numpy's import, "PyCapsule_Import ...")
-        from mpc import interrupt
-
         if not interrupt.caused_by_interrupt(exc):
             raise
         print("wl: interrupted", file=sys.stderr)
-        return 130
+        return interrupt.exit_code(), None
     except UsageError as exc:
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return 2, None
     except SystemExit as exc:  # --help: return its code instead of leaving the caller (tests, scripts)
-        return exc.code if isinstance(exc.code, int) else 0
+        return (exc.code if isinstance(exc.code, int) else 0), None
     args.argv = argv  # the command line as given, recorded by `wl train`
     if args.version:
         import wl_env
 
         print(wl_env.__version__)
-        return 0
+        return 0, None
     if not getattr(args, "func", None):
         parser.print_help()
-        return 0
+        return 0, None
+    _CREATED.clear()
     try:  # the environment's settings, read at the first NLP build or cache write: checked before any work
         _check_environment()
     except ValueError as exc:
+        _remove_empty_created()
         print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    code = _run_command(args)
-    if code in (130, 143) and as_program and args.command != "train":
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
-    return code
+        return 2, None
+    # A Ctrl-C whose KeyboardInterrupt an import swallowed (numpy's scalar types registered with `abc` from C) was lost
+    # for good here, as the command's handler clears the flag: `wl pareto` then waited for its workers' fronts
+    interrupt.check()
+    return _run_command(args), args.command
 
 
 def _check_environment() -> None:
@@ -821,8 +847,8 @@ def _check_environment() -> None:
 
         nlp_cache_size()
     for name in ("WL_CACHE_DIR", "WL_CODEGEN_DIR"):
-        if os.environ.get(name):
-            check_output_folder(os.environ[name], f"${name}")
+        if os.environ.get(name):  # (a folder created here is removed again if the command stops and leaves it empty)
+            _created_by(lambda name=name: check_output_folder(os.environ[name], f"${name}"), Path(os.environ[name]))
 
 
 def _run_command(args: argparse.Namespace) -> int:
@@ -831,20 +857,21 @@ def _run_command(args: argparse.Namespace) -> int:
     from wl_env.logs import cli_logging
 
     level = logging.DEBUG if args.verbose else logging.INFO
-    _CREATED.clear()
     with cli_logging(level), interrupt.handling():  # Ctrl-C ends a solve instead of failing one start of it
         try:
             code = int(args.func(args) or 0)
+            if code in (130, 143):  # (`wl train` returns its interrupt: it left an empty --log-dir behind)
+                _remove_empty_created()
             _CREATED.clear()
             return code
         # (LookupError: an optimum --no-solve may not solve; SystemError: Ctrl-C inside CasADi's DM.__array__,
         # "returned a result with an exception set")
-        except (KeyboardInterrupt, ValueError, LookupError, RuntimeError, OSError, SystemError) as exc:
+        except (KeyboardInterrupt, ValueError, LookupError, RuntimeError, OSError, SystemError, ImportError) as exc:
             _remove_empty_created()
             if interrupt.caused_by_interrupt(exc):  # (also an interrupt a library turned into an error)
                 print("wl: interrupted", file=sys.stderr)
                 return interrupt.exit_code()
-            if isinstance(exc, SystemError):
+            if isinstance(exc, (SystemError, ImportError)):  # (ImportError: a command's late import, as in main)
                 raise
             print(f"wl: error: {_one_line(exc)}", file=sys.stderr)
             return 2

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -337,7 +338,9 @@ def _cell(text: Any) -> str:
     controller's name ended the row, and a ``|`` split the cell, shifting every column after it (each kept in
     results.json as given, as ``$`` is for the figures, :func:`_plain_text`). Valid names are unchanged."""
     text = "".join(c if c.isprintable() else " " for c in str(text))
-    return text.replace("\\", "\\\\").replace("|", "\\|")
+    # a | escaped, and the backslashes just before it doubled (they would escape the escape); other backslashes stay
+    # as they are (a name like $\frac{$ is drawn as it is)
+    return re.sub(r"(\\*)\|", lambda m: 2 * m.group(1) + "\\|", text)
 
 
 def _problem(results: Any) -> str | None:

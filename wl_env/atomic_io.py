@@ -29,9 +29,9 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     path = _regular_file(Path(path), "output file")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
-    try:
+    try:  # (from the file's creation on: Ctrl-C while the umask was read left the temporary file behind)
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
         yield Path(tmp)
         with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
             os.fsync(fh.fileno())
