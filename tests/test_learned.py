@@ -196,7 +196,7 @@ def test_driver_labels_replay_the_experts_cycle_through_the_assist(tmp_path, bra
 # of the MPC fine-tuned by PPO, docs/benchmarks.md section 7)
 SHIPPED = [(k, b) for k in ("ppo-target", "plan", "bc") for b in ("service", "tc")]
 SHIPPED_ENV = {"ppo-target": "WheelLoaderTarget-v6", "bc": "WheelLoaderTarget-v5",
-               "plan": {"service": "WheelLoaderPlan-v1", "tc": "WheelLoaderPlan-v0"}}  # (v1 for TC: within v0's spread)
+               "plan": "WheelLoaderPlan-v1"}
 
 
 @pytest.mark.parametrize("kind,braking", SHIPPED)
