@@ -63,3 +63,25 @@ def fake_front_job(scenario, cache, n_points):
     front = ParetoFront(scenario.braking, T, [90.0, 60.0, 45.0], p.fingerprint(), T_min, T[-1], 45.0, [20, 12, 20, 12],
                         points=[{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, [90.0, 60.0, 45.0], strict=True)])
     return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": 0.0, "pid": os.getpid()}
+
+
+def in_thread(fn, timeout: float = 20.0):
+    """``fn()``'s result or exception, or a failure if it has not returned within ``timeout`` s (a hang, e.g. a FIFO
+    read)."""
+    import threading
+
+    out: dict = {}
+
+    def run() -> None:
+        try:
+            out["value"] = fn()
+        except Exception as exc:  # noqa: BLE001
+            out["error"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), f"{fn} hung (a FIFO read)"
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")

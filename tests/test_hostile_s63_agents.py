@@ -7,13 +7,13 @@ import io
 import json
 import os
 import shutil
-import threading
 import zipfile
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from fakes import in_thread
 
 import wl_env  # noqa: F401  (registers the envs)
 from agents.imitation import read_demo
@@ -131,25 +131,6 @@ def test_a_demonstration_whose_header_claims_a_huge_array_is_one_error_naming_th
         read_demo(path)
 
 
-def _in_thread(fn, timeout: float = 10.0):
-    """``fn()``'s result or exception, or a failure if it has not returned within ``timeout`` s (a hang)."""
-    out: dict = {}
-
-    def run() -> None:
-        try:
-            out["value"] = fn()
-        except Exception as exc:  # noqa: BLE001
-            out["error"] = exc
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    t.join(timeout)
-    assert not t.is_alive(), f"{fn} hung (a FIFO read)"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
-
-
 def test_a_fifo_in_place_of_a_run_folders_json_is_refused_not_a_hang(tmp_path):
     """A FIFO as a run's ``checkpoints/latest.json`` (read on every ``--resume`` and by ``--seeds``' read-back),
     ``config.json`` or ``final/summary.json`` blocked the read for good: each is read as a regular file of bounded
@@ -161,11 +142,11 @@ def test_a_fifo_in_place_of_a_run_folders_json_is_refused_not_a_hang(tmp_path):
     for fifo in fifos:
         os.mkfifo(fifo)
     try:
-        assert _in_thread(lambda: latest_checkpoint(run)) is None
+        assert in_thread(lambda: latest_checkpoint(run)) is None
         with pytest.raises(ValueError, match="config.json is not a readable run config: .*not a regular file"):
-            _in_thread(lambda: read_run_config(run / "config.json"))
+            in_thread(lambda: read_run_config(run / "config.json"))
         with pytest.raises(ValueError, match="summary.json is not a readable run summary: not a regular file"):
-            _in_thread(lambda: read_summary(run / "final" / "summary.json"))
+            in_thread(lambda: read_summary(run / "final" / "summary.json"))
     finally:
         for fifo in fifos:  # (a thread left blocked on one is released by opening its other end)
             try:

@@ -5,13 +5,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import threading
 import warnings
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from fakes import in_thread
 
 import wl_env  # noqa: F401  (registers the envs)
 from agents.policy_files import PolicyFileError
@@ -20,25 +20,6 @@ from wl_env.episode import IntegrationDiverged
 
 POLICIES = Path(__file__).resolve().parent.parent / "agents" / "policies"
 SHIPPED = sorted(p.name[: -len(".json")] for p in POLICIES.glob("*.json"))
-
-
-def _in_thread(fn, timeout: float = 20.0):
-    """``fn()``'s result or exception, or a failure if it has not returned within ``timeout`` s (a hang)."""
-    out: dict = {}
-
-    def run() -> None:
-        try:
-            out["value"] = fn()
-        except Exception as exc:  # noqa: BLE001
-            out["error"] = exc
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    t.join(timeout)
-    assert not t.is_alive(), f"{fn} hung (a FIFO read)"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
 
 
 def _release(fifos) -> None:
@@ -106,7 +87,7 @@ def test_a_fifo_in_place_of_a_policy_file_is_not_a_regular_file_not_missing(tmp_
     os.mkfifo(fifo)
     try:
         with pytest.raises(PolicyFileError) as info:
-            _in_thread(lambda: load_policy(stem))
+            in_thread(lambda: load_policy(stem))
     finally:
         _release([fifo])
     message = str(info.value)
@@ -157,15 +138,15 @@ def test_a_fifo_in_place_of_a_checkpoints_files_is_refused_not_a_hang(tmp_path):
         os.mkfifo(fifo)
     try:
         with pytest.raises(CheckpointError, match="training.json: not a regular file|not a regular file"):
-            _in_thread(lambda: restore_checkpoint(model, env, folder))
+            in_thread(lambda: restore_checkpoint(model, env, folder))
         os.unlink(folder / "training.json")
         shutil.copy(tmp_path / "training.json", folder / "training.json")
         with pytest.raises(CheckpointError, match="not a regular file"):
-            _in_thread(lambda: restore_checkpoint(model, env, folder))  # the optimizer's FIFO
+            in_thread(lambda: restore_checkpoint(model, env, folder))  # the optimizer's FIFO
         with pytest.raises(CheckpointError, match="progress.json: .*not a regular file"):
-            _in_thread(lambda: read_progress(folder))
+            in_thread(lambda: read_progress(folder))
         with pytest.raises(ValueError, match="fifo.csv cannot be continued: .*not a regular file"):
-            _in_thread(lambda: _eval_csv_up_to(tmp_path / "fifo.csv", 10))
+            in_thread(lambda: _eval_csv_up_to(tmp_path / "fifo.csv", 10))
     finally:
         _release(fifos)
     env.close()
