@@ -36,7 +36,7 @@ def test_the_search_never_keeps_a_plan_worse_than_the_policys_and_the_result_loa
     assert np.all(s["best_return"] >= s["policy_return"])  # a plan replaces the policy's only if it returned more
     assert np.all(np.abs(s["best_plan"]) <= 1.0)
     policy = load_policy(out)  # pickle-free, as shipped
-    assert policy.env_id == "WheelLoaderPlan-v0" and policy.meta["distillation"]["searched"]["cycles"] == 4
+    assert policy.env_id == load_policy(SHIPPED).env_id and policy.meta["distillation"]["searched"]["cycles"] == 4
     assert "evaluation" not in policy.meta  # (the original policy's evaluation is not this one's)
     # the kept epoch is the best held out, the start (epoch 0) included
     assert record["fit"]["validation_mse_after"] <= record["fit"]["validation_mse_before"]
