@@ -1089,9 +1089,13 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
     The policy is read from the run's ``final/policy.*`` (no pickle); a run from before those files has only
     ``final/model.zip``, read with ``trust_pickle=True``.
     """
+    from agents.seeds import read_summary
+
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     final = run_dir / "final"
-    summary = json.loads((final / "summary.json").read_text())
+    summary = read_summary(final / "summary.json")  # (checked, bounded: a FIFO there hung, a bad one was a KeyError)
+    if not isinstance(summary.get("config"), dict):
+        raise ValueError(f"{final / 'summary.json'} is not a readable run summary: it holds no \"config\" object")
     cfg = PPOConfig.from_dict(summary["config"])
     source = final / "policy" if PolicyFiles.of(final / "policy").weights.exists() else final / "model.zip"
     policy = load_policy(source, trust_pickle=trust_pickle)

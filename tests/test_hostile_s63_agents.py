@@ -162,3 +162,21 @@ def test_a_fifo_in_place_of_a_run_folders_json_is_refused_not_a_hang(tmp_path):
     assert read_run_config(run / "config.json")[0].to_dict() == cfg.to_dict()
     (run / "final" / "summary.json").write_text(json.dumps({"num_timesteps": 5, "wall_time": 1.0, "last_eval": None}))
     assert read_summary(run / "final" / "summary.json")["num_timesteps"] == 5
+
+
+def test_export_refuses_a_run_summary_that_is_a_fifo_or_has_no_config(tmp_path):
+    """export_policy read final/summary.json with a plain read: a FIFO there hung for good, a summary without its
+    config was a bare KeyError."""
+    from agents.ppo import export_policy
+
+    final = tmp_path / "run" / "final"
+    final.mkdir(parents=True)
+    os.mkfifo(final / "summary.json")
+    try:
+        with pytest.raises(ValueError, match="summary.json is not a readable run summary"):
+            in_thread(lambda: export_policy(tmp_path / "run", tmp_path / "out", "p"))
+    finally:
+        (final / "summary.json").unlink()
+    (final / "summary.json").write_text(json.dumps({"num_timesteps": 10, "wall_time": 1.0, "last_eval": None}))
+    with pytest.raises(ValueError, match='holds no "config" object'):
+        export_policy(tmp_path / "run", tmp_path / "out", "p")
