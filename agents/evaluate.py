@@ -64,7 +64,7 @@ def load_controller(spec: str, braking: str, model: str | None = None, *, trust_
     cycle, or with ``targeted`` (an evaluation at target cycle times) the target-conditioned
     ``ppo_target_<braking>``; a pickle-free policy, or with ``trust_pickle`` a stable-baselines3 zip you
     trust, see :func:`agents.ppo.load_policy`); ``"plan"`` the target-conditioned PPO of one plan per cycle
-    (``plan_target_<braking>``: WheelLoaderPlan-v1 with service braking, -v0 with TC) or ``model``; ``"bc"`` the imitation baseline ``bc_target_<braking>``
+    (``plan_target_<braking>``, WheelLoaderPlan-v1) or ``model``; ``"bc"`` the imitation baseline ``bc_target_<braking>``
     (behaviour cloning of the MPC, :mod:`agents.imitation`, then PPO fine-tuning) or ``model``; ``"operator"``
     is the rule-based driver, ``"mpc"`` the minimum-time MPC. ``"module:Class"`` or
     ``"path/to/file.py:Class"`` imports the class (or factory) and calls it with ``braking=`` if it takes

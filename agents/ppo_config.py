@@ -4,16 +4,13 @@ line (``wl train --help``, ``scripts/train_ppo.py``) is built without importing 
 from __future__ import annotations
 
 import dataclasses
-import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from wl_env import cycle
 from wl_env.env import TARGET_POWER_RANGE
-from wl_env.params import MAX_NUM_ENVS, is_real_number
+from wl_env.params import MAX_NUM_ENVS, is_real_number, plain
 
 # the registered ids (wl_env/__init__.py) and suites (wl_env/suites), named here so that the command line is
 # built without importing gymnasium
@@ -54,16 +51,6 @@ class ConfigError(ValueError):
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _plain_scalar(v: Any) -> Any:
-    """A numpy integer as the Python int it holds, a numpy bool as the bool (each still checked as any value: a
-    bool is no count, a float no integer); anything else as it is."""
-    if isinstance(v, np.integer):
-        return operator.index(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    return v
 
 
 MAX_SEED = 2**31 - 1  # the largest seed of a training run or an evaluation (gymnasium's env seeds add steps to it)
@@ -242,11 +229,11 @@ class PPOConfig:
         """Every field checked for type and range (ConfigError naming it): a run with nonsense settings
         fails here, not hours later or silently."""
         cycle.check_braking(self.braking)
-        for f in dataclasses.fields(self):  # (numpy's integers and flags as Python's: np.int64 seeds were refused)
-            setattr(self, f.name, _plain_scalar(getattr(self, f.name)))
+        for f in dataclasses.fields(self):  # (numpy's scalars as Python's: np.int64 seeds were refused)
+            setattr(self, f.name, plain(getattr(self, f.name)))
         if isinstance(self.net_arch, (str, bytes)) or not hasattr(self.net_arch, "__iter__"):
             raise ConfigError("net_arch", _RULES["net_arch"][0], self.net_arch)
-        self.net_arch = tuple(map(_plain_scalar, self.net_arch))
+        self.net_arch = tuple(map(plain, self.net_arch))
         if isinstance(self.target, (str, bytes)) or not hasattr(self.target, "__iter__"):
             raise ConfigError("target", _RULES["target"][0], self.target)
         self.target = tuple(self.target)

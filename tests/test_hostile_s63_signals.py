@@ -210,6 +210,24 @@ def test_an_interrupted_training_hints_a_resume_only_where_there_is_a_run_to_res
     assert f"--run-name a --log-dir {tmp_path / 'runs'} --resume" in capsys.readouterr().err
 
 
+# the end of each script below: one worker whose job takes 3 s, and how long the interrupt took to end it
+_RUN_A_WORKER = """
+t0 = time.monotonic()
+try:
+    print("ran on:", workers.run_in_workers({"a": ("time:sleep", (3.0,))}), flush=True)
+except KeyboardInterrupt:
+    print("interrupted after %.1f s" % (time.monotonic() - t0), flush=True)
+"""
+
+
+def _run_interrupted(script: str) -> subprocess.CompletedProcess:
+    """``script`` run in a process of its own; it must end by the interrupt within 2.5 s, before its worker's job."""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert "interrupted after" in r.stdout, r.stdout + r.stderr
+    assert float(r.stdout.split("after ")[1].split()[0]) < 2.5
+    return r
+
+
 _LOST_CTRL_C = """
 import os, signal, sys, time
 import multiprocessing.util as util
@@ -226,12 +244,7 @@ def spawn_then_ctrl_c(*args, **kwargs):
 
 util.spawnv_passfds = spawn_then_ctrl_c
 interrupt.install()
-t0 = time.monotonic()
-try:
-    print("ran on:", workers.run_in_workers({"a": ("time:sleep", (3.0,))}), flush=True)
-except KeyboardInterrupt:
-    print("interrupted after %.1f s" % (time.monotonic() - t0), flush=True)
-"""
+""" + _RUN_A_WORKER
 
 
 def test_ctrl_c_as_the_first_worker_starts_is_never_lost():
@@ -239,9 +252,7 @@ def test_ctrl_c_as_the_first_worker_starts_is_never_lost():
     for good (120 s, both workers solving, the parent waiting). multiprocessing's resource tracker, started by the
     first worker's start, unblocks SIGINT inside `_sigint_held`, where SIGINT is ignored: a Ctrl-C then was dropped.
     Here the signal comes as the first worker is spawned, after the tracker started."""
-    r = subprocess.run([sys.executable, "-c", _LOST_CTRL_C], capture_output=True, text=True, timeout=60, cwd=ROOT)
-    assert "interrupted after" in r.stdout, r.stdout + r.stderr
-    assert float(r.stdout.split("after ")[1].split()[0]) < 2.5  # (the worker's job takes 3 s)
+    r = _run_interrupted(_LOST_CTRL_C)
     assert "Traceback" not in r.stderr, r.stderr
 
 
@@ -365,19 +376,11 @@ try:
     time.sleep(5)
 except KeyboardInterrupt:
     pass  # (swallowed, as inside an import)
-t0 = time.monotonic()
-try:
-    print("ran on:", workers.run_in_workers({"a": ("time:sleep", (3.0,))}), flush=True)
-except KeyboardInterrupt:
-    print("interrupted after %.1f s" % (time.monotonic() - t0), flush=True)
-"""
+""" + _RUN_A_WORKER
 
 
 def test_workers_are_not_waited_for_after_a_swallowed_ctrl_c():
-    r = subprocess.run([sys.executable, "-c", _SWALLOWED_BEFORE_THE_WORKERS], capture_output=True, text=True,
-                       timeout=60, cwd=ROOT)
-    assert "interrupted after" in r.stdout, r.stdout + r.stderr
-    assert float(r.stdout.split("after ")[1].split()[0]) < 2.5
+    _run_interrupted(_SWALLOWED_BEFORE_THE_WORKERS)
 
 
 _CTRL_C_TO_ANOTHER_THREAD = """
@@ -397,20 +400,12 @@ def spawn_then_ctrl_c(*args, **kwargs):
 
 util.spawnv_passfds = spawn_then_ctrl_c
 interrupt.install()
-t0 = time.monotonic()
-try:
-    print("ran on:", workers.run_in_workers({"a": ("time:sleep", (3.0,))}), flush=True)
-except KeyboardInterrupt:
-    print("interrupted after %.1f s" % (time.monotonic() - t0), flush=True)
-"""
+""" + _RUN_A_WORKER
 
 
 def test_a_ctrl_c_that_another_thread_receives_as_a_worker_starts_is_never_lost():
     """SIGINT to `wl pareto --braking both` 0.6-0.8 s in: ~1 run in 150 hung, the parent waiting for the workers'
     whole fronts, its interrupt flag unset. While a worker was spawned SIGINT was ignored (SIG_IGN) and blocked in the
     main thread only: the kernel gave the signal to another thread (numpy's BLAS threads), and it was dropped there."""
-    r = subprocess.run([sys.executable, "-c", _CTRL_C_TO_ANOTHER_THREAD], capture_output=True, text=True, timeout=60,
-                       cwd=ROOT)
-    assert "interrupted after" in r.stdout, r.stdout + r.stderr
-    assert float(r.stdout.split("after ")[1].split()[0]) < 2.5
+    r = _run_interrupted(_CTRL_C_TO_ANOTHER_THREAD)
     assert "Traceback" not in r.stderr, r.stderr

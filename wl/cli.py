@@ -64,8 +64,13 @@ def _params_cmd(args: argparse.Namespace) -> int:
 _CREATED: list[Path] = []
 
 
+def _missing(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, the deepest first."""
+    return [p for p in (folder, *folder.parents) if not p.exists()]
+
+
 def _created_by(make: Callable[[], Path], folder: Path) -> Path:
-    missing = [p for p in (folder, *folder.parents) if not p.exists()]
+    missing = _missing(folder)
     out = make()
     _CREATED.extend(reversed(missing))
     return out
@@ -358,7 +363,7 @@ def _train_cmd(args: argparse.Namespace) -> int:
 
     for folder in (args.log_dir or PPOConfig.log_dir, args.cache):  # (created by run_train's checks, if missing)
         if folder and str(folder).strip():
-            _CREATED.extend(reversed([p for p in (Path(folder), *Path(folder).parents) if not p.exists()]))
+            _CREATED.extend(reversed(_missing(Path(folder))))
     return run_train(args, command="wl " + shlex.join(args.argv), prog="wl train")
 
 

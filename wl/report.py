@@ -333,11 +333,16 @@ def _plain_text(text: str) -> str:
     return text.replace("$", r"\$")
 
 
+def _printable(text: Any) -> str:
+    """``text`` with each control character (a newline ended a table row or a title) as a space."""
+    return "".join(c if c.isprintable() else " " for c in str(text))
+
+
 def _cell(text: Any) -> str:
     """``text`` as one markdown table cell shows it literally: a newline (or another control character) in a
     controller's name ended the row, and a ``|`` split the cell, shifting every column after it (each kept in
     results.json as given, as ``$`` is for the figures, :func:`_plain_text`). Valid names are unchanged."""
-    text = "".join(c if c.isprintable() else " " for c in str(text))
+    text = _printable(text)
     # a | escaped, and the backslashes just before it doubled (they would escape the escape); other backslashes stay
     # as they are (a name like $\frac{$ is drawn as it is)
     return re.sub(r"(\\*)\|", lambda m: 2 * m.group(1) + "\\|", text)
@@ -559,8 +564,7 @@ def suite_table(suite: dict[str, Any]) -> list[str]:
     which = (f"all {suite['scenarios_per_braking']} scenarios" if suite["full"] else
              f"a fixed sample of {suite['sample']} of its {suite['scenarios_per_braking']} scenarios (`wl run "
              f"--full-suite` runs all)")
-    name = "".join(c if c.isprintable() else " " for c in suite["suite"])  # (a newline ended the title)
-    lines = ["", f"## The `{name}` suite (v{suite['version']}): {which} per braking alternative", "",
+    lines = ["", f"## The `{_printable(suite['suite'])}` suite (v{suite['version']}): {which} per braking alternative", "",
              "Each episode from its scenario's own start, scored against that scenario's own optimum (shipped with "
              "the package). Gaps over the successful episodes (median, p90); the success rate beside them.", "",
              "The target-conditioned controllers run at three targets per scenario (fastest: T_min itself; 1.15 "
