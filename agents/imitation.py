@@ -34,6 +34,7 @@ import numpy as np
 from agents.ppo_config import COAST_ENV_IDS, TARGET_ENV_IDS, PPOConfig
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_TARGET_OBS
+from wl_env.params import is_real_number, plain, shown
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +69,16 @@ class DemoSettings:
         from wl_env.env import check_target_ratios
 
         check_braking(self.braking)
-        check_target_ratios(self.target)
+        object.__setattr__(self, "target", check_target_ratios(self.target))
+        # (numpy scalars as the numbers they hold: np.int64 seeds were refused; True was a fast_share of 1)
+        for name in ("seed", "fast_share", "beta"):
+            object.__setattr__(self, name, plain(getattr(self, name)))
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
-        if not (isinstance(self.fast_share, (int, float)) and 0.0 <= self.fast_share <= 1.0):
-            raise ValueError(f"fast_share must lie in [0, 1], got {self.fast_share!r}")
-        if not (isinstance(self.beta, (int, float)) and 0.0 <= self.beta <= 1.0):
-            raise ValueError(f"beta must lie in [0, 1], got {self.beta!r}")
+            raise ValueError(f"seed must be an integer >= 0, got {shown(self.seed)}")
+        if not (is_real_number(self.fast_share) and 0.0 <= self.fast_share <= 1.0):
+            raise ValueError(f"fast_share must lie in [0, 1], got {shown(self.fast_share)}")
+        if not (is_real_number(self.beta) and 0.0 <= self.beta <= 1.0):
+            raise ValueError(f"beta must lie in [0, 1], got {shown(self.beta)}")
 
 
 def demo_path(out: str | Path, index: int) -> Path:
@@ -294,11 +298,12 @@ def collect_chunk(settings: dict[str, Any], indices: list[int], out: str) -> lis
 def collect_demos(settings: DemoSettings, episodes: int, out: str | Path, workers: int = 1) -> list[dict[str, Any]]:
     """``episodes`` demonstrations into the folder ``out`` (resumed: episodes on disk are kept), in
     ``workers`` processes; all of them, read back."""
+    episodes = plain(episodes)  # (a numpy integer as the int it holds, as evaluate_controller takes it)
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
-        raise ValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+        raise ValueError(f"episodes must be an integer >= 1, got {shown(episodes)}")
     from mpc.workers import check_workers
 
-    check_workers(workers)
+    workers = check_workers(workers)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     d = dataclasses.asdict(settings)  # plain data for the workers

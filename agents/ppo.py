@@ -394,6 +394,19 @@ def load_policy(path: str | os.PathLike, device: str = "cpu", *, trust_pickle: b
     return _load_sb3(zip_path, device)
 
 
+def policy_source(path: str | os.PathLike) -> Path:
+    """The file :func:`load_policy` reads the policy ``path`` from, its links resolved: a pickle-free policy's weights
+    or a stable-baselines3 zip (``path`` itself, resolved, if it names neither: loading it says why). One policy by two
+    spellings (``P`` and ``P.safetensors`` or ``P.json``; a run folder and its ``final/``) gives one file."""
+    p = Path(path).expanduser()
+    try:
+        stem = _safe_stem(p)
+        found = PolicyFiles.of(stem).weights if stem is not None else _sb3_zip(p)
+    except OSError:  # (FileNotFoundError: no policy there; a name too long to look up)
+        found = p
+    return Path(os.path.realpath(found))
+
+
 def _policy(network: Any, normalization: ObsNormalization | None, meta: dict[str, Any], path: Path) -> PPOPolicy:
     """:class:`PPOPolicy`, its refusal (the env its metadata names takes other observations or actions) naming the
     file ``path`` the policy was read from."""

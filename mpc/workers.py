@@ -47,7 +47,10 @@ def max_local_workers() -> int:
 def check_workers(workers: Any, name: str = "workers") -> int:
     """``workers`` if it is an integer in [1, :func:`max_local_workers`], else ValueError naming ``name`` and the
     range (`wl suite solve --workers 100000000` started 100 CasADi processes on 2 cores, one per piece of work)."""
+    from wl_env.params import plain
+
     most = max_local_workers()
+    workers = plain(workers)  # (a numpy integer as the int it holds)
     if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= most:
         raise ValueError(f"{name} must be an integer in [1, {most}] ({WORKERS_PER_CPU} per CPU), got {workers!r}")
     return workers

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -109,8 +108,10 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
-    try:  # (one run by two spellings, runs/a and runs/a/: evaluated twice, counted twice in the spread)
-        refuse_repeated_values("--runs", args.runs, "a run", key=os.path.realpath)
+    try:  # (one run by two spellings, runs/a and runs/a/, or runs/a and runs/a/final: evaluated twice, counted twice)
+        from agents.ppo import policy_source
+
+        refuse_repeated_values("--runs", args.runs, "a run", key=policy_source)
     except ValueError as exc:
         ap.error(str(exc))
     if args.json and args.runs:  # (a run's policy file as --json was written over after the work)

@@ -22,6 +22,8 @@ from agents.train_cli import refuse_repeated_values, tyro_options
 from wl_env.atomic_io import check_output_file, write_json_atomic
 from wl_env.logs import run_script
 
+CMA_MAX_SEED = 2**32 - 1  # the largest seed pycma takes (numpy's legacy seeding)
+
 
 @dataclass
 class Options:
@@ -111,6 +113,10 @@ def check(o: Options) -> None:
     for name, lo, hi in (("generations", 1, 10_000), ("population", 2, 4096)):
         if not lo <= getattr(o, name) <= hi:
             raise ValueError(f"--{name} must be an integer in [{lo}, {hi}], got {getattr(o, name)}")
+    if isinstance(o.seed, bool) or not isinstance(o.seed, int) or not 1 <= o.seed <= CMA_MAX_SEED:
+        # (pycma's seed: -1 or 2**32 failed at the first search, naming no option; 0 drew one from the clock)
+        raise ValueError(f"--seed must be an integer in [1, 2**32 - 1] (CMA-ES's; pycma takes 0 for a seed from the "
+                         f"clock: a search not repeatable), got {o.seed!r}")
     if not 0.0 <= o.late_cost < float("inf"):
         raise ValueError(f"--late-cost must be a finite number >= 0 (g per 1 % of lateness), got {o.late_cost}")
 

@@ -41,6 +41,9 @@ log = logging.getLogger("distill_plans")
 # the options that define the searches (a resumed --demos file must have been written with the same)
 SEARCH_OPTIONS = ("cycles", "batch", "population", "generations", "sigma", "seed")
 SEED_STRIDE = 1_000_000  # cycle c of --seed s resets with seed s * SEED_STRIDE + c; the checks use c >= --cycles
+MAX_CYCLES = 10**6
+# (its CMA-ES seeds s * SEED_STRIDE + c + 1, c < --cycles, within pycma's 2**32 - 1: --seed 5000 failed at the first search)
+MAX_SEED = (2**32 - 1 - MAX_CYCLES) // SEED_STRIDE
 
 
 @dataclass
@@ -62,9 +65,9 @@ class Options:
 
 def check(o: Options) -> None:
     """ValueError naming the option and its range (before any work)."""
-    for name, lo, hi in (("cycles", 2, 10**6), ("batch", 1, 4096), ("population", 4, 4096), ("generations", 1, 10**4),
+    for name, lo, hi in (("cycles", 2, MAX_CYCLES), ("batch", 1, 4096), ("population", 4, 4096), ("generations", 1, 10**4),
                          ("epochs", 0, 10**6), ("minibatch", 1, 10**6), ("eval_cycles", 1, 10**6),
-                         ("seed", 0, 2**20)):
+                         ("seed", 0, MAX_SEED)):
         v = getattr(o, name)
         if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
             raise ValueError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")

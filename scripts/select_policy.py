@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,8 +53,11 @@ def check(o: Options) -> None:
     check_braking(o.braking)
     if not o.policies:
         raise ValueError("--policies needs at least one policy file")
-    # (one record for the two: the others' counts stood beside it; also one file by two spellings, ./P and P)
-    refuse_repeated_values("--policies", o.policies, "a policy", key=os.path.realpath)
+    # (one record for the two: the others' counts stood beside it; also one policy by two spellings, ./P and P, or
+    # P and P.safetensors: the file each loads from)
+    from agents.ppo import policy_source
+
+    refuse_repeated_values("--policies", o.policies, "a policy", key=policy_source)
     if not 1 <= o.draws <= 10_000:
         raise ValueError(f"--draws must be an integer in [1, 10000], got {o.draws}")
     if not 0 <= o.seed <= 2**32 - 1:

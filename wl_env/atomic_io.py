@@ -27,22 +27,54 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     link is written through (its target replaced, not the link); a path that exists and is not a regular file
     (a device, a pipe) is refused with ValueError: the rename would replace it (as root, ``/dev/null`` itself)."""
     path = _regular_file(Path(path), "output file")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
+    made = missing_folders(path.parent)  # (removed again if the write fails: Ctrl-C left a new cache folder empty)
+    tmp = None
     try:  # (from the file's creation on: Ctrl-C while the umask was read left the temporary file behind)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
         os.close(fd)
         os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
         yield Path(tmp)
         with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except OSError as exc:  # (a full disk said "[Errno 28] No space left on device", naming no file)
-        Path(tmp).unlink(missing_ok=True)
-        if exc.filename is None:
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        remove_empty_folders(made)
+        if isinstance(exc, OSError) and exc.filename is None:  # (a full disk: "[Errno 28] No space left on device")
             raise type(exc)(exc.errno, f"{exc.strerror or exc} writing {path}") from None
         raise
+
+
+def missing_folders(folder: str | os.PathLike) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, the deepest first: the folders a write there makes."""
+    missing, folder = [], Path(folder)
+    while not os.path.lexists(folder) and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def remove_empty_folders(folders: Sequence[Path]) -> None:
+    """Those of ``folders`` (:func:`missing_folders`, the deepest first) that are empty, removed: a command stopped
+    (Ctrl-C, an error) leaves no empty folder it made. A folder holding anything stays."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
+
+
+@contextmanager
+def folders_kept_if_used(folder: str | os.PathLike) -> Iterator[Path]:
+    """A block that makes ``folder`` (or a file in it): those of it and its parents it made are removed again if the
+    block raises (Ctrl-C, an error) and leaves them empty."""
+    made = missing_folders(folder)
+    try:
+        yield Path(folder)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        remove_empty_folders(made)
         raise
 
 

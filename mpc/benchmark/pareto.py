@@ -531,7 +531,7 @@ def pareto_front(
                 guide[f.stem] = r
     say(f"[{braking}] solving the Pareto front ({n_points} points; each solved point is cached in {folder})"
         + (f", warm-started from {near.name}" if guide else ""))
-    folder.mkdir(parents=True, exist_ok=True)
+    # (the folder made by its first entry's write: made here, Ctrl-C before any point was solved left it empty)
     t0 = time.perf_counter()
 
     def cached_solve(name: str, refinements: int = 1, **kwargs: Any) -> OCPResult:

@@ -166,50 +166,53 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
         check_workers(workers)
     # the suite's file, checked before any solve (a folder or device there, or an `out` that is no path, failed only
     # once every scenario was solved: hours of work, then a ValueError or a TypeError)
-    from wl_env.atomic_io import check_output_file
+    from wl_env.atomic_io import check_output_file, folders_kept_if_used
 
     if out is not None and not isinstance(out, (str, os.PathLike)):
         raise ValueError(f"out must be a file path or None, got {shown(out)}")
-    path = check_output_file(out if out is not None else cache_dir(cache) / "suites" / f"{suite}.json", "out")
-    folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
-    folder.mkdir(parents=True, exist_ok=True)
-    chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
-    wanted = [sc for chain in chains.values() for sc in chain]
-    def load(sc: Scenario, read: Any) -> Any:  # (the entry's name alone does not vouch for its cycle: both checked)
-        return read(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry, sc.params().fingerprint(),
-                    {"braking": sc.braking})
+    target = out if out is not None else cache_dir(cache) / "suites" / f"{suite}.json"
+    # (the folders it makes, removed again if it stops and leaves them empty: Ctrl-C before the first entry left
+    # <cache>/suites/ and the suite's folder empty; that folder is made by its first entry's write)
+    with folders_kept_if_used(Path(target).parent):
+        path = check_output_file(target, "out")
+        folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
+        chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
+        wanted = [sc for chain in chains.values() for sc in chain]
+        def load(sc: Scenario, read: Any) -> Any:  # (the entry's name alone does not vouch for its cycle: both checked)
+            return read(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry, sc.params().fingerprint(),
+                        {"braking": sc.braking})
 
-    have = {entry_key(sc) for sc in wanted if load(sc, store.load_entry) is not None}
-    todo = {b: [sc for sc in chain if entry_key(sc) not in have] for b, chain in chains.items()}
-    todo = {b: c for b, c in todo.items() if c}
-    n_todo = sum(map(len, todo.values()))
-    log.info(f"suite {suite}: {len(wanted)} scenarios, {len(have)} already solved, {n_todo} to solve in {folder}")
-    t0 = time.perf_counter()
-    failed: dict[str, str] = {}
-    if todo and ray_address is not None:
-        failed = _run_on_ray(todo, folder, cache, n_points, ray_address, ray_chunk, job)
-    elif todo:
-        pieces = _split(todo, workers or os.cpu_count() or 1)
-        args = (None if cache is None else str(cache), n_points, job)
-        if len(pieces) == 1:
-            failed = _solve_chain([sc.to_dict() for sc in pieces[0]], str(folder), *args)
-        else:
-            from mpc.workers import run_in_workers
+        have = {entry_key(sc) for sc in wanted if load(sc, store.load_entry) is not None}
+        todo = {b: [sc for sc in chain if entry_key(sc) not in have] for b, chain in chains.items()}
+        todo = {b: c for b, c in todo.items() if c}
+        n_todo = sum(map(len, todo.values()))
+        log.info(f"suite {suite}: {len(wanted)} scenarios, {len(have)} already solved, {n_todo} to solve in {folder}")
+        t0 = time.perf_counter()
+        failed: dict[str, str] = {}
+        if todo and ray_address is not None:
+            failed = _run_on_ray(todo, folder, cache, n_points, ray_address, ray_chunk, job)
+        elif todo:
+            pieces = _split(todo, workers or os.cpu_count() or 1)
+            args = (None if cache is None else str(cache), n_points, job)
+            if len(pieces) == 1:
+                failed = _solve_chain([sc.to_dict() for sc in pieces[0]], str(folder), *args)
+            else:
+                from mpc.workers import run_in_workers
 
-            done = run_in_workers({f"chain{i}": (f"{__name__}:_solve_chain", ([sc.to_dict() for sc in p], str(folder),
-                                                                               *args)) for i, p in enumerate(pieces)})
-            failed = {k: v for f in done.values() for k, v in f.items()}
-    wall = time.perf_counter() - t0
-    entries = {entry_key(sc): load(sc, store.read_entry) for sc in wanted if entry_key(sc) not in failed}
-    for e in entries.values():
-        for k in ("schema", "checksum"):
-            e.pop(k, None)
-    data = {"suite": suite, "suite_version": s.version, "cache_version": CACHE_VERSION, "n_points": n_points,
-            "entries": entries}
-    store.write_entry(path, SUITE_KIND, data, check_suite_file)
-    solved_now = [e["solve_s"] for k, e in entries.items() if k not in have]
-    return SuiteSolve(suite=suite, entries=entries, solved=n_todo - len(failed), wall_time=wall,
-                      per_scenario_s=solved_now, file=path, failed=failed)
+                done = run_in_workers({f"chain{i}": (f"{__name__}:_solve_chain", ([sc.to_dict() for sc in p], str(folder),
+                                                                                   *args)) for i, p in enumerate(pieces)})
+                failed = {k: v for f in done.values() for k, v in f.items()}
+        wall = time.perf_counter() - t0
+        entries = {entry_key(sc): load(sc, store.read_entry) for sc in wanted if entry_key(sc) not in failed}
+        for e in entries.values():
+            for k in ("schema", "checksum"):
+                e.pop(k, None)
+        data = {"suite": suite, "suite_version": s.version, "cache_version": CACHE_VERSION, "n_points": n_points,
+                "entries": entries}
+        store.write_entry(path, SUITE_KIND, data, check_suite_file)
+        solved_now = [e["solve_s"] for k, e in entries.items() if k not in have]
+        return SuiteSolve(suite=suite, entries=entries, solved=n_todo - len(failed), wall_time=wall,
+                          per_scenario_s=solved_now, file=path, failed=failed)
 
 
 def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.PathLike | None, n_points: int,
