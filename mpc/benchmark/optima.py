@@ -35,6 +35,7 @@ from mpc.benchmark.pareto import (
     front_folder,
     pareto_front,
     save_result,
+    solved_at,
 )
 from wl_env.params import LoaderParams
 
@@ -81,7 +82,7 @@ def _cached(path: Path, braking: str, params: LoaderParams, objective: str = "fu
     entry, or one of another braking, parameters or objective, is reported, set aside and solved again) and,
     given T, solved for that cycle time."""
     r = cached_result(path, objective=objective, braking=braking, params=params)
-    return r if r is not None and (T is None or abs(r.T - T) <= 1e-6 * max(1.0, T)) else None
+    return r if T is None or solved_at(r, T) else None
 
 
 def _load_or_solve(path: Path, braking: str, params: LoaderParams, objective: str, what: str) -> OCPResult:
@@ -233,7 +234,7 @@ def lean_time_optimum(braking: str, r_time: OCPResult, params: LoaderParams, cac
     mesh); ``first_point`` is used if it lies at this T, else it is solved here. None if every start fails.
     """
     T = factor * r_time.T
-    if first_point is not None and abs(first_point.T - T) <= 1e-6 * T:
+    if solved_at(first_point, T):
         return first_point
     path = optima_folder(braking, params, cache) / f"lean_time_opt_x{factor:.4f}.json"
     cached = _cached(path, braking, params, T=T)

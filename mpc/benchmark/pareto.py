@@ -337,6 +337,12 @@ def _result_from(data: dict[str, Any]) -> OCPResult:
     return OCPResult(**{k: v for k, v in data.items() if k in OCPResult.__dataclass_fields__})
 
 
+def solved_at(result: OCPResult | None, T: float) -> bool:
+    """``result`` is an optimum for the cycle time ``T`` (s), to 1e-6 of it: the one match of a cached or given
+    optimum to the T asked for (four checks wrote it, two of them with another tolerance)."""
+    return result is not None and abs(result.T - T) <= 1e-6 * max(1.0, T)
+
+
 def cached_result(path: str | os.PathLike, fingerprint: str | None = None, objective: str | None = None,
                   braking: str | None = None, params: LoaderParams | None = None) -> OCPResult | None:
     """The valid cached OCP result at ``path`` (solved for ``fingerprint``, or ``params``'s, of ``objective``
@@ -539,7 +545,7 @@ def pareto_front(
         if use_cache:
             cached = cached_result(path, objective=kwargs["objective"], braking=braking, params=p)
             T = kwargs.get("T")
-            if cached is not None and (T is None or abs(cached.T - T) <= 1e-6 * T) and (cached.success or refinements == 1):
+            if cached is not None and (T is None or solved_at(cached, T)) and (cached.success or refinements == 1):
                 return cached
         # One refinement at most for a point: one that still fails its re-simulation is left out of the front (its
         # neighbours span it), not refined on into NLPs of hundreds of intervals per phase.
@@ -759,7 +765,7 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
     # (a failed one, cached before it was refused, is solved again; so is one of another T under the same file name:
     # T_30.000.json held 30.0004 s's optimum after that call, and 30.0 s then got its fuel, the result depending on
     # what the cache saw first)
-    if cached is not None and cached.success and abs(cached.T - T) <= 1e-6 * max(1.0, T):
+    if solved_at(cached, T) and cached.success:
         return cached.fuel_g
     r = solve_ocp(braking, objective="fuel_at_time", T=float(T), params=p,
                   settings=replace(OCPSettings(), intervals=tuple(front.mesh)))
