@@ -225,9 +225,13 @@ def _cwd_on_path() -> None:
 
 def _import_file(target: str, spec: str) -> ModuleType:
     path = Path(target).expanduser()
-    if path.is_dir():  # (it said "no controller file /tmp", for a folder that is there)
+    try:  # (a name too long for the system was a bare OSError naming no option)
+        folder, regular = path.is_dir(), path.is_file()
+    except OSError as exc:
+        raise ValueError(f"controller file {path} cannot be read: {exc.strerror or exc} (from --controller {spec})") from None
+    if folder:  # (it said "no controller file /tmp", for a folder that is there)
         raise IsADirectoryError(f"controller file {path} is a folder, not a Python file (from --controller {spec})")
-    if not path.is_file():
+    if not regular:
         raise FileNotFoundError(f"no controller file {path} (from --controller {spec})")
     path = path.resolve()
     # A unique module name per file: two controllers named alike in different folders do not collide.

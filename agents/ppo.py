@@ -65,6 +65,7 @@ from agents.policy_files import (
 )
 from agents.ppo_config import (
     COAST_ENV_IDS,
+    MAX_EVAL_EPISODES,
     MAX_RUN_JSON_BYTES,
     PLAN_ENV_IDS,
     TARGET_ENV_IDS,
@@ -76,6 +77,7 @@ from wl_env import atomic_io
 from wl_env.assist import N_ASSIST_ACTIONS
 from wl_env.atomic_io import write_atomic
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, N_TARGET_OBS, check_within, real_observations
+from wl_env.params import is_integer, plain, shown
 from wl_env.plan import N_PLAN_ACTIONS
 
 ENV_OF_OBS = {N_OBS: "WheelLoader-v1", N_SCENARIO_OBS: "WheelLoader-v2", N_TARGET_OBS: "WheelLoaderTarget-v0"}
@@ -417,7 +419,15 @@ def _policy(network: Any, normalization: ObsNormalization | None, meta: dict[str
 
 
 def _safe_stem(p: Path) -> Path | None:
-    """The stem of the pickle-free policy ``p`` names, or None if it names a stable-baselines3 zip."""
+    """The stem of the pickle-free policy ``p`` names, or None if it names a stable-baselines3 zip; PolicyFileError
+    naming ``p`` if it cannot be looked at (a name too long for the system was a bare OSError)."""
+    try:
+        return _stem_of(p)
+    except OSError as exc:
+        raise PolicyFileError(f"no policy at {p}: {exc.strerror or exc}") from None
+
+
+def _stem_of(p: Path) -> Path | None:
     if p.is_dir():
         for stem in (p / "policy", p / "final" / "policy"):
             if PolicyFiles.of(stem).weights.exists():
@@ -531,6 +541,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     starts' rates and means apart. Gaps are relative (0.1 = 10 % above)."""
     from agents.evaluate import evaluate_controller
 
+    n_episodes = check_n_episodes(n_episodes)
     if env_id in TARGETED_ENV_IDS:
         return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
@@ -551,6 +562,17 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     return out
 
 
+def check_n_episodes(n_episodes: Any) -> int:
+    """``n_episodes`` (the perturbed starts or validation draws of an evaluation, numpy's integers too) as an int in
+    [0, MAX_EVAL_EPISODES], else ValueError naming it."""
+    # (evaluate_targets drew range(n_episodes) unchecked: -3 ran the paper's cycle alone, True one draw, 2.5 was
+    # range()'s TypeError; evaluate named its episodes=1+n_episodes instead)
+    n = plain(n_episodes)
+    if not (is_integer(n) and 0 <= n <= MAX_EVAL_EPISODES):
+        raise ValueError(f"n_episodes must be an integer in [0, {MAX_EVAL_EPISODES}], got {shown(n_episodes)}")
+    return int(n)
+
+
 def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 10_000,
                      env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None,
                      ratios: tuple[float, ...] = EVAL_TARGET_RATIOS, env_id: str = TARGET_ENV_IDS[0]) -> dict[str, Any]:
@@ -560,10 +582,13 @@ def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 1
     each target that ratio times the scenario's estimated T_min. ``nominal_*`` is the paper's cycle at the
     middle ratio; rates, means and ``lateness_median`` cover every episode; ``fuel_gap_median`` the paper's
     cycle over the ratios; ``time_gap_fastest`` its time gap at the first ratio."""
-    from agents.evaluate import evaluate_controller
+    from agents.evaluate import check_settings, evaluate_controller
     from wl_env.scenario import Scenario
     from wl_env.suites import TRAIN_STREAM, draw, stream
 
+    n_episodes, seed = check_n_episodes(n_episodes), plain(seed)
+    # (the seed before the draws' stream takes it: -1 was numpy's "expected non-negative integer", "3" drew as 3)
+    check_settings(1 + n_episodes, 0.0, seed)
     rng = stream(TRAIN_STREAM, seed)
     plan = [Scenario.nominal(braking)] + [draw(rng, braking) for _ in range(n_episodes)]
     runs = [evaluate_controller(_Deterministic(act, env_id), braking, scenarios=plan, seed=seed,
@@ -1104,6 +1129,7 @@ def export_policy(run_dir: str | os.PathLike, out_dir: str | os.PathLike, name: 
     """
     from agents.seeds import read_summary
 
+    n_episodes = check_n_episodes(n_episodes)  # (before the front's solve: it failed after it)
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     final = run_dir / "final"
     summary = read_summary(final / "summary.json")  # (checked, bounded: a FIFO there hung, a bad one was a KeyError)

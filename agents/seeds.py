@@ -49,11 +49,13 @@ def parse_sweep(items: Sequence[str]) -> dict[str, list[Any]]:
         kind = type(default) if default is not None else float
         if kind in (dict, tuple, list):
             raise ValueError(f"--sweep {name}: only fields with a single value (number, text, flag) can be swept")
+        optional = "None" in str(fields[name].type)  # (target_kl, log_std_final: "none" is off, as their flags take it)
         parsed = []
         for text in values.split(","):
             text = text.strip()
             try:
-                parsed.append({"true": True, "false": False}[text.lower()] if kind is bool else kind(text))
+                parsed.append(None if optional and text.lower() == "none" else
+                              {"true": True, "false": False}[text.lower()] if kind is bool else kind(text))
             except (KeyError, ValueError):
                 raise ValueError(f"--sweep {name}: {text!r} is not a {kind.__name__}") from None
         if len(set(parsed)) != len(parsed):

@@ -280,8 +280,8 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
         from agents.policy_files import PolicyFileError, read_policy
         from agents.ppo import _safe_stem
 
-        stem = _safe_stem(Path(cfg.init_policy).expanduser())
         try:
+            stem = _safe_stem(Path(cfg.init_policy).expanduser())
             if stem is None:
                 raise PolicyFileError("not a pickle-free policy (STEM.safetensors with its normalization and metadata)")
             read_policy(stem)

@@ -64,13 +64,10 @@ def _params_cmd(args: argparse.Namespace) -> int:
 _CREATED: list[Path] = []
 
 
-def _missing(folder: Path) -> list[Path]:
-    """``folder`` and those of its parents that do not exist yet, the deepest first."""
-    return [p for p in (folder, *folder.parents) if not p.exists()]
-
-
 def _created_by(make: Callable[[], Path], folder: Path) -> Path:
-    missing = _missing(folder)
+    from wl_env.atomic_io import missing_folders
+
+    missing = missing_folders(folder)
     out = make()
     _CREATED.extend(reversed(missing))
     return out
@@ -113,14 +110,18 @@ def _stdout_for_the_result(out: Path | None) -> Iterator[None]:
 def _put_result(result: dict[str, Any], out: Path | None, line: str) -> None:
     """The result to ``out`` (atomically) with its summary line on stdout, or, without ``--out``, the JSON to
     stdout and the line to stderr."""
-    from wl_env.atomic_io import json_text, write_json_atomic
+    from wl_env.atomic_io import json_text, write_atomic
 
+    try:  # (a value JSON cannot hold was json's TypeError, a traceback; nothing is written then)
+        text = json_text(result)
+    except (TypeError, ValueError) as exc:
+        raise RuntimeError(f"the result cannot be written as JSON ({_one_line(exc)}); nothing was written") from exc
     if out is None:
         print(line, file=sys.stderr)
-        sys.stdout.write(json_text(result))
+        sys.stdout.write(text)
         sys.stdout.flush()
     else:
-        write_json_atomic(out, result)
+        write_atomic(out, text)
         print(f"{line} -> {out}")
 
 
@@ -145,12 +146,10 @@ def _scenario_file(args: argparse.Namespace) -> list[Path]:
 
 def _remove_empty_created() -> None:
     """The folders this command created and left empty, removed (the deepest first)."""
-    while _CREATED:
-        folder = _CREATED.pop()
-        try:
-            folder.rmdir()  # (only if empty)
-        except OSError:
-            pass
+    from wl_env.atomic_io import remove_empty_folders
+
+    remove_empty_folders(_CREATED[::-1])
+    _CREATED.clear()
 
 
 def _ocp_cmd(args: argparse.Namespace) -> int:
@@ -360,10 +359,11 @@ def _evaluate_cmd(args: argparse.Namespace) -> int:
 def _train_cmd(args: argparse.Namespace) -> int:
     from agents.ppo_config import PPOConfig
     from agents.train_cli import run_train
+    from wl_env.atomic_io import missing_folders
 
     for folder in (args.log_dir or PPOConfig.log_dir, args.cache):  # (created by run_train's checks, if missing)
         if folder and str(folder).strip():
-            _CREATED.extend(reversed(_missing(Path(folder))))
+            _CREATED.extend(reversed(missing_folders(folder)))
     return run_train(args, command="wl " + shlex.join(args.argv), prog="wl train")
 
 

@@ -128,10 +128,13 @@ def read_regular_file(path: str | os.PathLike, limit: int | None, holds: str = "
 def _regular_file(path: Path, what: str) -> Path:
     """``path`` with its symbolic links resolved; ValueError starting with ``what`` if it exists and is not a
     regular file."""
-    real = Path(os.path.realpath(path))
-    if real.exists() and not real.is_file():
-        kind = "a folder" if real.is_dir() else "not a regular file (a device, a pipe or a socket)"
-        raise ValueError(f"{what}: {path} is {kind}; give a file name")
+    try:  # (a name too long for the system was an OSError that named no option)
+        real = Path(os.path.realpath(path))
+        if real.exists() and not real.is_file():
+            kind = "a folder" if real.is_dir() else "not a regular file (a device, a pipe or a socket)"
+            raise ValueError(f"{what}: {path} is {kind}; give a file name")
+    except OSError as exc:
+        raise ValueError(f"{what}: cannot use the path {path} ({exc.strerror or exc})") from None
     return real
 
 
@@ -151,9 +154,9 @@ def check_output_folder(folder: str | os.PathLike, what: str) -> Path:
     if not str(folder).strip():
         raise ValueError(f"{what.strip()}: an empty path names no folder")
     folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"{what}: {folder} is not a folder")
-    try:
+    try:  # (exists() too: a name too long for the system was an OSError that named no option)
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"{what}: {folder} is not a folder")
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=folder, prefix=".write-probe-")
         os.close(fd)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from wl_env.atomic_io import atomic_path
-from wl_env.params import is_finite, plain, shown
+from wl_env.params import is_finite, is_integer, plain, shown
 
 WIDTH, HEIGHT = 600, 400  # pixels of a frame
 _DPI = 100
@@ -328,14 +328,27 @@ def render_frame(env: Any, *, size: tuple[int, int] = (WIDTH, HEIGHT)) -> np.nda
     ``reset``. The figure is built once per environment and reused.
     """
     env = getattr(env, "unwrapped", env)
-    size = (int(size[0]), int(size[1]))
-    if size[0] < 200 or size[1] < 150:
-        raise ValueError(f"size must be at least (200, 150) pixels, got {size}")
+    size = check_size(size)
     scene = _cache.get(env)
     if scene is None or scene.params is not env.params or scene.braking != env.braking or scene.size != size:
         scene = _Scene(env, size)
         _cache[env] = scene
     return scene.update(_snapshot(env))
+
+
+MAX_SIDE = 8192  # pixels a frame's side has at most (65000 x 65000, under matplotlib's own limit, asked for 17 GB)
+
+
+def check_size(size: Any) -> tuple[int, int]:
+    """A frame size (width, height) in pixels: two integers (numpy's too), at least (200, 150), at most MAX_SIDE each;
+    ValueError naming ``size`` otherwise (a NaN or a 1-tuple was int()'s or an index error, a string or 250.9 was
+    taken as a number, 10**400 an OverflowError)."""
+    values = tuple(map(plain, size)) if isinstance(size, (tuple, list)) else ()
+    if not (len(values) == 2 and all(is_integer(v) for v in values)
+            and 200 <= values[0] <= MAX_SIDE and 150 <= values[1] <= MAX_SIDE):
+        raise ValueError(f"size must be (width, height) in pixels, integers in [200, {MAX_SIDE}] and [150, {MAX_SIDE}], "
+                         f"got {shown(size)}")
+    return int(values[0]), int(values[1])
 
 
 def release(env: Any) -> None:

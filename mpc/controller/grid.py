@@ -43,7 +43,7 @@ import numpy as np
 from mpc.controller import codegen
 from wl_env import cycle, limits, step
 from wl_env.model import estimated_derivatives
-from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, resolve
+from wl_env.params import SCENARIO_FIELDS, LoaderParams, ParamsView, is_real_number, plain, resolve, shown
 from wl_env.physics import lift
 from wl_env.step import State
 
@@ -139,14 +139,18 @@ class StepModel:
 
     def __init__(self, braking: str, params: LoaderParams | dict | None = None, dt: float = 0.1, substeps: int = 1,
                  omega_margin: float = 0.0) -> None:
-        if not (isinstance(substeps, int) and substeps >= 1):
-            raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
-        if not (math.isfinite(omega_margin) and omega_margin >= 0.0):
-            raise ValueError(f"omega_margin must be >= 0 rad/s, got {omega_margin!r}")
+        # (as MPCController checks them: True was taken as 1 substep, and as a 1 s control interval; a string
+        # omega_margin was math.isfinite's TypeError)
+        substeps, omega_margin = plain(substeps), plain(omega_margin)
+        if isinstance(substeps, bool) or not (isinstance(substeps, int) and 1 <= substeps <= 1000):
+            raise ValueError(f"substeps must be an integer in [1, 1000], got {shown(substeps)}")
+        if not (is_real_number(omega_margin) and omega_margin >= 0.0):
+            raise ValueError(f"omega_margin must be >= 0 rad/s, got {shown(omega_margin)}")
         self.braking = cycle.check_braking(braking)
         self.params = resolve(params)
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt (the control interval) must be > 0 s, got {dt!r}")
+        dt = plain(dt)
+        if not (is_real_number(dt) and dt > 0):
+            raise ValueError(f"dt (the control interval) must be > 0 s, got {shown(dt)}")
         self.dt, self.substeps, self.omega_margin = float(dt), substeps, float(omega_margin)
         self.key = model_structure(self.braking, self.params, self.dt, substeps, self.omega_margin)
         self.end_stop = self.key[-1]  # (needs_end_stop)

@@ -1822,6 +1822,10 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         config = controller._made_with
     if cache is not None and not isinstance(cache, (str, os.PathLike)):  # (not after the cycle, at the score)
         raise ValueError(f"cache must be a folder path or None, got {type(cache).__name__}")
+    if cache is not None:  # (a file there, or under a file, failed at the score: after the whole cycle)
+        from mpc.benchmark.pareto import cache_dir
+
+        cache_dir(cache)
     config = config or MPCConfig()
     model = resolve(params)
     try:
