@@ -527,8 +527,9 @@ def evaluate_controller(
         braking = braking or scenario.braking
     braking = cycle.check_braking(braking or "service")
     # (numpy scalars as the numbers they hold: np.int64(1) episodes was "must be an integer in [1, ...]")
-    episodes, init_noise, seed, target_ratio, act_timeout = map(plain, (episodes, init_noise, seed, target_ratio,
-                                                                       act_timeout))
+    # (and a float32 target as the number it prints: np.float32(9.1) was recorded as itself, not JSON, 9.1000003814)
+    episodes, init_noise, seed, target_time, target_ratio, act_timeout = map(
+        plain, (episodes, init_noise, seed, target_time, target_ratio, act_timeout))
     check_settings(episodes, init_noise, seed)  # (before the plan: it multiplies by episodes)
     plan = list(scenarios) if scenarios is not None else [scenario or Scenario.nominal(braking)] * episodes
     for s in plan:
@@ -617,6 +618,8 @@ def score_evaluation(result: dict[str, Any], front: Any = None, cache: str | os.
                      solve: bool = True, unknown: str = "raise") -> dict[str, Any]:
     """``result`` of :func:`evaluate_controller` with ``deferred=True``, its completed episodes scored here
     (the arguments as there) and its optimum and summary updated; returned."""
+    _check_keys(result, ("braking", "per_episode"), "result")
+    _check_records(result["per_episode"], "result['per_episode']", RECORD_KEYS + OPTIMUM_KEYS)
     for rec in result["per_episode"]:
         params = rec.pop("params", None)
         if params is not None:
@@ -641,6 +644,30 @@ def _score(rec: dict[str, Any], braking: str, ran: LoaderParams, front: Any, cac
                    reference=s.reference)
 
 
+# the fields of an episode's record that summarize() reads; score_evaluation() the optimum's too (evaluate_controller
+# writes them all)
+RECORD_KEYS = ("completed", "success", "T", "fuel_g", "max_violation", "time_gap", "fuel_gap")
+OPTIMUM_KEYS = ("T_min", "fuel_opt_g", "reference")
+
+
+def _check_keys(d: Any, keys: tuple[str, ...], what: str) -> None:
+    """ValueError naming the keys of ``keys`` that ``d`` (``what``: an :func:`evaluate_controller` result or a part
+    of one) lacks: a malformed result was a bare KeyError (or a TypeError: not a dict)."""
+    if not isinstance(d, dict):
+        raise ValueError(f"{what} must be a dict, as evaluate_controller returns, got {_short(d)}")
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise ValueError(f"{what} has no {', '.join(map(repr, missing))}: not an evaluate_controller result")
+
+
+def _check_records(records: Any, what: str, keys: tuple[str, ...] = RECORD_KEYS) -> None:
+    """ValueError unless ``records`` is a non-empty list of episode records (with ``keys``), naming ``what``."""
+    if not isinstance(records, list) or not records:
+        raise ValueError(f"{what} must be a non-empty list of episode records, got {_short(records)}")
+    for i, rec in enumerate(records):
+        _check_keys(rec, keys, f"{what}[{i}]")
+
+
 def _optimum(records: list[dict[str, Any]]) -> dict[str, Any] | None:
     first = records[0]
     return None if first["T_min"] is None else {k: first[k] for k in ("T_min", "fuel_opt_g", "reference")}
@@ -652,6 +679,7 @@ def summarize(records: list[dict[str, Any]]) -> dict[str, Any]:
     averaging; the success rate stands beside them); ``nominal`` repeats episode 0."""
     if not records:
         raise ValueError("no episodes to summarize")
+    _check_records(records, "records")
     done = [r for r in records if r["completed"]]
     scored = [r for r in records if r["success"] and r["time_gap"] is not None]
     violations = [r["max_violation"] for r in records]
@@ -710,11 +738,16 @@ AGGREGATE_KEYS = ("success_rate", "time_gap_median", "fuel_gap_median", "fuel_ga
 
 def aggregate(result: dict[str, Any]) -> dict[str, Any]:
     """The headline aggregates of an :func:`evaluate_controller` result (:data:`AGGREGATE_KEYS`)."""
+    _check_keys(result, ("summary",), "result")
+    _check_keys(result["summary"], AGGREGATE_KEYS, "result['summary']")
     return {k: result["summary"][k] for k in AGGREGATE_KEYS}
 
 
 def summary_line(result: dict[str, Any], name: str) -> str:
     """One line of an :func:`evaluate_controller` result, for the command line."""
+    _check_keys(result, ("braking", "summary"), "result")
+    _check_keys(result["summary"], ("episodes", "success_rate", "completion_rate", "T", "fuel_g", "time_gap_median",
+                                    "fuel_gap_median", "fuel_gap_p90", "scored", "max_violation"), "result['summary']")
     s = result["summary"]
 
     def num(stats: dict[str, float | None], fmt: str, unit: str) -> str:

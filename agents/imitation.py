@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.ppo_config import COAST_ENV_IDS, TARGET_ENV_IDS, PPOConfig
-from wl_env.atomic_io import write_atomic
+from agents.ppo_config import COAST_ENV_IDS, MAX_RUN_JSON_BYTES, TARGET_ENV_IDS, PPOConfig
+from wl_env.atomic_io import read_regular_file, write_atomic
 from wl_env.codec import N_TARGET_OBS
 from wl_env.params import is_real_number, plain, shown
 
@@ -482,13 +482,22 @@ def demo_samples(demos: list[dict[str, Any]], env_id: str, braking: str) -> tupl
             np.concatenate([w for _, w in labelled]))
 
 
+def demo_paths(folder: str | Path, what: str = "bc_demos") -> list[Path]:
+    """The episode files of a demonstration folder, sorted; ValueError starting with ``what`` (the option or the
+    field that gave ``folder``) if there are none or the path cannot be used."""
+    try:
+        paths = sorted(Path(folder).glob("episode_*.npz"))
+    except OSError as exc:  # (a name too long for the system: "[Errno 36] File name too long", naming no option)
+        raise ValueError(f"{what} {folder}: cannot use the path ({exc.strerror or exc})") from None
+    if not paths:
+        raise ValueError(f"{what} {folder}: no demonstration episodes (episode_*.npz) in it")
+    return paths
+
+
 def read_demo_folder(folder: str | Path, env_id: str) -> list[dict[str, Any]]:
     """The usable episodes of a demonstration folder (:func:`collect_demos`' layout) for ``env_id``'s labels;
     ValueError if there are none or they are another env's."""
-    paths = sorted(Path(folder).glob("episode_*.npz"))
-    if not paths:
-        raise ValueError(f"bc_demos {folder}: no demonstration episodes (episode_*.npz) in it")
-    demos = [read_demo(p) for p in paths]
+    demos = [read_demo(p) for p in demo_paths(folder)]
     check_demo_env(demos, env_id)
     good = [d for d in demos if usable(d)]
     if not good:
@@ -604,9 +613,16 @@ def check_run_folder(cfg: PPOConfig) -> None:
     checkpoints, summary = run_dir / "checkpoints", run_dir / "final" / "summary.json"
     method = None
     if summary.is_file():
+        try:  # (a regular file, bounded: a huge one was read whole)
+            raw = read_regular_file(summary, MAX_RUN_JSON_BYTES, "a run summary holds")
+        except FileNotFoundError:  # (gone since)
+            raw = b""
+        except ValueError as exc:
+            raise ValueError(f"{summary} is {exc}: cannot tell whether {run_dir} holds a clone; give another "
+                             f"--run-name or --log-dir") from None
         try:
-            method = json.loads(summary.read_text()).get("method")
-        except (OSError, ValueError, AttributeError, RecursionError):
+            method = json.loads(raw).get("method")
+        except (ValueError, AttributeError, RecursionError):
             pass
     if (checkpoints.is_dir() and any(checkpoints.iterdir())) or ((run_dir / "final").exists()
                                                                  and method not in (METHOD, GRAFT_METHOD)):

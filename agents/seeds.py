@@ -72,9 +72,14 @@ def expand(cfg: PPOConfig, seeds: Sequence[int], sweep: dict[str, list[Any]] | N
         raise ValueError(f"seeds repeat: {list(seeds)}")
     base = cfg.run_name or f"ppo_{cfg.braking}"
     names = list((sweep or {}).keys())
-    out = []
+    out, tagged = [], {}
     for point in itertools.product(*[(sweep or {})[n] for n in names]):
         tag = "".join(f"_{n}{v:g}" if isinstance(v, float) else f"_{n}{v}" for n, v in zip(names, point, strict=True))
+        if tag in tagged:  # (train_runs then refused "two runs share a name", naming no --sweep value)
+            a, b = (", ".join(f"{n}={v}" for n, v in zip(names, p, strict=True)) for p in (tagged[tag], point))
+            raise ValueError(f"--sweep {a} and {b} would share the run name {base}{tag}_s<seed>: a run's name shows a "
+                             f"number to 6 significant digits: give values that differ within their first 6")
+        tagged[tag] = point
         for seed in seeds:
             d = {**cfg.to_dict(), **dict(zip(names, point, strict=True)), "seed": int(seed),
                  "run_name": f"{base}{tag}_s{seed}"}

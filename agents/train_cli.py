@@ -287,6 +287,10 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
             read_policy(stem)
         except PolicyFileError as exc:
             raise ValueError(f"--init-policy {cfg.init_policy}: {exc}") from None
+    if cfg.bc_demos and not ns.resume:  # (listed now, named by the option: a name too long for the system was
+        from agents.imitation import demo_paths  # "[Errno 36] File name too long", naming none)
+
+        demo_paths(cfg.bc_demos, "--bc-demos")
     if ns.resume and set(given) - RUN_NAMING:
         log.warning("--resume uses the run's saved config; options other than the run's name are ignored")
     from agents.ppo import export_policy, train

@@ -181,8 +181,8 @@ def _read_kept(path: Path, key: str) -> dict[str, Any] | None:
     """The result kept at ``path`` for ``key``, or None (none, or not exactly what was written: a warning)."""
     if not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text())
+    try:  # (a regular file, bounded as a results.json, which holds every evaluation: a huge one was read whole)
+        data = json.loads(read_regular_file(path, MAX_RESULTS_BYTES, "a kept evaluation holds"))
         if (isinstance(data, dict) and data.get("key") == key and isinstance(data.get("result"), dict)
                 and data.get("checksum") == _kept_checksum(data["result"])):
             return data["result"]

@@ -422,7 +422,7 @@ def _number(name: str, value: Any, allowed: Range, unit: str = "") -> float:
                          f"({type(value).__name__})")
     if not is_finite(value):
         raise ValueError(f"LoaderParams.{name} must be a finite number in {allowed}{unit}, got {shown(value)}")
-    v = float(value)
+    v = float(value) + 0.0  # (-0.0 as 0.0: it compares equal, and gave another fingerprint, another cache key)
     if v not in allowed:
         raise ValueError(f"LoaderParams.{name} must lie in {allowed}{unit}, got {shown(value)}")
     return v

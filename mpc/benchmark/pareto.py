@@ -42,7 +42,7 @@ from mpc.benchmark.ocp import (
     verification_passed,
 )
 from wl_env import cycle
-from wl_env.params import LoaderParams, check_flag, is_integer, is_real_number, resolve, shown
+from wl_env.params import LoaderParams, check_flag, is_integer, is_real_number, plain, resolve, shown
 from wl_env.scenario import param_distance
 
 log = logging.getLogger(__name__)
@@ -108,6 +108,7 @@ class ParetoFront:
         spaced evenly in u (:func:`front_times`), interpolate it closely. Between T_min and the first point
         (0.1 % above it) the first point's fuel is returned.
         """
+        T = plain(T)  # (a float32 as the number it prints, not its binary value 9.1000003814)
         if not is_real_number(T):
             raise ValueError(f"cycle time must be a finite number of seconds, got {T!r}")
         T = float(T)

@@ -18,7 +18,7 @@ from mpc.benchmark.ocp import MAX_CYCLE_TIME, as_plain
 from mpc.benchmark.pareto import ParetoFront, check_front_of
 from mpc.benchmark.reference import reference_at
 from wl_env.cycle import check_braking
-from wl_env.params import LoaderParams, check_flag, is_real_number, resolve, shown
+from wl_env.params import LoaderParams, check_flag, is_real_number, plain, resolve, shown
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,7 @@ def score_run(
     scenario and start state included): the one scoring of the project, for every controller and every
     evaluation. ``front`` must be that cycle's own front if given. ``solve`` False: only shipped or
     cached optima (LookupError if there is none)."""
+    T, fuel_g = plain(T), plain(fuel_g)  # (a float32 as the number it prints: np.float32(9.1) was 9.1000003814)
     for name, v in (("T", T), ("fuel_g", fuel_g)):
         if not (is_real_number(v) and v > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {v!r}")

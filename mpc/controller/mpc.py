@@ -324,6 +324,8 @@ class MPCConfig:
 
         for f in dataclasses.fields(self):  # (a numpy scalar as the Python number it holds: np.int64(20) steps
             v = getattr(self, f.name)       # was "must be an integer", np.float32 a target JSON cannot write)
+            if isinstance(v, np.ndarray):  # as a list (or a 0-d one's scalar), refused by the field's own check:
+                v = list(v) if v.ndim else v[()]  # np.array([1, 2]) was "truth value ... is ambiguous", naming no field
             object.__setattr__(self, f.name, tuple(map(plain, v)) if isinstance(v, (tuple, list)) else plain(v))
 
         if self.mode not in MODES:
