@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
 import numpy as np
 
 from mpc.benchmark.ocp import OCPResult
@@ -85,3 +90,17 @@ def in_thread(fn, timeout: float = 20.0):
     if "error" in out:
         raise out["error"]
     return out.get("value")
+
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str, prefix: str) -> ModuleType:
+    """The script ``scripts/<name>`` as a module named ``<prefix><stem>``, registered in ``sys.modules`` (its
+    dataclasses look their module up there; a prefix per test file keeps one file's copy from replacing another's)."""
+    module_name = prefix + name.removesuffix(".py")
+    spec = importlib.util.spec_from_file_location(module_name, SCRIPTS / name)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from fakes import load_script
 
 import wl.cli
 
@@ -17,13 +17,7 @@ SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
 def _script(name: str):
-    """A script as a module of its own name (registered: its dataclasses look their module up)."""
-    module_name = "s63_" + name.removesuffix(".py")
-    spec = importlib.util.spec_from_file_location(module_name, SCRIPTS / name)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(name, "s63_")
 
 
 def test_a_deadline_under_a_microsecond_is_named_as_the_option(tmp_path, capsys, monkeypatch):

@@ -3,7 +3,6 @@ test fails on the code before its fix."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -11,19 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fakes import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ROOT / "scripts"
 
 
 def _script(name: str):
-    """A script as a module of its own name (registered: its dataclasses look their module up)."""
-    module_name = "s63f_" + name.removesuffix(".py")
-    spec = importlib.util.spec_from_file_location(module_name, SCRIPTS / name)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(name, "s63f_")
 
 
 def _refused(argv: list[str], needle: str, timeout: float = 90) -> None:

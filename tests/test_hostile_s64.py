@@ -4,12 +4,12 @@ fails on the code before its fix."""
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from fakes import load_script
 
 import wl.cli
 
@@ -19,13 +19,7 @@ POLICY = ROOT / "agents" / "policies" / "ppo_target_service"  # (read only: its 
 
 
 def _script(name: str):
-    """A script as a module of its own name (registered: its dataclasses look their module up)."""
-    module_name = "s64_" + name.removesuffix(".py")
-    spec = importlib.util.spec_from_file_location(module_name, SCRIPTS / name)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(name, "s64_")
 
 
 def _interrupted(*args, **kwargs):
