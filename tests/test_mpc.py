@@ -290,8 +290,10 @@ def test_model_mismatch_case_completes(braking, payload, rolling, monkeypatch):
     assert all(far) and 1 <= len(far) <= 2 * ctrl.replans
     if (braking, payload, rolling) == ("tc", 1.2, 1.3):
         # its re-plans start far from their optimum (a plan for another estimate): pushed off the bounds by
-        # solver.WARM_START_PUSH_FAR they took <= 30 iterations a step, by the near push 38-71 (stop 50)
-        assert max(ctrl.step_iterations[1:]) <= 45
+        # solver.WARM_START_PUSH_FAR they took <= 30 iterations a step, by the near push 38-71 (stop 50); 50 at most
+        # since the synchronous controller plans every cycle afresh (stop 64: <= 45 held only in a process where an
+        # earlier test had planned this cycle, its plan solved again from the stored one; a fresh process gave 50)
+        assert max(ctrl.step_iterations[1:]) <= 55
 
 
 @functools.cache

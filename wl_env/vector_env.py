@@ -148,7 +148,9 @@ class WheelLoaderVectorEnv(VectorEnv):
                 raise ValueError(f"seed list must have num_envs={self.num_envs} entries, got {len(seeds)}")
             if not all(s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0) for s in seeds):
                 raise ValueError(f"seed must be an integer >= 0 (or None) for each env, got {shown(seed)}")
-            self._rngs = [np.random.default_rng(s) for s in seeds]  # as gymnasium's np_random(seed)
+            # as gymnasium's np_random(seed); a None entry keeps that loader's generator going, as a single env's
+            # reset(seed=None) does (it was a fresh, unseeded generator: the loader's episodes no longer the seed's)
+            self._rngs = [rng if s is None else np.random.default_rng(s) for rng, s in zip(self._rngs, seeds, strict=True)]
         self._reset_where(np.ones(self.num_envs, dtype=bool))
         self._started = True
         # (the single env's reset info, per loader, but its scenario: they were {}, a target env's targets unsaid)
