@@ -471,7 +471,8 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
 
     machine, own = machine_key(p), scenario_fields(p)
     best, best_d = None, math.inf
-    for f in (cache_dir(cache) / "pareto").glob(f"{braking}_*_n{n_points}_{CACHE_VERSION}/front.json"):
+    # (sorted: of two fronts at the same distance the first by name, not by the file system's listing order)
+    for f in sorted((cache_dir(cache) / "pareto").glob(f"{braking}_*_n{n_points}_{CACHE_VERSION}/front.json")):
         data = store.load_entry(f, FRONT_KIND, check_front, expect={"braking": braking})
         if data is None or data.get("machine") != machine or not data.get("scenario_fields"):
             continue
