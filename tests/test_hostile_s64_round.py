@@ -188,6 +188,10 @@ def test_run_closed_loop_checks_its_cache_before_the_cycle(tmp_path, monkeypatch
     for cache in (a_file, a_file / "below"):
         with pytest.raises(ValueError, match="cache must be a folder, but .* is a file"):
             mpc_module.run_closed_loop("service", cache=cache)
+    # (a seed the env's reset refuses: refused by name only after the controller was built, about a second)
+    for seed in (-1, True, 1.5, "3"):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            mpc_module.run_closed_loop("service", seed=seed)
 
 
 # ------------------------------------------------------------------------------------------- a sweep's values

@@ -1830,6 +1830,9 @@ def run_closed_loop(braking: str | None = None, config: MPCConfig | None = None,
         from mpc.benchmark.pareto import cache_dir
 
         cache_dir(cache)
+    seed = plain(seed)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:  # (the env's reset refused it, after the build)
+        raise ValueError(f"seed must be an integer >= 0, got {shown(seed)}")
     config = config or MPCConfig()
     model = resolve(params)
     try:
