@@ -11,7 +11,6 @@ checkpoint, so a killed sweep rerun with the same command loses at most a checkp
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import json
@@ -186,9 +185,9 @@ def train_runs(cfgs: Sequence[PPOConfig], command: str | None = None, workers: i
         else:
             results = {c.name: train_one(c.to_dict(), command) for c in cfgs}
     except KeyboardInterrupt:  # (a run stopped before its config.json left its new folder empty: `--ray` at 35 s)
-        for folder in fresh:
-            with contextlib.suppress(OSError):
-                folder.rmdir()
+        from wl_env.atomic_io import remove_empty_folders
+
+        remove_empty_folders(fresh)
         raise
     from wl_env.atomic_io import write_json_atomic
 

@@ -306,13 +306,13 @@ def run_train(ns: argparse.Namespace, command: str, prog: str) -> int:
     try:
         if many:
             return _run_many(cfg, ns, command, prog)
-        fresh = not cfg.run_dir.exists()
+        from wl_env.atomic_io import remove_empty_folders
+
+        fresh = [] if cfg.run_dir.exists() else [cfg.run_dir]
         try:
             summary = train(cfg, resume=ns.resume, command=command)
         except KeyboardInterrupt:
-            if fresh:  # (an interrupt before its config.json left the new run's folder empty)
-                with contextlib.suppress(OSError):
-                    cfg.run_dir.rmdir()
+            remove_empty_folders(fresh)  # (an interrupt before its config.json left the new run's folder empty)
             if not (cfg.run_dir / "config.json").exists():  # (--resume said "nothing to resume", exit 2)
                 log.info("\ninterrupted before the run was recorded; the same command starts it again")
                 return interrupt.exit_code()

@@ -27,24 +27,24 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
     link is written through (its target replaced, not the link); a path that exists and is not a regular file
     (a device, a pipe) is refused with ValueError: the rename would replace it (as root, ``/dev/null`` itself)."""
     path = _regular_file(Path(path), "output file")
-    made = missing_folders(path.parent)  # (removed again if the write fails: Ctrl-C left a new cache folder empty)
     tmp = None
-    try:  # (from the file's creation on: Ctrl-C while the umask was read left the temporary file behind)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
-        os.close(fd)
-        os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
-        yield Path(tmp)
-        with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-        remove_empty_folders(made)
-        if isinstance(exc, OSError) and exc.filename is None:  # (a full disk: "[Errno 28] No space left on device")
-            raise type(exc)(exc.errno, f"{exc.strerror or exc} writing {path}") from None
-        raise
+    # (the folders it makes removed again if the write fails: Ctrl-C left a new cache folder empty)
+    with folders_kept_if_used(path.parent):
+        try:  # (from the file's creation on: Ctrl-C while the umask was read left the temporary file behind)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + suffix)
+            os.close(fd)
+            os.chmod(tmp, 0o666 & ~current_umask())  # as an ordinary file, not mkstemp's 0600
+            yield Path(tmp)
+            with open(tmp, "rb+") as fh:  # on disk before it becomes the file readers see
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException as exc:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+            if isinstance(exc, OSError) and exc.filename is None:  # (a full disk: "[Errno 28] No space left on device")
+                raise type(exc)(exc.errno, f"{exc.strerror or exc} writing {path}") from None
+            raise
 
 
 def missing_folders(folder: str | os.PathLike) -> list[Path]:
