@@ -20,7 +20,7 @@ from gymnasium.envs.registration import register, registry
 from wl_env.params import DEFAULT_PARAMS, LoaderParams
 from wl_env.scenario import Scenario
 
-__version__ = "0.3.1"  # (0.3: WheelLoaderTarget-v7, WheelLoaderPlan-v1 and the service plan policy on it; 0.3.1: both plan policies on v1)
+__version__ = "0.3.2"  # (0.3: WheelLoaderTarget-v7, WheelLoaderPlan-v1; 0.3.1: both plan policies on v1; 0.3.2: the TC one seed 2)
 __all__ = ["LoaderParams", "DEFAULT_PARAMS", "Scenario", "__version__"]
 
 _IDS = {
