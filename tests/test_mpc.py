@@ -65,6 +65,25 @@ def test_grid_step_is_the_environment_step(braking, plant):
                 assert float(s_stop) == pytest.approx(s_rev, abs=1e-9)
 
 
+def test_a_plans_fuel_is_its_steps_fuel():
+    """A plan's fuel (GridNLP.fuel_g, the objective's fuel term) is its active steps' fuel by the step functions
+    (the simulator's, test_grid_step_is_the_environment_step) in slot order, the idle slots burning none; and
+    IPOPT's first plan never builds the inlined NLP it does not solve (its build took 0.10-0.15 s a first step)."""
+    ctrl = MPCController("tc", config=MPCConfig(mode="target_time", target_time=11.0))
+    x = np.array([P.omega_0, 0.0, P.H_0, 0.0, 0.0])
+    ctrl._plan_cycle(x, 1, 0)
+    sol, nlp = ctrl._sol, ctrl._nlp(1)
+    plan = nlp.plan(sol.z, sol.counts, x, ctrl.dt)
+    assert len(nlp.active_slots(sol.counts)) < len(nlp.slots)  # (idle slots in the layout)
+    fuel_kg = 0.0
+    for k, (phase, stop, u) in enumerate(zip(plan["phase"], plan["stop"], plan["controls"], strict=True)):
+        fn = (ctrl.model.stop if stop else ctrl.model.full)[int(phase)].fn
+        fuel_kg += float(fn(plan["states"][k], u, ctrl.dt, NOMINAL_ESTIMATE, ctrl.model.step_scenario)[2])
+    assert sol.fuel_g == pytest.approx(1000.0 * fuel_kg, rel=1e-6)
+    assert 40.0 < sol.fuel_g < 90.0  # (57.4 g; the front at 11 s: 57.37 g)
+    assert "nlp" not in vars(nlp)
+
+
 @functools.cache
 def _nlp_with_solvers(braking, first_phase, slots, open_phase):
     """A grid NLP and IPOPT on it twice: the derivatives CasADi generates from the whole NLP, and the

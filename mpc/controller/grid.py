@@ -461,7 +461,6 @@ class GridNLP:
         kinds = [(ph, "full") for ph in self.phases for _ in range(self.slots_per_phase[ph])]
         kinds = sorted(kinds + [(ph, "stop") for ph in self.stop_phases], key=lambda k: (k[0], k[1] == "stop"))
         n_slots = len(kinds)
-        sym = self.symbolic
         # parameters: the start, the estimate, the scenario, then per slot h, active, rate on
         self.scenario_offset = N_XR + N_EST
         self.h_offset = self.scenario_offset + N_SCN
@@ -470,25 +469,23 @@ class GridNLP:
         # ... the rate weights, then (open_phase) the terminal cost's: reference end state, its gradient, weight
         self.terminal_offset = self._rate_offset + n_slots + N_R
         n_terminal = 2 * N_XR + 1 if self.open_phase is not None else 0
-        par = sym.sym("par", self.terminal_offset + n_terminal)
-        shared = par[N_XR:self.h_offset]  # the estimate and the scenario
-        p = _symbolic_params(m.params, par[self.scenario_offset:self.h_offset])  # (the machine's fields: numbers)
-        w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
+        n_par = self.terminal_offset + n_terminal
+        p = m.params  # (its machine's fields: the bounds are the machine's, the scenario is a parameter)
+        lbw, ubw, lbg, ubg = [], [], [], []
         size = {"w": 0, "g": 0}
 
-        def var(n: int, lo: Any, hi: Any) -> tuple[Any, int]:
-            v = sym.sym("w", n)
-            w.append(v)
-            lbw.append(np.broadcast_to(lo, (n,)).astype(float))
-            ubw.append(np.broadcast_to(hi, (n,)).astype(float))
+        # (the layout in numbers only: the symbolic NLP, :attr:`nlp`, is built at its first use. IPOPT solves on
+        # the slot functions mapped (:attr:`mapped_nlp`), so a first plan's layouts no longer inline every slot
+        # into an SX graph it never evaluates: 0.10-0.15 s of the first step, measured at stop 65)
+        def var(n: int, lo: Any, hi: Any) -> int:
+            lbw.append(np.full(n, lo, dtype=float))
+            ubw.append(np.full(n, hi, dtype=float))
             size["w"] += n
-            return v, size["w"] - n
+            return size["w"] - n
 
-        def con(e: Any, lo: Any, hi: Any) -> int:
-            n = int(e.numel())
-            g.append(e)
-            lbg.append(np.broadcast_to(lo, (n,)).astype(float))
-            ubg.append(np.broadcast_to(hi, (n,)).astype(float))
+        def con(n: int, lo: Any, hi: Any) -> int:
+            lbg.append(np.full(n, lo, dtype=float))
+            ubg.append(np.full(n, hi, dtype=float))
             size["g"] += n
             return size["g"] - n
 
@@ -497,8 +494,7 @@ class GridNLP:
         r_ub = np.array([p.U_mf_max, p.U_ab_bounds[1]]) / U_SCALE[:N_R]
         x_lb0 = np.array([p.omega_min, -p.V_max, -math.inf, 0.0, -math.inf])
         x_ub0 = np.array([p.omega_max, p.V_max, math.inf, math.inf, math.inf])
-        Xk, _ = var(N_XR, np.concatenate([x_lb0 / X_SCALE, r_lb]), np.concatenate([x_ub0 / X_SCALE, r_ub]))
-        cost, fuel = [], []
+        var(N_XR, np.concatenate([x_lb0 / X_SCALE, r_lb]), np.concatenate([x_ub0 / X_SCALE, r_ub]))
         slots: list[Slot] = []
         self._slot_fns: list[SlotFunction] = []
         self._slot_q: list[list[int]] = []
@@ -516,45 +512,83 @@ class GridNLP:
             ab_lo, ab_hi = p.U_ab_bounds
             u_lb = np.array([0.0, ab_lo, 0.0])
             u_ub = np.array([p.U_mf_max, ab_hi, p.U_b_max if spec.brake_allowed else 0.0])
-            w_before, x_prev = size["w"], Xk
-            U, u_off = var(3, u_lb / U_SCALE, u_ub / U_SCALE)
-            ex, _ = var(1, 0.0, math.inf)
-            em, _ = var(1, 0.0, math.inf)  # (its upper bound, the margin, is set per solve)
-            misses = []
+            w_before = size["w"]
+            u_off = var(3, u_lb / U_SCALE, u_ub / U_SCALE)
+            var(1, 0.0, math.inf)  # the excess over the deceleration limit
+            var(1, 0.0, math.inf)  # the margin used (its upper bound, the margin, is set per solve)
             for name in sf.targets:  # a target's signed miss (the difference of two parts), penalized in L1
-                e, self._miss_index[name] = var(2, 0.0, math.inf)
-                misses.append(e)
+                self._miss_index[name] = var(2, 0.0, math.inf)
             self.stage_controls.append(size["w"] - w_before)
-            Xk, x_off = var(N_XR, np.concatenate([x_lb / X_SCALE, r_lb]), np.concatenate([x_ub / X_SCALE, r_ub]))
+            x_off = var(N_XR, np.concatenate([x_lb / X_SCALE, r_lb]), np.concatenate([x_ub / X_SCALE, r_ub]))
             # the slot's parameters (q) in the NLP's: h, active, rate on, the rate weights, (slot 0) the start,
             # (an open NLP's last slot) the terminal cost's
             q = [self.h_offset + k, self._active_offset + k, self._rate_offset + k,
                  *range(self._rate_offset + n_slots, self.terminal_offset)]
             q += list(range(N_XR)) if k == 0 else []
-            q += list(range(self.terminal_offset, int(par.numel()))) if sf.terminal else []
+            q += list(range(self.terminal_offset, n_par)) if sf.terminal else []
             self._slot_q.append(q)
-            rows, f_k, fuel_k = sf.fn(ca.vertcat(x_prev, U, ex, em, *misses, Xk), ca.vertcat(*[par[i] for i in q]),
-                                      shared)
             # rows in stage order (as fatrop's structure needs): the shooting gap, (slot 0) the start, the rest
-            gap = con(rows[:N_XR], 0.0, 0.0)
+            gap = con(N_XR, 0.0, 0.0)
             g_before = size["g"]
             if k == 0:
-                con(rows[N_XR:2 * N_XR], 0.0, 0.0)  # the measured start and the control applied before it
-            g_off = con(rows[(2 if k == 0 else 1) * N_XR:], sf.lb, sf.ub)
+                con(N_XR, 0.0, 0.0)  # the measured start and the control applied before it
+            g_off = con(sf.fn.numel_out(0) - (2 if k == 0 else 1) * N_XR, sf.lb, sf.ub)
             self.stage_rows.append(size["g"] - g_before)
             slots.append(Slot(ph, kind, u_off, x_off, g_off, gap))
             self._slot_fns.append(sf)
-            cost.append(f_k)
-            fuel.append(fuel_k)
-        fuel_g = 1000.0 * ca.sum1(ca.vertcat(*fuel))
         self.slots = slots
-        self.n_var, self.n_con, self.n_par = size["w"], size["g"], int(par.numel())
+        self.n_var, self.n_con, self.n_par = size["w"], size["g"], n_par
         self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
         self.lbg, self.ubg = np.concatenate(lbg), np.concatenate(ubg)
-        z = ca.vertcat(*w)
-        self.nlp = {"x": z, "p": par, "f": ca.sum1(ca.vertcat(*cost)), "g": ca.vertcat(*g)}
         self.equality = self.lbg == self.ubg  # fixed by the build: per solve only inequality rows are relaxed
-        self.fuel_g = ca.Function("fuel_g", [z, par], [fuel_g])
+
+    def _slot_inputs(self, x: Any, par: Any, k: int) -> tuple[Any, Any]:
+        """Slot ``k``'s variables (the state before it, then its own) and parameters in the NLP's ``x``, ``par``."""
+        s = self.slots[k]
+        return x[s.u - N_XR:s.x + N_XR], ca.vertcat(*[par[i] for i in self._slot_q[k]])
+
+    @functools.cached_property
+    def nlp(self) -> dict[str, Any]:
+        """The NLP (x, p, f, g) with every slot function inlined ("SX") or called ("MX"): what sqpmethod and
+        fatrop solve (IPOPT solves :attr:`mapped_nlp`, the same values)."""
+        x, par = self.symbolic.sym("w", self.n_var), self.symbolic.sym("par", self.n_par)
+        shared = par[N_XR:self.h_offset]  # the estimate and the scenario
+        rows, cost = [], []
+        for k, sf in enumerate(self._slot_fns):
+            g_k, f_k, _ = sf.fn(*self._slot_inputs(x, par, k), shared)
+            rows.append(g_k)
+            cost.append(f_k)
+        return {"x": x, "p": par, "f": ca.sum1(ca.vertcat(*cost)), "g": ca.vertcat(*rows)}
+
+    @functools.cached_property
+    def _slot_groups(self) -> list[list[int]]:
+        """The slots grouped by their slot function (each group's mapped as one), in order of first use."""
+        groups: dict[int, list[int]] = {}
+        for k, sf in enumerate(self._slot_fns):
+            groups.setdefault(id(sf), []).append(k)
+        return list(groups.values())
+
+    @functools.cached_property
+    def _slot_fuel(self) -> ca.Function:
+        """(x, p) -> each slot's fuel (kg), in slot order: the slot functions mapped over their slots."""
+        x, par = ca.MX.sym("x", self.n_var), ca.MX.sym("p", self.n_par)
+        shared = par[N_XR:self.h_offset]
+        parts, order = [], []
+        for ks in self._slot_groups:
+            ins = [self._slot_inputs(x, par, k) for k in ks]
+            _, _, fuel = self._slot_fns[ks[0]].fn.map(len(ks))(ca.horzcat(*[z for z, _ in ins]),
+                                                               ca.horzcat(*[q for _, q in ins]), shared)
+            parts.append(ca.vec(fuel))
+            order += ks
+        return ca.Function("slot_fuel", [x, par], [ca.vertcat(*parts)[np.argsort(order).tolist()]])
+
+    def fuel_g(self, z: np.ndarray, p: np.ndarray) -> float:
+        """The fuel (g) a solution of the parameters ``p`` burns: its slots' summed in slot order, as the NLP's
+        objective sums them (CasADi's sum1: left to right)."""
+        total = 0.0
+        for kg in np.asarray(self._slot_fuel(z, p), dtype=float).ravel():
+            total += kg
+        return 1000.0 * total
 
     @functools.cached_property
     def derivative_functions(self) -> dict[str, ca.Function]:
@@ -591,14 +625,11 @@ class GridNLP:
         x, par, lam_f, lam_g = ca.MX.sym("x", n), ca.MX.sym("p", n_p), ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_g)
         shared = par[N_XR:self.h_offset]
         n_slots = len(self.slots)
-        groups: dict[int, list[int]] = {}
-        for k, sf in enumerate(self._slot_fns):
-            groups.setdefault(id(sf), []).append(k)
         h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
         value_f, value_g, p_parts, p_at = [], [], [], []
         shared_idx = np.arange(N_XR, self.h_offset)
-        kinds = [self._slot_fns[ks[0]] for ks in groups.values()]
-        for ks, fns in zip(groups.values(), _evaluation_functions(kinds), strict=True):
+        kinds = [self._slot_fns[ks[0]] for ks in self._slot_groups]
+        for ks, fns in zip(self._slot_groups, _evaluation_functions(kinds), strict=True):
             z_idx, q_idx, r_idx = [], [], []
             for k in ks:
                 s = self.slots[k]
