@@ -299,6 +299,9 @@ class GuardedController:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         out = self._call("act()", self.controller.act, obs, timeout=self.act_timeout)
+        if isinstance(out, np.ma.MaskedArray) and np.ma.is_masked(out):  # (asarray read the values under the mask)
+            self._fail(f"act() returned a masked array with {np.ma.count_masked(out)} masked entries, not "
+                       f"{self.n_actions} numbers")
         try:
             raw = np.asarray(out) if isinstance(out, (np.ndarray, list, tuple)) or hasattr(out, "__array__") else None
         except Exception:  # noqa: BLE001 - ragged lists, tensors that refuse conversion
@@ -422,6 +425,10 @@ def check_env_kwargs(env_id: Any, env_kwargs: Any, braking: str) -> None:
     if "init_noise" in env_kwargs:
         raise ValueError("env_kwargs sets init_noise, which is the evaluation's own argument (episode 0 starts "
                          "at the nominal state): give init_noise=")
+    if "scenario" in env_kwargs:  # (every episode is reset with its own scenario: the env's was dropped without a word)
+        raise ValueError("env_kwargs sets scenario, which the evaluation's own arguments set (each episode is reset with "
+                         "its scenario): give scenario= (one cycle) or scenarios= (a suite's list, "
+                         "wl_env.suites.load_suite(name).spread(braking))")
     if "braking" in env_kwargs and env_kwargs["braking"] != braking:
         raise ValueError(f"env_kwargs braking={shown(env_kwargs['braking'])} contradicts the evaluation's braking "
                          f"{braking!r}")

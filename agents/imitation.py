@@ -23,6 +23,7 @@ import io
 import json
 import logging
 import math
+import os
 import time
 import zipfile
 from dataclasses import dataclass
@@ -57,6 +58,11 @@ class DemoSettings:
     env_id: str = "WheelLoaderTarget-v1"  # v1: action 0 an engine-speed request (the governor's); v0: the injection
 
     def __post_init__(self) -> None:
+        if isinstance(self.learner, os.PathLike):  # (a path as the text it spells, as the demos' meta records it)
+            object.__setattr__(self, "learner", os.fspath(self.learner))
+        if not isinstance(self.learner, str):  # (5 or True was a TypeError inside the first episode, naming nothing)
+            raise ValueError(f"learner must be '' (the expert drives) or the path of a pickle-free policy, got "
+                             f"{shown(self.learner)} ({type(self.learner).__name__})")
         if self.env_id not in TARGET_ENV_IDS[:2] and not (self.env_id in COAST_ENV_IDS and self.learner
                                                            and self.expert == "mpc"):
             # (a driver's actions are not the MPC's controls: the expert drives v0 or v1; in v3 to v6 a DAgger

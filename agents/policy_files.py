@@ -178,17 +178,24 @@ def write_policy(policy: Any, normalization: ObsNormalization | None, stem: str 
 
     files = PolicyFiles.of(stem)
     network = describe_network(policy)
-    state = {k: v.detach().to("cpu", th.float32).contiguous() for k, v in policy.state_dict().items()}
-    write_atomic(files.weights, save_tensors(state))
     obs_dim = network["observation_space"]["shape"]
     norm = normalization or ObsNormalization(np.zeros(obs_dim), np.ones(obs_dim), math.inf, 0.0)
     buf = io.BytesIO()
     np.savez(buf, mean=np.asarray(norm.mean, np.float64), var=np.asarray(norm.var, np.float64),
              clip_obs=np.float64(norm.clip_obs), epsilon=np.float64(norm.epsilon),
              norm_obs=np.bool_(normalization is not None))
-    write_atomic(files.normalization, buf.getvalue())
     out = {k: v for k, v in (meta or {}).items() if k not in ("format", "format_version", "network", "files",
                                                                "obs_normalization")}
+    # What reading the policy refuses, refused before any file is written: a NaN mean, a negative variance or a
+    # braking "x" was written (over a policy there too), and the policy no longer loaded.
+    try:
+        _check_fields(out, files.metadata)
+        read_normalization(files.normalization, obs_dim[0], buf.getvalue())
+    except PolicyFileError as exc:
+        raise PolicyFileError(f"policy {files.weights.with_suffix('')} not written: {exc}") from None
+    state = {k: v.detach().to("cpu", th.float32).contiguous() for k, v in policy.state_dict().items()}
+    write_atomic(files.weights, save_tensors(state))
+    write_atomic(files.normalization, buf.getvalue())
     out.update(format=FORMAT, format_version=FORMAT_VERSION, network=network, files={
         "weights": {"name": files.weights.name, "sha256": sha256(files.weights)},
         "normalization": {"name": files.normalization.name, "sha256": sha256(files.normalization)}})
@@ -241,14 +248,7 @@ def _read_checked(files: PolicyFiles) -> tuple[dict[str, Any], bytes, bytes]:
     if meta.get("format_version") != FORMAT_VERSION:
         raise PolicyFileError(f"{path}: format_version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
     _check_network(meta.get("network"), path)
-    if meta.get("braking") not in (None, "service", "tc"):
-        raise PolicyFileError(f"{path}: braking must be \"service\" or \"tc\" (or absent), got {meta.get('braking')!r}")
-    config = meta.get("config")
-    if config is not None and not isinstance(config, dict):
-        raise PolicyFileError(f"{path}: config must be an object (the training options), got {type(config).__name__}")
-    env_id = (config or {}).get("env_id")
-    if env_id is not None and not isinstance(env_id, str):
-        raise PolicyFileError(f"{path}: config.env_id must be an env id string, got {env_id!r}")
+    _check_fields(meta, path)
     recorded = meta.get("files")
     contents = []
     for key, file, most in (("weights", files.weights, MAX_WEIGHTS_BYTES),
@@ -263,6 +263,18 @@ def _read_checked(files: PolicyFiles) -> tuple[dict[str, Any], bytes, bytes]:
                                   f"mixed-up file")
         contents.append(data)
     return meta, contents[0], contents[1]
+
+
+def _check_fields(meta: dict[str, Any], path: Path) -> None:
+    """The metadata's braking, config and env id, as the policy's reader takes them (PolicyFileError naming ``path``)."""
+    if meta.get("braking") not in (None, "service", "tc"):
+        raise PolicyFileError(f"{path}: braking must be \"service\" or \"tc\" (or absent), got {meta.get('braking')!r}")
+    config = meta.get("config")
+    if config is not None and not isinstance(config, dict):
+        raise PolicyFileError(f"{path}: config must be an object (the training options), got {type(config).__name__}")
+    env_id = (config or {}).get("env_id")
+    if env_id is not None and not isinstance(env_id, str):
+        raise PolicyFileError(f"{path}: config.env_id must be an env id string, got {env_id!r}")
 
 
 def _check_network(net: Any, path: Path) -> None:

@@ -265,6 +265,13 @@ class PPOConfig:
         if unknown:
             raise ValueError(f"unknown RewardConfig field(s) {sorted(unknown)} (--reward, --curriculum-start); known: "
                              f"{sorted(RewardConfig.__dataclass_fields__)}")
+        # (the run's w_fuel and w_time are their own fields, which the env applies over the reward's: --reward
+        # w_fuel=0.5 trained with w_fuel 2.0, the default, and config.json recorded 0.5)
+        shadowed = {k: v for k, v in self.reward.items() if k in ("w_fuel", "w_time") and v != getattr(self, k)}
+        if shadowed:
+            raise ConfigError("reward", "without w_fuel and w_time, which are fields of their own (--w-fuel, --w-time) "
+                              f"that set them: give {', '.join(f'{k}={v:g}' for k, v in shadowed.items())} there",
+                              self.reward)
         for name in ("reward", "curriculum_start"):  # (each field's range, now: not at the first reset)
             try:
                 RewardConfig(**getattr(self, name))

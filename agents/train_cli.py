@@ -201,7 +201,17 @@ def config_from_args(cls: type, ns: argparse.Namespace) -> tuple[Any, dict[str, 
     for f in dataclasses.fields(cls):
         v = getattr(ns, f.name, None)
         if v is not None:
-            given[f.name] = dict(v) if typing.get_origin(hints[f.name]) is dict else v
+            if typing.get_origin(hints[f.name]) is dict:  # (KEY=VALUE pairs: a key given twice kept the last)
+                values: dict[str, list[Any]] = {}
+                for key, value in (v.items() if isinstance(v, dict) else v):
+                    values.setdefault(key, []).append(value)
+                twice = {k: vs for k, vs in values.items() if len(set(vs)) > 1}
+                if twice:
+                    k, vs = next(iter(twice.items()))
+                    raise ValueError(f"--{f.name.replace('_', '-')} gives {k} twice ({' and '.join(f'{x:g}' for x in vs)}): "
+                                     f"give each key once")
+                v = dict(v)
+            given[f.name] = v
     try:
         return cls(**given), given
     except ConfigError as exc:
@@ -339,6 +349,8 @@ def _run_many(cfg: PPOConfig, ns: argparse.Namespace, command: str, prog: str) -
     from mpc.workers import check_workers
 
     check_workers(ns.workers, "--workers")
+    if ns.ray is not None and ns.workers != 1:  # (the Ray tasks took no notice of it, without a word)
+        raise ValueError("--workers sets the local processes; with --ray the cluster runs the trainings: give one of them")
     cfgs = expand(cfg, ns.seeds or [cfg.seed], parse_sweep(ns.sweep or []))
     if ns.export:  # (each run's export files, checked before the training: a folder in the way failed after all of it)
         from agents.policy_files import check_policy_output

@@ -91,12 +91,12 @@ def suite_mode(args: argparse.Namespace) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--episodes", type=_int_in(1, 100_000), default=100)
-    ap.add_argument("--init-noise", type=_float_in(0, 1), default=1.0)
-    ap.add_argument("--seed", type=_int_in(0, 2**31 - 1), default=10_000)
+    ap.add_argument("--episodes", type=_int_in(1, 100_000), help="episodes per controller (default 100; not with --suite)")
+    ap.add_argument("--init-noise", type=_float_in(0, 1), help="start perturbation, 0..1 (default 1.0; not with --suite)")
+    ap.add_argument("--seed", type=_int_in(0, 2**31 - 1), help="seed of episode 0 (default 10000; not with --suite)")
     ap.add_argument("--json", metavar="PATH", help="also write the raw numbers")
     ap.add_argument("--suite", choices=["test", "corners"], help="run the suite mode (see above)")
-    ap.add_argument("--mpc-sample", type=_int_in(1, 1000), default=10, help="--suite: scenarios per braking the MPC runs")
+    ap.add_argument("--mpc-sample", type=_int_in(1, 1000), help="--suite: scenarios per braking the MPC runs (default 10)")
     ap.add_argument("--runs", nargs="+", metavar="RUN_DIR", help="--suite: instead, these runs' policies (e.g. one per "
                     "seed) at the three targets, and each metric's median and interquartile range over them")
     from agents.train_cli import refuse_repeated_options
@@ -108,6 +108,18 @@ def main() -> None:
     check_output_option(ap, args.json, "--json")  # (now: it was written only at the end, after the work)
     if args.runs and not args.suite:
         ap.error("--runs needs --suite")
+    # (each was ignored without a word where it does not apply)
+    given = [flag for flag, value in (("--episodes", args.episodes), ("--init-noise", args.init_noise),
+                                      ("--seed", args.seed)) if value is not None]
+    if args.suite and given:
+        ap.error(f"not with --suite (each scenario runs once from its own start): {', '.join(given)}, the nominal "
+                 "mode's episodes")
+    if args.mpc_sample is not None and (not args.suite or args.runs):
+        ap.error("--mpc-sample sets the MPC's scenarios of --suite without --runs: leave it out")
+    args.episodes = 100 if args.episodes is None else args.episodes
+    args.init_noise = 1.0 if args.init_noise is None else args.init_noise
+    args.seed = 10_000 if args.seed is None else args.seed
+    args.mpc_sample = 10 if args.mpc_sample is None else args.mpc_sample
     try:  # (one run by two spellings, runs/a and runs/a/, or runs/a and runs/a/final: evaluated twice, counted twice)
         from agents.ppo import policy_source
 

@@ -69,6 +69,16 @@ def main() -> None:
     try:  # (checked here, not in the child processes: a NaN was their CalledProcessError, a traceback)
         if args.target_time is not None:
             check_target_time(args.target_time, "--target-time")
+            # (a target under a cycle's minimum time failed in that cycle's process after the ones before it, naming
+            # MPCConfig.target_time: checked against the estimate, 2 % allowed, as `wl mpc --target-time` is)
+            from wl_env.scenario import Scenario
+            from wl_env.suites.min_time import estimate_min_time
+
+            for braking in args.braking:
+                t_min = estimate_min_time(Scenario.nominal(braking))
+                if args.target_time < 0.98 * t_min:
+                    raise ValueError(f"--target-time {args.target_time:g} s lies below the nominal cycle's minimum "
+                                     f"cycle time with {braking} braking (about {t_min:.2f} s)")
         if not 2 <= args.horizon_steps <= 1000 and not (args.one and args.horizon_steps == 0):
             raise ValueError(f"--horizon-steps must be an integer in [2, 1000], got {args.horizon_steps}")
         refuse_repeated_values("--braking", args.braking, "a braking alternative")  # (each cycle's process run twice)

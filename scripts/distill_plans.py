@@ -80,13 +80,19 @@ def check(o: Options) -> None:
     if not Path(o.out).name.strip() or Path(o.out).name in (".", ".."):  # ("" passed as the file ".json", and failed
         raise ValueError(f"--out must name the policy's file stem (PATH/NAME), got {str(o.out)!r}")  # after the work)
     check_policy_output(o.out, "--out")  # (each of its files: a folder at OUT.safetensors failed after the work)
-    if o.demos is not None:
-        check_output_file(o.demos, "--demos")
+    # the searches file, the default too (a FIFO at OUT_searches.npz hung the resume's read for good), and none of the
+    # policy's files (--demos OUT.json: the searches, then the policy written over them)
+    demos = o.demos if o.demos is not None else Path(f"{o.out}_searches.npz")
+    check_output_file(demos, "--demos" if o.demos is not None else "--demos (default OUT_searches.npz)")
+    from wl_env.atomic_io import refuse_one_path_twice
+
+    refuse_one_path_twice([*(("--out", Path(f"{o.out}{suffix}")) for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX,
+                                                                                METADATA_SUFFIX)), ("--demos", demos)])
     # (--out P of --policy P wrote the distilled policy over the one it distils, after the work)
     inputs = policy_input_files(o.policy)
     for path in [Path(f"{o.out}{suffix}") for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX, METADATA_SUFFIX)]:
         check_not_an_input(path, inputs, "--out")
-    check_not_an_input(o.demos or Path(f"{o.out}_searches.npz"), inputs, "--demos")
+    check_not_an_input(demos, inputs, "--demos")
 
 
 def plan_env(config: Any, num_envs: int):

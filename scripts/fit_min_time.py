@@ -76,7 +76,13 @@ def main(o: Options) -> None:
                          f"got {o.draws}")
     if not 0 <= o.seed < 2**32:  # (numpy's "expected non-negative integer" named no flag)
         raise ValueError(f"--seed must be an integer in [0, 2**32), got {o.seed}")
+    if o.cache is not None:  # (--cache X --out X: every solve, then "X is a folder"; the cache checked before them)
+        from wl_env.atomic_io import check_output_folder, refuse_one_path_twice
+
+        refuse_one_path_twice([("--cache", o.cache), ("--out", o.out)])
     _out_file(o.out)
+    if o.cache is not None:
+        check_output_folder(o.cache, f"--cache {o.cache}")
     jobs = {b: ("fit_min_time:solve_min_times", (b, o.draws, o.seed, o.cache)) for b in ("service", "tc")}
     results = run_in_workers(jobs, log_level=logging.INFO)
     shipped = shipped_fronts()

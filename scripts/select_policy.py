@@ -30,7 +30,7 @@ from agents.evaluate import policy_input_files  # noqa: E402
 from agents.ppo_config import TARGETED_ENV_IDS  # noqa: E402
 from agents.train_cli import refuse_repeated_values, tyro_options  # noqa: E402
 from wl.report import TARGETS  # noqa: E402
-from wl_env.atomic_io import check_not_an_input, check_output_file, write_json_atomic  # noqa: E402
+from wl_env.atomic_io import check_not_an_input, check_output_file, check_output_folder, write_json_atomic  # noqa: E402
 from wl_env.cycle import check_braking  # noqa: E402
 from wl_env.logs import run_script  # noqa: E402
 
@@ -66,10 +66,16 @@ def check(o: Options) -> None:
         raise ValueError(f"--by must be 'fuel' or 'gap', got {o.by!r}")
     if o.cache is not None and o.by != "gap":
         raise ValueError("--cache keeps the optima of --by gap: not with --by fuel")
+    if o.cache is not None and o.json is not None:  # (--cache X --json X: every episode, then "X is a folder")
+        from wl_env.atomic_io import refuse_one_path_twice
+
+        refuse_one_path_twice([("--cache", o.cache), ("--json", o.json)])
     if o.json is not None:
         check_output_file(o.json, "--json")
         for policy in o.policies:  # (--json P.json of --policies P wrote the records over the policy's metadata)
             check_not_an_input(o.json, policy_input_files(policy), "--json")
+    if o.cache is not None:  # (with the other options, before the policies are read)
+        check_output_folder(o.cache, f"--cache {o.cache}")
 
 
 def run(o: Options) -> dict[str, Any]:

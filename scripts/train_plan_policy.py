@@ -200,6 +200,17 @@ def main(o: Options) -> dict[int, dict]:
             check_output_file(Path(o.curve).with_name(Path(o.curve).name + suffix), f"--curve {o.curve}")
     for seed in o.seeds or (o.seed,):  # (each seed's record of its stages: a folder there failed after the training)
         check_output_file(stages_file(o, seed), "--log-dir's stages record")
+    # (no two of them one file: --export runs/plan_service_s0_stages wrote the stages record over the shipped policy's
+    # metadata; --curve <stage run>/eval wrote the curve over the eval.csv it is drawn from)
+    from wl_env.atomic_io import refuse_one_path_twice
+
+    written = [("--log-dir's stages record", stages_file(o, seed)) for seed in o.seeds or (o.seed,)]
+    if o.export is not None:
+        written += [("--export", f"{o.export}{suffix}") for suffix in (".safetensors", "_vecnormalize.npz", ".json")]
+    if o.curve is not None:
+        written += [("a stage's eval.csv (the curve's rows)", cfg.run_dir / "eval.csv") for cfg in stage_configs(o)]
+        written += [("--curve", f"{o.curve}{suffix}") for suffix in (".csv", ".png")]
+    refuse_one_path_twice(written)
     results = {}
     for seed, summaries in train_stages(o).items():
         out = {"stages": [{"num_timesteps": s["num_timesteps"], "wall_time_s": s["wall_time"]} for s in summaries],

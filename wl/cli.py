@@ -557,9 +557,11 @@ def _scenario_braking(args: argparse.Namespace) -> str | None:
 def _suite_cmd(args: argparse.Namespace) -> int:
     from mpc.benchmark.suite import check_shipped, solve_suite
 
+    ray = args.ray
+    if ray is not None and args.workers is not None:  # (the Ray tasks took no notice of it, without a word)
+        raise ValueError("--workers sets the local processes; with --ray the cluster runs the solves: give one of them")
     if args.cache is not None:
         _out_dir(args.cache, "--cache")
-    ray = args.ray
     if args.check and args.out is not None:  # (it compares with the shipped optima and writes no suite file)
         raise ValueError("--out names the suite file a solve writes; --check writes none: leave --out out")
     if args.check:

@@ -301,6 +301,9 @@ def collect(out_dir: str | Path = "results", cache: str | None = None,
 
 
 MAX_RESULTS_BYTES = 64 * 2**20  # (a full-suite results.json is a few MB; a 2 GB file was read whole: 4 GB, 10 s)
+# curves a figure draws, at most: a trajectory each, a suite label (controller and target) each; `wl run` writes 8 and
+# ~20 (a 0.6 MB file of 5000 trajectories took 44 s to draw, 64 MB's would take hours)
+MAX_CURVES = 200
 
 
 def load_results(folder: str | Path) -> dict[str, Any]:
@@ -381,6 +384,9 @@ def _problem(results: Any) -> str | None:
             if not (all(map(is_real_number, (r["T"], r["fuel_g"], r["max_violation"])))
                     and all(v is None or is_real_number(v) for v in (r["time_gap"], r["fuel_gap"]))):
                 return f"a row of {r['controller']!r} holds a value that is not a finite number"
+        if len(results["trajectories"]) > MAX_CURVES:
+            return (f"{len(results['trajectories'])} trajectories, more than the {MAX_CURVES} its figures draw "
+                    "(one per controller and braking)")
         for tr in results["trajectories"]:
             if not (isinstance(tr["controller"], str) and tr["braking"] in BRAKINGS):
                 return "a trajectory's controller is not a name or its braking not one of the brakings"
@@ -405,6 +411,10 @@ def _problem(results: Any) -> str | None:
                         and (e["scenario"] is None or (isinstance(e["scenario"], dict) and all(
                             is_real_number(e["scenario"][k]) for k in ("payload", "reverse_distance", "forward_distance"))))):
                     return "a suite episode's controller, braking, success, fuel_gap or scenario is malformed"
+            labels = {(e["controller"], str(e.get("target"))) for e in suite["episodes"]}
+            if len(labels) > MAX_CURVES:
+                return (f"the suite's episodes name {len(labels)} controllers and targets, more than the {MAX_CURVES} "
+                        "its figure draws")
     except (KeyError, TypeError, IndexError, OverflowError) as exc:
         return f"missing or malformed entry {exc}"
     except ValueError as exc:

@@ -209,8 +209,8 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 1, nan_as
 
 
 def _finite(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        o = o.item()
+    if isinstance(o, (np.floating, np.integer, np.bool_, np.ndarray)):  # (an array's NaN was "Out of range float values")
+        o = o.tolist()
     if isinstance(o, float) and not math.isfinite(o):
         return None
     if isinstance(o, dict):
@@ -247,3 +247,16 @@ def check_not_an_input(out: str | Path, inputs: Sequence[str | Path], option: st
             continue
         if same:
             raise ValueError(f"{option} {out} is the input file {path}: the result would replace it; give another path")
+
+
+def refuse_one_path_twice(outputs: Sequence[tuple[str, str | os.PathLike]]) -> None:
+    """ValueError naming both if two of a command's outputs ``(option, path)`` are one path, by any spelling (a relative
+    path, a link): the later write replaced the earlier, or failed on the folder the earlier made, after the work
+    (``fit_min_time.py --cache X --out X``: its solves, then "X is a folder")."""
+    seen: dict[str, str] = {}
+    for option, path in outputs:
+        real = os.path.realpath(path)
+        if real in seen:
+            raise ValueError(f"{option} {path} is the same path as {seen[real]}: one would replace or block the other "
+                             "after the work; give another path")
+        seen[real] = f"{option} {path}"

@@ -456,14 +456,35 @@ def check_fps(fps: Any, name: str = "fps") -> float:
     return float(fps)
 
 
+def check_frames(frames: Iterable[Any]) -> list[np.ndarray]:
+    """``frames`` as a list of RGB images of one size, (height, width, 3) arrays of uint8 (as :func:`render_frame`
+    gives), or of integers in [0, 255]; ValueError naming the first frame that is none, or no frames. (A float frame
+    of values in [0, 1] was cast to a black one, 300 to 44, NaN to 0, and frames of other sizes went into one GIF.)"""
+    out: list[np.ndarray] = []
+    for i, frame in enumerate(frames):
+        try:
+            a = np.asarray(frame)
+        except (ValueError, TypeError):  # ragged nesting
+            a = None
+        if a is None or a.ndim != 3 or a.shape[2] != 3 or 0 in a.shape or a.dtype.kind not in "ui" or (
+                a.dtype != np.uint8 and (a.min() < 0 or a.max() > 255)):
+            what = f"an array of shape {a.shape} and dtype {a.dtype}" if a is not None else shown(frame)
+            raise ValueError(f"frames[{i}] must be an RGB image, (height, width, 3) uint8 as render_frame gives, "
+                             f"got {what}")
+        if out and a.shape != out[0].shape:
+            raise ValueError(f"frames must all have one size: frames[0] is {out[0].shape}, frames[{i}] {a.shape}")
+        out.append(a.astype(np.uint8, copy=False))
+    if not out:
+        raise ValueError("no frames to write")
+    return out
+
+
 def save_gif(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps: float = 10.0) -> int:
     """Write frames as an animated GIF (Pillow), atomically; returns the number of frames written."""
     from PIL import Image
 
     fps = check_fps(fps)
-    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
-    if not images:
-        raise ValueError("no frames to write")
+    images = [Image.fromarray(f) for f in check_frames(frames)]
     # One palette for all frames, from a few frames spread over the run (the scene's colours change with
     # the phase), so colours do not flicker between frames.
     picks = sorted({round(i * (len(images) - 1) / 4) for i in range(5)})
@@ -490,14 +511,12 @@ def mp4_available() -> bool:
 def save_mp4(frames: Sequence[np.ndarray] | Iterable[np.ndarray], path: str, fps: float = 10.0) -> int:
     """Write frames as an H.264 MP4 with imageio-ffmpeg (``pip install imageio-ffmpeg``), atomically."""
     fps = check_fps(fps)
+    frames = [np.ascontiguousarray(f) for f in check_frames(frames)]
     try:
         import imageio_ffmpeg
     except ImportError:
         raise RuntimeError("writing .mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); "
                            "write a .gif instead") from None
-    frames = [np.ascontiguousarray(f, dtype=np.uint8) for f in frames]
-    if not frames:
-        raise ValueError("no frames to write")
     h, w = frames[0].shape[:2]
     with atomic_path(path, ".mp4") as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",

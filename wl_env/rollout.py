@@ -101,7 +101,7 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
     told it (:func:`reset_controller`), and an env with ``observe_target`` (``WheelLoaderTarget-v0``)
     shows it in the observation (a controller that reads it there need not take it)."""
     from wl_env.env import WheelLoaderEnv, check_target_time
-    from wl_env.params import check_flag
+    from wl_env.params import check_flag, plain
 
     # (each refused by name: a NaN or negative target reached the controller, a string was float()'s error)
     if not isinstance(getattr(env, "unwrapped", None), WheelLoaderEnv):
@@ -112,6 +112,7 @@ def run_episode(env: Any, controller: Any, seed: int | None = None, trajectory: 
     if target_time is not None:
         target_time = check_target_time(target_time)
     trajectory = check_flag("trajectory", trajectory)  # ("no" recorded the trajectory)
+    seed = plain(seed)  # (a numpy integer as the int it holds: np.int64 was recorded as itself, and to_dict() was no JSON)
     options = {} if scenario is None else {"scenario": scenario}
     observed = getattr(env.unwrapped, "observe_target", False)
     if observed and target_time is not None:  # the target env shows it in the observation
