@@ -891,6 +891,31 @@ BAD_INPUT = [  # (argv, the option, the allowed range as the message says it)
 ]
 
 
+def test_a_kept_evaluation_is_keyed_by_the_shipped_data_not_the_version_alone(tmp_path, monkeypatch):
+    """`wl run` reuses an interrupted run's kept evaluations by their key. Keyed by the version alone, a policy shipped
+    anew without a version bump (stop 64) would have had the old policy's rows reused: the key holds the shipped
+    policies', suites' and optima's content."""
+    import wl.report as report
+
+    assert all(any(folder.glob("*.json")) for folder in report.SHIPPED_DATA)  # (the folders are where the data lies)
+    policies = tmp_path / "policies"
+    policies.mkdir()
+    (policies / "p.safetensors").write_bytes(b"weights")
+    monkeypatch.setattr(report, "SHIPPED_DATA", (policies,))
+
+    def key() -> str:
+        report.shipped_data_digest.cache_clear()
+        return report._evaluation_key(report.suite_controllers, "service", "ppo", {"seed": 0})
+
+    first = key()
+    assert key() == first  # (the same files: the same key, so a kept evaluation is found again)
+    (policies / "p.safetensors").write_bytes(b"weight2")
+    assert key() != first
+    (policies / "p.safetensors").write_bytes(b"weights")
+    (policies / "q.json").write_text("{}")
+    assert key() != first
+
+
 @pytest.mark.parametrize("argv,option,allowed", BAD_INPUT, ids=[" ".join(a[0]) for a in BAD_INPUT])
 def test_bad_input_is_one_line_naming_the_option_and_range(tmp_path, capsys, no_work, argv, option, allowed):
     out = "--out" in argv or argv[0] == "train"

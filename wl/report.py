@@ -12,6 +12,7 @@ ones). Optima are cached. ``wl report`` calls :func:`load_results` + :func:`rend
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -160,13 +161,34 @@ def _plain(o: Any) -> Any:
     return str(o)
 
 
+# What the controllers drive with and the scores are measured against, besides the code: the shipped policies, the
+# suites and the shipped optima. A kept evaluation is keyed by their content too, not by the version alone (stop 64
+# shipped a new TC policy and bumped the version only after the review: an interrupted run's rows of the old one
+# would have been reused).
+_ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_DATA = (_ROOT / "agents" / "policies", _ROOT / "wl_env" / "suites", _ROOT / "mpc" / "benchmark" / "references")
+
+
+@functools.cache
+def shipped_data_digest(folders: tuple[Path, ...]) -> str:
+    """sha256 over the names and contents of the files in ``folders`` (sorted; read once per process)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for folder in folders:
+        for path in sorted(p for p in Path(folder).rglob("*") if p.is_file() and "__pycache__" not in p.parts):
+            h.update(f"{path.relative_to(folder.parent)}\0".encode())
+            h.update(hashlib.sha256(path.read_bytes()).digest())
+    return h.hexdigest()
+
+
 def _evaluation_key(listing: Any, braking: str, controller: str, kwargs: dict[str, Any]) -> str:
     import hashlib
 
     from wl_env import __version__
 
     what = {"version": __version__, "format": RESULTS_FORMAT, "listing": f"{listing.__module__}.{listing.__qualname__}",
-            "braking": braking, "controller": controller, "kwargs": kwargs}
+            "shipped": shipped_data_digest(SHIPPED_DATA), "braking": braking, "controller": controller, "kwargs": kwargs}
     return hashlib.sha256(json.dumps(what, sort_keys=True, default=_plain).encode()).hexdigest()[:32]
 
 
