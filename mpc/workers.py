@@ -47,12 +47,13 @@ def max_local_workers() -> int:
 def check_workers(workers: Any, name: str = "workers") -> int:
     """``workers`` if it is an integer in [1, :func:`max_local_workers`], else ValueError naming ``name`` and the
     range (`wl suite solve --workers 100000000` started 100 CasADi processes on 2 cores, one per piece of work)."""
-    from wl_env.params import plain
+    from wl_env.params import plain, shown
 
     most = max_local_workers()
     workers = plain(workers)  # (a numpy integer as the int it holds)
     if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= most:
-        raise ValueError(f"{name} must be an integer in [1, {most}] ({WORKERS_PER_CPU} per CPU), got {workers!r}")
+        # (shown: 10**5000 was repr()'s "Exceeds the limit (4300 digits)", naming no option)
+        raise ValueError(f"{name} must be an integer in [1, {most}] ({WORKERS_PER_CPU} per CPU), got {shown(workers)}")
     return workers
 
 
@@ -91,7 +92,9 @@ def check_ray_address(address: Any, option: str = "--ray") -> str:
     """``address`` if :func:`is_ray_address`, else ValueError naming ``option``: Ray's own error ("Invalid
     address format") names neither, comes after the work's setup, and ``ray://`` without a port waits a minute."""
     if not is_ray_address(address):
-        raise ValueError(f"{option} must be {RAY_ADDRESS_FORMS}, got {address!r}")
+        from wl_env.params import shown
+
+        raise ValueError(f"{option} must be {RAY_ADDRESS_FORMS}, got {shown(address)}")
     return address
 
 
@@ -136,6 +139,7 @@ def run_in_workers(jobs: dict[str, tuple[str, tuple]], log_level: int = logging.
                    grace: float = 0.5) -> dict[str, Any]:
     """``{name: module:function(*args)}`` with each job in a spawned process; a job's exception (and
     KeyboardInterrupt) is raised here once the other workers are stopped."""
+    check_jobs(jobs, log_level, grace)
     ctx = multiprocessing.get_context("spawn")  # not fork: the parent may hold threads (torch, BLAS) a fork inherits locked
     procs: dict[str, Any] = {}
     conns: dict[Any, str] = {}
@@ -176,6 +180,30 @@ def run_in_workers(jobs: dict[str, tuple[str, tuple]], log_level: int = logging.
         return results
     finally:
         _stop(list(procs.values()), graceful=len(results) == len(jobs), grace=grace)
+
+
+MAX_GRACE = 60.0  # s a stopped worker gets before SIGTERM
+
+
+def check_jobs(jobs: Any, log_level: Any = logging.WARNING, grace: Any = 0.5) -> None:
+    """:func:`run_in_workers`' arguments, each refused by name before a worker starts: a log level logging does not
+    know killed each worker at its start ("the worker process died", its traceback on stderr), a ``grace`` of inf was
+    an OverflowError while the other workers were being stopped (left running), NaN or -1 no grace at all, jobs that
+    are no mapping or name no ``module:function`` failed inside the workers."""
+    from wl_env.params import is_integer, is_real_number, plain, shown
+
+    if not isinstance(jobs, dict):
+        raise ValueError(f"jobs must be a dict {{name: ('module:function', args)}}, got {type(jobs).__name__}")
+    for name, job in jobs.items():
+        if not (isinstance(job, (tuple, list)) and len(job) == 2 and isinstance(job[0], str) and job[0].count(":") == 1
+                and all(job[0].split(":")) and isinstance(job[1], (tuple, list))):
+            raise ValueError(f"job {shown(name)} must be ('module:function', args), got {shown(job)}")
+    level = plain(log_level)
+    if not ((is_integer(level) and level >= 0) or (isinstance(level, str) and isinstance(logging.getLevelName(level), int))):
+        raise ValueError(f"log_level must be a logging level (an integer >= 0, e.g. logging.INFO, or its name), "
+                         f"got {shown(log_level)}")
+    if not (is_real_number(grace) and 0.0 <= grace <= MAX_GRACE):
+        raise ValueError(f"grace must lie in [0, {MAX_GRACE:g}] s, got {shown(grace)}")
 
 
 @contextmanager

@@ -28,6 +28,7 @@ import casadi as ca
 import numpy as np
 
 from mpc import interrupt
+from mpc.threads import exclusive, in_turn
 from wl_env import cycle, limits
 from wl_env.atomic_io import _json_default, write_json_atomic  # (write_json_atomic: re-exported too)
 from wl_env.model import derivatives
@@ -41,6 +42,7 @@ from wl_env.params import (
     is_finite,
     is_integer,
     is_real_number,
+    plain,
     resolve,
     shown,
 )
@@ -554,8 +556,9 @@ class CycleOCP:
             if lam_x is not None:
                 args.update(lam_x0=lam_x, lam_g0=lam_g)
             log.debug("IPOPT: the %s %s OCP, smoothing k = %g", self.braking, objective, k)
-            sol = self._solver(**args)
-            stats = self._solver.stats()
+            with exclusive(self._solver):  # (one thread at a time in a solver: mpc.threads)
+                sol = self._solver(**args)
+                stats = self._solver.stats()
             iterations += int(stats.get("iter_count", 0) or 0)
             status = str(stats.get("return_status", stats.get("success", "unknown")))
             interrupt.check(status)  # an interrupted solve is no failed start: stop, record nothing
@@ -644,6 +647,7 @@ def get_ocp(braking: str, params: LoaderParams | dict | None = None, settings: O
 
 
 DEFAULT_STARTS = ((5.0, 0.7), (6.0, 0.75), (4.6, 0.6), (8.0, 0.8))  # (leg time s, accel fraction)
+MAX_STARTS = 100  # template starts of one solve at most (each a solve of 1-10 s)
 
 
 # Re-simulation acceptance (the project's figures): 5 cm in distance, 2 cm in height, 1 % violation.
@@ -671,6 +675,7 @@ def refined_mesh(durations: list[float], base: tuple[int, ...], max_interval: fl
 
 def check_cycle_time(T: Any, name: str = "T") -> float:
     """``T`` as a fixed cycle time in [MIN_CYCLE_TIME, MAX_CYCLE_TIME] s, else ValueError naming ``name``."""
+    T = plain(T)  # (a float32 as the number it prints, not its binary value)
     ok = isinstance(T, numbers.Real) and not isinstance(T, (bool, np.bool_)) and is_finite(T)  # numpy scalars too
     if not (ok and MIN_CYCLE_TIME <= T <= MAX_CYCLE_TIME):
         raise ValueError(
@@ -695,6 +700,7 @@ def with_scenario(braking: str | None, params: LoaderParams | dict | None, scena
     return s.braking, s.params(resolve(params))
 
 
+@in_turn  # (CasADi from one thread at a time: mpc.threads)
 def solve_ocp(
     braking: str | None = None,
     objective: str = "time",
@@ -725,6 +731,8 @@ def solve_ocp(
     every mesh tried. A result whose re-simulation still fails has ``success`` False and says so in its status.
     """
     braking, p = with_scenario(braking, params, scenario)
+    # (a float32 as the number it prints: np.float32(9.1) was solved for, and recorded as, 9.1000003815 s)
+    T, w_fuel = plain(T), plain(w_fuel)
     check_solve_arguments(objective, T, settings, warm_start, starts, max_interval, max_refinements, w_fuel)
     check_flag("verify", verify), check_flag("refine", refine)  # (verify="no" verified, as any string would)
     w_fuel, max_refinements = None if w_fuel is None else float(w_fuel), int(max_refinements)
@@ -800,6 +808,8 @@ def check_solve_arguments(objective: Any, T: Any, settings: Any, warm_start: Any
         if not ok:
             raise ValueError("starts must be (leg time in [0.1, 30] s, acceleration fraction in (0, 1]) pairs, got "
                              f"{shown(starts)}")
+        if len(starts) > MAX_STARTS:  # (each a solve of seconds: 10**5 of them were taken, days of work)
+            raise ValueError(f"starts must be at most {MAX_STARTS} pairs (each one a solve), got {len(starts)}")
     if not (is_real_number(max_interval) and 0.001 <= max_interval <= 10.0):
         raise ValueError(f"max_interval must lie in [0.001, 10] s, got {shown(max_interval)}")
     if not (is_integer(max_refinements) and 0 <= max_refinements <= 20):  # (numpy's integers too: np.int64(3) was refused)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from mpc.benchmark import store
 from mpc.benchmark.ocp import OCPError, OCPResult, OCPSettings, solve_ocp, verification_passed
 from mpc.benchmark.pareto import (
     CACHE_VERSION,
@@ -61,7 +62,8 @@ class FrontOptima:
 
 def optima_folder(braking: str, params: LoaderParams, cache: str | os.PathLike | None = None) -> Path:
     """Where the optima of this module are cached: beside the Pareto cache, per alternative and parameters."""
-    return cache_dir(cache) / CACHE_SUBDIR / f"{braking}_{params.fingerprint()}_{CACHE_VERSION}"
+    root = cache_dir(cache)  # (a file in the folder's place: set aside, as a bad entry, not a traceback after a solve)
+    return store.entry_folder(root / CACHE_SUBDIR / f"{braking}_{params.fingerprint()}_{CACHE_VERSION}", root)
 
 
 def passed(r: OCPResult) -> bool:

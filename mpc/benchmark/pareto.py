@@ -320,7 +320,9 @@ def check_front(d: dict[str, Any]) -> str | None:
     if T[-1] >= d["T_fuel_opt"] - 1e-9 and abs(fuel[-1] - d["fuel_min_g"]) > 1e-9 * max(1.0, abs(fuel[-1])):
         # (the last point is the fuel-optimal cycle: fuel_min_g is its fuel; a report drew one that was not)
         return f"the fuel-optimal point's fuel {fuel[-1]!r} g is not fuel_min_g {d['fuel_min_g']!r} g"
-    return None
+    # (a neighbouring scenario's front is found by them: {"x": 1} was a bare KeyError in nearest_front, and so every
+    # other scenario's front of that machine failed before its first solve)
+    return _scenario_fields_problem(d.get("scenario_fields", {}))
 
 
 def save_result(r: OCPResult, path: str | os.PathLike) -> Path:
@@ -410,7 +412,8 @@ def front_folder(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderPar
     """Where :func:`pareto_front` keeps a front: ``front.json``, ``min_time.json``, ``min_fuel.json``
     and one ``T_<cycle time>.json`` per point (each an :class:`mpc.benchmark.ocp.OCPResult`)."""
     # (n_points checked: 11.0 named another folder, "n11.0", and missed the cache without a word; "../x" another path)
-    return cache_dir(cache) / "pareto" / _key(cycle.check_braking(braking), resolve(params), check_n_points(n_points))
+    key, root = _key(cycle.check_braking(braking), resolve(params), check_n_points(n_points)), cache_dir(cache)
+    return store.entry_folder(root / "pareto" / key, root)
 
 
 def min_time_result(braking: str, n_points: int = DEFAULT_POINTS, params: LoaderParams | dict | None = None,
@@ -714,6 +717,8 @@ def pareto_fronts(
 
         check_workers(workers)
     p = resolve(params)
+    if cache is not None:  # (the workers got str(cache): 5 or b"x" solved into a folder "5" or "b'x'" of the working one)
+        cache_dir(cache)
     workers = min(len(brakings), workers or os.cpu_count() or 1)
     if workers <= 1:
         return {b: pareto_front(b, n_points, p, cache, use_cache, None if progress else _debug) for b in brakings}
@@ -751,6 +756,7 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
 
     Raises ``ValueError`` for a cycle time below the minimum, or a ``front`` of another cycle.
     """
+    T = plain(T)  # (a float32 as the number it prints, as score_run takes it)
     if not (is_real_number(T) and 0 < T <= MAX_CYCLE_TIME):  # (1e300 s: an OSError, its cache file's name too long)
         raise ValueError(f"T (the cycle time) must be a number in (0, {MAX_CYCLE_TIME:g}] s, got {T!r}")
     T = float(T)
@@ -762,7 +768,8 @@ def optimal_fuel_at(T: float, braking: str = "service", params: LoaderParams | d
         return front.fuel_at(T)
     # Slower than the fuel-optimal cycle: fuel at that T is its own optimum (cached like the front).
     p = resolve(params)
-    path = cache_dir(cache) / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}" / f"T_{T:.3f}.json"
+    root = cache_dir(cache)
+    path = store.entry_folder(root / "pareto" / f"slow_{braking}_{p.fingerprint()}_{CACHE_VERSION}", root) / f"T_{T:.3f}.json"
     cached = cached_result(path, objective="fuel_at_time", braking=braking, params=p)
     # (a failed one, cached before it was refused, is solved again; so is one of another T under the same file name:
     # T_30.000.json held 30.0004 s's optimum after that call, and 30.0 s then got its fuel, the result depending on

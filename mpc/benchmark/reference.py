@@ -110,6 +110,8 @@ def direct_min_time(braking: str, params: LoaderParams, cache: str | os.PathLike
     braking, params = cycle.check_braking(braking), resolve(params)
     path = optima_folder(braking, params, cache) / "min_time.json"
     r = cached_result(path, objective="time", braking=braking, params=params)
+    if r is not None and not r.success:  # (a cached cycle that fails its re-simulation was returned as T_min: solved again)
+        r = None
     if r is not None and (on_fine_mesh(r) or (r.verification or {}).get("fine_mesh_failed")):
         return r
     if r is None:

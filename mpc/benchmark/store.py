@@ -26,6 +26,7 @@ from typing import Any
 
 from wl_env import atomic_io
 from wl_env.atomic_io import _finite, _json_default, write_atomic  # the converters atomic_io writes JSON with
+from wl_env.params import shown
 
 log = logging.getLogger(__name__)
 
@@ -123,17 +124,17 @@ def read_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: st
         raise BadEntry(path, f"a JSON {type(data).__name__}, not an object")
     schema = data.get("schema")
     if schema != {"kind": kind, "version": SCHEMA_VERSION}:
-        raise BadEntry(path, f"schema {schema!r}, expected {kind} version {SCHEMA_VERSION}")
+        raise BadEntry(path, f"schema {shown(schema)}, expected {kind} version {SCHEMA_VERSION}")
     problem = check(data)
     if problem:
         raise BadEntry(path, problem)
     if data.get("checksum") != checksum(data):
         raise BadEntry(path, "checksum mismatch (the content was changed after it was written)")
     if fingerprint is not None and data.get("params_fingerprint") != fingerprint:
-        raise BadEntry(path, f"solved for parameters {data.get('params_fingerprint')!r}, not {fingerprint!r}")
+        raise BadEntry(path, f"solved for parameters {shown(data.get('params_fingerprint'))}, not {fingerprint!r}")
     for name, value in (expect or {}).items():
         if data.get(name) != value:
-            raise BadEntry(path, f"{name} {data.get(name)!r}, expected {value!r}")
+            raise BadEntry(path, f"{name} {shown(data.get(name))}, expected {value!r}")
     return {k: v for k, v in data.items() if k not in ("schema", "checksum")}
 
 
@@ -152,6 +153,25 @@ def set_aside(path: str | os.PathLike, seen: os.stat_result | None = None) -> Pa
         return target
     except FileNotFoundError:
         return None
+
+
+def entry_folder(folder: str | os.PathLike, root: str | os.PathLike) -> Path:
+    """``folder`` (in the cache folder ``root``), where entries are written: anything in its place, or in the place of
+    a folder between ``root`` and it, that is no folder (a file, a dangling link) is a bad entry, logged and set aside
+    as :func:`load_entry` sets one aside. (A file there was a FileExistsError's traceback at the first write, once the
+    first optimum was solved.)"""
+    folder, at = Path(folder), Path(root)
+    for part in folder.relative_to(root).parts:
+        at = at / part
+        if os.path.lexists(at) and not at.is_dir():
+            try:
+                moved = set_aside(at)
+                where = f"moved to {moved.name}" if moved else "already replaced"
+            except OSError as err:
+                where = f"left in place, it cannot be moved aside ({err.strerror or err})"
+            log.warning(f"bad cache entry {at}: no folder, where a folder of entries belongs -- {where}")
+            break
+    return folder
 
 
 def load_entry(path: str | os.PathLike, kind: str, check: Check, fingerprint: str | None = None,

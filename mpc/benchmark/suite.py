@@ -175,7 +175,8 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
     # <cache>/suites/ and the suite's folder empty; that folder is made by its first entry's write)
     with folders_kept_if_used(Path(target).parent):
         path = check_output_file(target, "out")
-        folder = cache_dir(cache) / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}"
+        root = cache_dir(cache)  # (a file in the entries' folder's place failed each worker after its first front)
+        folder = store.entry_folder(root / "suites" / f"{suite}_v{s.version}_n{n_points}_{CACHE_VERSION}", root)
         chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
         wanted = [sc for chain in chains.values() for sc in chain]
         def load(sc: Scenario, read: Any) -> Any:  # (the entry's name alone does not vouch for its cycle: both checked)

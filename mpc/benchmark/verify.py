@@ -17,7 +17,7 @@ import numpy as np
 
 from wl_env import cycle, limits
 from wl_env.model import derivatives
-from wl_env.params import LoaderParams, resolve
+from wl_env.params import LoaderParams, is_real_number, plain, resolve, shown
 from wl_env.simulator import Simulator
 
 # Engine-speed feedback of the re-simulation (mg per rad/s): an ECU's speed governor tracking the plan.
@@ -38,6 +38,20 @@ LIFT_GAINS = (25.0, 10.0)
 CHECK_VERSION = 2
 
 
+MAX_SUBSTEP_RANGE = (1e-4, 0.1)  # s: the re-simulation's RK4 substeps (it takes 0.005; 0.0005 re-simulates a cycle in ~0.6 s)
+
+
+def check_max_substep(max_substep: Any) -> float:
+    """``max_substep`` as a float within MAX_SUBSTEP_RANGE, else ValueError naming it: 0 divided by zero, NaN was
+    int()'s error, -1 or True re-simulated in one step per interval without a word, 1e-9 would have run for days."""
+    lo, hi = MAX_SUBSTEP_RANGE
+    value = plain(max_substep)
+    if not (is_real_number(value) and lo <= value <= hi):
+        raise ValueError(f"max_substep must lie in [{lo:g}, {hi:g}] s (the re-simulation's RK4 substep), got "
+                         f"{shown(max_substep)}")
+    return float(value)
+
+
 def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: str,
                params: LoaderParams | dict | None = None, max_substep: float = 0.01,
                planned: np.ndarray | None = None, speed_gain: float | None = None,
@@ -49,7 +63,7 @@ def resimulate(t: np.ndarray, controls: np.ndarray, phase: np.ndarray, braking: 
     k_Vb (V_b,plan - V_b)`` (``lift_gains``); without it the replay is open loop. ``excess``: the largest
     relative excess over each driver's limit within the substeps, as the environment checks them.
     """
-    p = resolve(params)
+    p, max_substep = resolve(params), check_max_substep(max_substep)
     speed_gain = ENGINE_SPEED_GAIN if speed_gain is None else speed_gain
     k_h, k_vb = LIFT_GAINS if lift_gains is None else lift_gains
     sim = Simulator(p, braking)
@@ -108,7 +122,7 @@ def constraint_violations(states: np.ndarray, controls: np.ndarray, phase: np.nd
 
 def verify_result(result: Any, params: LoaderParams | dict | None = None, max_substep: float = 0.005) -> dict[str, Any]:
     """Re-simulate an OCPResult; report terminal errors, fuel/time agreement and constraint violations."""
-    p = resolve(params)
+    p, max_substep = resolve(params), check_max_substep(max_substep)
     t = np.asarray(result.t)
     controls = np.asarray(result.controls)
     phase = np.asarray(result.phase)

@@ -568,25 +568,11 @@ class GridNLP:
             groups.setdefault(id(sf), []).append(k)
         return list(groups.values())
 
-    @functools.cached_property
-    def _slot_fuel(self) -> ca.Function:
-        """(x, p) -> each slot's fuel (kg), in slot order: the slot functions mapped over their slots."""
-        x, par = ca.MX.sym("x", self.n_var), ca.MX.sym("p", self.n_par)
-        shared = par[N_XR:self.h_offset]
-        parts, order = [], []
-        for ks in self._slot_groups:
-            ins = [self._slot_inputs(x, par, k) for k in ks]
-            _, _, fuel = self._slot_fns[ks[0]].fn.map(len(ks))(ca.horzcat(*[z for z, _ in ins]),
-                                                               ca.horzcat(*[q for _, q in ins]), shared)
-            parts.append(ca.vec(fuel))
-            order += ks
-        return ca.Function("slot_fuel", [x, par], [ca.vertcat(*parts)[np.argsort(order).tolist()]])
-
     def fuel_g(self, z: np.ndarray, p: np.ndarray) -> float:
         """The fuel (g) a solution of the parameters ``p`` burns: its slots' summed in slot order, as the NLP's
         objective sums them (CasADi's sum1: left to right)."""
         total = 0.0
-        for kg in np.asarray(self._slot_fuel(z, p), dtype=float).ravel():
+        for kg in np.asarray(self._mapped_derivatives["slot_fuel"](z, p), dtype=float).ravel():
             total += kg
         return 1000.0 * total
 
@@ -626,7 +612,7 @@ class GridNLP:
         shared = par[N_XR:self.h_offset]
         n_slots = len(self.slots)
         h_parts, h_at, j_parts, j_at, g_parts, g_rows, f_parts, d_parts, d_at = [], [], [], [], [], [], [], [], []
-        value_f, value_g, p_parts, p_at = [], [], [], []
+        value_f, value_g, p_parts, p_at, fuel_parts = [], [], [], [], []
         shared_idx = np.arange(N_XR, self.h_offset)
         kinds = [self._slot_fns[ks[0]] for ks in self._slot_groups]
         for ks, fns in zip(self._slot_groups, _evaluation_functions(kinds), strict=True):
@@ -648,6 +634,7 @@ class GridNLP:
             value_f.append(ca.sum2(fns["f"].map(m)(Z, Q, shared)))
             value_g.append(ca.vec(fns["g"].map(m)(Z, Q, shared)))
             p_parts.append(ca.vec(fns["lam_p"].map(m)(Z, Q, shared, lam_f, L)))
+            fuel_parts.append(ca.vec(self._slot_fns[ks[0]].fn.map(m)(Z, Q, shared)[2]))  # (kg, its slots')
             qs_idx = np.hstack([np.array(q_idx), np.tile(shared_idx, (m, 1))])
             p_at.append((qs_idx.ravel(), np.zeros(qs_idx.size, dtype=int)))
             # where each nonzero goes: block i's (row, col) offset by its slot's first variable (row)
@@ -681,6 +668,7 @@ class GridNLP:
         jac = assemble(j_parts, j_at, (n_g, n))
         grad_f = ca.densify(assemble(d_parts, d_at, (n, 1)))
         order = np.argsort(np.concatenate(g_rows))
+        order_slots = np.argsort(np.concatenate(self._slot_groups))
         g = ca.vertcat(*g_parts)[order.tolist()]
         f = ca.sum1(ca.vertcat(*f_parts))
         grad_p = ca.densify(assemble(p_parts, p_at, (n_p, 1)))
@@ -689,6 +677,9 @@ class GridNLP:
                         "g": ca.vertcat(*value_g)[order.tolist()]},
                 "grad_f": ca.Function("grid_grad_f", [x, par], [f, grad_f], ["x", "p"], ["f", "grad_f_x"]),
                 "lam_p": ca.Function("grid_lam_p", inputs, [-grad_p], names, ["lam_p"]),
+                # (each slot's fuel, in slot order: built with the rest, where the solver is prepared, not at the
+                # first fuel_g, which may be on the real-time controller's worker thread: mpc.threads)
+                "slot_fuel": ca.Function("grid_slot_fuel", [x, par], [ca.vertcat(*fuel_parts)[order_slots.tolist()]]),
                 "hess_lag": ca.Function("grid_hess_lag", inputs, [hess], names, ["triu_hess_gamma_x_x"]),
                 "sym_hess_lag": ca.Function("grid_sym_hess_lag", inputs, [ca.triu2symm(hess)], names,
                                             ["hess_gamma_x_x"]),

@@ -65,6 +65,7 @@ from mpc.controller.solver import (
     timed_solve,
 )
 from mpc.controller.terminal import terminal_control
+from mpc.threads import in_turn
 from wl_env import cycle
 from wl_env.codec import N_OBS, N_SCENARIO_OBS, OBS_LAYOUTS, Codec
 from wl_env.env import action_array, check_target_time
@@ -422,6 +423,7 @@ class MPCController:
     in 1 of 3 tries, measured). Run controllers side by side in processes, as ``wl run`` does.
     """
 
+    @in_turn  # (CasADi from one thread at a time: mpc.threads)
     def __init__(self, braking: str = "service", params: LoaderParams | dict | None = None,
                  config: MPCConfig | None = None, dt: float = 0.1, substeps: int = 1,
                  solver: GridSolver | None = None) -> None:
@@ -458,6 +460,7 @@ class MPCController:
         self.reset()
 
     # ------------------------------------------------------------------ protocol
+    @in_turn  # (CasADi from one thread at a time: mpc.threads)
     def reset(self, scenario: Scenario | None = None, target_time: float | None = None) -> None:
         """Start a cycle; ``scenario``: plan with that cycle's model and targets from now on;
         ``target_time`` (s): this cycle in target-time mode, the least fuel finishing by then (None: the
@@ -560,6 +563,7 @@ class MPCController:
                 first = first or exc
         return first
 
+    @in_turn  # (CasADi from one thread at a time: mpc.threads)
     def act(self, obs: np.ndarray) -> np.ndarray:
         x, t, phase = self.state_from_obs(obs)
         if self._last is not None and t < self._last_t - 1e-6:  # (a new episode's first step: an IndexError in the plan)
@@ -716,6 +720,7 @@ class MPCController:
                                  "(reset(scenario=...))")
 
     # ------------------------------------------------------------------ one step
+    @in_turn  # (CasADi from one thread at a time: mpc.threads)
     def control(self, x: np.ndarray, t: float, phase: int) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The control [U_mf, U_ab, U_b], the shift request and diagnostics for state x at time t."""
         k = int(round(t / self.dt))

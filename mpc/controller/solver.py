@@ -26,8 +26,9 @@ import numpy as np
 
 from mpc import interrupt
 from mpc.controller.grid import N_XR, GridNLP, StepModel, model_structure, slot_function
+from mpc.threads import exclusive
 from wl_env.episode import DISTANCE_TOL, HEIGHT_TOL
-from wl_env.params import LoaderParams, is_integer, is_real_number, plain, shown
+from wl_env.params import LoaderParams, check_flag, is_integer, is_real_number, plain, shown
 
 log = logging.getLogger(__name__)
 
@@ -342,8 +343,9 @@ class IpoptSolver:
         extra = {"lam_x0": lam_x0, "lam_g0": lam_g0} if warm else {}
         log.debug("IPOPT: a %s grid NLP solve from phase %d", "warm" if warm else "cold", nlp.first_phase)
         _CALL.stopped = False
-        sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
-        stats = fn.stats()
+        with exclusive(fn):  # (one thread at a time in a solver: mpc.threads)
+            sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **extra, **args)
+            stats = fn.stats()
         status = str(stats.get("return_status", "unknown"))
         if status == "User_Requested_Stop" and getattr(_CALL, "stopped", False):
             status = "Deadline_Exceeded"  # (solve_until's, not an interrupt)
@@ -392,8 +394,9 @@ class FatropSolver:
     def solve(self, nlp: GridNLP, args: dict[str, Any], x0: np.ndarray, lam_x0: np.ndarray | None = None,
               lam_g0: np.ndarray | None = None) -> SolverResult:
         fn = _fatrop(nlp, self.max_iter)
-        sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **args)
-        stats = fn.stats()
+        with exclusive(fn):
+            sol = fn(x0=np.clip(x0, args["lbx"], args["ubx"]), **args)
+            stats = fn.stats()
         status = str(stats.get("return_status", "unknown"))
         interrupt.check(status)
         z = np.array(sol["x"]).ravel()
@@ -417,6 +420,9 @@ def _sqp_rti(nlp: GridNLP, qpsol: str) -> ca.Function:
     return ca.nlpsol("mpc_rti", "sqpmethod", nlp.nlp, {**opts, **nlp.sqp_derivative_functions, **NO_NLP_GRAD})
 
 
+MAX_EXTRA_STEPS = 100  # SqpRtiSolver's extra SQP steps at most (it takes 2; each a QP solve)
+
+
 class SqpRtiSolver:
     """The real-time iteration: one SQP step per control step (CasADi's ``sqpmethod``, exact Hessian
     regularized to positive definite) from the previous plan, its QP solved by ``qpsol`` (hpipm: a Riccati
@@ -433,6 +439,8 @@ class SqpRtiSolver:
         extra_steps = plain(extra_steps)  # (True was taken as 1 step; a QP solver CasADi lacks failed at the first plan)
         if not (is_integer(extra_steps) and extra_steps >= 0):
             raise ValueError(f"extra_steps must be an integer >= 0, got {shown(extra_steps)}")
+        if extra_steps > MAX_EXTRA_STEPS:  # (10**9: a plan whose rows stay unmet took SQP steps for hours)
+            raise ValueError(f"extra_steps must be at most {MAX_EXTRA_STEPS}, got {shown(extra_steps)}")
         if not (isinstance(qpsol, str) and ca.has_conic(qpsol)):
             raise ValueError(f"qpsol must name a QP solver of CasADi's (hpipm, osqp, ...), got {shown(qpsol)}")
         self.qpsol, self.extra_steps = qpsol, extra_steps
@@ -451,7 +459,7 @@ class SqpRtiSolver:
         steps = 0
         while True:
             steps += 1
-            with interrupt.guarded():  # (sqpmethod swallows a KeyboardInterrupt: only the flag tells)
+            with interrupt.guarded(), exclusive(fn):  # (sqpmethod swallows a KeyboardInterrupt: only the flag tells)
                 sol = fn(x0=z, lam_x0=lam_x, lam_g0=lam_g, **args)
                 interrupt.check("")
             z, lam_x, lam_g = (np.array(sol[key]).ravel() for key in ("x", "lam_x", "lam_g"))
@@ -476,8 +484,13 @@ class FallbackSolver:
 
     def __init__(self, primary: GridSolver, fallback: GridSolver, short_only: bool = False,
                  lazy_fallback: bool = False) -> None:
-        self.primary, self.fallback, self.short_only = primary, fallback, short_only
-        self.lazy_fallback = lazy_fallback
+        # (checked here: a primary that is no solver was an AttributeError at the controller's first plan, and
+        # short_only="no" gave the RTI the full plans)
+        for name, solver in (("primary", primary), ("fallback", fallback)):
+            if not all(callable(getattr(solver, m, None)) for m in ("solve", "prepare")):
+                raise ValueError(f"{name} must be a GridSolver (solve() and prepare()), got {type(solver).__name__}")
+        self.primary, self.fallback, self.short_only = primary, fallback, check_flag("short_only", short_only)
+        self.lazy_fallback = check_flag("lazy_fallback", lazy_fallback)
         self.handed_over = 0  # solves the first solver failed and the fallback took
 
     def primary_takes(self, nlp: GridNLP) -> bool:
