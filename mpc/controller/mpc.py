@@ -418,9 +418,10 @@ class MPCController:
     ``dt`` and ``substeps`` must be the environment's (``run_closed_loop`` reads them from it).
     ``solver``: any :class:`~mpc.controller.solver.GridSolver` (default: IPOPT with the config's budgets).
 
-    One controller drives at a time in a process: the controllers of a machine share its NLPs and solvers, and
-    CasADi's objects are not safe from two threads at once (two closed loops in two threads: a segmentation fault
-    in 1 of 3 tries, measured). Run controllers side by side in processes, as ``wl run`` does.
+    One controller works at a time in a process: the controllers of a machine share its NLPs and solvers, and
+    CasADi's objects are not safe from two threads at once (two closed loops in two threads died of a segmentation
+    fault). Controllers in several threads take turns (:mod:`mpc.threads`: construction, ``reset``, ``act`` and
+    ``control`` hold the process's turn). Run controllers side by side in processes, as ``wl run`` does.
     """
 
     @in_turn  # (CasADi from one thread at a time: mpc.threads)
