@@ -1,4 +1,4 @@
-"""A controller in ``WheelLoader-v1`` scored against the optimal control benchmark (``wl evaluate``, ``wl run``).
+"""A controller in ``WheelLoader-v2`` (or its ``env_id``) scored against the optimal control benchmark (``wl evaluate``, ``wl run``).
 
 * :func:`load_controller` - ``"ppo"``, ``"operator"``, ``"mpc"`` or a user's ``"module:Class"`` /
   ``"path/to/file.py:Class"`` as a :class:`wl_env.controller.Controller`.

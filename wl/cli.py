@@ -678,8 +678,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_mpc_cmd)
 
     p = sub.add_parser("evaluate", help="run a controller for some episodes and score it against the optimum",
-                       description="Run a controller in WheelLoader-v1 and score it against the optimal control "
-                       "benchmark. Episode 0 starts at the nominal state (the one the optimum is computed for), "
+                       description="Run a controller in WheelLoader-v2 (or its own env) and score it against the "
+                       "optimal control benchmark. Episode 0 starts at the nominal state (the one the optimum is computed for), "
                        "episodes 1..N-1 perturbed by --init-noise, episode i seeded SEED + i. Per episode and "
                        "aggregated: success (cycle completed, end targets met), cycle time, fuel, constraint "
                        "violation, time gap to the minimum cycle time and fuel gap to the Pareto fuel at the "
