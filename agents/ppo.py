@@ -532,6 +532,12 @@ class _Deterministic:
         return np.asarray(self._act(np.asarray(obs, dtype=np.float32)[None]), dtype=np.float32).reshape(-1)
 
 
+def _without_scenario(env_kwargs: Any) -> Any:
+    """The training env's kwargs without its scenario source: the evaluation's episodes are the paper's cycle and its
+    perturbed starts, or the validation draws (evaluate_controller refuses a scenario there)."""
+    return {k: v for k, v in env_kwargs.items() if k != "scenario"} if isinstance(env_kwargs, dict) else env_kwargs
+
+
 def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 1.0, seed: int = 10_000,
              env_kwargs: dict[str, Any] | None = None, with_score: bool = True, front: Any = None,
              env_id: str = ENV_ID) -> dict[str, Any]:
@@ -542,10 +548,7 @@ def evaluate(act: Any, braking: str, n_episodes: int = 100, init_noise: float = 
     from agents.evaluate import evaluate_controller
 
     n_episodes = check_n_episodes(n_episodes)
-    # (``env_kwargs`` are the training env's: its scenario source is not the evaluation's episodes, which are the paper's
-    # cycle and its perturbed starts, or the validation draws; evaluate_controller refuses a scenario there)
-    if isinstance(env_kwargs, dict):
-        env_kwargs = {k: v for k, v in env_kwargs.items() if k != "scenario"}
+    env_kwargs = _without_scenario(env_kwargs)
     if env_id in TARGETED_ENV_IDS:
         return evaluate_targets(act, braking, n_episodes, seed, env_kwargs, with_score, front, env_id=env_id)
     # Scored where the optimum is known without solving (the nominal start: shipped); a perturbed start's
@@ -591,9 +594,7 @@ def evaluate_targets(act: Any, braking: str, n_episodes: int = 16, seed: int = 1
     from wl_env.suites import TRAIN_STREAM, draw, stream
 
     n_episodes, seed = check_n_episodes(n_episodes), plain(seed)
-    # (the training env's scenario source is not the validation draws': see evaluate)
-    if isinstance(env_kwargs, dict):
-        env_kwargs = {k: v for k, v in env_kwargs.items() if k != "scenario"}
+    env_kwargs = _without_scenario(env_kwargs)
     # (the seed before the draws' stream takes it: -1 was numpy's "expected non-negative integer", "3" drew as 3)
     check_settings(1 + n_episodes, 0.0, seed)
     rng = stream(TRAIN_STREAM, seed)

@@ -21,6 +21,7 @@ after each batch: a stopped run resumes there with the same options (a file from
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -31,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from agents.evaluate import policy_input_files
-from agents.policy_files import METADATA_SUFFIX, NORMALIZATION_SUFFIX, WEIGHTS_SUFFIX, check_policy_output
+from agents.policy_files import PolicyFiles, check_policy_output
 from agents.train_cli import tyro_options
 from wl_env.atomic_io import atomic_path, check_not_an_input, check_output_file
 from wl_env.logs import run_script
@@ -86,11 +87,11 @@ def check(o: Options) -> None:
     check_output_file(demos, "--demos" if o.demos is not None else "--demos (default OUT_searches.npz)")
     from wl_env.atomic_io import refuse_one_path_twice
 
-    refuse_one_path_twice([*(("--out", Path(f"{o.out}{suffix}")) for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX,
-                                                                                METADATA_SUFFIX)), ("--demos", demos)])
+    out_files = dataclasses.astuple(PolicyFiles.of(o.out))  # (the files write_policy writes)
+    refuse_one_path_twice([*(("--out", path) for path in out_files), ("--demos", demos)])
     # (--out P of --policy P wrote the distilled policy over the one it distils, after the work)
     inputs = policy_input_files(o.policy)
-    for path in [Path(f"{o.out}{suffix}") for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX, METADATA_SUFFIX)]:
+    for path in out_files:
         check_not_an_input(path, inputs, "--out")
     check_not_an_input(demos, inputs, "--demos")
 

@@ -127,11 +127,11 @@ def main(o: Options, command: str) -> int:
         check_policy_output(o.export, "--export")
         if o.clone_base:  # (--clone-base P --export P wrote the clone over the policy it started from, after the work)
             from agents.evaluate import policy_input_files
-            from agents.policy_files import METADATA_SUFFIX, NORMALIZATION_SUFFIX, WEIGHTS_SUFFIX
+            from agents.policy_files import PolicyFiles
             from wl_env.atomic_io import check_not_an_input
 
-            for suffix in (WEIGHTS_SUFFIX, NORMALIZATION_SUFFIX, METADATA_SUFFIX):
-                check_not_an_input(f"{o.export}{suffix}", policy_input_files(o.clone_base), "--export")
+            for path in dataclasses.astuple(PolicyFiles.of(o.export)):  # (the files write_policy writes)
+                check_not_an_input(path, policy_input_files(o.clone_base), "--export")
     from agents.imitation import check_run_folder
 
     check_run_folder(cfg)  # (a PPO run of the same name: its policy was replaced after the demonstrations)

@@ -22,6 +22,7 @@ loader's whole cycle together, and its cost barely grows with the loaders: ``scr
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 import shlex
@@ -30,7 +31,7 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from agents.policy_files import check_policy_output
+from agents.policy_files import PolicyFiles, check_policy_output
 from agents.train_cli import tyro_options
 from wl_env.atomic_io import atomic_path, check_output_file, check_output_folder, write_json_atomic
 from wl_env.logs import cli_logging, run_script
@@ -206,7 +207,7 @@ def main(o: Options) -> dict[int, dict]:
 
     written = [("--log-dir's stages record", stages_file(o, seed)) for seed in o.seeds or (o.seed,)]
     if o.export is not None:
-        written += [("--export", f"{o.export}{suffix}") for suffix in (".safetensors", "_vecnormalize.npz", ".json")]
+        written += [("--export", path) for path in dataclasses.astuple(PolicyFiles.of(o.export))]
     if o.curve is not None:
         written += [("a stage's eval.csv (the curve's rows)", cfg.run_dir / "eval.csv") for cfg in stage_configs(o)]
         written += [("--curve", f"{o.curve}{suffix}") for suffix in (".csv", ".png")]
