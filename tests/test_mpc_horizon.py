@@ -373,6 +373,53 @@ def test_the_default_re_plans_a_mismatched_plant_beside_the_horizon_not_in_a_ste
     assert ctrl._replan is None  # (none left running after the cycle)
 
 
+def test_a_horizon_short_of_its_target_takes_a_step_more_in_the_step_not_a_whole_rest_re_plan():
+    """A fresh TC mismatch draw (within #13's box: payload +3.7 %, rolling resistance +19 % against the nominal
+    model): at step 46 the horizon's plan missed the reversing point by 3.3 cm, with the worker's re-plan due after
+    it. The step re-planned the whole rest itself, 3 IPOPT solves (0.25-0.43 s), and found the move "one step more
+    in phase 2". The horizon now takes that step more in the step (one short solve, 17 ms): no step after the first
+    solves the whole rest, and the cycle ends on its marks in the same 9.0 s."""
+    from wl_env.scenario import Scenario
+
+    draw = Scenario(payload=10370.0, reverse_distance=8.65, forward_distance=5.5, rolling_resistance=0.0358,
+                    dump_height=4.29, start_engine_speed=1608.0, start_bucket_height=0.8, braking="tc")
+    ctrl = MPCController("tc", draw.params().replace(M_load=P.M_load, c_r=P.c_r), MPCConfig(mode="time"))
+    ep = run_closed_loop("tc", ctrl.config, scenario=draw, mismatch=True, score=False, controller=ctrl).episode
+    assert ep.completed and ep.success and ep.max_violation == 0.0 and ep.T == pytest.approx(9.0)
+    assert len(ctrl.worker_solve_times) == ctrl.replans  # (every re-plan a worker's: none in a step)
+    assert ctrl.horizon_moves >= 1
+
+
+def test_a_re_plan_begun_before_a_horizon_move_does_not_add_its_move_on_top():
+    """A re-plan on the worker that added a step to a phase, taken up after a horizon took that step in the step
+    (:meth:`MPCController._horizon_move`), counted the step twice: the schedule a step too long. Its move is
+    recorded, the schedule left as the horizon made it, and another re-plan follows for the new schedule."""
+    import concurrent.futures
+    import dataclasses
+
+    from mpc.controller.mpc import ReplanJob
+
+    config = MPCConfig(mode="time")
+    ctrl = MPCController("tc", config=config)
+    env = gym.make("WheelLoader-v2", braking="tc")
+    obs, _ = env.reset(seed=0)
+    ctrl.reset()
+    try:
+        obs = env.step(ctrl.act(obs))[0]
+        kept = ctrl._sol
+        longer = dataclasses.replace(kept, counts={q: n + (q == 3) for q, n in kept.counts.items()}, J=kept.J - 1.0)
+        ctrl.schedule.cost = lambda sol, k: sol.J  # (the longer plan pays)
+        done = concurrent.futures.Future()
+        done.set_result((((kept, (None, 3), longer), ""), 1.0, 1.25))
+        ctrl._replan = ReplanJob(1, done, np.array(ctrl.estimator.estimate), due=2.0, moved_since=True)
+        ctrl._counts[3] += 1  # (the horizon's move in the meantime)
+        before = dict(ctrl._counts)
+        ctrl._take_replan(1 + config.replan_lag, 1)
+        assert ctrl._counts == before and ctrl._follow_up  # (not 2 steps more; the new schedule re-planned next)
+    finally:
+        ctrl.end_episode()
+
+
 def test_a_re_plan_that_misses_a_target_is_followed_by_another_beside_the_horizons():
     """A re-plan keeps the schedule and tries one move: one taken up that misses a target (due after the next
     re-plan's lag) is followed by another on the worker, where the schedule search goes on, until one holds the
