@@ -190,6 +190,11 @@ def write_policy(policy: Any, normalization: ObsNormalization | None, stem: str 
     # braking "x" was written (over a policy there too), and the policy no longer loaded.
     try:
         _check_fields(out, files.metadata)
+        env_id = (out.get("config") or {}).get("env_id")
+        if env_id is not None:  # (a policy whose env takes other observations or actions was written, then not loaded)
+            from agents.ppo import check_policy_env
+
+            check_policy_env(policy, env_id)
         read_normalization(files.normalization, obs_dim[0], buf.getvalue())
     except PolicyFileError as exc:
         raise PolicyFileError(f"policy {files.weights.with_suffix('')} not written: {exc}") from None

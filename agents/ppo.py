@@ -304,6 +304,35 @@ def _env_spaces(env_id: str) -> tuple[int, np.ndarray, np.ndarray]:
         env.close()
 
 
+def check_policy_env(network: Any, env_id: str) -> None:
+    """PolicyFileError unless the env ``env_id`` (a policy's ``config.env_id``) takes the observations the policy
+    ``network`` takes (their shape and bounds) and the actions it gives (their shape): what loading a policy and
+    :func:`agents.policy_files.write_policy` both refuse."""
+    obs, act = tuple(network.observation_space.shape), tuple(network.action_space.shape)
+    mapping = f"the policy maps observations {obs} to actions {act}"
+    if env_id not in N_OBS_OF_ENV:  # (checked before gym.make: any registered id, CartPole-v1 say, would be built)
+        raise PolicyFileError(f"{mapping}; its env {env_id!r} (config.env_id) is none of {sorted(N_OBS_OF_ENV)}")
+    wanted, low, high = _env_spaces(env_id)
+    env_shapes = f"{env_id!r} takes observations ({low.size},) and actions ({wanted},)"
+    if obs != (low.size,):
+        raise PolicyFileError(f"the policy takes {int(np.prod(obs))} observations; its env {env_id!r} (config.env_id) has "
+                              f"{low.size}: {mapping}, {env_shapes}")
+    if act != (wanted,):  # (it failed at the first step, naming the controller: a 4-number policy on WheelLoaderPlan-v0)
+        raise PolicyFileError(f"the policy gives {int(np.prod(act))} numbers per action; its env {env_id!r} takes {wanted}: "
+                              f"{mapping}, {env_shapes}")
+    # (the bounds its observations were checked against in training: other ones, narrower say, were accepted and
+    # refused the env's own observations at the first act())
+    space = network.observation_space
+    differ = np.flatnonzero((np.asarray(space.low, np.float32) != low) | (np.asarray(space.high, np.float32) != high))
+    if differ.size:
+        i = int(differ[0])
+        raise PolicyFileError(
+            f"the policy's observation space differs from its env {env_id!r}'s at {differ.size} entr"
+            f"{'y' if differ.size == 1 else 'ies'} {differ[:8].tolist()}{' ...' if differ.size > 8 else ''} (entry {i}: "
+            f"[{float(space.low[i]):.6g}, {float(space.high[i]):.6g}], the env's [{float(low[i]):.6g}, "
+            f"{float(high[i]):.6g}]): it was made for other observations")
+
+
 class PPOPolicy:
     """A trained PPO policy: ``act(obs)`` returns the deterministic action (mean of the Gaussian, clipped
     to the action space) for one observation (shape (12,)) or a batch (shape (n, 12)).
@@ -322,25 +351,7 @@ class PPOPolicy:
         # (the nominal policies), v2's 19 or the target env's 21
         n_obs = network.observation_space.shape[0]
         self.env_id = (self.meta.get("config") or {}).get("env_id") or ENV_OF_OBS[n_obs]
-        if N_OBS_OF_ENV.get(self.env_id) != n_obs:
-            known = N_OBS_OF_ENV.get(self.env_id)
-            raise PolicyFileError(f"the policy takes {n_obs} observations; its env {self.env_id!r} "
-                                  + (f"has {known}" if known is not None else f"is none of {sorted(N_OBS_OF_ENV)}"))
-        wanted, low, high = _env_spaces(self.env_id)
-        n_act = network.action_space.shape[0]
-        if n_act != wanted:  # (it failed at the first step, naming the controller: a 4-number policy on WheelLoaderPlan-v0)
-            raise PolicyFileError(f"the policy gives {n_act} numbers per action; its env {self.env_id!r} takes {wanted}")
-        # (the bounds its observations were checked against in training: other ones, narrower say, were accepted and
-        # refused the env's own observations at the first act())
-        space = network.observation_space
-        differ = np.flatnonzero((np.asarray(space.low, np.float32) != low) | (np.asarray(space.high, np.float32) != high))
-        if differ.size:
-            i = int(differ[0])
-            raise PolicyFileError(
-                f"the policy's observation space differs from its env {self.env_id!r}'s at {differ.size} entr"
-                f"{'y' if differ.size == 1 else 'ies'} {differ[:8].tolist()}{' ...' if differ.size > 8 else ''} (entry {i}: "
-                f"[{float(space.low[i]):.6g}, {float(space.high[i]):.6g}], the env's [{float(low[i]):.6g}, "
-                f"{float(high[i]):.6g}]): it was made for other observations")
+        check_policy_env(network, self.env_id)
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         if self.normalization is None:

@@ -325,6 +325,17 @@ def check_front(d: dict[str, Any]) -> str | None:
     return _scenario_fields_problem(d.get("scenario_fields", {}))
 
 
+def check_front_points(d: dict[str, Any], n_points: int) -> str | None:
+    """:func:`check_front`, and ``points`` one record per cycle time of an ``n_points`` front, as :func:`pareto_front`
+    writes it (each solved or failed point; ``T``/``fuel_g`` hold the verified ones only), or what is wrong."""
+    problem = check_front(d)
+    # (a front of another size copied into an n<N> folder was taken as that folder's front)
+    if problem is None and len(d["points"]) != n_points:
+        return (f"field 'points' holds {len(d['points'])} point records, expected {n_points} (n_points, the point "
+                f"count its folder is named for)")
+    return problem
+
+
 def save_result(r: OCPResult, path: str | os.PathLike) -> Path:
     """Write an OCP result as a checked entry (schema, checksum), atomically."""
     return store.write_entry(path, RESULT_KIND, r.to_dict(), check_result)
@@ -530,7 +541,8 @@ def pareto_front(
     front_file = folder / "front.json"
 
     if use_cache:
-        data = store.load_entry(front_file, FRONT_KIND, check_front, fingerprint, {"braking": braking})
+        data = store.load_entry(front_file, FRONT_KIND, lambda d: check_front_points(d, n_points), fingerprint,
+                                {"braking": braking})
         if data is not None:
             return ParetoFront._from(data)
     near = nearest_front(braking, n_points, p, cache) if neighbour else None
@@ -595,8 +607,11 @@ def pareto_front(
     def named(i: int) -> str:  # a point's file: its number on the front and its cycle time
         return f"point_{i}_T{times[i]:.4f}"
 
-    guides = [next((r for name, r in sorted(guide.items()) if name.startswith(f"point_{i}_T")), None)
-              for i in range(n_points)]
+    def guide_at(i: int) -> OCPResult | None:  # the neighbour's point i: the leaner of its forward and back solves
+        own = [r for name, r in sorted(guide.items()) if name.startswith(f"point_{i}_T")]
+        return min(own, key=lambda r: (not r.verification.get("passed"), r.fuel_g), default=None)
+
+    guides = [guide_at(i) for i in range(n_points)]
     points: list[OCPResult] = []
     failed: list[dict[str, Any]] = []  # points no start solved
     index: list[int] = []  # each solved point's number
@@ -639,9 +654,10 @@ def pareto_front(
         previous = r
     points.append(r_fuel)
     # Continuation back from the fuel-optimal end: a forward chain that took a worse basin near T_min
-    # carries it along; the neighbour on the long side may lead into a better one. (Warm-started from a
-    # neighbouring scenario, each point already had its own guide: the pass is left out.)
-    for i in range(len(points) - 2, 0, -1) if not guide else ():
+    # carries it along; the neighbour on the long side may lead into a better one. Fronts warm-started from
+    # a neighbouring scenario take it too: each point there came from its guide alone, and 3 of 8 shipped
+    # service `test` fronts sat 0.78-1.24 % above a fresh solve at one slow point (stop 65).
+    for i in range(len(points) - 2, 0, -1):
         T, k = float(points[i].T), index[i]
         say(f"[{braking}] point {k + 1}/{n_points}: continuation from T = {points[i + 1].T:.3f} s")
         try:
