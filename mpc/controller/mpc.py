@@ -785,7 +785,7 @@ class MPCController:
                         solves, tried, short = solves + [sol], tried + [sol], True
                         # (the full plan for the new schedule, beside: the horizons' reference was made for the old)
                         if self._replan is None:  # (that schedule alone: the move back was its next try, 0.34 s more)
-                            self._replan_beside(x_plan, phase, k, t0, move=False)
+                            self._replan_beside(x_plan, phase, k, t0, try_move=False)
                         else:
                             self._replan.moved_since = True
                         solve_time, status = time.perf_counter() - t0, f"{status}; {sol.status}"
@@ -1035,8 +1035,8 @@ class MPCController:
         return Solve(counts=counts, first_phase=sol.first_phase, ok=True, status="", z=z, lam_x=lam_x, lam_g=lam_g)
 
     def _step_solves(self, x: np.ndarray, phase: int, k: int, counts: dict[int, int], warm: Solve | None,
-                     args: dict[str, Any], t0: float, far: bool = False, move: bool = True) -> tuple[tuple, str]:
-        """One step's solves, within the deadline if there is one: the schedule kept, then (``move``) the
+                     args: dict[str, Any], t0: float, far: bool = False, try_move: bool = True) -> tuple[tuple, str]:
+        """One step's solves, within the deadline if there is one: the schedule kept, then (``try_move``) the
         schedule move worth a try, if any (:meth:`_schedule_move`), with its solve; ((sol, move, alt), a note).
         ``far``: both start from a plan for another plant estimate (:func:`~mpc.controller.solver.far_starts`).
         They have no side effect on the controller (they may run on the deadline's worker): a move not
@@ -1047,7 +1047,7 @@ class MPCController:
             if not sol.ok or self._over_budget(t0, 0.5) or (self._deadline_s is not None
                                                             and time.perf_counter() - t0 > 0.5 * self._deadline_s):
                 return (sol, None, None), ""
-            move = self._schedule_move(sol, phase, k) if move else None
+            move = self._schedule_move(sol, phase, k) if try_move else None
             if move is None:
                 return (sol, None, None), ""
             try:
@@ -1424,9 +1424,9 @@ class MPCController:
         return lag is not None and all(d > lag for d in due)
 
     def _replan_beside(self, x: np.ndarray, phase: int, k: int, t0: float, far: bool = False,
-                       move: bool = True) -> bool:
+                       try_move: bool = True) -> bool:
         """With ``replan_lag_steps``: the whole cycle re-planned on the worker (the schedule kept, and the
-        move worth a try, as a full step's, unless ``move`` is False; ``far``: for a plant estimate that moved),
+        move worth a try, as a full step's, unless ``try_move`` is False; ``far``: for a plant estimate that moved),
         unless a re-plan runs already; the step (begun at ``t0``, time.perf_counter() s) goes on with its short
         horizon (True). Else False: this step re-plans."""
         lag = self.config.replan_lag
@@ -1440,7 +1440,7 @@ class MPCController:
             log.debug("step %d: a re-plan on the worker, due at step %d", k, k + lag)
             self._replan = ReplanJob(k, self._deadline_pool().submit(
                 self._timed, self._step_solves, np.array(x), phase, k, dict(self._counts), warm, args, time.perf_counter(),
-                far, move),
+                far, try_move),
                 args["est"], t0 + lag * self.dt)
         return True
 
@@ -1800,7 +1800,8 @@ class MPCController:
                 "p99_s": float(np.percentile(st, 99)), "max_s": float(st.max()),
                 "n": int(len(self.solve_times)), "fallbacks": int(self.fallbacks),
                 "deadline_misses": int(self.deadline_misses), "planning_s": float(self.planning_time),
-                "replans": int(self.replans), "safety_eased": int(self.safety_eased),
+                "replans": int(self.replans), "horizon_moves": int(self.horizon_moves),
+                "safety_eased": int(self.safety_eased),
                 # solves this cycle's first solver (the RTI on the short horizons) failed and IPOPT took
                 "handed_over": int(getattr(self.solver, "handed_over", 0) - self._handed_before),
                 # realtime: the worker's solves per step (plan and schedule move), and how old the plans applied were
