@@ -1548,6 +1548,9 @@ class MPCController:
         log.debug("step %d: the horizon missed %s; one step more in phase %d meets it", k, missed or "the limit", q)
         self._counts = counts
         self.horizon_moves += 1
+        # (not the move back on the worker's next re-plans: on a TC draw it was tried at once, 0.39 s, and the re-plan,
+        # 0.54 s in all, came after its 5-step lag: the step that took it up waited 0.05-0.28 s)
+        self.schedule.hold((q, None), k)
         it = self._iterate  # (the next re-plan's warm start, stretched where its layout has room)
         if it is not None and q in it.counts and it.counts[q] < self._nlp(it.first_phase).slots_per_phase[q]:
             self._iterate = self._stretched(it, (None, q))

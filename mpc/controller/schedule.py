@@ -145,6 +145,11 @@ class ScheduleSearch:
         row (a schedule too short fails slowly: 0.2-0.6 s), so a nominal cycle tries 3-4."""
         return k - self.last_failure < RETRY_AFTER * 2 ** max(self.failures - 1, 0)
 
+    def hold(self, move: Move, k: int) -> None:
+        """Do not try ``move`` for RETRY_AFTER steps from step k, as if it had failed once then (the schedule
+        just moved the other way for a reason the search does not see), leaving the other moves' waits alone."""
+        self.tried[move] = (k, max(self.tried.get(move, (0, 0))[1], 1))
+
     def record(self, move: Move, k: int, paid: bool) -> None:
         if paid:
             self.failures = 0
