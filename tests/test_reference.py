@@ -194,3 +194,27 @@ def test_reference_lookups_take_params_as_the_solves_do(tmp_path):
         reference.min_time_of("service", "nominal", tmp_path, solve=False)
     with pytest.raises(LookupError):
         reference.min_time_of("service", {"M_load": 9000.0}, tmp_path, solve=False)
+
+
+def test_the_suite_check_fails_a_shipped_optimum_only_where_a_fresh_solve_beats_it(monkeypatch):
+    """`wl suite solve --check` compared both ways: a fresh solve 0.15 % above a shipped T_min (another chain's local
+    optimum; the shipped minimum-time cycle is verified) read MISMATCH, stop 66. A shipped optimum is off only where a
+    fresh solve is better than it by more than CHECK_TOL."""
+    from mpc.benchmark import suite as suite_module
+    from mpc.benchmark.reference import shipped_fronts
+
+    shipped = shipped_fronts()
+    keys = sorted(k for k in shipped if k.startswith("tc_"))[:3]
+
+    def fresh(scale_T: float, scale_fuel: float, key: str) -> dict:
+        f = shipped[key]
+        return {**f.__dict__, "T": [t * scale_T for t in f.T], "T_min": f.T_min * scale_T,
+                "T_fuel_opt": f.T_fuel_opt * scale_T, "fuel_g": [g * scale_fuel for g in f.fuel_g]}
+
+    entries = {keys[0]: fresh(1.002, 1.01, keys[0]),  # fresh worse in both: the shipped optimum stands
+               keys[1]: fresh(0.998, 1.0, keys[1]),  # fresh T_min 0.2 % lower: off
+               keys[2]: fresh(1.0, 0.995, keys[2])}  # fresh 0.5 % leaner: off
+    monkeypatch.setattr(suite_module, "solve_suite", lambda *a, **k: suite_module.SuiteSolve("test", entries, 3, 0.0))
+    rows = {r["key"]: r for r in suite_module.check_shipped("test", cache="unused", limit=2, workers=1)}
+    assert rows[keys[0]]["ok"] and not rows[keys[1]]["ok"] and not rows[keys[2]]["ok"]
+    assert rows[keys[0]]["T_min_rel"] == pytest.approx(0.002) and rows[keys[2]]["fuel_rel_min"] == pytest.approx(-0.005)

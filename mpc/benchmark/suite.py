@@ -263,7 +263,10 @@ def _ray_chain(scenarios: list[dict[str, Any]], cache: str | None, n_points: int
 def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int | None = None,
                   workers: int | None = None, ray_address: str | None = None) -> list[dict[str, Any]]:
     """Solve the suite afresh (in ``cache``) and compare with the shipped optima: one row per scenario with
-    the relative differences of T_min and of the fuel at the shipped points, and ``ok``."""
+    the relative differences (fresh / shipped - 1) of T_min and of the fuel at the shipped points (its least and
+    largest), and ``ok``: no fresh solve beats the shipped optimum by more than CHECK_TOL. (A shipped optimum is
+    a verified cycle; a fresh solve above it found another local optimum: stop 66's re-solved fronts lie 0.15 %
+    under the T_min a solve from another chain finds on one `test` cycle.)"""
     if cache is None:  # a fresh solve in a folder of its own, removed after (also on Ctrl-C): nothing cached to reuse
         with tempfile.TemporaryDirectory(prefix="wl-check-") as tmp:
             return check_shipped(suite, tmp, limit, workers, ray_address)
@@ -277,10 +280,10 @@ def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int
             continue
         new = ParetoFront._from(e)
         dT = new.T_min / old.T_min - 1.0
-        dfuel = max((abs(new.fuel_at(T) / f - 1.0) for T, f in zip(old.T, old.fuel_g, strict=True)
-                     if new.T[0] <= T < new.T_fuel_opt), default=0.0)
-        rows.append({"key": key, "T_min_rel": dT, "fuel_rel_max": dfuel,
-                     "ok": abs(dT) <= CHECK_TOL["T_min"] and dfuel <= CHECK_TOL["fuel"]})
+        dfuel = [new.fuel_at(T) / f - 1.0 for T, f in zip(old.T, old.fuel_g, strict=True) if new.T[0] <= T < new.T_fuel_opt]
+        rows.append({"key": key, "T_min_rel": dT, "fuel_rel_min": min(dfuel, default=0.0),
+                     "fuel_rel_max": max(dfuel, default=0.0),
+                     "ok": dT >= -CHECK_TOL["T_min"] and min(dfuel, default=0.0) >= -CHECK_TOL["fuel"]})
     # a scenario no fresh solve could do is no agreement: it was left out, and `wl suite solve --check` said "3 of 3
     # shipped optima agree" of a 4-scenario check with exit 0
     rows += [{"key": key, "ok": False, "problem": f"no fresh optimum: {why}"} for key, why in fresh.failed.items()]
