@@ -218,3 +218,12 @@ def test_the_suite_check_fails_a_shipped_optimum_only_where_a_fresh_solve_beats_
     rows = {r["key"]: r for r in suite_module.check_shipped("test", cache="unused", limit=2, workers=1)}
     assert rows[keys[0]]["ok"] and not rows[keys[1]]["ok"] and not rows[keys[2]]["ok"]
     assert rows[keys[0]]["T_min_rel"] == pytest.approx(0.002) and rows[keys[2]]["fuel_rel_min"] == pytest.approx(-0.005)
+    # `wl suite solve --help` quotes the tolerances (the parser does not import the solver to read them)
+    import argparse
+
+    from wl.cli import build_parser
+
+    solve = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["suite"]
+    solve = next(a for a in solve._actions if isinstance(a, argparse._SubParsersAction)).choices["solve"]
+    check = next(a for a in solve._actions if a.dest == "check").help.replace("%%", "%")
+    assert f"over {100 * suite_module.CHECK_TOL['T_min']:g} %" in check and f"by over {100 * suite_module.CHECK_TOL['fuel']:g} %" in check

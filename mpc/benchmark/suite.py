@@ -281,9 +281,9 @@ def check_shipped(suite: str, cache: str | os.PathLike | None = None, limit: int
         new = ParetoFront._from(e)
         dT = new.T_min / old.T_min - 1.0
         dfuel = [new.fuel_at(T) / f - 1.0 for T, f in zip(old.T, old.fuel_g, strict=True) if new.T[0] <= T < new.T_fuel_opt]
-        rows.append({"key": key, "T_min_rel": dT, "fuel_rel_min": min(dfuel, default=0.0),
-                     "fuel_rel_max": max(dfuel, default=0.0),
-                     "ok": dT >= -CHECK_TOL["T_min"] and min(dfuel, default=0.0) >= -CHECK_TOL["fuel"]})
+        leaner = min(dfuel, default=0.0)  # (the most a fresh solve beats the shipped front by: negative)
+        rows.append({"key": key, "T_min_rel": dT, "fuel_rel_min": leaner, "fuel_rel_max": max(dfuel, default=0.0),
+                     "ok": dT >= -CHECK_TOL["T_min"] and leaner >= -CHECK_TOL["fuel"]})
     # a scenario no fresh solve could do is no agreement: it was left out, and `wl suite solve --check` said "3 of 3
     # shipped optima agree" of a 4-scenario check with exit 0
     rows += [{"key": key, "ok": False, "problem": f"no fresh optimum: {why}"} for key, why in fresh.failed.items()]
