@@ -555,6 +555,40 @@ def test_the_search_keeps_the_better_of_a_rounds_two_moves_forked_or_not(monkeyp
     assert np.array_equal(plans[True].z, plans[False].z)
 
 
+def test_the_minimum_time_search_tries_no_schedule_shorter_than_the_references_t_min_allows(monkeypatch):
+    """TC ``test`` cycle 2 at minimum time: the coarse reference's T_min is 9.920 s and the grid's best 9.9 s (99
+    steps). Every step fewer from 99 misses a target (measured: two of the search's seven solves, 0.2-0.3 s each);
+    the search no longer tries a schedule under the reference's T_min less REFERENCE_T_MARGIN_S, and ends at the
+    same 99 steps. A perturbed start (init noise) is not the reference's: no bound there."""
+    from mpc.controller import mpc as mpc_module
+    from mpc.controller.mpc import REFERENCE_T_MARGIN_S, forget_plans
+    from wl_env.suites import load_suite
+
+    sc = load_suite("test").of("tc")[2]
+    tried = []
+    move_solves = MPCController._move_solves
+
+    def logged(self, sol, moves, phase, x):
+        alts = move_solves(self, sol, moves, phase, x)
+        tried.extend((move, steps_of(alt.counts), alt.feasible) for move, alt in zip(moves, alts, strict=True))
+        return alts
+
+    monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
+    forget_plans()
+    ctrl = MPCController("tc", sc.params(), MPCConfig())
+    env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
+    obs, _ = env.reset(seed=0, options={"scenario": sc})
+    ctrl.reset(sc)
+    ctrl.act(obs)
+    bound = math.ceil((ctrl.reference().T - REFERENCE_T_MARGIN_S) / ctrl.dt - 1e-6)
+    assert bound == 99 and steps_of(ctrl._sol.counts) == 99 and ctrl._sol.feasible
+    assert tried and all(n >= bound for _, n, _ in tried), tried  # (the old search solved two of 98 steps)
+    assert ctrl.schedule.min_steps == 0  # (the bound holds for the first plan's search only)
+    x = ctrl.project_state(ctrl.state_from_obs(obs)[0], 1)
+    assert ctrl._at_reference_start(x, 1, 0)
+    assert not ctrl._at_reference_start(x + np.array([1.0, 0, 0, 0, 0]), 1, 0) and not ctrl._at_reference_start(x, 1, 3)
+
+
 def _counted(calls: list, cls: type, fn):
     calls.append(fn)
     return cls(fn)

@@ -70,6 +70,10 @@ class ScheduleSearch:
 
     def reset(self, target_steps: int = 0) -> None:
         self.target_steps = target_steps
+        # The fewest steps a removal may leave (0: no bound): the first plan's search at minimum time sets it from
+        # the continuous reference's T_min (mpc.MPCController._plan_cycle), where a shorter schedule cannot hold
+        # the targets, and a removal's solve only finds that out in 0.15-0.3 s.
+        self.min_steps = 0
         self.tried: dict[Move, tuple[int, int]] = {}  # move -> (step it last failed to pay, failures)
         self.last_failure = -10**9  # the step a schedule move last failed to pay
         self.failures = 0  # schedule moves in a row that did not pay (each doubles the wait for the next)
@@ -121,6 +125,8 @@ class ScheduleSearch:
         for i in [None, *phases]:
             for j in [None, *phases]:
                 if i == j or (i is not None and not removable(i)) or (j is not None and not fits(j)):
+                    continue
+                if j is None and n - 1 < self.min_steps:
                     continue
                 dJ = (sens[j] if j is not None else 0.0) - (sens[i] if i is not None else 0.0)
                 dn = (j is not None) - (i is not None)
