@@ -10,9 +10,11 @@ solved for the least fuel (the target-time mode's NLP at the plan's cycle time, 
 and the least fuel of those that meet the targets against the continuous optimum's at the same cycle time
 (:func:`mpc.benchmark.scoring.score_run`): what the grid itself allows a minimum-time cycle.
 
+``--suite NAME --scenario I``: the suite's I-th cycle of the braking instead of the nominal one.
+
 Usage::
 
-    python scripts/bench_grid_min_time.py {service,tc} [R] [--same-length]
+    python scripts/bench_grid_min_time.py {service,tc} [R] [--same-length] [--suite test --scenario I]
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ def main() -> None:
     ap.add_argument("braking", nargs="?", default="tc", choices=("service", "tc"))
     ap.add_argument("reach", nargs="?", type=int, default=2, help="R: steps per phase around the plan's schedule")
     ap.add_argument("--same-length", action="store_true", help="schedules as long as the plan's, for the least fuel")
+    ap.add_argument("--suite", default=None, help="a suite (wl_env.suites.SUITES) whose cycle --scenario to plan")
+    ap.add_argument("--scenario", type=int, default=None, help="I: the suite's I-th cycle of the braking")
     from agents.train_cli import refuse_repeated_options
 
     refuse_repeated_options(ap)  # (argparse kept the last of an option given twice, without a word)
@@ -47,13 +51,25 @@ def main() -> None:
     if not 1 <= a.reach <= 8:  # ((2R + 1)^4 schedules: R = 1000 looped for hours over slots a phase does not have)
         ap.error(f"R (reach) must be an integer in [1, 8], got {a.reach}")
     braking, reach, same_length = a.braking, a.reach, a.same_length
-    env = gym.make("WheelLoader-v2", braking=braking)
+    scenario = None
+    if (a.suite is None) != (a.scenario is None):
+        ap.error("--suite and --scenario go together (the suite's I-th cycle of the braking)")
+    if a.suite is not None:
+        from wl_env.suites import load_suite
+
+        cycles = load_suite(a.suite).of(braking)  # (ValueError naming the suites, or a sampler)
+        if not 0 <= a.scenario < len(cycles):
+            ap.error(f"--scenario must be an integer in [0, {len(cycles) - 1}] (the {a.suite} suite's {braking} "
+                     f"cycles), got {a.scenario}")
+        scenario = cycles[a.scenario]
+    params = None if scenario is None else scenario.params()
+    env = gym.make("WheelLoader-v2", braking=braking, params=params)
     core = env.unwrapped.core
-    obs, _ = env.reset(seed=0)
+    obs, _ = env.reset(seed=0, options=None if scenario is None else {"scenario": scenario})
 
     def planned(config: M.MPCConfig) -> M.MPCController:
-        ctrl = M.MPCController(braking, config=config, dt=core.dt, substeps=core.substeps)
-        ctrl.reset()
+        ctrl = M.MPCController(braking, params, config=config, dt=core.dt, substeps=core.substeps)
+        ctrl.reset(scenario)
         ctrl.act(obs)  # plans the cycle
         return ctrl
 
@@ -91,7 +107,7 @@ def main() -> None:
     print(f"{braking}: {tried} schedules of {n} steps solved in {time.perf_counter() - t0:.0f} s, {feasible} meet the "
           "targets" + (f"; the closest {closest[1]} misses by {closest[0]:.2f} times the tolerance" if closest else ""))
     if same_length and cheapest is not None:
-        fuel_opt = score_run(n * ctrl.dt, cheapest[0], braking).fuel_opt_g
+        fuel_opt = score_run(n * ctrl.dt, cheapest[0], braking, params).fuel_opt_g
         print(f"{braking}: the least fuel on the grid at {n * ctrl.dt:.1f} s: {cheapest[0]:.3f} g ({cheapest[1]}), "
               f"{100 * (cheapest[0] / fuel_opt - 1):+.2f} % against the continuous optimum's {fuel_opt:.3f} g")
 
