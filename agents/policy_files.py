@@ -189,7 +189,7 @@ def write_policy(policy: Any, normalization: ObsNormalization | None, stem: str 
     # What reading the policy refuses, refused before any file is written: a NaN mean, a negative variance or a
     # braking "x" was written (over a policy there too), and the policy no longer loaded.
     try:
-        _check_fields(out, files.metadata)
+        check_metadata_fields(out, files.metadata)
         env_id = (out.get("config") or {}).get("env_id")
         if env_id is not None:  # (a policy whose env takes other observations or actions was written, then not loaded)
             from agents.ppo import check_policy_env
@@ -253,7 +253,7 @@ def _read_checked(files: PolicyFiles) -> tuple[dict[str, Any], bytes, bytes]:
     if meta.get("format_version") != FORMAT_VERSION:
         raise PolicyFileError(f"{path}: format_version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
     _check_network(meta.get("network"), path)
-    _check_fields(meta, path)
+    check_metadata_fields(meta, path)
     recorded = meta.get("files")
     contents = []
     for key, file, most in (("weights", files.weights, MAX_WEIGHTS_BYTES),
@@ -270,7 +270,7 @@ def _read_checked(files: PolicyFiles) -> tuple[dict[str, Any], bytes, bytes]:
     return meta, contents[0], contents[1]
 
 
-def _check_fields(meta: dict[str, Any], path: Path) -> None:
+def check_metadata_fields(meta: dict[str, Any], path: Path) -> None:
     """The metadata's braking, config and env id, as the policy's reader takes them (PolicyFileError naming ``path``)."""
     if meta.get("braking") not in (None, "service", "tc"):
         raise PolicyFileError(f"{path}: braking must be \"service\" or \"tc\" (or absent), got {meta.get('braking')!r}")
@@ -416,15 +416,23 @@ def read_normalization(path: Path, obs_dim: int, raw: bytes | None = None) -> Ob
     mean, var = data["mean"], data["var"]
     if any(data[k].dtype.itemsize > 8 for k in ("mean", "var", "clip_obs", "epsilon")):  # (1e400 as a long double)
         raise PolicyFileError(f"normalization file {path}: mean, var, clip_obs and epsilon must be float16/32/64")
-    clip_obs, eps = float(data["clip_obs"]), float(data["epsilon"])
+    return checked_normalization(mean, var, float(data["clip_obs"]), float(data["epsilon"]), obs_dim,
+                                 f"normalization file {path}")
+
+
+def checked_normalization(mean: np.ndarray, var: np.ndarray, clip_obs: float, eps: float, obs_dim: int,
+                          where: str) -> ObsNormalization:
+    """The statistics of a policy of ``obs_dim`` observations as an :class:`ObsNormalization`, checked (PolicyFileError
+    naming ``where``, the file they came from): ``obs_dim`` finite means and variances >= 0, clip_obs and epsilon in
+    range. (A stable-baselines3 policy's, from its pickle or its metadata's JSON copy, were taken unchecked: a 1-entry
+    mean was broadcast over 12 observations without a word, a NaN one failed in torch at the first act.)"""
     if mean.shape != (obs_dim,) or var.shape != (obs_dim,) or mean.dtype.kind != "f" or var.dtype.kind != "f":
-        raise PolicyFileError(f"normalization file {path}: mean and var must be {obs_dim} floats, got shapes "
-                              f"{mean.shape} and {var.shape}")
+        raise PolicyFileError(f"{where}: mean and var must be {obs_dim} floats, got shapes {mean.shape} and {var.shape}")
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
-        raise PolicyFileError(f"normalization file {path}: mean and var must be finite, var >= 0")
+        raise PolicyFileError(f"{where}: mean and var must be finite, var >= 0")
     # (clip_obs within float32's range: 1e308 let a mean of 1e308 over a var of 0 reach the network as -inf)
     if not (math.isfinite(clip_obs) and 0 < clip_obs <= FLOAT32_MAX and 1e-12 <= eps <= 1.0):
-        raise PolicyFileError(f"normalization file {path}: clip_obs must be a finite number > 0, at most "
+        raise PolicyFileError(f"{where}: clip_obs must be a finite number > 0, at most "
                               f"{FLOAT32_MAX:.4g} (the normalized observations are float32), and epsilon in [1e-12, 1], "
                               f"got {clip_obs}, {eps}")
     return ObsNormalization(mean.astype(np.float64), var.astype(np.float64), clip_obs, eps)

@@ -60,6 +60,8 @@ from agents.policy_files import (
     PolicyFileError,
     PolicyFiles,
     brief,
+    check_metadata_fields,
+    checked_normalization,
     read_policy,
     write_policy,
 )
@@ -489,8 +491,12 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
     if not isinstance(meta, dict):
         raise PolicyFileError(f"policy metadata {meta_path} is not a JSON object")
     config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+    if "braking" not in meta and "braking" in config:
+        meta["braking"] = config["braking"]
+    # (as a pickle-free policy's: a braking "x" was taken, a config "abc" an AttributeError at the load's end)
+    check_metadata_fields(meta, meta_path)
     norm_path = next((c for c in norm_files if c.exists()), None)
-    normalization = None
+    normalization, norm_from = None, norm_path
     if norm_path is not None:
         try:
             with open(norm_path, "rb") as f:
@@ -498,9 +504,13 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
         except Exception as exc:  # noqa: BLE001 - truncated or foreign pickles fail in many ways
             raise PolicyFileError(f"normalization file {norm_path} is unreadable: {brief(exc)}") from None
     elif isinstance(meta.get("obs_normalization"), dict):  # the JSON copy of older exports
-        n = meta["obs_normalization"]
-        normalization = ObsNormalization(np.asarray(n["mean"], np.float64), np.asarray(n["var"], np.float64),
-                                         float(n["clip_obs"]), float(n["epsilon"]))
+        n, norm_from = meta["obs_normalization"], meta_path
+        try:  # (a missing entry was a bare KeyError, a string one numpy's error)
+            normalization = ObsNormalization(np.asarray(n["mean"], np.float64), np.asarray(n["var"], np.float64),
+                                             float(n["clip_obs"]), float(n["epsilon"]))
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise PolicyFileError(f"policy metadata {meta_path}: obs_normalization must hold mean, var, clip_obs and "
+                                  f"epsilon as numbers, got {brief(exc)}") from None
     elif config.get("norm_obs", True):
         raise PolicyFileError(
             f"policy {p} has no normalization file: expected {norm_files[0]} or {norm_files[1]} (the VecNormalize "
@@ -509,9 +519,11 @@ def _load_sb3(p: Path, device: str) -> PPOPolicy:
         model = PPO.load(str(p), device=device)
     except Exception as exc:  # noqa: BLE001 - a corrupt zip or policy.pth, as above
         raise PolicyFileError(f"policy zip {p} is unreadable: {brief(exc)}") from None
-    if "braking" not in meta and "braking" in config:
-        meta["braking"] = config["braking"]
     _check_spaces(model.policy, p)
+    if normalization is not None:  # (checked as a pickle-free policy's, for the network's observations)
+        normalization = checked_normalization(normalization.mean, normalization.var, normalization.clip_obs,
+                                              normalization.epsilon, model.policy.observation_space.shape[0],
+                                              f"normalization of {norm_from}")
     return _policy(model.policy, normalization, meta, p)
 
 

@@ -57,7 +57,8 @@ fake_solve.calls = []
 
 def fake_front_job(scenario, cache, n_points):
     """A stand-in for ``mpc.benchmark.suite.solve_one`` (a suite's per-scenario solve): a made-up front whose
-    minimum time grows with the scenario's distances, so that each scenario's entry is its own."""
+    minimum time grows with the scenario's distances, so that each scenario's entry is its own (three verified points,
+    the other ``n_points - 3`` failed: one record per point, as the suite's n<N> folder holds)."""
     import os
 
     from mpc.benchmark.pareto import ParetoFront
@@ -66,7 +67,8 @@ def fake_front_job(scenario, cache, n_points):
     T_min = 4.0 + 0.5 * (p.reverse_distance + p.forward_distance)
     T = [T_min * 1.001, T_min * 1.2, T_min * 2.5]
     front = ParetoFront(scenario.braking, T, [90.0, 60.0, 45.0], p.fingerprint(), T_min, T[-1], 45.0, [20, 12, 20, 12],
-                        points=[{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, [90.0, 60.0, 45.0], strict=True)])
+                        points=[{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, [90.0, 60.0, 45.0], strict=True)]
+                        + [{"T": T_min * (1.3 + 0.1 * k), "fuel_g": None, "verified": False} for k in range(n_points - 3)])
     return {**front.__dict__, "scenario": scenario.to_dict(), "solve_s": 0.0, "pid": os.getpid()}
 
 

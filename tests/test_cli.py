@@ -36,10 +36,14 @@ SUBCOMMANDS = ["params", "ocp", "pareto", "mpc", "evaluate", "train", "run", "re
 
 # ------------------------------------------------------------------------------------------ helpers
 def _front(braking: str) -> ParetoFront:
-    """A made-up convex front around the operator's cycles (8-9 s), wide enough to score every episode."""
+    """A made-up convex front around the operator's cycles (8-9 s), wide enough to score every episode: five
+    verified points and six that failed, one record for each of the 11 points its cache folder (n11) is named for."""
     T = [7.0, 8.0, 10.0, 14.0, 20.0]
     fuel = [110.0, 95.0, 80.0, 70.0, 65.0] if braking == "service" else [100.0, 86.0, 72.0, 63.0, 60.0]
-    return ParetoFront(braking, T, fuel, resolve(None).fingerprint(), T[0], T[-1], fuel[-1], [20, 12, 20, 12])
+    points = ([{"T": t, "fuel_g": f, "verified": True} for t, f in zip(T, fuel, strict=True)]
+              + [{"T": t, "fuel_g": None, "verified": False} for t in (7.5, 9.0, 12.0, 16.0, 18.0, 19.0)])
+    return ParetoFront(braking, T, fuel, resolve(None).fingerprint(), T[0], T[-1], fuel[-1], [20, 12, 20, 12],
+                       points=points)
 
 
 @pytest.fixture
@@ -343,6 +347,8 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_env.py", "--single-steps", "100000000000"], "--single-steps must be an integer in [1, 10000000]"),  # (745 GiB)
     (["bench_env.py", "--repeats", "-1", "--quick"], "--repeats must be an integer in [1, 1000]"),
     (["bench_grid_min_time.py", "tc", "1000"], "R (reach) must be an integer in [1, 8]"),
+    (["bench_grid_min_time.py", "tc", "--suite", "test"], "--suite and --scenario go together"),
+    (["bench_grid_min_time.py", "tc", "--suite", "test", "--scenario", "50"], "--scenario must be an integer in [0, 49]"),
     (["select_policy.py", "--policies", "/nonexistent"], "/nonexistent: expected"),  # (a FileNotFoundError's traceback)
     (["bench_agents.py", "--suite", "test", "--runs", "/nonexistent"], "/nonexistent: expected"),
     (["bench_agents.py", "--suite", "test", "--runs", "agents/policies/plan_target_service", "--json",

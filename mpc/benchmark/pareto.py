@@ -487,7 +487,9 @@ def nearest_front(braking: str, n_points: int, p: LoaderParams, cache: str | os.
     best, best_d = None, math.inf
     # (sorted: of two fronts at the same distance the first by name, not by the file system's listing order)
     for f in sorted((cache_dir(cache) / "pareto").glob(f"{braking}_*_n{n_points}_{CACHE_VERSION}/front.json")):
-        data = store.load_entry(f, FRONT_KIND, check_front, expect={"braking": braking})
+        # (its point count checked as pareto_front checks its own: a 3-point front copied into an n11 folder guided
+        # every point of a neighbouring scenario's 11-point sweep)
+        data = store.load_entry(f, FRONT_KIND, lambda d: check_front_points(d, n_points), expect={"braking": braking})
         if data is None or data.get("machine") != machine or not data.get("scenario_fields"):
             continue
         d = param_distance(own, data["scenario_fields"])

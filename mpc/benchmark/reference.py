@@ -32,7 +32,8 @@ from mpc.benchmark.pareto import (
     FRONT_KIND,
     ParetoFront,
     cached_result,
-    check_front,
+    check_front_points,
+    check_n_points,
     front_folder,
     nearest_front,
     save_result,
@@ -53,8 +54,12 @@ def check_suite_file(d: dict[str, Any]) -> str | None:
             return f"missing field {name!r}"
     if not isinstance(d["entries"], dict):
         return "field 'entries' is not a mapping"
+    try:  # (each entry one point record per point of the file's n_points, as its n<N> folder's entries: it was unchecked)
+        n_points = check_n_points(d["n_points"])
+    except ValueError as exc:
+        return f"field 'n_points': {exc}"
     for key, e in d["entries"].items():
-        problem = check_front(e) if isinstance(e, dict) else "not a mapping"
+        problem = check_front_points(e, n_points) if isinstance(e, dict) else "not a mapping"
         if problem:
             return f"entry {key}: {problem}"
         if key != f"{e['braking']}_{e['params_fingerprint']}":
@@ -83,7 +88,10 @@ def known_front(braking: str, params: LoaderParams, cache: str | os.PathLike | N
     """(the front of this cycle, "shipped" or "cached") without solving anything, or None."""
     params = resolve(params)  # (a dict or None was an AttributeError)
     path = front_folder(cycle.check_braking(braking), n_points, params, cache) / "front.json"
-    data = store.load_entry(path, FRONT_KIND, check_front, params.fingerprint(), {"braking": braking})
+    # (a front of another point count in the n<N> folder, e.g. a 3-point one copied there, was scored against as the
+    # cached front, where pareto_front sets it aside: now the same bad entry, set aside with a warning)
+    data = store.load_entry(path, FRONT_KIND, lambda d: check_front_points(d, n_points), params.fingerprint(),
+                            {"braking": braking})
     if data is not None:
         return ParetoFront._from(data), "cached"
     key = f"{braking}_{params.fingerprint()}"

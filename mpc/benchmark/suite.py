@@ -30,7 +30,7 @@ from mpc.benchmark.pareto import (
     FRONT_KIND,
     ParetoFront,
     cache_dir,
-    check_front,
+    check_front_points,
     check_n_points,
     pareto_front,
 )
@@ -78,8 +78,10 @@ def chain_order(scenarios: list[Scenario]) -> list[Scenario]:
     return order[1:]
 
 
-def check_entry(d: dict[str, Any]) -> str | None:
-    problem = check_front(d)
+def check_entry(d: dict[str, Any], n_points: int) -> str | None:
+    """What is wrong with a scenario's entry in a suite's ``..._n<n_points>_...`` folder: a front of ``n_points``
+    point records (:func:`check_front_points`; another count was taken as that folder's) with its scenario."""
+    problem = check_front_points(d, n_points)
     if problem is None and not isinstance(d.get("scenario"), dict):
         problem = "missing its scenario"
     return problem
@@ -124,7 +126,7 @@ def _solve_chain(scenarios: list[dict[str, Any]], folder: str, cache: str | None
             log.warning(f"{s.label()}: no front ({exc})")
             failed[entry_key(s)] = str(exc)
             continue
-        store.write_entry(Path(folder) / f"{entry_key(s)}.json", FRONT_KIND, e, check_entry)
+        store.write_entry(Path(folder) / f"{entry_key(s)}.json", FRONT_KIND, e, lambda d: check_entry(d, n_points))
     return failed
 
 
@@ -180,8 +182,8 @@ def solve_suite(suite: str, cache: str | os.PathLike | None = None, out: str | o
         chains = {b: chain_order(list(s.of(b)))[:limit] for b in BRAKING_MODES if s.of(b)}
         wanted = [sc for chain in chains.values() for sc in chain]
         def load(sc: Scenario, read: Any) -> Any:  # (the entry's name alone does not vouch for its cycle: both checked)
-            return read(folder / f"{entry_key(sc)}.json", FRONT_KIND, check_entry, sc.params().fingerprint(),
-                        {"braking": sc.braking})
+            return read(folder / f"{entry_key(sc)}.json", FRONT_KIND, lambda d: check_entry(d, n_points),
+                        sc.params().fingerprint(), {"braking": sc.braking})
 
         have = {entry_key(sc) for sc in wanted if load(sc, store.load_entry) is not None}
         todo = {b: [sc for sc in chain if entry_key(sc) not in have] for b, chain in chains.items()}
@@ -235,7 +237,7 @@ def _run_on_ray(todo: dict[str, list[Scenario]], folder: Path, cache: str | os.P
                     if isinstance(e, str):
                         failed[key] = e
                     else:
-                        store.write_entry(folder / f"{key}.json", FRONT_KIND, e, check_entry)
+                        store.write_entry(folder / f"{key}.json", FRONT_KIND, e, lambda d: check_entry(d, n_points))
         except KeyboardInterrupt:
             for ref in pending:
                 ray.cancel(ref, force=True)
