@@ -1184,27 +1184,26 @@ class MPCController:
         t.append(time.perf_counter())
         failed: set = set()
         solves = 0 if cfg.realtime else SEARCH_SOLVES
-        if cfg.fastest and ref.objective == "time" and self._at_reference_start(x, phase, k):
-            self.schedule.min_steps = math.ceil((ref.T - REFERENCE_T_MARGIN_S) / self.dt - 1e-6)
-        while solves > 0:
-            # Each round solves the move the search would try next and the one it would try after it if that one
-            # did not pay, side by side (_move_solves), and keeps the better: the moves a one-by-one search would
-            # try, but where the first pays and the second pays more, the second. Measured on 20 `test` cycles at
-            # minimum time: the search's median 0.36-0.38 s against 0.47-0.52 s, its max 0.94 s against 1.40 s; the
-            # same T on all 20, two cycles leaner (docs/benchmarks.md section 3, stop 60)
-            first = self._search_move(sol, phase, k, failed)
-            if first is None:
-                break
-            second = self._search_move(sol, phase, k, failed | {first}) if solves > 1 else None
-            moves = [first] if second is None else [first, second]
-            alts = self._move_solves(sol, moves, phase, x)
-            solves -= len(moves)
-            best = min(alts, key=lambda alt: self.schedule.cost(alt, k))
-            if self.schedule.cost(best, k) < self.schedule.cost(sol, k):
-                sol, failed = best, set()
-            else:
-                failed |= set(moves)
-        self.schedule.min_steps = 0
+        bounded = cfg.fastest and ref.objective == "time" and self._at_reference_start(x, phase, k)
+        with self.schedule.bounded(math.ceil((ref.T - REFERENCE_T_MARGIN_S) / self.dt - 1e-6) if bounded else 0):
+            while solves > 0:
+                # Each round solves the move the search would try next and the one it would try after it if that one
+                # did not pay, side by side (_move_solves), and keeps the better: the moves a one-by-one search would
+                # try, but where the first pays and the second pays more, the second. Measured on 20 `test` cycles at
+                # minimum time: the search's median 0.36-0.38 s against 0.47-0.52 s, its max 0.94 s against 1.40 s; the
+                # same T on all 20, two cycles leaner (docs/benchmarks.md section 3, stop 60)
+                first = self._search_move(sol, phase, k, failed)
+                if first is None:
+                    break
+                second = self._search_move(sol, phase, k, failed | {first}) if solves > 1 else None
+                moves = [first] if second is None else [first, second]
+                alts = self._move_solves(sol, moves, phase, x)
+                solves -= len(moves)
+                best = min(alts, key=lambda alt: self.schedule.cost(alt, k))
+                if self.schedule.cost(best, k) < self.schedule.cost(sol, k):
+                    sol, failed = best, set()
+                else:
+                    failed |= set(moves)
         self._build_later_nlps()
         t.append(time.perf_counter())
         parts = dict(zip(("reference", "layout", "first_solve", "search"), np.diff(t).tolist(), strict=True))

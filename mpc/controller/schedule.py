@@ -8,7 +8,9 @@ mode's cost falls. A move that did not pay waits before it is tried again.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -70,13 +72,22 @@ class ScheduleSearch:
 
     def reset(self, target_steps: int = 0) -> None:
         self.target_steps = target_steps
-        # The fewest steps a removal may leave (0: no bound): the first plan's search at minimum time sets it from
+        # The fewest steps a removal may leave (0: no bound): the first plan's search at minimum time sets it (bounded) from
         # the continuous reference's T_min (mpc.MPCController._plan_cycle), where a shorter schedule cannot hold
         # the targets, and a removal's solve only finds that out in 0.15-0.3 s.
         self.min_steps = 0
         self.tried: dict[Move, tuple[int, int]] = {}  # move -> (step it last failed to pay, failures)
         self.last_failure = -10**9  # the step a schedule move last failed to pay
         self.failures = 0  # schedule moves in a row that did not pay (each doubles the wait for the next)
+
+    @contextlib.contextmanager
+    def bounded(self, min_steps: int) -> Iterator[None]:
+        """Within the block, no removal to fewer than ``min_steps`` steps (the first plan's search)."""
+        self.min_steps = min_steps
+        try:
+            yield
+        finally:
+            self.min_steps = 0
 
     # ------------------------------------------------------------------ ranking
     def cost(self, sol: Solve, k: int) -> tuple:
