@@ -8,7 +8,8 @@ Issue #13 asks a first step to plan in <= 1 s once the process has built its sol
 scenario's estimated T_min (``0``: minimum time), each a new scenario to the process (one cycle before them builds
 what every scenario shares). Per cycle: the first step's planning time and its parts
 (``MPCController.planning_parts``: the continuous reference, the slot layout's build, the first solve, the schedule
-search), the cycle's T, fuel and success, and its later steps' largest time and how many passed the 0.1 s interval. ``--reference-starts`` sets the target-time reference's template
+search), the cycle's T, fuel and success, its T against the scenario's T_min (where an optimum is shipped or cached),
+and its later steps' largest time and how many passed the 0.1 s interval. ``--reference-starts`` sets the target-time reference's template
 starts (``mpc.controller.mpc.REFERENCE_STARTS``: the braking's acceleration fractions), to compare them on the same
 cycles.
 """
@@ -58,6 +59,7 @@ def run(o: Options) -> dict[str, Any]:
     check(o)
     from bench_mpc import summary_line, write_with_speed
 
+    from mpc.benchmark.reference import known_front
     from mpc.controller import mpc
     from mpc.controller.mpc import MPCConfig, MPCController, run_closed_loop
     from wl_env.suites import load_suite
@@ -82,7 +84,10 @@ def run(o: Options) -> dict[str, Any]:
         ctrl = MPCController(o.braking, sc.params(), cfg)
         res = run_closed_loop(o.braking, cfg, scenario=sc, score=False, controller=ctrl)
         ep = res.episode
+        known = known_front(o.braking, sc.params())  # (the shipped optimum's T_min; nothing solved)
+        T_min = None if known is None else known[0].T_min
         rec = {"scenario": i, "target_time": cfg.target_time, "planning_s": ctrl.planning_time,
+               "T_min": T_min, "time_gap": None if T_min is None or not ep.completed else ep.T / T_min - 1.0,
                "parts_s": dict(ctrl.planning_parts), "first_plan_from": ctrl.first_plan_from,
                "T": ep.T, "fuel_g": ep.fuel_g, "success": ep.success, "max_violation": ep.max_violation,
                # (the steps after the first: a first plan that leaves work to the worker must not make them late)
@@ -99,6 +104,9 @@ def run(o: Options) -> dict[str, Any]:
                "within_1s_less_layout": sum(b <= 1.0 for b in built), "within_1s": sum(p <= 1.0 for p in planning),
                "step_max_s": max(r["step_max_s"] for r in records),
                "steps_over_interval": sum(r["steps_over_interval"] for r in records),
+               # (the cycle time against the scenario's T_min, where an optimum is shipped or cached: minimum time's gap)
+               "time_gap_median": statistics.median(gaps) if (gaps := [r["time_gap"] for r in records
+                                                                        if r["time_gap"] is not None]) else None,
                **{f"{part}_median_s": statistics.median(r["parts_s"].get(part, 0.0) for r in records)
                   for part in ("reference", "layout", "first_solve", "search")}}
     print(f"{o.braking}, {o.suite} x{len(records)} at {o.target_ratio or 'minimum time'}: {summary_line(summary)}")

@@ -589,6 +589,38 @@ def test_the_minimum_time_search_tries_no_schedule_shorter_than_the_references_t
     assert not ctrl._at_reference_start(x + np.array([1.0, 0, 0, 0, 0]), 1, 0) and not ctrl._at_reference_start(x, 1, 3)
 
 
+def test_a_tc_forward_step_fewer_is_also_solved_with_the_reversing_drive_giving_its_stop_a_step(monkeypatch):
+    """TC ``test`` cycle 17 at minimum time: the search ended at 93 steps, every step fewer alone missing a target (phase
+    3's the reversing point by 1.6 cm); 92 steps {1: 32, 2: 9, 3: 34, 4: 15} hold every mark (bench_grid_min_time). A
+    round of one step fewer from the forward leg now also solves it with a step moved from phase 1 to phase 2 beside
+    it (a compound move, in the round's free fork), which gives those 92 steps."""
+    from mpc.controller import mpc as mpc_module
+    from mpc.controller.mpc import forget_plans
+    from mpc.controller.schedule import moved
+    from wl_env.suites import load_suite
+
+    assert moved({1: 3, 2: 2, 3: 4, 4: 1}, ((3, None), (1, 2))) == {1: 2, 2: 3, 3: 3, 4: 1}
+    sc = load_suite("test").of("tc")[17]
+    paid = []
+    move_solves = MPCController._move_solves
+
+    def logged(self, sol, moves, phase, x):
+        alts = move_solves(self, sol, moves, phase, x)
+        paid.extend(m for m, alt in zip(moves, alts, strict=True) if isinstance(m[0], tuple) and alt.feasible)
+        return alts
+
+    monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
+    forget_plans()
+    ctrl = MPCController("tc", sc.params(), MPCConfig())
+    env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
+    obs, _ = env.reset(seed=0, options={"scenario": sc})
+    ctrl.reset(sc)
+    ctrl.act(obs)
+    assert paid == [((3, None), (1, 2))]
+    assert steps_of(ctrl._sol.counts) == 92 and ctrl._sol.feasible  # (93 before)
+    assert ctrl._compound(ctrl._sol, (1, 2)) is None and ctrl._compound(ctrl._sol, (1, None)) is None
+
+
 def _counted(calls: list, cls: type, fn):
     calls.append(fn)
     return cls(fn)

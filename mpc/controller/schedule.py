@@ -48,7 +48,10 @@ def steps_of(counts: dict[int, int]) -> int:
     return sum(counts.values()) + sum(1 for ph in counts if ph in (2, 4))
 
 
-def moved(counts: dict[int, int], move: Move) -> dict[int, int]:
+def moved(counts: dict[int, int], move: Move | tuple[Move, Move]) -> dict[int, int]:
+    """``counts`` after ``move``, or after each of a compound move's two (MPCController._compound)."""
+    if isinstance(move[0], tuple):
+        return moved(moved(counts, move[0]), move[1])
     c = dict(counts)
     i, j = move
     if i is not None:
