@@ -560,26 +560,10 @@ def test_the_minimum_time_search_tries_no_schedule_shorter_than_the_references_t
     steps). Every step fewer from 99 misses a target (measured: two of the search's seven solves, 0.2-0.3 s each);
     the search no longer tries a schedule under the reference's T_min less REFERENCE_T_MARGIN_S, and ends at the
     same 99 steps. A perturbed start (init noise) is not the reference's: no bound there."""
-    from mpc.controller import mpc as mpc_module
-    from mpc.controller.mpc import REFERENCE_T_MARGIN_S, forget_plans
-    from wl_env.suites import load_suite
+    from mpc.controller.mpc import REFERENCE_T_MARGIN_S
 
-    sc = load_suite("test").of("tc")[2]
-    tried = []
-    move_solves = MPCController._move_solves
-
-    def logged(self, sol, moves, phase, x):
-        alts = move_solves(self, sol, moves, phase, x)
-        tried.extend((move, steps_of(alt.counts), alt.feasible) for move, alt in zip(moves, alts, strict=True))
-        return alts
-
-    monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
-    forget_plans()
-    ctrl = MPCController("tc", sc.params(), MPCConfig())
-    env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
-    obs, _ = env.reset(seed=0, options={"scenario": sc})
-    ctrl.reset(sc)
-    ctrl.act(obs)
+    ctrl, obs, solved = _tc_first_plan(monkeypatch, 2)
+    tried = [(move, steps_of(alt.counts), alt.feasible) for move, alt in solved]
     bound = math.ceil((ctrl.reference().T - REFERENCE_T_MARGIN_S) / ctrl.dt - 1e-6)
     assert bound == 99 and steps_of(ctrl._sol.counts) == 99 and ctrl._sol.feasible
     assert tried and all(n >= bound for _, n, _ in tried), tried  # (the old search solved two of 98 steps)
@@ -594,19 +578,30 @@ def test_a_tc_forward_step_fewer_is_also_solved_with_the_reversing_drive_giving_
     3's the reversing point by 1.6 cm); 92 steps {1: 32, 2: 9, 3: 34, 4: 15} hold every mark (bench_grid_min_time). A
     round of one step fewer from the forward leg now also solves it with a step moved from phase 1 to phase 2 beside
     it (a compound move, in the round's free fork), which gives those 92 steps."""
-    from mpc.controller import mpc as mpc_module
-    from mpc.controller.mpc import forget_plans
     from mpc.controller.schedule import moved
-    from wl_env.suites import load_suite
 
     assert moved({1: 3, 2: 2, 3: 4, 4: 1}, ((3, None), (1, 2))) == {1: 2, 2: 3, 3: 3, 4: 1}
-    sc = load_suite("test").of("tc")[17]
-    paid = []
+    ctrl, _, solved = _tc_first_plan(monkeypatch, 17)
+    paid = [move for move, alt in solved if isinstance(move[0], tuple) and alt.feasible]
+    assert paid == [((3, None), (1, 2))]
+    assert steps_of(ctrl._sol.counts) == 92 and ctrl._sol.feasible  # (93 before)
+    assert ctrl._compound(ctrl._sol, (1, 2)) is None and ctrl._compound(ctrl._sol, (1, None)) is None
+
+
+def _tc_first_plan(monkeypatch, index: int) -> tuple:
+    """The default MPC's first plan of TC ``test`` cycle ``index`` in a fresh controller: (controller, the first
+    observation, the search's (move, solve) pairs)."""
+    from mpc.controller import mpc as mpc_module
+    from mpc.controller.mpc import forget_plans
+    from wl_env.suites import load_suite
+
+    sc = load_suite("test").of("tc")[index]
+    solved = []
     move_solves = MPCController._move_solves
 
     def logged(self, sol, moves, phase, x):
         alts = move_solves(self, sol, moves, phase, x)
-        paid.extend(m for m, alt in zip(moves, alts, strict=True) if isinstance(m[0], tuple) and alt.feasible)
+        solved.extend(zip(moves, alts, strict=True))
         return alts
 
     monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
@@ -616,9 +611,7 @@ def test_a_tc_forward_step_fewer_is_also_solved_with_the_reversing_drive_giving_
     obs, _ = env.reset(seed=0, options={"scenario": sc})
     ctrl.reset(sc)
     ctrl.act(obs)
-    assert paid == [((3, None), (1, 2))]
-    assert steps_of(ctrl._sol.counts) == 92 and ctrl._sol.feasible  # (93 before)
-    assert ctrl._compound(ctrl._sol, (1, 2)) is None and ctrl._compound(ctrl._sol, (1, None)) is None
+    return ctrl, obs, solved
 
 
 def _counted(calls: list, cls: type, fn):

@@ -75,9 +75,9 @@ class ScheduleSearch:
 
     def reset(self, target_steps: int = 0) -> None:
         self.target_steps = target_steps
-        # The fewest steps a removal may leave (0: no bound): the first plan's search at minimum time sets it (bounded) from
-        # the continuous reference's T_min (mpc.MPCController._plan_cycle), where a shorter schedule cannot hold
-        # the targets, and a removal's solve only finds that out in 0.15-0.3 s.
+        # The fewest steps a removal may leave (0: no bound; set by bounded()): the first plan's search at minimum time
+        # takes it from the continuous reference's T_min (mpc.MPCController._plan_cycle), where a shorter schedule
+        # cannot hold the targets, and a removal's solve only finds that out in 0.15-0.3 s.
         self.min_steps = 0
         self.tried: dict[Move, tuple[int, int]] = {}  # move -> (step it last failed to pay, failures)
         self.last_failure = -10**9  # the step a schedule move last failed to pay
