@@ -1218,19 +1218,20 @@ class MPCController:
         self._take_first_plan(sol, "reference", key, ref)
 
     def _compound(self, sol: Solve, move: tuple) -> tuple | None:
-        """For a round of the first plan's search with one move, TC's step fewer from the forward leg, the second: that
-        step fewer with phase 1's step moved to phase 2 (the converter's stop a step longer, the drive a step shorter),
-        solved beside it in the round's time. A minimum-time schedule can be a step from the grid's best where neither
-        a step fewer nor a shift holds every mark alone: on TC `test` cycles 17 and 31 and a `train` draw, phase 3's step
-        fewer missed the reversing point by 1.6-5.1 cm and this pair held every mark. Measured on 110 cycles per braking
-        (stop 67, docs/benchmarks.md section 3): the only compound that paid; none of the others tried (a reversing
-        step fewer with phase 3's step to phase 4) nor any on service."""
+        """For a round of the first plan's search with one move, TC's step fewer from the forward leg, the second: phase
+        3's step fewer with phase 1's step moved to phase 2 (the converter's stop a step longer, the drive a step
+        shorter), solved beside it in the round's time. A minimum-time schedule can be a step from the grid's best where
+        neither a step fewer nor a shift holds every mark alone: on TC `test` cycles 12, 17 and 31 and a `train` draw,
+        phase 3's step fewer missed the reversing point by 1.6-5.1 cm and this pair held every mark. Measured on 110
+        cycles per braking (stop 67, docs/benchmarks.md section 3): the only compound that paid; none of the others
+        tried (phase 4's step fewer with it, a reversing step fewer with phase 3's step to phase 4) nor any on service."""
         if self.braking != "tc" or move[0] is None or move[1] is not None or LEG[move[0]] != "forward":
             return None
-        counts = moved(sol.counts, move)
-        if counts.get(1, 0) <= 1 or 2 not in counts or counts[2] >= self._nlp(sol.first_phase).slots_per_phase[2]:
+        counts = moved(sol.counts, (3, None))
+        if (counts.get(1, 0) <= 1 or counts.get(3, 0) < 1 or 2 not in counts
+                or counts[2] >= self._nlp(sol.first_phase).slots_per_phase[2]):
             return None
-        return move, (1, 2)
+        return (3, None), (1, 2)
 
     def _at_reference_start(self, x: np.ndarray, phase: int, k: int) -> bool:
         """Whether the first plan starts where the continuous reference does: the scenario's start state (to the
