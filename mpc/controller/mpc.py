@@ -1221,7 +1221,7 @@ class MPCController:
         """For a round of the first plan's search with one move, TC's step fewer from the forward leg, the second: phase
         3's step fewer with phase 1's step moved to phase 2 (the converter's stop a step longer, the drive a step
         shorter), solved beside it in the round's time. A minimum-time schedule can be a step from the grid's best where
-        neither a step fewer nor a shift holds every mark alone: on TC `test` cycles 12, 17 and 31 and a `train` draw,
+        neither a step fewer nor a shift holds every mark alone: on TC `test` cycles 12, 17 and 31 and two `train` draws,
         phase 3's step fewer missed the reversing point by 1.6-5.1 cm and this pair held every mark. Measured on 110
         cycles per braking (stop 67, docs/benchmarks.md section 3): the only compound that paid; none of the others
         tried (phase 4's step fewer with it, a reversing step fewer with phase 3's step to phase 4) nor any on service."""
