@@ -4,6 +4,7 @@ constraints, it adapts to a mismatched plant, and it survives solver failures.""
 import functools
 import json
 import math
+import types
 
 import casadi as ca
 import gymnasium as gym
@@ -589,6 +590,8 @@ def test_a_tc_forward_step_fewer_is_also_solved_as_phase_3s_with_the_reversing_d
     assert paid == [((3, None), (1, 2))]
     assert steps_of(ctrl._sol.counts) == steps and ctrl._sol.feasible  # (a step more before)
     assert ctrl._compound(ctrl._sol, (1, 2)) is None and ctrl._compound(ctrl._sol, (1, None)) is None
+    # (a plan from phase 4 on, a controller started there: no phase 1 to give a step)
+    assert ctrl._compound(types.SimpleNamespace(counts={4: 10}, first_phase=4), (4, None)) is None
 
 
 def _tc_first_plan(monkeypatch, index: int) -> tuple:

@@ -1227,9 +1227,10 @@ class MPCController:
         tried (phase 4's step fewer with it, a reversing step fewer with phase 3's step to phase 4) nor any on service."""
         if self.braking != "tc" or move[0] is None or move[1] is not None or LEG[move[0]] != "forward":
             return None
-        counts = moved(sol.counts, (3, None))
-        if (counts.get(1, 0) <= 1 or counts.get(3, 0) < 1 or 2 not in counts
-                or counts[2] >= self._nlp(sol.first_phase).slots_per_phase[2]):
+        # (phases 1 and 3 keep a step each; a plan from a later phase has no phase 1: phase 4's step fewer there
+        # was a KeyError)
+        c = sol.counts
+        if c.get(1, 0) <= 1 or c[3] <= 1 or c[2] >= self._nlp(sol.first_phase).slots_per_phase[2]:
             return None
         return (3, None), (1, 2)
 
