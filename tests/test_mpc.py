@@ -594,9 +594,23 @@ def test_a_tc_forward_step_fewer_is_also_solved_as_phase_3s_with_the_reversing_d
     assert ctrl._compound(types.SimpleNamespace(counts={4: 10}, first_phase=4), (4, None)) is None
 
 
-def _tc_first_plan(monkeypatch, index: int) -> tuple:
-    """The default MPC's first plan of TC ``test`` cycle ``index`` in a fresh controller: (controller, the first
-    observation, the search's (move, solve) pairs)."""
+def test_a_real_time_first_plan_that_misses_a_target_searches_in_the_first_step_until_it_holds_them(monkeypatch):
+    """TC ``test`` cycle 14 at minimum time in real time: the first solve, on the reference's schedule, missed the
+    reversing point by 6.7 cm, and real time left the whole search to the worker, whose moves added steps to the
+    forward leg: the cycle ended 6.7 cm off its mark (success False, 2 of 20 TC `test` cycles). The first step now
+    searches while the plan misses a target, and leaves the rest to the worker once it holds them."""
+    ctrl, _, solved = _tc_first_plan(monkeypatch, 14, MPCConfig(realtime=True))
+    try:
+        assert solved and ctrl._sol.feasible and ctrl.first_plan_from == "reference"
+        assert any(alt.feasible for _, alt in solved[-2:]) and not any(alt.feasible for _, alt in solved[:-2])
+        assert steps_of(ctrl._sol.counts) == 73  # (7.3 s, as before: a shift holds every mark)
+    finally:
+        ctrl.end_episode()
+
+
+def _tc_first_plan(monkeypatch, index: int, config: MPCConfig | None = None) -> tuple:
+    """The MPC's first plan (default: the default MPC's) of TC ``test`` cycle ``index`` in a fresh controller:
+    (controller, the first observation, the search's (move, solve) pairs)."""
     from mpc.controller import mpc as mpc_module
     from mpc.controller.mpc import forget_plans
     from wl_env.suites import load_suite
@@ -612,7 +626,7 @@ def _tc_first_plan(monkeypatch, index: int) -> tuple:
 
     monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
     forget_plans()
-    ctrl = MPCController("tc", sc.params(), MPCConfig())
+    ctrl = MPCController("tc", sc.params(), config or MPCConfig())
     env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
     obs, _ = env.reset(seed=0, options={"scenario": sc})
     ctrl.reset(sc)
