@@ -608,6 +608,19 @@ def test_a_real_time_first_plan_that_misses_a_target_searches_in_the_first_step_
         ctrl.end_episode()
 
 
+@pytest.mark.parametrize("config", [MPCConfig(deadline_ms=100.0), MPCConfig(time_budget=0.05)], ids=["deadline", "budget"])
+def test_the_first_plan_is_not_held_to_a_steps_deadline_or_time_budget(monkeypatch, config):
+    """TC ``test`` cycle 22 at minimum time with ``deadline_ms`` 100: every warm solve of the first plan's search
+    stopped at 0.1 s (IPOPT's Maximum_WallTime_Exceeded), so the first solve stood, 6.4 cm short of the reversing
+    point, and the cycle failed. The deadline and the time budget bound the steps after the first."""
+    ctrl, _, solved = _tc_first_plan(monkeypatch, 22, config)
+    try:
+        assert solved and all(alt.ok for _, alt in solved), [alt.status for _, alt in solved]
+        assert ctrl._sol.feasible and ctrl._sol.counts == {1: 39, 2: 10, 3: 22, 4: 15}  # (the default's plan)
+    finally:
+        ctrl.end_episode()
+
+
 def _tc_first_plan(monkeypatch, index: int, config: MPCConfig | None = None) -> tuple:
     """The MPC's first plan (default: the default MPC's) of TC ``test`` cycle ``index`` in a fresh controller:
     (controller, the first observation, the search's (move, solve) pairs)."""

@@ -208,6 +208,12 @@ def solve_until(deadline: float | None) -> contextlib.AbstractContextManager[Non
     return _per_call("deadline", deadline, None)
 
 
+def unbudgeted() -> contextlib.AbstractContextManager[None]:
+    """Warm IPOPT solves in this thread, within the block, run without the solver's ``time_budget`` (a first plan:
+    the budget and ``deadline_ms`` bound the steps after it)."""
+    return _per_call("unbudgeted", True, False)
+
+
 def far_starts(far: bool = True) -> contextlib.AbstractContextManager[None]:
     """Warm IPOPT solves in this thread, within the block, start far from their solution (``far``): pushed
     off their bounds by WARM_START_PUSH_FAR, not WARM_START_PUSH_NEAR."""
@@ -328,7 +334,8 @@ class IpoptSolver:
 
     def _function(self, nlp: GridNLP, warm: bool, far: bool = False) -> ca.Function:
         build = _ipopt_horizon if nlp.short else _ipopt
-        return build(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, self.time_budget if warm else None,
+        budget = self.time_budget if warm and not getattr(_CALL, "unbudgeted", False) else None
+        return build(nlp, warm, self.max_iter if warm else self.COLD_MAX_ITER, budget,
                      WARM_START_PUSH_FAR if far else WARM_START_PUSH_NEAR)
 
     def prepare(self, nlp: GridNLP) -> None:
