@@ -563,7 +563,7 @@ def test_the_minimum_time_search_tries_no_schedule_shorter_than_the_references_t
     same 99 steps. A perturbed start (init noise) is not the reference's: no bound there."""
     from mpc.controller.mpc import REFERENCE_T_MARGIN_S
 
-    ctrl, obs, solved = _tc_first_plan(monkeypatch, 2)
+    ctrl, obs, solved = _first_plan(monkeypatch, 2)
     tried = [(move, steps_of(alt.counts), alt.feasible) for move, alt in solved]
     bound = math.ceil((ctrl.reference().T - REFERENCE_T_MARGIN_S) / ctrl.dt - 1e-6)
     assert bound == 99 and steps_of(ctrl._sol.counts) == 99 and ctrl._sol.feasible
@@ -585,7 +585,7 @@ def test_a_tc_forward_step_fewer_is_also_solved_as_phase_3s_with_the_reversing_d
     from mpc.controller.schedule import moved
 
     assert moved({1: 3, 2: 2, 3: 4, 4: 1}, ((3, None), (1, 2))) == {1: 2, 2: 3, 3: 3, 4: 1}
-    ctrl, _, solved = _tc_first_plan(monkeypatch, index)
+    ctrl, _, solved = _first_plan(monkeypatch, index)
     paid = [move for move, alt in solved if isinstance(move[0], tuple) and alt.feasible]
     assert paid == [((3, None), (1, 2))]
     assert steps_of(ctrl._sol.counts) == steps and ctrl._sol.feasible  # (a step more before)
@@ -599,7 +599,7 @@ def test_a_real_time_first_plan_that_misses_a_target_searches_in_the_first_step_
     reversing point by 6.7 cm, and real time left the whole search to the worker, whose moves added steps to the
     forward leg: the cycle ended 6.7 cm off its mark (success False, 2 of 20 TC `test` cycles). The first step now
     searches while the plan misses a target, and leaves the rest to the worker once it holds them."""
-    ctrl, _, solved = _tc_first_plan(monkeypatch, 14, MPCConfig(realtime=True))
+    ctrl, _, solved = _first_plan(monkeypatch, 14, MPCConfig(realtime=True))
     try:
         assert solved and ctrl._sol.feasible and ctrl.first_plan_from == "reference"
         assert any(alt.feasible for _, alt in solved[-2:]) and not any(alt.feasible for _, alt in solved[:-2])
@@ -613,7 +613,7 @@ def test_the_first_plan_is_not_held_to_a_steps_deadline_or_time_budget(monkeypat
     """TC ``test`` cycle 22 at minimum time with ``deadline_ms`` 100: every warm solve of the first plan's search
     stopped at 0.1 s (IPOPT's Maximum_WallTime_Exceeded), so the first solve stood, 6.4 cm short of the reversing
     point, and the cycle failed. The deadline and the time budget bound the steps after the first."""
-    ctrl, _, solved = _tc_first_plan(monkeypatch, 22, config)
+    ctrl, _, solved = _first_plan(monkeypatch, 22, config)
     try:
         assert solved and all(alt.ok for _, alt in solved), [alt.status for _, alt in solved]
         assert ctrl._sol.feasible and ctrl._sol.counts == {1: 39, 2: 10, 3: 22, 4: 15}  # (the default's plan)
@@ -621,14 +621,28 @@ def test_the_first_plan_is_not_held_to_a_steps_deadline_or_time_budget(monkeypat
         ctrl.end_episode()
 
 
-def _tc_first_plan(monkeypatch, index: int, config: MPCConfig | None = None) -> tuple:
-    """The MPC's first plan (default: the default MPC's) of TC ``test`` cycle ``index`` in a fresh controller:
-    (controller, the first observation, the search's (move, solve) pairs)."""
+def test_a_target_time_first_plan_that_ends_late_is_planned_again_from_the_minimum_time_references_shares(monkeypatch):
+    """Service ``test`` cycle 21 at 9.0 s (1.02 T_min; minimum time takes 8.9 s): the fuel-optimal reference split the
+    90 steps {1: 21, 2: 23, 3: 21, 4: 23}, 2.9 cm short of the reversing point, and the search's single moves ended at
+    91 steps: the cycle took 9.1 s, late. A late first plan is now planned again from the minimum-time reference's
+    shares of the target's steps."""
+    cfg = MPCConfig(mode="target_time", target_time=9.0)
+    ctrl, _, _ = _first_plan(monkeypatch, 21, cfg, braking="service")
+    try:
+        assert ctrl._sol.feasible and steps_of(ctrl._sol.counts) == 90, ctrl._sol.counts
+        assert ctrl._plan_reference.objective == "time"  # (the retry's reference, for the re-plans' guesses)
+    finally:
+        ctrl.end_episode()
+
+
+def _first_plan(monkeypatch, index: int, config: MPCConfig | None = None, braking: str = "tc") -> tuple:
+    """The MPC's first plan (default: the default MPC's) of ``test`` cycle ``index`` of the braking in a fresh
+    controller: (controller, the first observation, the search's (move, solve) pairs)."""
     from mpc.controller import mpc as mpc_module
     from mpc.controller.mpc import forget_plans
     from wl_env.suites import load_suite
 
-    sc = load_suite("test").of("tc")[index]
+    sc = load_suite("test").of(braking)[index]
     solved = []
     move_solves = MPCController._move_solves
 
@@ -639,8 +653,8 @@ def _tc_first_plan(monkeypatch, index: int, config: MPCConfig | None = None) -> 
 
     monkeypatch.setattr(mpc_module.MPCController, "_move_solves", logged)
     forget_plans()
-    ctrl = MPCController("tc", sc.params(), config or MPCConfig())
-    env = gym.make("WheelLoader-v2", braking="tc", params=sc.params())
+    ctrl = MPCController(braking, sc.params(), config or MPCConfig())
+    env = gym.make("WheelLoader-v2", braking=braking, params=sc.params())
     obs, _ = env.reset(seed=0, options={"scenario": sc})
     ctrl.reset(sc)
     ctrl.act(obs)
