@@ -89,17 +89,19 @@ def within_13(scenario: Any) -> bool:
             and min(rollings) - 1e-9 <= scenario.rolling_resistance / DEFAULT_PARAMS.c_r <= max(rollings) + 1e-9)
 
 
-def run_one(braking: str, scenario: Any, mode: str, in_step: bool = False) -> dict[str, Any]:
+def run_one(braking: str, scenario: Any, mode: str, settings: dict[str, Any] | None = None,
+            mismatch: bool = False) -> dict[str, Any]:
+    """One cycle of the MPC in ``mode`` (--modes'), with ``settings`` (MPCConfig fields) over the default's, the plant
+    mismatched (``mismatch``, or the mode "mismatch"): its record."""
     from mpc.controller.mpc import MPCConfig, run_closed_loop
     from wl_env.suites.min_time import estimate_min_time
 
     ratio = target_ratio(mode)
     cfg = MPCConfig() if ratio is None else MPCConfig(mode="target_time",
                                                       target_time=round(ratio * estimate_min_time(scenario), 2))
-    if in_step:
-        cfg = dataclasses.replace(cfg, replan_lag_steps=None)
+    cfg = dataclasses.replace(cfg, **(settings or {}))
     try:
-        res = run_closed_loop(braking, cfg, scenario=scenario, score=False, mismatch=mode == "mismatch")
+        res = run_closed_loop(braking, cfg, scenario=scenario, score=False, mismatch=mismatch or mode == "mismatch")
     except Exception as exc:  # (a finding: the draw and the message go in the record)
         return {"mode": mode, "target_time": cfg.target_time, "error": f"{type(exc).__name__}: {exc}"}
     ep, later = res.episode, 1e3 * np.asarray(res.solve_times_s[1:])
@@ -123,25 +125,31 @@ def run(o: Options) -> dict[str, Any]:
         while o.within_13 and not within_13(sc):
             sc = draw(rng, o.braking)
         for mode in o.modes:
-            rec = {"draw": i, "scenario": sc.to_dict(), **run_one(o.braking, sc, mode, o.in_step)}
+            rec = {"draw": i, "scenario": sc.to_dict(),
+                   **run_one(o.braking, sc, mode, {"replan_lag_steps": None} if o.in_step else None)}
             records.append(rec)
             log.info("draw %d %s: %s", i, mode, rec.get("error") or
                      f"T {rec['T']:.1f} s, fuel {rec['fuel_g']:.2f} g, success {rec['success']}, violation "
                      f"{rec['max_violation']:.3g}, planning {rec['planning_s']:.2f} s, max step {rec['step_max_ms']:.0f} ms")
     summary = {}
     for mode in o.modes:
-        runs = [r for r in records if r["mode"] == mode]
-        done = [r for r in runs if "error" not in r]
-        summary[mode] = {
-            "runs": len(runs), "errors": len(runs) - len(done), "off_marks": sum(not r["success"] for r in done),
+        summary[mode] = summarize([r for r in records if r["mode"] == mode])
+        print(f"{o.braking} {mode}: {summary_line(summary[mode])}")
+    write_with_speed(o.out, o, summary, records)
+    return summary
+
+
+def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The counts of a group of run_one's records: those that raised, missed their marks, broke a limit or ended past
+    their target, the first steps' planning and the later steps over 100 ms."""
+    done = [r for r in runs if "error" not in r]
+    return {"runs": len(runs), "errors": len(runs) - len(done), "off_marks": sum(not r["success"] for r in done),
             "with_violation": sum(r["max_violation"] > 0 for r in done),
             "targets_missed": sum(r["target_met"] is False for r in done),
             "planning_median_s": statistics.median(r["planning_s"] for r in done) if done else None,
             "planning_max_s": max((r["planning_s"] for r in done), default=None),
+            "step_max_ms": max((r["step_max_ms"] for r in done), default=None),
             "steps_over_100ms": sum(r["steps_over_100ms"] for r in done)}
-        print(f"{o.braking} {mode}: {summary_line(summary[mode])}")
-    write_with_speed(o.out, o, summary, records)
-    return summary
 
 
 if __name__ == "__main__":

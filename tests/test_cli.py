@@ -319,7 +319,7 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     for argv in (["bench_agents.py", "--json", bad], ["bench_env.py", "--quick", "--json", bad],
                  ["bench_suite.py", "--out", bad], ["bench_corners.py", "--out", bad], ["bench_estimator.py", "--json", bad],
                  ["bench_planning.py", "--out", bad], ["bench_far_starts.py", "--out", bad],
-                 ["bench_mumps_ordering.py", "--out", bad], ["bench_draws.py", "--out", bad],
+                 ["bench_mumps_ordering.py", "--out", bad], ["bench_draws.py", "--out", bad], ["bench_modes.py", "--out", bad],
                  ["bench_replan_lag.py", "--out", bad]):
         r = subprocess.run([sys.executable, str(scripts / argv[0]), *argv[1:]], capture_output=True, text=True,
                            timeout=60)
@@ -367,6 +367,10 @@ def test_benchmarks_check_their_json_before_the_work(tmp_path):
     (["bench_draws.py", "--modes", "time", "0.9"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
     (["bench_draws.py", "--modes", "fast"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
     (["bench_draws.py", "--draws", "0"], "--draws must be an integer in [1, 1000]"),
+    (["bench_modes.py", "--settings", "fast"], "--settings must each be one of"),
+    (["bench_modes.py", "--settings", "deadline", "deadline"], "--settings names a setting twice"),
+    (["bench_modes.py", "--modes", "0.9"], "--modes must each be 'time', 'mismatch' or a target ratio in [1, 3]"),
+    (["bench_modes.py", "--first", "49", "--count", "2"], "the test suite has 50 tc cycles"),  # (an IndexError at the end)
     (["bench_replan_lag.py", "--lags", "5", "0"], "--lags must be distinct integers in [1, 100]"),
     (["bench_replan_lag.py", "--brakings", "moon"], "braking must be one of"),
     (["bench_plan_ceiling.py", "--scenarios", "50"], "--scenarios must be indices in [0, 49]"),  # (an IndexError)

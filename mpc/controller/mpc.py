@@ -278,8 +278,8 @@ class MPCConfig:
     # Real time (advanced step): each step applies the plan solved while the steps before it ran (from the
     # state measured then, the controls of the steps the solve takes fixed) and hands its own solve (and
     # any schedule move) to the solver's worker; the control is ready in about 0.1 ms. A plan older than
-    # the solves take is flagged in ``last_info``. The first plan skips the schedule search (the worker's
-    # moves do it during the cycle). Timing-dependent, as any real-time controller.
+    # the solves take is flagged in ``last_info``. The first plan searches its schedule only until it holds the
+    # targets (the worker's moves go on during the cycle). Timing-dependent, as any real-time controller.
     realtime: bool = False
     # Fraction of the deceleration limit a plan keeps free (it may use the margin at a price, see
     # grid.DECEL_MARGIN_WEIGHT). The plan is the plant's own step, so a nominal plant needs only the
