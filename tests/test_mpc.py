@@ -635,6 +635,31 @@ def test_a_target_time_first_plan_that_ends_late_is_planned_again_from_the_minim
         ctrl.end_episode()
 
 
+def test_a_horizon_that_misses_a_target_no_more_than_its_whole_rest_plan_is_applied_not_re_planned_in_the_step():
+    """A fresh TC mismatch draw (seed 6801, draw 7, within #13's ranges): the reversing point 3.6 cm off in every plan
+    from step 44 on, its five steps before the reversing point each solved the whole rest again in the step (60-134
+    ms, over the 100 ms interval twice) to the same 3.64 cm. A horizon that misses a target by no more than the
+    whole-rest plan it follows (within half the target's tolerance, that plan within three) is applied."""
+    from mpc.controller.mpc import NEAR_PLAN_MAX_MISS, NEAR_PLAN_MISS
+    from mpc.controller.solver import MISS_TOL_M, Solve
+
+    def solve(miss_m: float, excess: float = 0.0, ok: bool = True) -> Solve:
+        return Solve(counts={2: 3}, first_phase=2, ok=ok, status="", misses_m={"reversing point": miss_m,
+                     "end position": 0.0, "end height": 0.0}, excess=excess)
+
+    def near(horizon: Solve, plan: Solve | None) -> bool:
+        return MPCController._as_near_as_the_plan(types.SimpleNamespace(_sol=plan), horizon)
+
+    tol = NEAR_PLAN_MISS * MISS_TOL_M["reversing point"]
+    assert near(solve(-0.0381), solve(-0.0364)) and near(solve(0.0364 + 0.99 * tol), solve(-0.0364))
+    assert not near(solve(-0.0364 - 1.01 * tol), solve(-0.0364))  # (farther off than the plan found possible)
+    assert not near(solve(-0.03), solve(0.0))  # (a plan on its marks: the step re-plans, as before)
+    far = 1.01 * NEAR_PLAN_MAX_MISS * MISS_TOL_M["reversing point"]  # (service corner 7 at 1.15 T_min: a re-plan 16 cm
+    assert not near(solve(-far), solve(-far))                        # short, which the step's whole-rest solve mended)
+    assert not near(solve(-0.0364, excess=0.01), solve(-0.0364))  # (the deceleration limit broken)
+    assert not near(solve(-0.0364), solve(-0.0364, ok=False)) and not near(solve(-0.0364), None)
+
+
 def _first_plan(monkeypatch, index: int, config: MPCConfig | None = None, braking: str = "tc") -> tuple:
     """The MPC's first plan (default: the default MPC's) of ``test`` cycle ``index`` of the braking in a fresh
     controller: (controller, the first observation, the search's (move, solve) pairs)."""
