@@ -1157,7 +1157,8 @@ class MPCController:
     def _plan_cycle(self, x: np.ndarray, phase: int, k: int) -> None:
         """The first step: the schedule from the continuous optimum, then improved by single-step moves, two a
         round (the predicted best first; it ends after SEARCH_FAILURES moves in a row that did not pay; a
-        real-time controller leaves them to its worker during the cycle once the plan holds its targets). In real time, the same cycle planned
+        real-time controller leaves them to its worker during the cycle once the plan holds its targets; a
+        target-time plan still late then is planned again, :meth:`_on_time_retry`). In real time, the same cycle planned
         before in this process (model, mode, start state and step) starts from that first plan, its schedule
         and multipliers: the plan a fresh process would make, to the solver's tolerance, in a tenth of the time.
         Only the same: another start would skip the search a fresh process makes. The synchronous controller plans
@@ -1258,15 +1259,16 @@ class MPCController:
         if n < len(durations) or n * self.dt < sum(durations.values()):  # (the continuous T_min is not within reach)
             return sol, ref
         counts = apportion(durations, n, self.dt)
-        slots = self._slots
+        # (the later phases' NLPs, for the re-plans, are built for the layout kept: not in the retry's search)
+        slots, later, self._later_nlps = self._slots, self._later_nlps, []
         self._slots = self._layout(key, {q: c + self.config.spare_steps for q, c in counts.items()})
         self.solver.prepare(self._nlp(phase))
         retry = self._solve(phase, counts, x, warm=None, guess=self._guess(phase, counts, fast, x))
         retry = self._search(retry, phase, k, x)
         if self.schedule.cost(retry, k) < self.schedule.cost(sol, k):
-            self._later_nlps = list(range(phase + 1, 5))  # (this layout's, for the re-plans)
+            self._later_nlps = list(range(phase + 1, 5))
             return retry, fast
-        self._slots = slots
+        self._slots, self._later_nlps = slots, later
         return sol, ref
 
     def _compound(self, sol: Solve, move: tuple) -> tuple | None:
