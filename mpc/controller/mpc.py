@@ -1247,11 +1247,10 @@ class MPCController:
         service `test` 21 at 9.0 s (1.02 T_min) split 90 steps {1: 21, 2: 23, 3: 21, 4: 23} from it, 2.9 cm short
         of the reversing point, and the search's single moves ended at 91 steps (late), where the minimum-time
         plan takes 89 {1: 30, 2: 14, 3: 30, 4: 13}."""
-        from mpc.benchmark.ocp import OCPError, OCPSettings, solve_ocp
+        from mpc.benchmark.ocp import OCPError
 
         try:
-            fast = solve_ocp(self.braking, "time", starts=MIN_TIME_REFERENCE_STARTS, params=self.params, verify=False,
-                             settings=OCPSettings(intervals=REFERENCE_MESH, smoothing=(0.0,)))
+            fast = self._min_time_reference()
         except OCPError:
             return sol, ref
         durations = {q: d for q, d in zip(range(1, 5), fast.phase_durations, strict=True) if q >= phase}
@@ -1738,7 +1737,7 @@ class MPCController:
             # warm-starts one in 0.13-0.31 s (none failed; -0.1..+1.3 % against the best of three starts). Before stop 52
             # the benchmark's T_min solve followed, 5-16 s.
             try:
-                quick = solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
+                quick = self._min_time_reference()
             except OCPError:
                 quick = None
             if quick is not None and cfg.target_time >= quick.T:
@@ -1758,8 +1757,19 @@ class MPCController:
                     f"{t_min.T:.3f} s (MPCConfig.target_time must be at least that)") from None
             return t_min  # feasible, but not on the control grid: the cycle ends a step late
         if cfg.fastest:
-            return solve_ocp(b, "time", starts=MIN_TIME_REFERENCE_STARTS, **opts)
+            return self._min_time_reference()
         return solve_ocp(b, "weighted", w_fuel=cfg.w_fuel, **opts)
+
+    def _min_time_reference(self):
+        """The coarse-mesh minimum-time reference of this model, kept with minimum time's references: minimum time's own,
+        the start of a target's near T_min, and a late target-time plan's shares (:meth:`_on_time_retry`), solved once."""
+        from mpc.benchmark.ocp import OCPSettings, solve_ocp
+
+        key = (self.braking, self.params.fingerprint(), "time", None, None, self.dt, False)  # (reference()'s, mode "time")
+        if key not in _REFERENCES:
+            _REFERENCES[key] = solve_ocp(self.braking, "time", starts=MIN_TIME_REFERENCE_STARTS, params=self.params,
+                                         verify=False, settings=OCPSettings(intervals=REFERENCE_MESH, smoothing=(0.0,)))
+        return _REFERENCES[key]
 
     def _fuel_optimum_by(self, T: float, opts: dict[str, Any]) -> Any:
         """The fuel-optimal cycle (free time) where it finishes by the target T (s), else None. Solved only for a
